@@ -1,0 +1,20 @@
+#pragma once
+// Image files <-> float tensors. Decoding/encoding uses stb (no OpenCV imgcodecs needed).
+// Images in memory are HxWx3 float32 CPU tensors with values in [0, 1].
+#include <filesystem>
+
+#include <ATen/Tensor.h>
+#include "absl/status/statusor.h"
+
+namespace gaps {
+
+// PNG or JPEG (8 or 16 bit, grey/RGB/RGBA; alpha is dropped). Errors name the file.
+absl::StatusOr<at::Tensor> read_image(const std::filesystem::path& path);
+// Width and height from the file header without decoding the pixels.
+absl::StatusOr<std::pair<int, int>> read_image_size(const std::filesystem::path& path);
+// 8-bit PNG; values are clamped to [0, 1]. Accepts HxWx3 or HxWx1 (grey).
+absl::Status write_png(const std::filesystem::path& path, const at::Tensor& image);
+// Area-averaging resize (exact box filter for integer factors), as used to build images_N folders.
+at::Tensor resize_image(const at::Tensor& image, int width, int height);
+
+}  // namespace gaps

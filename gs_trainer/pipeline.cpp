@@ -1,0 +1,140 @@
+#include "gs_trainer/pipeline.h"
+
+#include <chrono>
+#include <fstream>
+
+#include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
+#include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
+#include "gs_trainer/image_io.h"
+#include "gs_trainer/lpips.h"
+#include "gs_trainer/ply.h"
+#include "gs_trainer/render.h"
+#include "gs_trainer/status_macros.h"
+
+namespace gaps {
+namespace {
+
+absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const std::vector<int>& indices,
+                                                     const at::Device& device) {
+  std::vector<TrainingView> views;
+  for (int i : indices) {
+    GAPS_ASSIGN_OR_RETURN(at::Tensor image, load_camera_image(scene.cameras[i]));
+    views.push_back({scene.cameras[i], image.to(device)});
+  }
+  return views;
+}
+
+absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
+                                          const std::vector<TrainingView>& train,
+                                          const std::function<void(const std::string&)>& log) {
+  if (o.init == "ply") {
+    if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
+    return read_point_cloud_ply(o.init_ply);
+  }
+  if (o.init == "scene") {
+    if (!scene.points) return absl::FailedPreconditionError(absl::StrCat(scene.root.string(), " ships no points"));
+    log("warning: initialising from the scene's own points; they may have been reconstructed with the test views");
+    return *scene.points;
+  }
+  if (o.init != "random")
+    return absl::InvalidArgumentError(absl::StrCat("unknown --init '", o.init, "' (random, scene or ply)"));
+  std::vector<Camera> cams;
+  double far = 0;
+  for (const auto& v : train) {
+    cams.push_back(v.camera);
+    far = std::max(far, v.camera.far);
+  }
+  if (far <= 0) far = 2.0 * cameras_extent(cams) + 1.0;
+  return random_points_in_views(cams, o.random_points, far, o.config.seed);
+}
+
+absl::Status write_metrics(const RunOptions& o, const RunResult& r) {
+  nlohmann::json j;
+  j["psnr"] = r.metrics.psnr;
+  j["ssim"] = r.metrics.ssim;
+  j["lpips"] = r.metrics.lpips ? nlohmann::json(*r.metrics.lpips) : nlohmann::json(nullptr);
+  j["num_gaussians"] = r.num_gaussians;
+  j["train_seconds"] = r.train_seconds;
+  j["iterations"] = o.config.iterations;
+  j["views"] = o.views;
+  j["resolution"] = o.resolution;
+  j["device"] = o.config.device;
+  j["seed"] = o.config.seed;
+  j["init"] = o.init;
+  j["scene"] = o.scene_dir.string();
+  j["config"] = o.config;
+  for (const auto& v : r.per_view) {
+    j["per_view"].push_back({{"psnr", v.psnr}, {"ssim", v.ssim},
+                             {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
+  }
+  std::ofstream f(o.out_dir / "metrics.json");
+  f << j.dump(2) << "\n";
+  if (!f) return absl::DataLossError(absl::StrCat((o.out_dir / "metrics.json").string(), ": write failed"));
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& model,
+                                                         const std::vector<TrainingView>& views,
+                                                         double background, const Lpips* lpips,
+                                                         const std::filesystem::path& render_dir) {
+  at::AutoGradMode no_grad(false);
+  std::vector<ImageMetrics> out;
+  RenderOptions options;
+  options.background = at::full({3}, background, model.means.options());
+  for (const auto& v : views) {
+    const at::Tensor rgb = render(model, v.camera, options).rgb.clamp(0.0, 1.0);
+    out.push_back(evaluate_image(rgb, v.image, lpips));
+    if (!render_dir.empty()) {
+      std::filesystem::create_directories(render_dir);
+      GAPS_RETURN_IF_ERROR(write_png(render_dir / (std::filesystem::path(v.camera.name).stem().string() + ".png"),
+                                     rgb.to(at::kCPU)));
+    }
+  }
+  return out;
+}
+
+absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallback& on_progress,
+                                       const std::function<void(const std::string&)>& log) {
+  const at::Device device(o.config.device);
+  if (device.is_cuda() && !at::hasCUDA())
+    return absl::FailedPreconditionError("--device cuda requested but no CUDA device is available");
+  std::optional<Lpips> lpips;
+  if (!o.lpips_backbone.empty()) {
+    GAPS_ASSIGN_OR_RETURN(lpips, Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string()));
+    lpips->to(device);
+  }
+  SceneLoadOptions load;
+  load.resolution = o.resolution;
+  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(o.scene_dir, load));
+  GAPS_ASSIGN_OR_RETURN(Split split, benchmark_split(static_cast<int>(scene.cameras.size()), o.views));
+  RunResult result;
+  result.summary = describe(scene, split);
+  log(result.summary);
+  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
+  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> test, load_views(scene, split.test, device));
+  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
+  log(absl::StrCat("initialisation: ", o.init, ", ", points.xyz.size(0), " points"));
+
+  std::filesystem::create_directories(o.out_dir);
+  Trainer trainer(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config);
+  const auto start = std::chrono::steady_clock::now();
+  const absl::Status trained = trainer.run(on_progress);
+  result.train_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  // Whatever happened, keep what was computed.
+  GAPS_RETURN_IF_ERROR(save_gaussians_ply(trainer.model(), o.out_dir / "point_cloud.ply"));
+  GAPS_RETURN_IF_ERROR(trained);
+
+  GAPS_ASSIGN_OR_RETURN(result.per_view,
+                        evaluate_views(trainer.model(), test, o.config.background, lpips ? &*lpips : nullptr,
+                                       o.save_renders ? o.out_dir / "renders" : std::filesystem::path()));
+  GAPS_ASSIGN_OR_RETURN(result.metrics, average_metrics(result.per_view));
+  result.num_gaussians = trainer.model().size();
+  GAPS_RETURN_IF_ERROR(write_metrics(o, result));
+  return result;
+}
+
+}  // namespace gaps

@@ -1,0 +1,51 @@
+#pragma once
+// A whole run: load a scene, split it by the protocol, initialise, train, evaluate on the test views and
+// write the outputs (PLY, renders, metrics.json). `gaps train` and the end-to-end tests call this.
+#include <filesystem>
+#include <functional>
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "gs_trainer/metrics.h"
+#include "gs_trainer/scene.h"
+#include "gs_trainer/trainer.h"
+
+namespace gaps {
+
+struct RunOptions {
+  std::filesystem::path scene_dir;
+  int views = 3;        // training views (<= 0: every non-test view)
+  int resolution = 8;   // downscale factor
+  std::filesystem::path out_dir;
+  // "random" (uniform in the training cameras' frusta), "scene" (points shipped with the scene, e.g. a
+  // COLMAP model: only honest when they were reconstructed without the test views) or "ply" (init_ply).
+  std::string init = "random";
+  std::filesystem::path init_ply;
+  int64_t random_points = 20000;
+  // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
+  std::filesystem::path lpips_backbone;
+  std::filesystem::path lpips_weights;  // LPIPS v0.1 linear layers (vgg.pth)
+  bool save_renders = true;
+  TrainConfig config;
+};
+
+struct RunResult {
+  ImageMetrics metrics;
+  std::vector<ImageMetrics> per_view;
+  int64_t num_gaussians = 0;
+  double train_seconds = 0.0;
+  std::string summary;  // what was loaded
+};
+
+using ProgressCallback = std::function<void(const TrainProgress&)>;
+
+absl::StatusOr<RunResult> run_pipeline(const RunOptions& options, const ProgressCallback& on_progress,
+                                       const std::function<void(const std::string&)>& log);
+
+// Evaluates a model on cameras with known images; writes renders to `render_dir` when not empty.
+absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& model,
+                                                         const std::vector<TrainingView>& views,
+                                                         double background, const class Lpips* lpips,
+                                                         const std::filesystem::path& render_dir);
+
+}  // namespace gaps

@@ -1,0 +1,264 @@
+#pragma once
+// Per-Gaussian and per-pixel maths of the rasterizer, written once for the CPU and CUDA paths so both
+// implement the same contract. Scalar type T is float for training and double for gradient checks.
+//
+// Conventions: pixel (i, j) has its centre at (i + 0.5, j + 0.5); a Gaussian's 2D covariance is dilated
+// by kLowPass on the diagonal (the EWA low-pass filter of 3DGS); conics are the inverse 2D covariance
+// stored as (a, b, c) = [[a, b], [b, c]]; quaternions are (w, x, y, z), normalised inside.
+#include <cmath>
+
+#if defined(__CUDACC__)
+#define GAPS_HD __host__ __device__ __forceinline__
+#else
+#define GAPS_HD inline
+#endif
+
+namespace gaps::raster {
+
+constexpr int kTileSize = 16;
+constexpr double kLowPass = 0.3;
+constexpr double kNearPlane = 0.2;        // Gaussians closer than this (camera z) are culled
+constexpr double kMaxAlpha = 0.99;        // per-Gaussian alpha clamp
+constexpr double kMinAlpha = 1.0 / 255.0; // contributions below this are skipped
+constexpr double kMinTransmittance = 1e-4; // compositing stops before T falls below this
+constexpr double kFrustumSlack = 0.3;      // projected means are clamped this far (in image widths) outside
+
+template <typename T> struct Vec2 { T x, y; };
+template <typename T> struct Vec3 { T x, y, z; };
+template <typename T> struct Mat3 {
+  T m[3][3];
+  GAPS_HD T operator()(int r, int c) const { return m[r][c]; }
+  GAPS_HD T& operator()(int r, int c) { return m[r][c]; }
+};
+// Symmetric 2x2 as (a, b, c) = [[a, b], [b, c]].
+template <typename T> struct Sym2 { T a, b, c; };
+
+template <typename T> GAPS_HD Mat3<T> matmul(const Mat3<T>& A, const Mat3<T>& B) {
+  Mat3<T> C;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) C(i, j) = A(i, 0) * B(0, j) + A(i, 1) * B(1, j) + A(i, 2) * B(2, j);
+  return C;
+}
+template <typename T> GAPS_HD Mat3<T> transpose(const Mat3<T>& A) {
+  Mat3<T> C;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) C(i, j) = A(j, i);
+  return C;
+}
+
+template <typename T> GAPS_HD Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
+  Mat3<T> R;
+  R(0, 0) = 1 - 2 * (y * y + z * z); R(0, 1) = 2 * (x * y - w * z);     R(0, 2) = 2 * (x * z + w * y);
+  R(1, 0) = 2 * (x * y + w * z);     R(1, 1) = 1 - 2 * (x * x + z * z); R(1, 2) = 2 * (y * z - w * x);
+  R(2, 0) = 2 * (x * z - w * y);     R(2, 1) = 2 * (y * z + w * x);     R(2, 2) = 1 - 2 * (x * x + y * y);
+  return R;
+}
+
+// dL/d(w,x,y,z) of a *unit* quaternion from dL/dR.
+template <typename T> GAPS_HD void quat_to_rotmat_vjp(T w, T x, T y, T z, const Mat3<T>& G, T out[4]) {
+  out[0] = 2 * (-z * G(0, 1) + y * G(0, 2) + z * G(1, 0) - x * G(1, 2) - y * G(2, 0) + x * G(2, 1));
+  out[1] = 2 * (y * G(0, 1) + z * G(0, 2) + y * G(1, 0) - 2 * x * G(1, 1) - w * G(1, 2) + z * G(2, 0) +
+                w * G(2, 1) - 2 * x * G(2, 2));
+  out[2] = 2 * (-2 * y * G(0, 0) + x * G(0, 1) + w * G(0, 2) + x * G(1, 0) + z * G(1, 2) - w * G(2, 0) +
+                z * G(2, 1) - 2 * y * G(2, 2));
+  out[3] = 2 * (-2 * z * G(0, 0) - w * G(0, 1) + x * G(0, 2) + w * G(1, 0) - 2 * z * G(1, 1) +
+                y * G(1, 2) + x * G(2, 0) + y * G(2, 1));
+}
+
+struct Intrinsics {
+  double fx, fy, cx, cy;
+  int width, height;
+};
+
+// Everything the forward projection of one Gaussian produces.
+template <typename T> struct Projected {
+  bool visible;
+  Vec2<T> mean2d;
+  Sym2<T> conic;
+  T depth;   // camera-space z, the sort key
+  int radius;
+};
+
+// The state the backward pass recomputes instead of storing.
+template <typename T> struct ProjectionCache {
+  Vec3<T> p;      // camera-space mean
+  Vec2<T> u;      // clamped x/z, y/z used by the Jacobian
+  bool clamped_x, clamped_y;
+  Mat3<T> R;      // rotation of the (normalised) quaternion
+  Vec3<T> s;      // scales
+  T qn[4];        // normalised quaternion
+  T qnorm;
+  Mat3<T> Sigma;  // 3D covariance
+  T J[2][3];
+  T Tm[2][3];     // J * W
+  Sym2<T> cov2d;  // dilated
+};
+
+template <typename T>
+GAPS_HD bool project_one(const T mean[3], const T quat[4], const T scale[3], const Mat3<T>& W, const T tvec[3],
+                         const Intrinsics& K, ProjectionCache<T>& c) {
+  c.p.x = W(0, 0) * mean[0] + W(0, 1) * mean[1] + W(0, 2) * mean[2] + tvec[0];
+  c.p.y = W(1, 0) * mean[0] + W(1, 1) * mean[1] + W(1, 2) * mean[2] + tvec[1];
+  c.p.z = W(2, 0) * mean[0] + W(2, 1) * mean[1] + W(2, 2) * mean[2] + tvec[2];
+  if (!(c.p.z > T(kNearPlane))) return false;
+  c.qnorm = sqrt(quat[0] * quat[0] + quat[1] * quat[1] + quat[2] * quat[2] + quat[3] * quat[3]);
+  if (!(c.qnorm > T(0))) return false;
+  for (int k = 0; k < 4; ++k) c.qn[k] = quat[k] / c.qnorm;
+  c.R = quat_to_rotmat(c.qn[0], c.qn[1], c.qn[2], c.qn[3]);
+  c.s = {scale[0], scale[1], scale[2]};
+  Mat3<T> M;
+  for (int i = 0; i < 3; ++i) {
+    M(i, 0) = c.R(i, 0) * c.s.x;
+    M(i, 1) = c.R(i, 1) * c.s.y;
+    M(i, 2) = c.R(i, 2) * c.s.z;
+  }
+  c.Sigma = matmul(M, transpose(M));
+
+  // The Jacobian is evaluated at a mean clamped slightly outside the image, as in 3DGS, so that
+  // Gaussians far off-screen do not get huge, unstable footprints.
+  const T lim_x_pos = T((K.width - K.cx) / K.fx + kFrustumSlack * K.width / K.fx);
+  const T lim_x_neg = T(K.cx / K.fx + kFrustumSlack * K.width / K.fx);
+  const T lim_y_pos = T((K.height - K.cy) / K.fy + kFrustumSlack * K.height / K.fy);
+  const T lim_y_neg = T(K.cy / K.fy + kFrustumSlack * K.height / K.fy);
+  const T ux = c.p.x / c.p.z, uy = c.p.y / c.p.z;
+  c.clamped_x = ux > lim_x_pos || ux < -lim_x_neg;
+  c.clamped_y = uy > lim_y_pos || uy < -lim_y_neg;
+  c.u.x = ux > lim_x_pos ? lim_x_pos : (ux < -lim_x_neg ? -lim_x_neg : ux);
+  c.u.y = uy > lim_y_pos ? lim_y_pos : (uy < -lim_y_neg ? -lim_y_neg : uy);
+  const T fx = T(K.fx), fy = T(K.fy), z = c.p.z;
+  c.J[0][0] = fx / z; c.J[0][1] = 0; c.J[0][2] = -fx * c.u.x / z;
+  c.J[1][0] = 0; c.J[1][1] = fy / z; c.J[1][2] = -fy * c.u.y / z;
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j) c.Tm[i][j] = c.J[i][0] * W(0, j) + c.J[i][1] * W(1, j) + c.J[i][2] * W(2, j);
+  T TS[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j)
+      TS[i][j] = c.Tm[i][0] * c.Sigma(0, j) + c.Tm[i][1] * c.Sigma(1, j) + c.Tm[i][2] * c.Sigma(2, j);
+  c.cov2d.a = TS[0][0] * c.Tm[0][0] + TS[0][1] * c.Tm[0][1] + TS[0][2] * c.Tm[0][2] + T(kLowPass);
+  c.cov2d.b = TS[0][0] * c.Tm[1][0] + TS[0][1] * c.Tm[1][1] + TS[0][2] * c.Tm[1][2];
+  c.cov2d.c = TS[1][0] * c.Tm[1][0] + TS[1][1] * c.Tm[1][1] + TS[1][2] * c.Tm[1][2] + T(kLowPass);
+  return true;
+}
+
+template <typename T>
+GAPS_HD Projected<T> finish_projection(const ProjectionCache<T>& c, const Intrinsics& K) {
+  Projected<T> out{};
+  out.visible = false;
+  const T det = c.cov2d.a * c.cov2d.c - c.cov2d.b * c.cov2d.b;
+  if (!(det > T(0))) return out;
+  out.conic = {c.cov2d.c / det, -c.cov2d.b / det, c.cov2d.a / det};
+  const T mid = T(0.5) * (c.cov2d.a + c.cov2d.c);
+  const T disc = mid * mid - det;
+  const T lambda1 = mid + sqrt(disc > T(0.1) ? disc : T(0.1));
+  out.radius = static_cast<int>(ceil(3 * sqrt(lambda1)));
+  out.mean2d = {T(K.fx) * c.p.x / c.p.z + T(K.cx), T(K.fy) * c.p.y / c.p.z + T(K.cy)};
+  out.depth = c.p.z;
+  // Cull footprints that touch no tile of the image.
+  const T r = T(out.radius);
+  if (out.mean2d.x + r <= 0 || out.mean2d.x - r >= K.width || out.mean2d.y + r <= 0 ||
+      out.mean2d.y - r >= K.height)
+    return out;
+  out.visible = true;
+  return out;
+}
+
+// Backward of the projection: from dL/d(mean2d, conic) to dL/d(mean, quat, scale).
+template <typename T>
+GAPS_HD void project_one_vjp(const ProjectionCache<T>& c, const Mat3<T>& W, const Intrinsics& K,
+                             const Vec2<T>& g_mean2d, const Sym2<T>& g_conic, T g_mean[3], T g_quat[4],
+                             T g_scale[3]) {
+  const T A = c.cov2d.a, B = c.cov2d.b, C = c.cov2d.c;
+  const T det = A * C - B * B, det2 = det * det;
+  // conic = (C, -B, A) / det
+  const T gA = g_conic.a * (-C * C / det2) + g_conic.b * (B * C / det2) + g_conic.c * (-B * B / det2);
+  const T gB = g_conic.a * (2 * B * C / det2) + g_conic.b * (-(det + 2 * B * B) / det2) +
+               g_conic.c * (2 * A * B / det2);
+  const T gC = g_conic.a * (-B * B / det2) + g_conic.b * (A * B / det2) + g_conic.c * (-A * A / det2);
+  // G2 is the symmetric matrix with tr(G2 dSigma2) = dL: the off-diagonal B appears twice.
+  const T G2[2][2] = {{gA, gB / 2}, {gB / 2, gC}};
+
+  // Sigma2 = Tm Sigma Tm^T:  dL/dSigma = Tm^T G2 Tm;  dL/dTm = 2 G2 Tm Sigma.
+  T G2T[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j) G2T[i][j] = G2[i][0] * c.Tm[0][j] + G2[i][1] * c.Tm[1][j];
+  Mat3<T> gSigma;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) gSigma(i, j) = c.Tm[0][i] * G2T[0][j] + c.Tm[1][i] * G2T[1][j];
+  T gTm[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j)
+      gTm[i][j] = 2 * (G2T[i][0] * c.Sigma(0, j) + G2T[i][1] * c.Sigma(1, j) + G2T[i][2] * c.Sigma(2, j));
+  // Tm = J W:  dL/dJ = dL/dTm W^T.
+  T gJ[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int j = 0; j < 3; ++j) gJ[i][j] = gTm[i][0] * W(j, 0) + gTm[i][1] * W(j, 1) + gTm[i][2] * W(j, 2);
+
+  // J depends on z and on the clamped ratios u = x/z, y/z.
+  const T fx = T(K.fx), fy = T(K.fy), z = c.p.z, z2 = z * z;
+  T gp[3] = {0, 0, 0};
+  gp[2] += -fx / z2 * gJ[0][0] - fy / z2 * gJ[1][1] + fx * c.u.x / z2 * gJ[0][2] + fy * c.u.y / z2 * gJ[1][2];
+  const T gux = -fx / z * gJ[0][2], guy = -fy / z * gJ[1][2];
+  if (!c.clamped_x) { gp[0] += gux / z; gp[2] += -gux * c.p.x / z2; }
+  if (!c.clamped_y) { gp[1] += guy / z; gp[2] += -guy * c.p.y / z2; }
+  // mean2d = f * p.xy / z + c.
+  gp[0] += g_mean2d.x * fx / z;
+  gp[1] += g_mean2d.y * fy / z;
+  gp[2] += -g_mean2d.x * fx * c.p.x / z2 - g_mean2d.y * fy * c.p.y / z2;
+  for (int j = 0; j < 3; ++j) g_mean[j] = W(0, j) * gp[0] + W(1, j) * gp[1] + W(2, j) * gp[2];
+
+  // Sigma = M M^T with M = R diag(s):  dL/dM = 2 gSigma M  (gSigma symmetric).
+  Mat3<T> M, gM, gR;
+  for (int i = 0; i < 3; ++i) {
+    M(i, 0) = c.R(i, 0) * c.s.x;
+    M(i, 1) = c.R(i, 1) * c.s.y;
+    M(i, 2) = c.R(i, 2) * c.s.z;
+  }
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      gM(i, j) = 2 * (gSigma(i, 0) * M(0, j) + gSigma(i, 1) * M(1, j) + gSigma(i, 2) * M(2, j));
+  const T s[3] = {c.s.x, c.s.y, c.s.z};
+  for (int j = 0; j < 3; ++j) {
+    g_scale[j] = c.R(0, j) * gM(0, j) + c.R(1, j) * gM(1, j) + c.R(2, j) * gM(2, j);
+    for (int i = 0; i < 3; ++i) gR(i, j) = gM(i, j) * s[j];
+  }
+  T g_qn[4];
+  quat_to_rotmat_vjp(c.qn[0], c.qn[1], c.qn[2], c.qn[3], gR, g_qn);
+  // Through the normalisation q / |q|.
+  const T dot = g_qn[0] * c.qn[0] + g_qn[1] * c.qn[1] + g_qn[2] * c.qn[2] + g_qn[3] * c.qn[3];
+  for (int k = 0; k < 4; ++k) g_quat[k] = (g_qn[k] - c.qn[k] * dot) / c.qnorm;
+}
+
+// Opacity-weighted Gaussian value at a pixel centre; returns false when the Gaussian is skipped there.
+template <typename T>
+GAPS_HD bool eval_alpha(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
+                        T& gauss, T& dx, T& dy) {
+  dx = mean2d.x - px;
+  dy = mean2d.y - py;
+  const T power = -T(0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  if (power > 0) return false;
+  gauss = exp(power);
+  const T a = opacity * gauss;
+  alpha = a < T(kMaxAlpha) ? a : T(kMaxAlpha);
+  return alpha >= T(kMinAlpha);
+}
+
+// Backward of eval_alpha: from dL/dalpha to dL/d(mean2d, conic, opacity). A clamped alpha has no gradient.
+template <typename T>
+GAPS_HD void eval_alpha_vjp(const Sym2<T>& conic, T opacity, T gauss, T dx, T dy, T g_alpha, Vec2<T>& g_mean2d,
+                            Sym2<T>& g_conic, T& g_opacity) {
+  if (opacity * gauss >= T(kMaxAlpha)) {
+    g_mean2d = {0, 0};
+    g_conic = {0, 0, 0};
+    g_opacity = 0;
+    return;
+  }
+  g_opacity = gauss * g_alpha;
+  const T g_power = opacity * gauss * g_alpha;
+  g_mean2d.x = -g_power * (conic.a * dx + conic.b * dy);
+  g_mean2d.y = -g_power * (conic.b * dx + conic.c * dy);
+  g_conic.a = -T(0.5) * dx * dx * g_power;
+  g_conic.b = -dx * dy * g_power;
+  g_conic.c = -T(0.5) * dy * dy * g_power;
+}
+
+}  // namespace gaps::raster

@@ -1,0 +1,38 @@
+#include "gs_trainer/render.h"
+
+#include <ATen/ATen.h>
+
+#include "gs_trainer/rasterizer.h"
+#include "gs_trainer/spherical_harmonics.h"
+
+namespace gaps {
+
+RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options) {
+  const auto opts = model.means.options();
+  const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
+  auto proj = project_gaussians(model.means, model.quats, model.scales(), camera.viewmat().to(opts), K);
+
+  const Eigen::Vector3d c = camera.center();
+  const at::Tensor origin = at::tensor({c.x(), c.y(), c.z()}, opts.dtype(at::kDouble)).to(opts);
+  const at::Tensor offsets = model.means - origin;
+  const at::Tensor distance = offsets.norm(2, {1}, true);
+  const at::Tensor dirs = offsets / distance.clamp_min(1e-12);
+  const at::Tensor colors = sh_to_color(model.sh_degree, model.sh(), dirs);
+
+  at::Tensor opacities = model.opacities();
+  if (options.opacity_scale.defined()) opacities = opacities * options.opacity_scale;
+  const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, at::cat({colors, distance}, 1),
+                                          proj.depths, proj.radii, camera.width, camera.height,
+                                          options.means2d_abs_sink);
+  RenderOutput out;
+  out.rgb = raster.features.narrow(2, 0, 3);
+  if (options.background.defined())
+    out.rgb = out.rgb + (1 - raster.alpha).unsqueeze(2) * options.background.to(opts).view({1, 1, 3});
+  out.depth = raster.features.select(2, 3);
+  out.alpha = raster.alpha;
+  out.means2d = proj.means2d;
+  out.radii = proj.radii;
+  return out;
+}
+
+}  // namespace gaps

@@ -1,0 +1,113 @@
+#include "gs_trainer/trainer.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+#include <random>
+
+#include <ATen/ATen.h>
+#include "absl/strings/str_cat.h"
+#include "gs_trainer/losses.h"
+#include "gs_trainer/render.h"
+
+namespace gaps {
+
+std::vector<double> default_learning_rates(const TrainConfig& c, double extent) {
+  // Order of GaussianModel::parameters(): means, log_scales, quats, opacity_logits, sh_dc, sh_rest.
+  return {c.position_lr_init * extent, c.scaling_lr, c.rotation_lr, c.opacity_lr, c.feature_lr,
+          c.feature_lr / 20.0};
+}
+
+Trainer::Trainer(GaussianModel initial, std::vector<TrainingView> views, TrainConfig config)
+    : config_(std::move(config)),
+      views_(std::move(views)),
+      model_(std::move(initial)),
+      extent_(cameras_extent([&] {
+        std::vector<Camera> cams;
+        for (const auto& v : views_) cams.push_back(v.camera);
+        return cams;
+      }())),
+      adam_(model_, default_learning_rates(config_, extent_), config_.adam_eps),
+      density_(config_, extent_),
+      rng_state_(config_.seed) {
+  TORCH_CHECK(!views_.empty(), "training needs at least one view");
+  model_.sh_degree = 0;
+  background_ = at::full({3}, config_.background, model_.means.options());
+}
+
+const TrainingView& Trainer::next_view() {
+  // Shuffled passes over the views, as 3DGS pops random cameras from a refilled stack.
+  if (view_cursor_ == view_order_.size()) {
+    view_order_.resize(views_.size());
+    std::iota(view_order_.begin(), view_order_.end(), 0);
+    std::mt19937_64 rng(rng_state_++);
+    std::shuffle(view_order_.begin(), view_order_.end(), rng);
+    view_cursor_ = 0;
+  }
+  return views_[view_order_[view_cursor_++]];
+}
+
+void Trainer::update_schedules() {
+  adam_.set_learning_rate(0, exponential_lr(iteration_, config_.position_lr_init * extent_,
+                                            config_.position_lr_final * extent_, config_.iterations));
+  if (iteration_ > 0 && iteration_ % config_.sh_increase_interval == 0)
+    model_.sh_degree = std::min(model_.sh_degree + 1, model_.max_sh_degree);
+}
+
+at::Tensor Trainer::step() {
+  ++iteration_;
+  update_schedules();
+  const TrainingView& view = next_view();
+  RenderOptions options;
+  options.background = background_;
+  const bool densifying = iteration_ < config_.densify_until_iter();
+  if (densifying && config_.absolute_gradient) options.means2d_abs_sink = at::zeros({model_.size(), 2}, model_.means.options());
+  RenderOutput out = render(model_, view.camera, options);
+  out.means2d.retain_grad();
+  at::Tensor loss = photometric_loss(out.rgb, view.image, config_.lambda_dssim);
+  loss.backward();
+
+  if (densifying) {
+    density_.accumulate(out.means2d.grad(), options.means2d_abs_sink, out.radii, view.camera.width,
+                        view.camera.height);
+    if (iteration_ > config_.densify_from_iter && iteration_ % config_.densification_interval == 0)
+      density_.densify_and_prune(model_, adam_, iteration_, config_.seed + iteration_);
+    if (iteration_ % config_.opacity_reset_interval == 0) DensityControl::reset_opacity(model_, adam_);
+  }
+  if (model_.size() > 0 && model_.means.grad().defined()) adam_.step();
+  adam_.zero_grad();
+  return loss.detach();
+}
+
+absl::Status Trainer::run(const std::function<void(const TrainProgress&)>& on_progress, int report_every) {
+  using clock = std::chrono::steady_clock;
+  const auto start = clock::now();
+  auto last_report = start;
+  int last_iteration = iteration_;
+  at::Tensor loss_sum = at::zeros({}, model_.means.options());
+  while (iteration_ < config_.iterations) {
+    loss_sum = loss_sum + step();
+    if (iteration_ % report_every != 0 && iteration_ != config_.iterations) continue;
+    const double mean_loss = loss_sum.item<double>() / (iteration_ - last_iteration);
+    if (!std::isfinite(mean_loss))
+      return absl::InternalError(absl::StrCat("training diverged: non-finite loss by iteration ", iteration_,
+                                              " (", model_.size(), " Gaussians)"));
+    const auto now = clock::now();
+    TrainProgress p;
+    p.iteration = iteration_;
+    p.iterations = config_.iterations;
+    p.loss = mean_loss;
+    p.num_gaussians = model_.size();
+    p.elapsed_seconds = std::chrono::duration<double>(now - start).count();
+    p.iterations_per_second =
+        (iteration_ - last_iteration) / std::max(1e-9, std::chrono::duration<double>(now - last_report).count());
+    if (on_progress) on_progress(p);
+    last_report = now;
+    last_iteration = iteration_;
+    loss_sum.zero_();
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace gaps

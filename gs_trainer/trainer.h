@@ -1,0 +1,65 @@
+#pragma once
+// The vanilla 3DGS optimisation loop: random GT view, render, (1-λ)L1 + λ D-SSIM, Adam, SH degree
+// schedule, adaptive density control. Later training variants build on step().
+#include <functional>
+#include <optional>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/statusor.h"
+#include "gs_trainer/adam.h"
+#include "gs_trainer/camera.h"
+#include "gs_trainer/densify.h"
+#include "gs_trainer/gaussians.h"
+#include "gs_trainer/train_config.h"
+
+namespace gaps {
+
+struct TrainingView {
+  Camera camera;
+  at::Tensor image;  // H x W x 3 in [0, 1], on the training device
+};
+
+struct TrainProgress {
+  int iteration = 0;
+  int iterations = 0;
+  double loss = 0.0;  // mean over the iterations since the last report
+  int64_t num_gaussians = 0;
+  double iterations_per_second = 0.0;
+  double elapsed_seconds = 0.0;
+};
+
+class Trainer {
+ public:
+  Trainer(GaussianModel initial, std::vector<TrainingView> views, TrainConfig config);
+
+  // One optimisation step on a GT view; returns the loss tensor (a device scalar, not synchronised).
+  at::Tensor step();
+  int iteration() const { return iteration_; }
+  const GaussianModel& model() const { return model_; }
+  const TrainConfig& config() const { return config_; }
+
+  // Runs to config.iterations, reporting every `report_every` iterations. A non-finite loss stops the run
+  // with an error that names the iteration; the model up to then stays available through model().
+  absl::Status run(const std::function<void(const TrainProgress&)>& on_progress, int report_every = 10);
+
+ private:
+  void update_schedules();
+  const TrainingView& next_view();
+
+  TrainConfig config_;
+  std::vector<TrainingView> views_;
+  GaussianModel model_;
+  double extent_;
+  GaussianAdam adam_;
+  DensityControl density_;
+  at::Tensor background_;
+  std::vector<size_t> view_order_;
+  size_t view_cursor_ = 0;
+  uint64_t rng_state_;
+  int iteration_ = 0;
+};
+
+std::vector<double> default_learning_rates(const TrainConfig& config, double extent);
+
+}  // namespace gaps
