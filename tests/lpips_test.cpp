@@ -1,0 +1,393 @@
+// LPIPS-VGG and the torch checkpoint reader.
+//
+// Parity: tests/scripts/lpips_reference.py builds a torchvision VGG16 with random weights, saves it
+// as zip and legacy checkpoints and scores image pairs with PyPI's `lpips` package; the C++ metric
+// must agree on both files. The real v0.1 linear weights come from GAPS_DATA_DIR/lpips/vgg.pth.
+#include "gs_trainer/lpips.h"
+
+#include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
+#include <dirent.h>
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "gs_trainer/metrics.h"
+#include "gs_trainer/torch_pickle.h"
+
+namespace gaps {
+namespace {
+
+const std::string kLinWeights = std::string(GAPS_DATA_DIR) + "/lpips/vgg.pth";
+
+// ---- small file helpers (no std::filesystem::remove_all: libtorch.so exports a broken copy) ----
+
+std::string make_temp_dir(const std::string& stem) {
+  std::string pattern = "/tmp/" + stem + "_XXXXXX";
+  return mkdtemp(pattern.data()) != nullptr ? pattern : std::string();
+}
+
+void remove_flat_directory(const std::string& dir) {
+  if (DIR* d = opendir(dir.c_str())) {
+    while (dirent* entry = readdir(d)) {
+      const std::string name = entry->d_name;
+      if (name != "." && name != "..") unlink((dir + "/" + name).c_str());
+    }
+    closedir(d);
+  }
+  rmdir(dir.c_str());
+}
+
+std::string read_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+void write_file(const std::string& path, const std::string& bytes) {
+  std::ofstream(path, std::ios::binary | std::ios::trunc).write(bytes.data(), bytes.size());
+}
+
+std::pair<int, std::string> run_command(const std::string& command) {
+  std::string output;
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
+  if (pipe == nullptr) return {-1, "popen failed"};
+  char buffer[4096];
+  while (size_t n = fread(buffer, 1, sizeof buffer, pipe)) output.append(buffer, n);
+  const int status = pclose(pipe);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
+}
+
+bool contains(absl::string_view haystack, absl::string_view needle) {
+  return haystack.find(needle) != absl::string_view::npos;
+}
+
+// A scratch folder for one test's hand-made files.
+class ScratchDir {
+ public:
+  ScratchDir() : path_(make_temp_dir("gaps_lpips_scratch")) {}
+  ~ScratchDir() { remove_flat_directory(path_); }
+  std::string file(const std::string& name) const { return path_ + "/" + name; }
+
+ private:
+  std::string path_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// The shipped v0.1 linear weights (legacy pickle) and corrupt variants of it.
+
+TEST(LinWeights, V01VggFileHasFiveNonNegativeTaps) {
+  auto dict = load_torch_state_dict(kLinWeights);
+  ASSERT_TRUE(dict.ok()) << dict.status();
+  const std::vector<int64_t> channels = {64, 128, 256, 512, 512};
+  ASSERT_EQ(dict->size(), channels.size());
+  for (size_t tap = 0; tap < channels.size(); ++tap) {
+    const std::string key = "lin" + std::to_string(tap) + ".model.1.weight";
+    ASSERT_EQ(dict->count(key), 1u) << key;
+    const at::Tensor& w = dict->at(key);
+    EXPECT_EQ(w.scalar_type(), at::kFloat) << key;
+    EXPECT_EQ(w.sizes(), at::IntArrayRef({1, channels[tap], 1, 1})) << key;
+    EXPECT_GE(w.min().item<float>(), 0.0f) << key;  // LPIPS clamps its linear weights at >= 0
+    EXPECT_GT(w.max().item<float>(), 0.0f) << key;
+  }
+}
+
+TEST(TorchPickle, MissingAndEmptyFiles) {
+  auto missing = load_torch_state_dict("/nonexistent/weights.pth");
+  EXPECT_EQ(missing.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(contains(missing.status().message(), "/nonexistent/weights.pth"));
+  ScratchDir dir;
+  write_file(dir.file("empty.pth"), "");
+  auto empty = load_torch_state_dict(dir.file("empty.pth"));
+  EXPECT_FALSE(empty.ok());
+  EXPECT_TRUE(contains(empty.status().message(), "empty")) << empty.status();
+}
+
+TEST(TorchPickle, EveryTruncationOfALegacyFileFails) {
+  const std::string bytes = read_file(kLinWeights);
+  ASSERT_GT(bytes.size(), 1000u);
+  ScratchDir dir;
+  const std::string path = dir.file("truncated.pth");
+  for (size_t length = 1; length < bytes.size(); ++length) {
+    write_file(path, bytes.substr(0, length));
+    auto dict = load_torch_state_dict(path);
+    ASSERT_FALSE(dict.ok()) << "accepted " << length << " of " << bytes.size() << " bytes";
+    ASSERT_TRUE(contains(dict.status().message(), path)) << dict.status();
+  }
+  // Cut inside the last storage's bytes: a truncation error, not a parse error.
+  write_file(path, bytes.substr(0, bytes.size() - 10));
+  auto cut = load_torch_state_dict(path);
+  EXPECT_EQ(cut.status().code(), absl::StatusCode::kDataLoss) << cut.status();
+  EXPECT_TRUE(contains(cut.status().message(), "truncated")) << cut.status();
+}
+
+TEST(TorchPickle, GarbageIsNotMistakenForACheckpoint) {
+  ScratchDir dir;
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"text.pth", "this is not a checkpoint\n"},
+      {"binary.pth", std::string("\x80\x02\x8a\x0a\x00\x01\x02\x03\x04\x05\x06\x07\x08\x09.", 15)},
+      {"fake_zip.pth", std::string("PK\x03\x04", 4) + std::string(200, 'x')}};
+  for (const auto& [name, bytes] : cases) {
+    write_file(dir.file(name), bytes);
+    auto dict = load_torch_state_dict(dir.file(name));
+    EXPECT_FALSE(dict.ok()) << name;
+    EXPECT_TRUE(contains(dict.status().message(), dir.file(name))) << dict.status();
+  }
+  auto magic = load_torch_state_dict(dir.file("binary.pth"));
+  EXPECT_TRUE(contains(magic.status().message(), "magic number")) << magic.status();
+}
+
+TEST(TorchPickle, CorruptOpcodeIsReported) {
+  std::string bytes = read_file(kLinWeights);
+  const size_t global = bytes.find("ccollections\nOrderedDict");
+  ASSERT_NE(global, std::string::npos);
+  bytes[global] = '\xff';
+  ScratchDir dir;
+  write_file(dir.file("opcode.pth"), bytes);
+  auto dict = load_torch_state_dict(dir.file("opcode.pth"));
+  ASSERT_FALSE(dict.ok());
+  EXPECT_TRUE(contains(dict.status().message(), "unsupported pickle opcode 0xff")) << dict.status();
+  EXPECT_TRUE(contains(dict.status().message(), "main pickle")) << dict.status();
+}
+
+TEST(TorchPickle, StorageSizeMismatchIsReported) {
+  std::string bytes = read_file(kLinWeights);
+  // The file ends with the five float storages (64 + 128 + 256 + 512 + 512 elements), each as an
+  // int64 element count followed by the data; the first count sits this far from the end.
+  const size_t count_at = bytes.size() - (5 * 8 + 4 * (64 + 128 + 256 + 512 + 512));
+  int64_t count = 0;
+  std::memcpy(&count, bytes.data() + count_at, sizeof count);
+  ASSERT_TRUE(count == 64 || count == 128 || count == 256 || count == 512) << count;
+  const int64_t wrong = count + 1;
+  std::memcpy(bytes.data() + count_at, &wrong, sizeof wrong);
+  ScratchDir dir;
+  write_file(dir.file("count.pth"), bytes);
+  auto dict = load_torch_state_dict(dir.file("count.pth"));
+  ASSERT_FALSE(dict.ok());
+  const std::string expected = std::to_string(wrong) + " elements in the data section, " +
+                               std::to_string(count) + " in the pickle";
+  EXPECT_TRUE(contains(dict.status().message(), expected)) << dict.status();
+}
+
+// ---------------------------------------------------------------------------------------------
+// Fixtures from Python (generated once per test process).
+
+class PythonFixtures : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    error_.clear();
+    if (access(GAPS_PYTHON, X_OK) != 0) {
+      error_ =
+          std::string("GAPS_PYTHON (") + GAPS_PYTHON +
+          ") is not an executable; run scripts/setup.sh (it installs torch, torchvision, lpips)";
+      return;
+    }
+    dir_ = make_temp_dir("gaps_lpips_fixtures");
+    const std::string command = std::string(GAPS_PYTHON) + " " + GAPS_TEST_SCRIPTS_DIR +
+                                "/scripts/lpips_reference.py --out " + dir_ + " --lin " +
+                                kLinWeights;
+    auto [rc, output] = run_command(command);
+    if (rc != 0) {
+      error_ =
+          "fixture script failed (exit " + std::to_string(rc) + "): " + command + "\n" + output;
+      return;
+    }
+    manifest_ = nlohmann::json::parse(read_file(dir_ + "/manifest.json"));
+  }
+  static void TearDownTestSuite() {
+    if (!dir_.empty()) remove_flat_directory(dir_);
+  }
+  void SetUp() override { ASSERT_TRUE(error_.empty()) << error_; }
+
+  static std::string path(const std::string& name) { return dir_ + "/" + name; }
+  static std::string backbone(const std::string& format) {
+    return path(manifest_["backbones"][format].get<std::string>());
+  }
+  static at::Tensor read_image(const nlohmann::json& pair, const char* which) {
+    const int64_t h = pair["height"].get<int64_t>(), w = pair["width"].get<int64_t>();
+    at::Tensor image = at::empty({h, w, 3}, at::kFloat);
+    const std::string bytes = read_file(path(pair[which].get<std::string>()));
+    EXPECT_EQ(bytes.size(), static_cast<size_t>(image.numel() * 4)) << pair[which];
+    std::memcpy(image.data_ptr(), bytes.data(), std::min<size_t>(bytes.size(), image.numel() * 4));
+    return image;
+  }
+  static Lpips load_lpips(const std::string& format) {
+    auto lpips = Lpips::load(kLinWeights, backbone(format));
+    EXPECT_TRUE(lpips.ok()) << lpips.status();
+    return std::move(lpips).value();
+  }
+
+  static std::string dir_;
+  static std::string error_;
+  static nlohmann::json manifest_;
+};
+std::string PythonFixtures::dir_;
+std::string PythonFixtures::error_;
+nlohmann::json PythonFixtures::manifest_;
+
+using TorchPickleFixtures = PythonFixtures;
+using LpipsParity = PythonFixtures;
+
+void expect_tensor(const std::map<std::string, at::Tensor>& dict, const std::string& key,
+                   const at::Tensor& expected, const std::string& file) {
+  ASSERT_EQ(dict.count(key), 1u) << key << " in " << file;
+  const at::Tensor& t = dict.at(key);
+  EXPECT_EQ(t.scalar_type(), expected.scalar_type()) << key << " in " << file;
+  EXPECT_EQ(t.sizes(), expected.sizes()) << key << " in " << file;
+  EXPECT_TRUE(t.is_contiguous()) << key << " in " << file;
+  EXPECT_TRUE(t.sizes() == expected.sizes() && at::equal(t, expected)) << key << " in " << file;
+}
+
+TEST_F(TorchPickleFixtures, ReadsViewsSharedStoragesAndDtypes) {
+  at::Tensor whole = at::arange(60, at::kDouble).reshape({5, 12});
+  const std::map<std::string, at::Tensor> expected = {
+      {"whole", whole},
+      {"column", whole.select(1, 3)},
+      {"transposed", whole.t()},
+      {"block", whole.slice(0, 1, 4).slice(1, 2, 9, 3)},
+      {"half", at::arange(6, at::kHalf).reshape({2, 3})},
+      {"bfloat16", at::arange(4, at::kBFloat16)},
+      {"int64", at::arange(-3, 3, at::kLong)},
+      {"int32", at::arange(-3, 3, at::kInt)},
+      {"uint8", at::arange(250, 256, at::kByte)},
+      {"bool", at::tensor({1, 0, 1}, at::kInt).to(at::kBool)},
+      {"scalar", at::scalar_tensor(2.5, at::kFloat)},
+      {"empty", at::zeros({0, 3}, at::kFloat)},
+      {"channels_last", at::arange(24, at::kFloat).reshape({1, 2, 3, 4})}};
+  for (const char* file :
+       {"protocol2_zip", "protocol2_legacy", "protocol4_zip", "protocol4_legacy"}) {
+    const std::string name = manifest_["pickles"][file].get<std::string>();
+    auto dict = load_torch_state_dict(path(name));
+    ASSERT_TRUE(dict.ok()) << dict.status();
+    EXPECT_EQ(dict->size(), expected.size()) << name;
+    for (const auto& [key, value] : expected) expect_tensor(*dict, key, value, name);
+    // Views come back as independent copies.
+    dict->at("column").fill_(-1);
+    EXPECT_EQ(dict->at("whole")[0][3].item<double>(), 3.0) << name;
+  }
+}
+
+TEST_F(TorchPickleFixtures, NonTensorEntryIsNamed) {
+  const std::string file = path(manifest_["pickles"]["not_state_dict"].get<std::string>());
+  auto dict = load_torch_state_dict(file);
+  ASSERT_FALSE(dict.ok());
+  EXPECT_TRUE(contains(dict.status().message(), "entry 'epoch' is not a tensor (found int)"))
+      << dict.status();
+}
+
+TEST_F(TorchPickleFixtures, ZipAndLegacyBackbonesAgreeAndTruncationsFail) {
+  auto zip = load_torch_state_dict(backbone("zip"));
+  auto legacy = load_torch_state_dict(backbone("legacy"));
+  ASSERT_TRUE(zip.ok()) << zip.status();
+  ASSERT_TRUE(legacy.ok()) << legacy.status();
+  EXPECT_EQ(zip->size(), 27u);  // 13 convolutions x (weight, bias) + classifier.6.bias
+  ASSERT_EQ(zip->size(), legacy->size());
+  for (const auto& [key, tensor] : *zip) {
+    ASSERT_EQ(legacy->count(key), 1u) << key;
+    EXPECT_TRUE(at::equal(tensor, legacy->at(key))) << key;
+  }
+  EXPECT_EQ(zip->at("features.28.weight").sizes(), at::IntArrayRef({512, 512, 3, 3}));
+  for (const char* format : {"zip", "legacy"}) {
+    const std::string bytes = read_file(backbone(format));
+    const std::string cut = path(std::string("cut_") + format + ".pth");
+    for (size_t length : {size_t{100}, bytes.size() / 2, bytes.size() - 1}) {
+      write_file(cut, bytes.substr(0, length));
+      auto dict = load_torch_state_dict(cut);
+      EXPECT_EQ(dict.status().code(), absl::StatusCode::kDataLoss)
+          << format << " cut at " << length << ": " << dict.status();
+      EXPECT_TRUE(contains(dict.status().message(), cut)) << dict.status();
+    }
+  }
+}
+
+class LpipsParityByFormat : public PythonFixtures,
+                            public ::testing::WithParamInterface<const char*> {};
+
+TEST_P(LpipsParityByFormat, MatchesPythonLpipsOnRandomBackbone) {
+  Lpips lpips = load_lpips(GetParam());
+  at::NoGradGuard no_grad;
+  ASSERT_GE(manifest_["pairs"].size(), 4u);
+  for (const nlohmann::json& pair : manifest_["pairs"]) {
+    const double expected = pair["distance"].get<double>();
+    const double actual =
+        lpips.distance(read_image(pair, "a"), read_image(pair, "b")).item<double>();
+    EXPECT_NEAR(actual, expected, 1e-5 * std::abs(expected) + 1e-9)
+        << pair["height"] << "x" << pair["width"] << " pair from the " << GetParam() << " file";
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(BothFormats, LpipsParityByFormat, ::testing::Values("zip", "legacy"));
+
+TEST_F(LpipsParity, IdenticalImagesAreZeroAndDistanceIsSymmetric) {
+  Lpips lpips = load_lpips("zip");
+  at::NoGradGuard no_grad;
+  const nlohmann::json& pair = manifest_["pairs"][0];
+  at::Tensor a = read_image(pair, "a"), b = read_image(pair, "b");
+  EXPECT_EQ(lpips.distance(a, a).item<double>(), 0.0);
+  EXPECT_NEAR(lpips.distance(a, b).item<double>(), lpips.distance(b, a).item<double>(), 1e-6);
+  EXPECT_THROW(lpips.distance(a.slice(0, 0, 15), b.slice(0, 0, 15)), c10::Error);  // < 16 rows
+  EXPECT_THROW(lpips.distance(a, b.slice(0, 0, 20)), c10::Error);
+}
+
+TEST_F(LpipsParity, EvaluateImageReportsLpips) {
+  Lpips lpips = load_lpips("legacy");
+  const nlohmann::json& pair = manifest_["pairs"][1];
+  ImageMetrics m = evaluate_image(read_image(pair, "a"), read_image(pair, "b"), &lpips);
+  ASSERT_TRUE(m.lpips.has_value());
+  EXPECT_NEAR(*m.lpips, pair["distance"].get<double>(), 1e-5 * pair["distance"].get<double>());
+  EXPECT_NEAR(m.psnr, psnr(read_image(pair, "a"), read_image(pair, "b")), 1e-12);
+}
+
+TEST_F(LpipsParity, CudaAgreesWithPython) {
+  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
+  Lpips lpips = load_lpips("zip");
+  lpips.to(at::Device(at::kCUDA));
+  at::NoGradGuard no_grad;
+  // cuDNN convolutions may run in TF32 by default (as in PyTorch), which moves the small distances
+  // by ~1e-4 relative; switched off here so that the CUDA path is checked as tightly as the CPU one.
+  at::Context& context = at::globalContext();
+  const bool tf32 = context.allowTF32CuDNN();
+  context.setAllowTF32CuDNN(false);
+  for (const nlohmann::json& pair : manifest_["pairs"]) {
+    at::Tensor d = lpips.distance(read_image(pair, "a").cuda(), read_image(pair, "b").cuda());
+    EXPECT_TRUE(d.is_cuda());
+    const double expected = pair["distance"].get<double>();
+    EXPECT_NEAR(d.item<double>(), expected, 2e-5 * expected + 1e-9);
+  }
+  context.setAllowTF32CuDNN(tf32);
+}
+
+TEST_F(LpipsParity, BrokenBackbonesNameTheKey) {
+  for (const char* kind : {"missing", "shape", "extra"}) {
+    const nlohmann::json& bad = manifest_["bad_backbones"][kind];
+    const std::string file = path(bad["file"].get<std::string>());
+    auto lpips = Lpips::load(kLinWeights, file);
+    ASSERT_FALSE(lpips.ok()) << kind;
+    EXPECT_EQ(lpips.status().code(), absl::StatusCode::kInvalidArgument) << lpips.status();
+    EXPECT_TRUE(contains(lpips.status().message(), bad["key"].get<std::string>()))
+        << lpips.status();
+    EXPECT_TRUE(contains(lpips.status().message(), file)) << lpips.status();
+  }
+  auto shape = Lpips::load(kLinWeights,
+                           path(manifest_["bad_backbones"]["shape"]["file"].get<std::string>()));
+  EXPECT_TRUE(contains(shape.status().message(), "[256,128,5,5], expected [256,128,3,3]"))
+      << shape.status();
+  // A backbone given as the linear-weights file: the first lin key is missing.
+  auto swapped = Lpips::load(backbone("zip"), backbone("zip"));
+  EXPECT_TRUE(contains(swapped.status().message(), "missing key lin0.model.1.weight"))
+      << swapped.status();
+  auto absent = Lpips::load(kLinWeights, path("no_such_backbone.pth"));
+  EXPECT_EQ(absent.status().code(), absl::StatusCode::kNotFound) << absent.status();
+}
+
+}  // namespace
+}  // namespace gaps
