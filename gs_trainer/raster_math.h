@@ -262,3 +262,35 @@ GAPS_HD void eval_alpha_vjp(const Sym2<T>& conic, T opacity, T gauss, T dx, T dy
 }
 
 }  // namespace gaps::raster
+
+namespace gaps::raster {
+
+// The pixel columns of row `py` where a Gaussian can reach alpha >= kMinAlpha, widened by one pixel so
+// that the exact per-pixel test (eval_alpha) still decides. Lets tile loops skip pixels a Gaussian cannot
+// touch without changing any result. Returns false when the row is out of reach.
+template <typename T>
+GAPS_HD bool row_span(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T py_centre, int x_lo, int x_hi,
+                      int& x_begin, int& x_end) {
+  if (!(opacity * T(255) > T(1))) return false;
+  // power(dx) = -0.5 a dx^2 - b dy dx - 0.5 c dy^2 >= log(1 / (255 opacity)) =: L
+  const T L = log(T(1) / (T(255) * opacity));
+  const T dy = mean2d.y - py_centre;
+  const T A = T(0.5) * conic.a, B = conic.b * dy, C = T(0.5) * conic.c * dy * dy + L;
+  if (!(A > T(0))) {
+    x_begin = x_lo;
+    x_end = x_hi;
+    return true;
+  }
+  const T disc = B * B - 4 * A * C;
+  if (disc < 0) return false;
+  const T root = sqrt(disc);
+  // dx = mean.x - (px + 0.5) in [(-B - root) / 2A, (-B + root) / 2A]  =>  px range.
+  const T dx_min = (-B - root) / (2 * A), dx_max = (-B + root) / (2 * A);
+  const T px_min = mean2d.x - dx_max - T(0.5), px_max = mean2d.x - dx_min - T(0.5);
+  const int b = static_cast<int>(floor(px_min)) - 1, e = static_cast<int>(ceil(px_max)) + 2;
+  x_begin = b > x_lo ? b : x_lo;
+  x_end = e < x_hi ? e : x_hi;
+  return x_begin < x_end;
+}
+
+}  // namespace gaps::raster

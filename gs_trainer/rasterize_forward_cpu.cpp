@@ -1,47 +1,90 @@
 // Front-to-back compositing per 16x16 tile on the CPU: features (colour, depth, ...), alpha, and the
 // per-pixel state the backward pass needs (final transmittance, how far the tile list was walked).
+// Loops run Gaussian-major over a tile's pixels, visiting in each row only the span a Gaussian can
+// reach, which keeps the work proportional to real coverage.
+#include <algorithm>
+#include <array>
 #include <vector>
 
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
 
+#include "gs_trainer/cpu_parallel.h"
 #include "gs_trainer/rasterize_backend.h"
 
 namespace gaps::backend {
 namespace {
 
-template <typename T>
-void composite_tile(int64_t tile, int tiles_x, int width, int height, int channels, const int32_t* ids,
-                    const int32_t* ranges, const T* m2, const T* con, const T* opa, const T* feat, T* out_feat,
-                    T* out_alpha, T* out_T, int32_t* out_n) {
-  const int tx = static_cast<int>(tile % tiles_x), ty = static_cast<int>(tile / tiles_x);
-  const int32_t begin = ranges[2 * tile], end = ranges[2 * tile + 1];
-  std::vector<T> acc(channels);
-  for (int py = ty * raster::kTileSize; py < std::min(height, (ty + 1) * raster::kTileSize); ++py) {
-    for (int px = tx * raster::kTileSize; px < std::min(width, (tx + 1) * raster::kTileSize); ++px) {
-      const T cx = T(px) + T(0.5), cy = T(py) + T(0.5);
-      T trans = 1;
-      int32_t last = 0;
-      std::fill(acc.begin(), acc.end(), T(0));
-      for (int32_t k = begin; k < end; ++k) {
-        const int32_t g = ids[k];
+constexpr int kTilePixels = raster::kTileSize * raster::kTileSize;
+
+template <typename T> struct ForwardInputs {
+  const int32_t* ids;
+  const int32_t* ranges;
+  const T *m2, *con, *opa, *feat;
+  int width, height, tiles_x, channels;
+};
+
+template <typename T> struct ForwardOutputs {
+  T *feat, *alpha, *final_T;
+  int32_t* n_contrib;
+};
+
+template <typename T> void composite_tile(int64_t tile, const ForwardInputs<T>& in, const ForwardOutputs<T>& out) {
+  const int x0 = static_cast<int>(tile % in.tiles_x) * raster::kTileSize;
+  const int y0 = static_cast<int>(tile / in.tiles_x) * raster::kTileSize;
+  const int tw = std::min(raster::kTileSize, in.width - x0), th = std::min(raster::kTileSize, in.height - y0);
+  const int C = in.channels;
+  std::array<T, kTilePixels> trans;
+  std::array<int32_t, kTilePixels> last;
+  std::array<bool, kTilePixels> done;
+  std::vector<T> acc(static_cast<size_t>(kTilePixels) * C, T(0));
+  trans.fill(T(1));
+  last.fill(0);
+  done.fill(false);
+  std::array<int, raster::kTileSize> row_active;
+  row_active.fill(tw);
+  int active = tw * th;
+  const int32_t begin = in.ranges[2 * tile], end = in.ranges[2 * tile + 1];
+  for (int32_t k = begin; k < end && active > 0; ++k) {
+    const int32_t g = in.ids[k];
+    const raster::Vec2<T> mean{in.m2[2 * g], in.m2[2 * g + 1]};
+    const raster::Sym2<T> conic{in.con[3 * g], in.con[3 * g + 1], in.con[3 * g + 2]};
+    const T opacity = in.opa[g];
+    const T* f = in.feat + static_cast<int64_t>(g) * C;
+    for (int ly = 0; ly < th; ++ly) {
+      if (row_active[ly] == 0) continue;
+      const T cy = T(y0 + ly) + T(0.5);
+      int xb, xe;
+      if (!raster::row_span(mean, conic, opacity, cy, x0, x0 + tw, xb, xe)) continue;
+      for (int px = xb; px < xe; ++px) {
+        const int p = ly * raster::kTileSize + (px - x0);
+        if (done[p]) continue;
         T alpha, gauss, dx, dy;
-        if (!raster::eval_alpha<T>({m2[2 * g], m2[2 * g + 1]}, {con[3 * g], con[3 * g + 1], con[3 * g + 2]},
-                                   opa[g], cx, cy, alpha, gauss, dx, dy))
+        if (!raster::eval_alpha(mean, conic, opacity, T(px) + T(0.5), cy, alpha, gauss, dx, dy)) continue;
+        const T next = trans[p] * (1 - alpha);
+        if (next < T(raster::kMinTransmittance)) {
+          done[p] = true;
+          --row_active[ly];
+          --active;
           continue;
-        const T next = trans * (1 - alpha);
-        if (next < T(raster::kMinTransmittance)) break;
-        const T w = alpha * trans;
-        for (int ch = 0; ch < channels; ++ch) acc[ch] += w * feat[g * channels + ch];
-        trans = next;
-        last = k - begin + 1;
+        }
+        const T w = alpha * trans[p];
+        T* a = acc.data() + static_cast<size_t>(p) * C;
+        for (int ch = 0; ch < C; ++ch) a[ch] += w * f[ch];
+        trans[p] = next;
+        last[p] = k - begin + 1;
       }
-      const int64_t pix = static_cast<int64_t>(py) * width + px;
-      for (int ch = 0; ch < channels; ++ch) out_feat[pix * channels + ch] = acc[ch];
-      out_alpha[pix] = 1 - trans;
-      out_T[pix] = trans;
-      out_n[pix] = last;
+    }
+  }
+  for (int ly = 0; ly < th; ++ly) {
+    for (int lx = 0; lx < tw; ++lx) {
+      const int p = ly * raster::kTileSize + lx;
+      const int64_t pix = static_cast<int64_t>(y0 + ly) * in.width + x0 + lx;
+      for (int ch = 0; ch < C; ++ch) out.feat[pix * C + ch] = acc[static_cast<size_t>(p) * C + ch];
+      out.alpha[pix] = 1 - trans[p];
+      out.final_T[pix] = trans[p];
+      out.n_contrib[pix] = last[p];
     }
   }
 }
@@ -60,19 +103,14 @@ RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means
   out.alpha = at::zeros({height, width}, opts);
   out.final_T = at::ones({height, width}, opts);
   out.n_contrib = at::zeros({height, width}, opts.dtype(at::kInt));
-  const int tiles_x = (width + raster::kTileSize - 1) / raster::kTileSize;
-  const int64_t num_tiles = bins.tile_ranges.size(0);
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "rasterize_forward_cpu", [&] {
-    const int32_t* ids = bins.gaussian_ids.data_ptr<int32_t>();
-    const int32_t* ranges = bins.tile_ranges.data_ptr<int32_t>();
-    at::parallel_for(0, num_tiles, 1, [&](int64_t begin, int64_t end) {
-      for (int64_t t = begin; t < end; ++t)
-        composite_tile<scalar_t>(t, tiles_x, width, height, channels, ids, ranges, means2d.data_ptr<scalar_t>(),
-                                 conics.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(),
-                                 features.data_ptr<scalar_t>(), out.features.data_ptr<scalar_t>(),
-                                 out.alpha.data_ptr<scalar_t>(), out.final_T.data_ptr<scalar_t>(),
-                                 out.n_contrib.data_ptr<int32_t>());
-    });
+    const ForwardInputs<scalar_t> in{bins.gaussian_ids.data_ptr<int32_t>(), bins.tile_ranges.data_ptr<int32_t>(),
+                                     means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                     opacities.data_ptr<scalar_t>(), features.data_ptr<scalar_t>(), width, height,
+                                     (width + raster::kTileSize - 1) / raster::kTileSize, channels};
+    const ForwardOutputs<scalar_t> o{out.features.data_ptr<scalar_t>(), out.alpha.data_ptr<scalar_t>(),
+                                     out.final_T.data_ptr<scalar_t>(), out.n_contrib.data_ptr<int32_t>()};
+    parallel_for_each_dynamic(bins.tile_ranges.size(0), [&](int64_t t) { composite_tile<scalar_t>(t, in, o); });
   });
   return out;
 }

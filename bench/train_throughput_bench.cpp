@@ -1,0 +1,116 @@
+// CPU (or CUDA) training throughput on a real scene: iterations per second of the vanilla trainer and the
+// split between forward render, backward and the rest, on the benchmark protocol's views.
+//   train_throughput_bench --scene ../shared/data/llff/fern --views 3 --resolution 8 --iterations 500
+#include <chrono>
+#include <fstream>
+#include <iostream>
+
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <nlohmann/json.hpp>
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "gs_trainer/image_io.h"
+#include "gs_trainer/losses.h"
+#include "gs_trainer/pipeline.h"
+#include "gs_trainer/render.h"
+
+ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
+ABSL_FLAG(int, views, 3, "training views");
+ABSL_FLAG(int, resolution, 8, "downscale factor");
+ABSL_FLAG(int, iterations, 500, "training iterations to time");
+ABSL_FLAG(int64_t, random_points, 20000, "random initial points");
+ABSL_FLAG(std::string, device, "cpu", "cpu or cuda");
+ABSL_FLAG(std::string, json, "", "append the result as one JSON line to this file");
+
+namespace {
+
+double seconds_since(std::chrono::steady_clock::time_point t) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+}
+
+void sync(const at::Device& d) {
+  if (d.is_cuda()) at::zeros({1}, at::TensorOptions().device(d)).cpu();  // waits for queued kernels
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::ParseCommandLine(argc, argv);
+  const at::Device device(absl::GetFlag(FLAGS_device));
+  gaps::SceneLoadOptions load;
+  load.resolution = absl::GetFlag(FLAGS_resolution);
+  auto scene = gaps::load_scene(absl::GetFlag(FLAGS_scene), load);
+  if (!scene.ok()) {
+    std::cerr << scene.status().message() << "\n";
+    return 1;
+  }
+  auto split = gaps::benchmark_split(static_cast<int>(scene->cameras.size()), absl::GetFlag(FLAGS_views));
+  if (!split.ok()) {
+    std::cerr << split.status().message() << "\n";
+    return 1;
+  }
+  std::vector<gaps::TrainingView> views;
+  std::vector<gaps::Camera> cams;
+  for (int i : split->train) {
+    auto image = gaps::load_camera_image(scene->cameras[i]);
+    if (!image.ok()) {
+      std::cerr << image.status().message() << "\n";
+      return 1;
+    }
+    views.push_back({scene->cameras[i], image->to(device)});
+    cams.push_back(scene->cameras[i]);
+  }
+  double far = 0;
+  for (const auto& c : cams) far = std::max(far, c.far);
+  const auto points = gaps::random_points_in_views(cams, absl::GetFlag(FLAGS_random_points), far, 0);
+  gaps::TrainConfig config;
+  config.iterations = absl::GetFlag(FLAGS_iterations);
+  config.device = device.str();
+  const auto model = gaps::gaussians_from_points(points, 3).to(device);
+
+  // Stage split on the initial model.
+  gaps::GaussianModel probe = model;
+  for (at::Tensor* p : probe.parameters()) p->requires_grad_(true);
+  const int reps = 5;
+  double t_fwd = 0, t_bwd = 0;
+  for (int r = 0; r < reps; ++r) {
+    auto t0 = std::chrono::steady_clock::now();
+    auto out = gaps::render(probe, views[0].camera);
+    auto loss = gaps::photometric_loss(out.rgb, views[0].image, 0.2);
+    sync(device);
+    t_fwd += seconds_since(t0);
+    t0 = std::chrono::steady_clock::now();
+    loss.backward();
+    sync(device);
+    t_bwd += seconds_since(t0);
+  }
+
+  gaps::Trainer trainer(model, views, config);
+  const auto start = std::chrono::steady_clock::now();
+  auto status = trainer.run(nullptr, 50);
+  sync(device);
+  const double total = seconds_since(start);
+  if (!status.ok()) {
+    std::cerr << status.message() << "\n";
+    return 1;
+  }
+  nlohmann::json j = {{"bench", "train_throughput"},
+                      {"scene", absl::GetFlag(FLAGS_scene)},
+                      {"views", absl::GetFlag(FLAGS_views)},
+                      {"resolution", absl::GetFlag(FLAGS_resolution)},
+                      {"width", views[0].camera.width},
+                      {"height", views[0].camera.height},
+                      {"device", device.str()},
+                      {"threads", at::get_num_threads()},
+                      {"iterations", config.iterations},
+                      {"initial_gaussians", model.size()},
+                      {"final_gaussians", trainer.model().size()},
+                      {"seconds", total},
+                      {"iterations_per_second", config.iterations / total},
+                      {"initial_forward_ms", 1000 * t_fwd / reps},
+                      {"initial_backward_ms", 1000 * t_bwd / reps}};
+  std::cout << j.dump() << "\n";
+  if (const std::string path = absl::GetFlag(FLAGS_json); !path.empty()) std::ofstream(path, std::ios::app) << j.dump() << "\n";
+  return 0;
+}
