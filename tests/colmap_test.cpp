@@ -9,6 +9,8 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
+#include "tests/test_util.h"
+
 #include "gs_trainer/image_io.h"
 #include "gs_trainer/scene.h"
 
@@ -69,16 +71,6 @@ std::string points_bin() {
   return b.s;
 }
 
-void remove_tree(const fs::path& dir) {
-  // std::filesystem::remove_all crashes when libtorch.so interposes it; remove entry by entry.
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const fs::directory_entry& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
 void expect_models_equal(const ColmapModel& a, const ColmapModel& b) {
   ASSERT_EQ(a.cameras.size(), b.cameras.size());
@@ -113,21 +105,8 @@ void expect_models_equal(const ColmapModel& a, const ColmapModel& b) {
   }
 }
 
-class ColmapTest : public ::testing::Test {
+class ColmapTest : public test::TempDirTest {
  protected:
-  void SetUp() override {
-    dir_ = fs::path(::testing::TempDir()) /
-           ("gaps_colmap_" + std::string(::testing::UnitTest::GetInstance()->current_test_info()->name()));
-    remove_tree(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { remove_tree(dir_); }
-
-  fs::path write(const fs::path& relative, const std::string& bytes) {
-    fs::create_directories((dir_ / relative).parent_path());
-    std::ofstream(dir_ / relative, std::ios::binary) << bytes;
-    return dir_ / relative;
-  }
 
   fs::path write_bin_model(const fs::path& relative) {
     write(relative / "cameras.bin", cameras_bin());
@@ -146,7 +125,6 @@ class ColmapTest : public ::testing::Test {
     for (const std::string& name : names) ASSERT_TRUE(write_png(dir_ / folder / name, image).ok());
   }
 
-  fs::path dir_;
 };
 
 TEST_F(ColmapTest, ReadsHandWrittenBinaryModel) {

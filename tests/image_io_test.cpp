@@ -9,6 +9,8 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include "tests/test_util.h"
+
 namespace gaps {
 namespace {
 
@@ -61,38 +63,15 @@ std::string png_bytes(int width, int height, int bit_depth, int color_type, cons
          chunk("IEND", "");
 }
 
-void remove_tree(const fs::path& dir) {
-  // std::filesystem::remove_all crashes when libtorch.so interposes it; remove entry by entry.
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const fs::directory_entry& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
-class ImageIoTest : public ::testing::Test {
+class ImageIoTest : public test::TempDirTest {
  protected:
-  void SetUp() override {
-    dir_ = fs::path(::testing::TempDir()) /
-           ("gaps_image_io_" + std::string(::testing::UnitTest::GetInstance()->current_test_info()->name()));
-    remove_tree(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { remove_tree(dir_); }
-
-  fs::path write(const std::string& name, const std::string& bytes) {
-    std::ofstream(dir_ / name, std::ios::binary) << bytes;
-    return dir_ / name;
-  }
 
   static void expect_names(const absl::Status& status, const fs::path& path) {
     EXPECT_FALSE(status.ok());
     EXPECT_NE(status.message().find(path.string()), absl::string_view::npos) << status;
   }
 
-  fs::path dir_;
 };
 
 TEST_F(ImageIoTest, WritePngThenReadRoundTrips) {

@@ -8,6 +8,8 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include "tests/test_util.h"
+
 namespace gaps {
 namespace {
 
@@ -39,35 +41,10 @@ std::string dict(const std::string& descr, const std::string& shape, bool fortra
   return "{'descr': '" + descr + "', 'fortran_order': " + (fortran ? "True" : "False") + ", 'shape': " + shape + ", }";
 }
 
-// std::filesystem::remove_all crashes when LibTorch's libtorch.so (which bundles a newer libstdc++'s
-// filesystem code) interposes it, so temporary folders are removed one entry at a time.
-void remove_tree(const fs::path& dir) {
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const fs::directory_entry& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
-class NpyTest : public ::testing::Test {
+class NpyTest : public test::TempDirTest {
  protected:
-  void SetUp() override {
-    dir_ = fs::path(::testing::TempDir()) /
-           ("gaps_npy_" + std::string(::testing::UnitTest::GetInstance()->current_test_info()->name()));
-    remove_tree(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { remove_tree(dir_); }
 
-  fs::path write(const std::string& name, const std::string& bytes) {
-    const fs::path path = dir_ / name;
-    std::ofstream(path, std::ios::binary) << bytes;
-    return path;
-  }
-
-  fs::path dir_;
 };
 
 TEST_F(NpyTest, ReadsFloat64Version1) {

@@ -10,6 +10,8 @@
 #include <ATen/ATen.h>
 #include <Eigen/Dense>
 #include <gtest/gtest.h>
+
+#include "tests/test_util.h"
 #include <nlohmann/json.hpp>
 
 #include "gs_trainer/image_io.h"
@@ -22,16 +24,6 @@ namespace fs = std::filesystem;
 
 constexpr double kPi = 3.14159265358979323846;
 
-void remove_tree(const fs::path& dir) {
-  // std::filesystem::remove_all crashes when libtorch.so interposes it; remove entry by entry.
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const fs::directory_entry& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
 bool contains(const absl::Status& status, const std::string& text) {
   return status.message().find(text) != absl::string_view::npos;
@@ -277,10 +269,10 @@ class SyntheticSceneTest : public ::testing::Test {
   void SetUp() override {
     root_ = fs::path(::testing::TempDir()) /
             ("gaps_scene_" + std::string(::testing::UnitTest::GetInstance()->current_test_info()->name()));
-    remove_tree(root_);
+    test::remove_tree(root_);
     fs::create_directories(root_);
   }
-  void TearDown() override { remove_tree(root_); }
+  void TearDown() override { test::remove_tree(root_); }
 
   // Camera i sits on a circle of radius 4 in the z = 1 plane, looking at the origin.
   static Eigen::Matrix<double, 3, 4> camera_to_world(int i, int n) {

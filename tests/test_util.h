@@ -1,0 +1,47 @@
+#pragma once
+// Helpers shared by the test suites.
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <system_error>
+
+#include <gtest/gtest.h>
+
+namespace gaps::test {
+
+// std::filesystem::remove_all crashes when libtorch.so (which exports its own copy) interposes it, so
+// folders are removed one entry at a time.
+inline void remove_tree(const std::filesystem::path& dir) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec)) return;
+  for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
+    if (entry.is_directory(ec)) remove_tree(entry.path());
+    std::filesystem::remove(entry.path(), ec);
+  }
+  std::filesystem::remove(dir, ec);
+}
+
+// A fresh folder per test (named after the suite and test), removed afterwards.
+class TempDirTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
+    dir_ = std::filesystem::path(::testing::TempDir()) /
+           ("gaps_" + std::string(info->test_suite_name()) + "_" + std::string(info->name()));
+    remove_tree(dir_);
+    std::filesystem::create_directories(dir_);
+  }
+  void TearDown() override { remove_tree(dir_); }
+
+  // Writes bytes to a file below the folder (creating parent folders) and returns its path.
+  std::filesystem::path write(const std::filesystem::path& relative, const std::string& bytes) {
+    const auto path = dir_ / relative;
+    std::filesystem::create_directories(path.parent_path());
+    std::ofstream(path, std::ios::binary) << bytes;
+    return path;
+  }
+
+  std::filesystem::path dir_;
+};
+
+}  // namespace gaps::test
