@@ -6,14 +6,23 @@
 #include "gs_trainer/spherical_harmonics.h"
 
 namespace gaps {
+namespace {
+
+// Small per-view constants go to the GPU without waiting for queued work (a pageable copy would).
+at::Tensor upload(const at::Tensor& host, const at::TensorOptions& opts) {
+  if (!opts.device().is_cuda() || host.is_cuda()) return host.to(opts);
+  return host.to(opts.dtype()).pin_memory().to(opts.device(), /*non_blocking=*/true);
+}
+
+}  // namespace
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options) {
   const auto opts = model.means.options();
   const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
-  auto proj = project_gaussians(model.means, model.quats, model.scales(), camera.viewmat().to(opts), K);
+  auto proj = project_gaussians(model.means, model.quats, model.scales(), upload(camera.viewmat(), opts), K);
 
   const Eigen::Vector3d c = camera.center();
-  const at::Tensor origin = at::tensor({c.x(), c.y(), c.z()}, opts.dtype(at::kDouble)).to(opts);
+  const at::Tensor origin = upload(at::tensor({c.x(), c.y(), c.z()}, at::kDouble), opts);
   const at::Tensor offsets = model.means - origin;
   const at::Tensor distance = offsets.norm(2, {1}, true);
   const at::Tensor dirs = offsets / distance.clamp_min(1e-12);
@@ -27,7 +36,7 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
   RenderOutput out;
   out.rgb = raster.features.narrow(2, 0, 3);
   if (options.background.defined())
-    out.rgb = out.rgb + (1 - raster.alpha).unsqueeze(2) * options.background.to(opts).view({1, 1, 3});
+    out.rgb = out.rgb + (1 - raster.alpha).unsqueeze(2) * upload(options.background, opts).view({1, 1, 3});
   out.depth = raster.features.select(2, 3);
   out.alpha = raster.alpha;
   out.means2d = proj.means2d;
