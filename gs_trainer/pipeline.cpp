@@ -50,6 +50,13 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   return random_points_in_views(cams, o.random_points, far, o.config.seed);
 }
 
+absl::Status write_json(const std::filesystem::path& path, const nlohmann::json& j) {
+  std::ofstream f(path);
+  f << j.dump(2) << "\n";
+  if (!f) return absl::DataLossError(absl::StrCat(path.string(), ": write failed"));
+  return absl::OkStatus();
+}
+
 absl::Status write_metrics(const RunOptions& o, const RunResult& r) {
   nlohmann::json j;
   j["psnr"] = r.metrics.psnr;
@@ -63,16 +70,18 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r) {
   j["device"] = o.config.device;
   j["seed"] = o.config.seed;
   j["init"] = o.init;
+  j["variant"] = variant_name(o.variant);
+  if (o.variant != Variant::kVanilla) {
+    j["gaps"] = o.gaps;
+    j["generator"] = o.generator->name();
+  }
   j["scene"] = o.scene_dir.string();
   j["config"] = o.config;
   for (const auto& v : r.per_view) {
     j["per_view"].push_back({{"psnr", v.psnr}, {"ssim", v.ssim},
                              {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
   }
-  std::ofstream f(o.out_dir / "metrics.json");
-  f << j.dump(2) << "\n";
-  if (!f) return absl::DataLossError(absl::StrCat((o.out_dir / "metrics.json").string(), ": write failed"));
-  return absl::OkStatus();
+  return write_json(o.out_dir / "metrics.json", j);
 }
 
 }  // namespace
@@ -120,9 +129,21 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   log(absl::StrCat("initialisation: ", o.init, ", ", points.xyz.size(0), " points"));
 
   std::filesystem::create_directories(o.out_dir);
+  const std::vector<TrainingView> references = train;
   Trainer trainer(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config);
+  std::optional<GapsTraining> method;
+  Trainer::StepFunction step;
+  if (o.variant != Variant::kVanilla) {
+    if (!o.generator)
+      return absl::InvalidArgumentError(absl::StrCat("variant ", variant_name(o.variant), " needs a generator backend"));
+    method.emplace(trainer, o.generator, references, o.gaps, o.variant, o.config.seed);
+    method->set_inspection_dir(o.out_dir / "pseudo_views");
+    step = [&] { return method->step(); };
+    log(absl::StrCat("method: ", variant_name(o.variant), " with generator ", o.generator->name()));
+  }
   const auto start = std::chrono::steady_clock::now();
-  const absl::Status trained = trainer.run(on_progress);
+  const absl::Status trained = trainer.run(on_progress, 10, step);
+  if (method) GAPS_RETURN_IF_ERROR(write_json(o.out_dir / "phases.json", method->phase_log()));
   result.train_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   // Whatever happened, keep what was computed.
   GAPS_RETURN_IF_ERROR(save_gaussians_ply(trainer.model(), o.out_dir / "point_cloud.ply"));

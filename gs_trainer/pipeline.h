@@ -6,6 +6,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "gs_trainer/gaps_training.h"
 #include "gs_trainer/metrics.h"
 #include "gs_trainer/scene.h"
 #include "gs_trainer/trainer.h"
@@ -27,6 +28,10 @@ struct RunOptions {
   std::filesystem::path lpips_weights;  // LPIPS v0.1 linear layers (vgg.pth)
   bool save_renders = true;
   TrainConfig config;
+  // The paper's method: anything but vanilla needs a generator (not owned; see diffusion_worker/).
+  Variant variant = Variant::kVanilla;
+  GapsConfig gaps;
+  Generator* generator = nullptr;
 };
 
 struct RunResult {

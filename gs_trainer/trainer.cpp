@@ -9,7 +9,6 @@
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
 #include "gs_trainer/losses.h"
-#include "gs_trainer/render.h"
 
 namespace gaps {
 
@@ -55,39 +54,66 @@ void Trainer::update_schedules() {
     model_.sh_degree = std::min(model_.sh_degree + 1, model_.max_sh_degree);
 }
 
-at::Tensor Trainer::step() {
+at::Tensor Trainer::step(const at::Tensor& opacity_scale) {
   ++iteration_;
   update_schedules();
   const TrainingView& view = next_view();
   RenderOptions options;
   options.background = background_;
-  const bool densifying = iteration_ < config_.densify_until_iter();
-  if (densifying && config_.absolute_gradient) options.means2d_abs_sink = at::zeros({model_.size(), 2}, model_.means.options());
+  options.opacity_scale = opacity_scale;
+  if (iteration_ < config_.densify_until_iter() && config_.absolute_gradient)
+    options.means2d_abs_sink = at::zeros({model_.size(), 2}, model_.means.options());
   RenderOutput out = render(model_, view.camera, options);
   out.means2d.retain_grad();
   at::Tensor loss = photometric_loss(out.rgb, view.image, config_.lambda_dssim);
   loss.backward();
+  maintain_density(&out, options, &view.camera);
+  return loss.detach();
+}
 
-  if (densifying) {
-    density_.accumulate(out.means2d.grad(), options.means2d_abs_sink, out.radii, view.camera.width,
-                        view.camera.height);
-    if (iteration_ > config_.densify_from_iter && iteration_ % config_.densification_interval == 0)
+at::Tensor Trainer::step_pseudo(const PseudoView& view, const at::Tensor& opacity_scale) {
+  ++iteration_;
+  update_schedules();
+  RenderOptions options;
+  options.background = background_;
+  options.opacity_scale = opacity_scale;
+  const RenderOutput out = render(model_, view.camera, options);
+  at::Tensor loss = weighted_photometric_loss(out.rgb, view.image, view.weight, config_.lambda_dssim);
+  loss.backward();
+  maintain_density(nullptr, options, nullptr);
+  return loss.detach();
+}
+
+// Densification statistics come from GT renders only, so pseudo-view noise cannot grow the model; the
+// schedule (densify every interval, opacity reset) runs on the iteration count either way.
+void Trainer::maintain_density(const RenderOutput* gt_render, const RenderOptions& options, const Camera* camera) {
+  if (iteration_ < config_.densify_until_iter()) {
+    if (gt_render)
+      density_.accumulate(gt_render->means2d.grad(), options.means2d_abs_sink, gt_render->radii, camera->width,
+                          camera->height);
+    if (gt_render && iteration_ > config_.densify_from_iter && iteration_ % config_.densification_interval == 0)
       density_.densify_and_prune(model_, adam_, iteration_, config_.seed + iteration_);
     if (iteration_ % config_.opacity_reset_interval == 0) DensityControl::reset_opacity(model_, adam_);
   }
   if (model_.size() > 0 && model_.means.grad().defined()) adam_.step();
   adam_.zero_grad();
-  return loss.detach();
 }
 
-absl::Status Trainer::run(const std::function<void(const TrainProgress&)>& on_progress, int report_every) {
+absl::Status Trainer::run(const std::function<void(const TrainProgress&)>& on_progress, int report_every,
+                          const StepFunction& next_step) {
   using clock = std::chrono::steady_clock;
   const auto start = clock::now();
   auto last_report = start;
   int last_iteration = iteration_;
   at::Tensor loss_sum = at::zeros({}, model_.means.options());
   while (iteration_ < config_.iterations) {
-    loss_sum = loss_sum + step();
+    if (next_step) {
+      auto loss = next_step();
+      if (!loss.ok()) return loss.status();
+      loss_sum = loss_sum + *loss;
+    } else {
+      loss_sum = loss_sum + step();
+    }
     if (iteration_ % report_every != 0 && iteration_ != config_.iterations) continue;
     const double mean_loss = loss_sum.item<double>() / (iteration_ - last_iteration);
     if (!std::isfinite(mean_loss))

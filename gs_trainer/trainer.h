@@ -11,6 +11,7 @@
 #include "gs_trainer/camera.h"
 #include "gs_trainer/densify.h"
 #include "gs_trainer/gaussians.h"
+#include "gs_trainer/render.h"
 #include "gs_trainer/train_config.h"
 
 namespace gaps {
@@ -18,6 +19,14 @@ namespace gaps {
 struct TrainingView {
   Camera camera;
   at::Tensor image;  // H x W x 3 in [0, 1], on the training device
+};
+
+// A generated view admitted for training, with its per-pixel loss weight (eq. pseudo_loss).
+struct PseudoView {
+  Camera camera;
+  at::Tensor image;   // H x W x 3 in [0, 1], on the training device
+  at::Tensor weight;  // H x W, on the training device
+  int candidate_id = -1;
 };
 
 struct TrainProgress {
@@ -33,19 +42,26 @@ class Trainer {
  public:
   Trainer(GaussianModel initial, std::vector<TrainingView> views, TrainConfig config);
 
-  // One optimisation step on a GT view; returns the loss tensor (a device scalar, not synchronised).
-  at::Tensor step();
+  // One optimisation step on a GT view, with DropGaussian's opacity scale when given (N values);
+  // returns the loss tensor (a device scalar, not synchronised).
+  at::Tensor step(const at::Tensor& opacity_scale = {});
+  // One step on a pseudo-view with its weighted loss; no densification statistics are taken.
+  at::Tensor step_pseudo(const PseudoView& view, const at::Tensor& opacity_scale = {});
   int iteration() const { return iteration_; }
   const GaussianModel& model() const { return model_; }
   const TrainConfig& config() const { return config_; }
 
-  // Runs to config.iterations, reporting every `report_every` iterations. A non-finite loss stops the run
-  // with an error that names the iteration; the model up to then stays available through model().
-  absl::Status run(const std::function<void(const TrainProgress&)>& on_progress, int report_every = 10);
+  // Runs to config.iterations, reporting every `report_every` iterations. `next_step` performs one
+  // iteration (default: step()); its error stops the run. A non-finite loss stops the run with an error that
+  // names the iteration. Either way the model up to then stays available through model().
+  using StepFunction = std::function<absl::StatusOr<at::Tensor>()>;
+  absl::Status run(const std::function<void(const TrainProgress&)>& on_progress, int report_every = 10,
+                   const StepFunction& next_step = nullptr);
 
  private:
   void update_schedules();
   const TrainingView& next_view();
+  void maintain_density(const RenderOutput* gt_render, const RenderOptions& options, const Camera* camera);
 
   TrainConfig config_;
   std::vector<TrainingView> views_;

@@ -1,0 +1,131 @@
+// The alternating schedule: phases at the right iterations, selection, generation, admission, pseudo steps
+// and DropGaussian, driven by a test generator whose output is known.
+#include <ATen/ATen.h>
+#include <gtest/gtest.h>
+
+#include "gs_trainer/gaps_training.h"
+#include "gs_trainer/pipeline.h"
+#include "gs_trainer/synthetic.h"
+#include "tests/test_util.h"
+
+namespace gaps {
+namespace {
+
+// Returns the render it was given, blended towards mid-grey by `noise`: admission depends on `noise`.
+class EchoGenerator : public Generator {
+ public:
+  explicit EchoGenerator(double noise) : noise_(noise) {}
+  std::string name() const override { return "echo (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>& views) override {
+    adapted_views = static_cast<int>(views.size());
+    return absl::OkStatus();
+  }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) {
+      EXPECT_FALSE(r.references.empty());
+      EXPECT_GE(r.strength, 0.3 - 1e-12);
+      EXPECT_LE(r.strength, 0.85 + 1e-12);
+      out.push_back(r.render_rgb * (1 - noise_) + 0.5 * noise_);
+    }
+    calls += 1;
+    return out;
+  }
+  int calls = 0;
+  int adapted_views = 0;
+
+ private:
+  double noise_;
+};
+
+struct GapsTrainingTest : test::TempDirTest {
+  RunOptions options(Variant variant, Generator* generator) {
+    RunOptions o;
+    o.scene_dir = dir_ / "scene";
+    o.out_dir = dir_ / "out";
+    o.views = 3;
+    o.resolution = 1;
+    o.random_points = 2000;
+    o.config.iterations = 90;
+    o.variant = variant;
+    o.generator = generator;
+    o.gaps.warmup_iterations = 30;
+    o.gaps.phase_interval = 30;
+    o.gaps.n_active = 4;
+    return o;
+  }
+  void SetUp() override {
+    test::TempDirTest::SetUp();
+    SyntheticSceneOptions s;
+    s.width = 64;
+    s.height = 48;
+    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", s).ok());
+  }
+};
+
+nlohmann::json read_json(const std::filesystem::path& p) {
+  std::ifstream f(p);
+  return nlohmann::json::parse(f);
+}
+
+TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
+  EchoGenerator gen(0.05);
+  auto r = run_pipeline(options(Variant::kFull, &gen), nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_TRUE(std::isfinite(r->metrics.psnr));
+  EXPECT_EQ(gen.calls, 2);  // phases at iterations 30 and 60
+  EXPECT_EQ(gen.adapted_views, 3);
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  for (const auto& p : phases) {
+    EXPECT_EQ(p["selection"].size(), 4u);
+    EXPECT_GT(p["candidates"].size(), 4u);
+    EXPECT_GT(p["admitted"].get<int>(), 0);
+  }
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "pseudo_views" / "phase_00"));
+  EXPECT_EQ(read_json(dir_ / "out" / "metrics.json")["variant"], "full");
+}
+
+TEST_F(GapsTrainingTest, GarbageIsRejectedByTheAdmissionGate) {
+  EchoGenerator gen(1.0);  // flat grey: far from the render wherever the scene has contrast
+  auto o = options(Variant::kFull, &gen);
+  o.gaps.admit_max_residual = 0.05;
+  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  for (const auto& p : read_json(dir_ / "out" / "phases.json")) {
+    EXPECT_EQ(p["admitted"].get<int>(), 0);
+    for (const auto& s : p["selection"]) EXPECT_NE(s["reason"].get<std::string>(), "");
+  }
+}
+
+TEST_F(GapsTrainingTest, NoGapsGeneratesPairMidpointsOnceWithoutGate) {
+  EchoGenerator gen(1.0);
+  auto r = run_pipeline(options(Variant::kNoGaps, &gen), nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(gen.calls, 1);
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 1u);
+  EXPECT_EQ(phases[0]["selection"].size(), 3u);  // 3 training views -> 3 pairs
+  for (const auto& s : phases[0]["selection"]) {
+    EXPECT_DOUBLE_EQ(s["alpha"].get<double>(), 0.5);
+    EXPECT_TRUE(s["admitted"].get<bool>());
+  }
+}
+
+TEST_F(GapsTrainingTest, MethodVariantsNeedAGenerator) {
+  auto r = run_pipeline(options(Variant::kFull, nullptr), nullptr, [](const std::string&) {});
+  ASSERT_FALSE(r.ok());
+  EXPECT_NE(std::string(r.status().message()).find("generator"), std::string::npos);
+}
+
+TEST(Variants, ParseAndName) {
+  for (const char* n : {"vanilla", "full", "no-gaps", "no-dropgaussian"}) {
+    auto v = parse_variant(n);
+    ASSERT_TRUE(v.ok());
+    EXPECT_EQ(variant_name(*v), n);
+  }
+  EXPECT_FALSE(parse_variant("fancy").ok());
+}
+
+}  // namespace
+}  // namespace gaps
