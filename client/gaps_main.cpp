@@ -16,7 +16,9 @@
 #include "absl/flags/usage.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/pipeline.h"
+#include "gs_trainer/status_macros.h"
 #include "gs_trainer/synthetic.h"
 
 ABSL_FLAG(std::string, scene, "", "scene folder (LLFF poses_bounds.npy, COLMAP sparse/, or transforms.json)");
@@ -33,6 +35,11 @@ ABSL_FLAG(std::string, config, "", "JSON file of training options (TrainConfig f
 ABSL_FLAG(std::string, lpips_backbone, "", "VGG16 weights (torchvision vgg16-397923af.pth); LPIPS is null without");
 ABSL_FLAG(std::string, lpips_weights, "", "LPIPS v0.1 linear weights (vgg.pth)");
 ABSL_FLAG(bool, quiet, false, "no progress bar");
+ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), no-gaps or no-dropgaussian");
+ABSL_FLAG(std::string, backend, "reproject", "pseudo-view generator backend for the method variants");
+ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
+ABSL_FLAG(std::string, gaps_config, "", "JSON file of GAPS options (GapsConfig field names)");
+ABSL_FLAG(int, n_active, 0, "pseudo-views selected per phase (0: 16, or 24 for scenes of more than 100 images)");
 
 namespace {
 
@@ -86,6 +93,17 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
       return absl::InvalidArgumentError(absl::StrCat(path, ": ", e.what()));
     }
   }
+  GAPS_ASSIGN_OR_RETURN(o.variant, gaps::parse_variant(absl::GetFlag(FLAGS_variant)));
+  if (const std::string path = absl::GetFlag(FLAGS_gaps_config); !path.empty()) {
+    std::ifstream f(path);
+    if (!f) return absl::NotFoundError(absl::StrCat(path, ": cannot open GAPS config file"));
+    try {
+      o.gaps = nlohmann::json::parse(f).get<gaps::GapsConfig>();
+    } catch (const std::exception& e) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ": ", e.what()));
+    }
+  }
+  o.n_active = absl::GetFlag(FLAGS_n_active);
   o.config.iterations = absl::GetFlag(FLAGS_iterations);
   o.config.seed = absl::GetFlag(FLAGS_seed);
   const std::string device = absl::GetFlag(FLAGS_device);
@@ -117,6 +135,17 @@ auto progress_printer() {
 
 void log_line(const std::string& s) { std::cerr << s << "\n"; }
 
+// Runs the pipeline with the generator the flags ask for (only the method variants use one).
+absl::StatusOr<gaps::RunResult> run_with_generator(gaps::RunOptions& o) {
+  std::unique_ptr<gaps::Generator> generator;
+  if (o.variant != gaps::Variant::kVanilla) {
+    GAPS_ASSIGN_OR_RETURN(generator,
+                          gaps::make_generator(absl::GetFlag(FLAGS_backend), absl::GetFlag(FLAGS_backend_options)));
+    o.generator = generator.get();
+  }
+  return gaps::run_pipeline(o, progress_printer(), log_line);
+}
+
 int run_train() {
   auto options = options_from_flags();
   if (!options.ok()) {
@@ -129,7 +158,7 @@ int run_train() {
     std::cerr << "gaps train: --scene and --out are required\n";
     return 2;
   }
-  return report(gaps::run_pipeline(*options, progress_printer(), log_line), *options);
+  return report(run_with_generator(*options), *options);
 }
 
 int run_demo() {
@@ -149,7 +178,7 @@ int run_demo() {
     return 1;
   }
   std::cerr << "demo: reconstructing from 3 views, evaluating on the held-out test views\n";
-  return report(gaps::run_pipeline(*options, progress_printer(), log_line), *options);
+  return report(run_with_generator(*options), *options);
 }
 
 }  // namespace

@@ -136,7 +136,9 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   if (o.variant != Variant::kVanilla) {
     if (!o.generator)
       return absl::InvalidArgumentError(absl::StrCat("variant ", variant_name(o.variant), " needs a generator backend"));
-    method.emplace(trainer, o.generator, references, o.gaps, o.variant, o.config.seed);
+    GapsConfig gaps = o.gaps;
+    gaps.n_active = o.n_active > 0 ? o.n_active : (scene.cameras.size() > 100 ? kNActiveMip360 : kNActiveLlff);
+    method.emplace(trainer, o.generator, references, gaps, o.variant, o.config.seed);
     method->set_inspection_dir(o.out_dir / "pseudo_views");
     step = [&] { return method->step(); };
     log(absl::StrCat("method: ", variant_name(o.variant), " with generator ", o.generator->name()));

@@ -31,6 +31,9 @@ struct RunOptions {
   // The paper's method: anything but vanilla needs a generator (not owned; see diffusion_worker/).
   Variant variant = Variant::kVanilla;
   GapsConfig gaps;
+  // Pseudo-views per phase; 0 picks the paper's size from the scene: 16 (LLFF-like), 24 for captures of
+  // more than 100 images (Mip-NeRF 360-like).
+  int n_active = 0;
   Generator* generator = nullptr;
 };
 

@@ -51,7 +51,7 @@ struct GapsTrainingTest : test::TempDirTest {
     o.generator = generator;
     o.gaps.warmup_iterations = 30;
     o.gaps.phase_interval = 30;
-    o.gaps.n_active = 4;
+    o.n_active = 4;
     return o;
   }
   void SetUp() override {
