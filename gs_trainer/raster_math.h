@@ -294,3 +294,38 @@ GAPS_HD bool row_span(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T 
 }
 
 }  // namespace gaps::raster
+
+namespace gaps::raster {
+
+// eval_alpha as the CUDA kernels evaluate it, with every skip/clamp decision the CPU's.
+// For T = float the host compiler resolves the unqualified exp() in eval_alpha to the C library's
+// exp(double) (<cmath> leaves only the double overloads in the global namespace), so the CPU reference
+// computes gauss = float(exp(double(power))): correctly rounded. nvcc resolves the same call to expf,
+// which is within 2 ulp of that. An ulp only moves an output by ~1e-7 relative, except next to the alpha
+// thresholds, where it decides whether a whole contribution (>= 1/255) exists or whether the 0.99 clamp
+// (and its zero gradient) applies. So this keeps the fast float exp and re-evaluates exp in double only
+// when alpha lands within a few ulp of a threshold (rare: a thin ring of each footprint). `power` is
+// written exactly as in eval_alpha; the kernels are compiled without FMA contraction (--fmad=false) so it
+// rounds like the CPU's. Same contract and outputs as eval_alpha.
+template <typename T>
+GAPS_HD bool eval_alpha_host_rounding(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
+                                      T& gauss, T& dx, T& dy) {
+  dx = mean2d.x - px;
+  dy = mean2d.y - py;
+  const T power = -T(0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  if (power > 0) return false;
+  gauss = exp(power);
+  T a = opacity * gauss;
+  // 1e-6 relative is ~8 float ulp: covers expf's 2 ulp plus the rounding of the product.
+  const T lo = T(1) - T(1e-6), hi = T(1) + T(1e-6);
+  const bool near_min = a > T(kMinAlpha) * lo && a < T(kMinAlpha) * hi;
+  const bool near_max = a > T(kMaxAlpha) * lo && a < T(kMaxAlpha) * hi;
+  if (near_min || near_max) {
+    gauss = T(exp(static_cast<double>(power)));
+    a = opacity * gauss;
+  }
+  alpha = a < T(kMaxAlpha) ? a : T(kMaxAlpha);
+  return alpha >= T(kMinAlpha);
+}
+
+}  // namespace gaps::raster
