@@ -1,0 +1,137 @@
+// Point-cloud initialisation from the sparse training views on the benchmark scenes: points from the sparse
+// stage and after fusion, the sparse median reprojection error, how much of the held-out test views the
+// points cover (fraction of 16x16 pixel cells hit), and the time. One JSON line per case.
+//   init_bench --method mvs --fern_views 3,6,9 --bonsai_views 12,24 --resolution 8 --json out.jsonl
+#include <chrono>
+#include <fstream>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <nlohmann/json.hpp>
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_split.h"
+#include "gs_trainer/initializer.h"
+
+ABSL_FLAG(std::string, method, "mvs", "mvs, sparse or random");
+ABSL_FLAG(std::string, fern_views, "3,6,9", "training view counts on LLFF fern (empty: skip)");
+ABSL_FLAG(std::string, bonsai_views, "12,24", "training view counts on Mip-NeRF 360 bonsai (empty: skip)");
+ABSL_FLAG(int, resolution, 8, "downscale factor");
+ABSL_FLAG(std::string, device, "cpu", "cpu or cuda: where the images (and so the dense stage) live");
+ABSL_FLAG(std::string, json, "", "append the result lines to this file");
+// Overrides of the initialisation options (defaults: InitOptions{}).
+ABSL_FLAG(bool, guided_matching, gaps::SparseOptions{}.guided_matching, "epipolar-guided matching");
+ABSL_FLAG(double, contrast_threshold, gaps::SparseOptions{}.contrast_threshold, "SIFT contrast threshold");
+ABSL_FLAG(int, max_features, gaps::SparseOptions{}.max_features, "SIFT keypoints per image");
+ABSL_FLAG(int, max_image_side, gaps::DenseOptions{}.max_image_side, "plane-sweep working resolution");
+ABSL_FLAG(int, num_planes, gaps::DenseOptions{}.num_planes, "plane-sweep depth hypotheses");
+ABSL_FLAG(int, max_neighbors, gaps::DenseOptions{}.max_neighbors, "plane-sweep source views");
+ABSL_FLAG(int, planes_per_chunk, gaps::DenseOptions{}.planes_per_chunk, "planes warped at once");
+
+namespace {
+
+gaps::InitOptions init_options() {
+  gaps::InitOptions o;
+  o.sparse.guided_matching = absl::GetFlag(FLAGS_guided_matching);
+  o.sparse.contrast_threshold = absl::GetFlag(FLAGS_contrast_threshold);
+  o.sparse.max_features = absl::GetFlag(FLAGS_max_features);
+  o.dense.max_image_side = absl::GetFlag(FLAGS_max_image_side);
+  o.dense.num_planes = absl::GetFlag(FLAGS_num_planes);
+  o.dense.max_neighbors = absl::GetFlag(FLAGS_max_neighbors);
+  o.dense.planes_per_chunk = absl::GetFlag(FLAGS_planes_per_chunk);
+  return o;
+}
+
+std::vector<int> parse_counts(const std::string& text) {
+  std::vector<int> counts;
+  for (absl::string_view part : absl::StrSplit(text, ',', absl::SkipEmpty())) {
+    int n = 0;
+    if (absl::SimpleAtoi(part, &n)) counts.push_back(n);
+  }
+  return counts;
+}
+
+// One case; the JSON line, or an "error" field saying what failed.
+nlohmann::json run_case(const std::string& scene_name, const std::filesystem::path& root, int views) {
+  nlohmann::json j = {{"scene", scene_name}, {"views", views}, {"resolution", absl::GetFlag(FLAGS_resolution)}};
+  const auto fail = [&j](const absl::Status& status) {
+    j["error"] = std::string(status.message());
+    return j;
+  };
+  gaps::SceneLoadOptions load;
+  load.resolution = absl::GetFlag(FLAGS_resolution);
+  auto scene = gaps::load_scene(root, load);
+  if (!scene.ok()) return fail(scene.status());
+  auto split = gaps::benchmark_split(static_cast<int>(scene->cameras.size()), views);
+  if (!split.ok()) return fail(split.status());
+  std::vector<gaps::Camera> cams;
+  std::vector<at::Tensor> images;
+  const at::Device device(absl::GetFlag(FLAGS_device));
+  for (int i : split->train) {
+    auto image = gaps::load_camera_image(scene->cameras[i]);
+    if (!image.ok()) return fail(image.status());
+    cams.push_back(scene->cameras[i]);
+    images.push_back(image->to(device));
+  }
+  const auto start = std::chrono::steady_clock::now();
+  auto result = gaps::run_initialization(absl::GetFlag(FLAGS_method), cams, images, init_options());
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (!result.ok()) return fail(result.status());
+
+  double coverage_sum = 0, coverage_min = 1;
+  for (int i : split->test) {
+    const double c = gaps::view_coverage(scene->cameras[i], result->points.xyz);
+    coverage_sum += c;
+    coverage_min = std::min(coverage_min, c);
+  }
+  j["size"] = std::to_string(cams[0].width) + "x" + std::to_string(cams[0].height);
+  j["method"] = result->method;
+  j["requested"] = absl::GetFlag(FLAGS_method);
+  j["points"] = result->points.xyz.size(0);
+  if (result->sparse) {
+    j["keypoints"] = result->sparse->keypoints;
+    j["matches"] = result->sparse->epipolar_matches;
+    j["tracks"] = result->sparse->tracks;
+    j["sparse_points"] = result->sparse->points;
+    j["median_reprojection_px"] = result->sparse->median_reprojection_px;
+    j["sparse_seconds"] = result->sparse->seconds;
+  }
+  if (result->dense) {
+    j["fused_points"] = result->dense->fused_before_voxel;
+    j["fused_points_capped"] = result->dense->points;
+    j["dense_seconds"] = result->dense->seconds;
+  }
+  j["test_views"] = split->test.size();
+  j["test_coverage_mean"] = coverage_sum / split->test.size();
+  j["test_coverage_min"] = coverage_min;
+  j["seconds"] = seconds;
+  j["threads"] = at::get_num_threads();
+  j["device"] = device.str();
+  if (!result->warnings.empty()) j["warnings"] = result->warnings;
+  return j;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::ParseCommandLine(argc, argv);
+  const std::filesystem::path data(GAPS_DATA_DIR);
+  std::vector<std::tuple<std::string, std::filesystem::path, int>> cases;
+  for (int n : parse_counts(absl::GetFlag(FLAGS_fern_views))) cases.emplace_back("fern", data / "llff" / "fern", n);
+  for (int n : parse_counts(absl::GetFlag(FLAGS_bonsai_views)))
+    cases.emplace_back("bonsai", data / "mipnerf360" / "bonsai", n);
+  std::ofstream out;
+  if (!absl::GetFlag(FLAGS_json).empty()) out.open(absl::GetFlag(FLAGS_json), std::ios::app);
+  int failures = 0;
+  for (const auto& [name, root, views] : cases) {
+    const nlohmann::json j = run_case(name, root, views);
+    failures += j.contains("error");
+    std::cout << j.dump() << std::endl;
+    if (out.is_open()) out << j.dump() << "\n" << std::flush;
+  }
+  return failures == 0 ? 0 : 1;
+}

@@ -1,0 +1,69 @@
+#pragma once
+// Initial point cloud for training from the N training views only (the sparse-view protocol: nothing from
+// the test views). Methods, in the order of the honest fallback chain:
+//   "mvs"    sparse triangulation, then plane-sweep stereo + fusion (init_dense.h);
+//   "sparse" SIFT matching + triangulation with the known poses (init_sparse.h);
+//   "random" uniform points in the cameras' frusta (gaussians.h).
+// A method that cannot produce enough points falls back to the next one and says why in the report.
+#include <cstdint>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "gs_trainer/camera.h"
+#include "gs_trainer/init_dense.h"
+#include "gs_trainer/init_sparse.h"
+#include "gs_trainer/scene.h"
+
+namespace gaps {
+
+struct InitOptions {
+  // Results are cached here as <key>.ply + <key>.json (see init_cache_key); empty: no cache.
+  std::filesystem::path cache_dir;
+  int64_t random_points = 20000;
+  uint64_t seed = 0;
+  SparseOptions sparse;
+  DenseOptions dense;
+  int64_t min_sparse_points = 50;   // fewer triangulated points: "sparse" has failed
+  int64_t min_dense_points = 1000;  // fewer fused points: "mvs" has failed
+};
+
+struct InitResult {
+  PointCloud points;                  // CPU tensors
+  std::string method;                 // the method that produced the points
+  std::vector<std::string> warnings;  // one per fallback, saying why
+  std::vector<std::string> notes;     // per-stage statistics, one line each
+  std::optional<SparseStats> sparse;
+  std::optional<DenseStats> dense;
+  std::filesystem::path cache_file;  // the PLY read or written (empty without a cache)
+  bool from_cache = false;
+};
+
+// The full result. images[i] is HxWx3 float in [0, 1] at cameras[i]'s size, on any device. Errors only for
+// an unknown method or invalid input; everything else falls back (see above).
+absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
+                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts);
+
+// The points only; *report (if given) gets the statistics and the warning lines, newline-terminated.
+absl::StatusOr<PointCloud> initialize_points(const std::string& method, const std::vector<Camera>& train_cameras,
+                                             const std::vector<at::Tensor>& train_images, const InitOptions& opts,
+                                             std::string* report);
+
+// Cache file stem: <scene>_<N>v_<W>x<H>_<method>_<16 hex digits> where the hash covers the method, every
+// camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options.
+std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
+                           const std::vector<at::Tensor>& images, const InitOptions& opts);
+
+// cameras.txt / images.txt / points3D.txt in `dir` (one PINHOLE camera per view, ids from 1; points without
+// tracks), so COLMAP users can inspect our points or replace them with their own reconstruction.
+absl::Status write_init_as_colmap(const std::filesystem::path& dir, const std::vector<Camera>& cameras,
+                                  const PointCloud& points);
+
+// Fraction of the camera's cell x cell pixel blocks that at least one point (in front of it) projects into.
+double view_coverage(const Camera& camera, const at::Tensor& xyz, int cell = 16);
+
+}  // namespace gaps

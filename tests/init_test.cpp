@@ -1,0 +1,408 @@
+// Point-cloud initialisation from the training views: triangulation, epipolar filtering, plane sweep,
+// fusion, the fallback chain and the cache on synthetic scenes, then the whole pipeline on LLFF fern.
+#include "gs_trainer/initializer.h"
+
+#include <chrono>
+#include <filesystem>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <ATen/ATen.h>
+#include <Eigen/Dense>
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include "gs_trainer/colmap.h"
+#include "gs_trainer/init_dense.h"
+#include "gs_trainer/init_sparse.h"
+
+namespace gaps {
+namespace {
+
+namespace fs = std::filesystem;
+
+void remove_tree(const fs::path& dir) {
+  // std::filesystem::remove_all crashes when libtorch.so interposes it; remove entry by entry.
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec)) return;
+  for (const fs::directory_entry& entry : fs::directory_iterator(dir, ec)) {
+    if (entry.is_directory(ec)) remove_tree(entry.path());
+    fs::remove(entry.path(), ec);
+  }
+  fs::remove(dir, ec);
+}
+
+// OpenCV-convention camera at `centre` looking at `target` (world y points down, like the image's).
+Camera look_at(const std::string& name, const Eigen::Vector3d& centre, const Eigen::Vector3d& target, int width,
+               int height, double focal) {
+  const Eigen::Vector3d z = (target - centre).normalized();
+  const Eigen::Vector3d x = Eigen::Vector3d(0, 1, 0).cross(z).normalized();
+  const Eigen::Vector3d y = z.cross(x);
+  Camera c;
+  c.name = name;
+  c.width = width;
+  c.height = height;
+  c.fx = c.fy = focal;
+  c.cx = width / 2.0;
+  c.cy = height / 2.0;
+  c.R.row(0) = x;
+  c.R.row(1) = y;
+  c.R.row(2) = z;
+  c.t = -c.R * centre;
+  return c;
+}
+
+// Three views of the region around (0, 0, 4) from a ~0.6 wide baseline.
+std::vector<Camera> three_cameras(int width, int height, double focal) {
+  const Eigen::Vector3d target(0, 0, 4);
+  return {look_at("a.png", {0, 0, 0}, target, width, height, focal),
+          look_at("b.png", {0.35, 0.05, 0.1}, target, width, height, focal),
+          look_at("c.png", {-0.3, -0.1, -0.05}, target, width, height, focal)};
+}
+
+// A textured plane through (0, 0, depth) with a slight tilt, rendered by ray casting.
+struct TexturedPlane {
+  Eigen::Vector3d point{0, 0, 4};
+  Eigen::Vector3d normal = Eigen::Vector3d(0.15, -0.1, -1).normalized();
+  at::Tensor texture;  // 1x3xTxT
+  double half_extent = 4.0;
+
+  explicit TexturedPlane(double depth = 4.0, uint64_t seed = 7) {
+    point.z() = depth;
+    at::manual_seed(seed);
+    // Two octaves of noise: blobs for SIFT at this scale, fine grain for ZNCC.
+    const at::Tensor coarse = at::rand({1, 3, 32, 32});
+    const at::Tensor fine = at::rand({1, 3, 128, 128});
+    texture = 0.6 * at::upsample_bilinear2d(coarse, {128, 128}, false) + 0.4 * fine;
+  }
+
+  // HxWx3 image and HxW depth (camera z) of the plane seen from `c`.
+  std::pair<at::Tensor, at::Tensor> render(const Camera& c) const {
+    const at::Tensor xs = (at::arange(c.width, at::kDouble) + 0.5 - c.cx) / c.fx;
+    const at::Tensor ys = (at::arange(c.height, at::kDouble) + 0.5 - c.cy) / c.fy;
+    const at::Tensor cam_rays =
+        at::stack({xs.view({1, -1}).expand({c.height, c.width}), ys.view({-1, 1}).expand({c.height, c.width}),
+                   at::ones({c.height, c.width}, at::kDouble)},
+                  2);
+    at::Tensor R = at::empty({3, 3}, at::kDouble);
+    for (int i = 0; i < 9; ++i) R.view(-1)[i] = c.R(i / 3, i % 3);
+    const at::Tensor rays = at::matmul(cam_rays, R);  // world directions R^T r, with rays as rows
+    const Eigen::Vector3d C = c.center();
+    const at::Tensor n = at::tensor({normal.x(), normal.y(), normal.z()}, at::kDouble);
+    const double offset = normal.dot(point - C);
+    const at::Tensor s = offset / at::matmul(rays, n);  // ray parameter; camera depth = s (ray z = 1)
+    const Eigen::Vector3d e1 = normal.cross(Eigen::Vector3d(0, 1, 0)).normalized(), e2 = normal.cross(e1);
+    const at::Tensor rel =
+        rays * s.unsqueeze(2) + at::tensor({C.x() - point.x(), C.y() - point.y(), C.z() - point.z()}, at::kDouble);
+    const at::Tensor a = at::matmul(rel, at::tensor({e1.x(), e1.y(), e1.z()}, at::kDouble)) / half_extent;
+    const at::Tensor b = at::matmul(rel, at::tensor({e2.x(), e2.y(), e2.z()}, at::kDouble)) / half_extent;
+    const at::Tensor grid = at::stack({a, b}, 2).unsqueeze(0).to(at::kFloat);
+    const at::Tensor img = at::grid_sampler(texture, grid, 0, 2, false).squeeze(0).permute({1, 2, 0});
+    return {img.contiguous(), s.to(at::kFloat)};
+  }
+};
+
+std::vector<at::Tensor> render_all(const TexturedPlane& plane, const std::vector<Camera>& cams) {
+  std::vector<at::Tensor> images;
+  for (const Camera& c : cams) images.push_back(plane.render(c).first);
+  return images;
+}
+
+TEST(Triangulation, RecoversKnownPointsExactlyAndUnderNoise) {
+  const std::vector<Camera> cams = three_cameras(640, 480, 500);
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> box(-1.0, 1.0);
+  std::normal_distribution<double> noise(0.0, 0.3);
+  for (const double sigma : {0.0, 0.3}) {
+    std::vector<double> errors_3d, errors_px;
+    for (int i = 0; i < 200; ++i) {
+      const Eigen::Vector3d X(box(rng), box(rng), 4.0 + box(rng));
+      std::vector<Observation> obs;
+      for (int v = 0; v < 3; ++v) {
+        const auto p = project_point(cams[v], X);
+        ASSERT_TRUE(p);
+        obs.push_back({v, *p + sigma * Eigen::Vector2d(noise(rng), noise(rng))});
+      }
+      TriangulatedPoint t;
+      ASSERT_EQ(triangulate_track(cams, obs, SparseOptions{}, &t), TrackVerdict::kKept) << X.transpose();
+      ASSERT_EQ(t.observations.size(), 3u);
+      errors_3d.push_back((t.xyz - X).norm());
+      errors_px.insert(errors_px.end(), t.errors_px.begin(), t.errors_px.end());
+    }
+    std::sort(errors_3d.begin(), errors_3d.end());
+    std::sort(errors_px.begin(), errors_px.end());
+    if (sigma == 0.0) {
+      EXPECT_LT(errors_3d.back(), 1e-6);
+      EXPECT_LT(errors_px.back(), 1e-6);
+    } else {
+      // Depth noise ~ z^2 / (f b) * sigma = 16 / (500 * 0.6) * 0.3 ~ 0.016 at this geometry.
+      EXPECT_LT(errors_3d[errors_3d.size() / 2], 0.03);
+      EXPECT_LT(errors_px[errors_px.size() / 2], 0.5);
+      EXPECT_LT(errors_px.back(), 1.5);
+    }
+  }
+}
+
+TEST(Triangulation, FiltersCheiralityAngleAndDropsOutlierObservations) {
+  const std::vector<Camera> cams = three_cameras(640, 480, 500);
+  const Eigen::Vector3d X(0.2, -0.1, 4.2);
+  std::vector<Observation> obs;
+  for (int v = 0; v < 3; ++v) obs.push_back({v, *project_point(cams[v], X)});
+
+  // One corrupted observation of three: dropped, the point still kept from the other two.
+  std::vector<Observation> bad = obs;
+  bad[2].xy += Eigen::Vector2d(25, -10);
+  TriangulatedPoint t;
+  ASSERT_EQ(triangulate_track(cams, bad, SparseOptions{}, &t), TrackVerdict::kKept);
+  EXPECT_EQ(t.observations.size(), 2u);
+  EXPECT_LT((t.xyz - X).norm(), 1e-6);
+
+  // A point far away relative to the baseline: tiny triangulation angle.
+  const Eigen::Vector3d far_point(0, 0, 400);
+  std::vector<Observation> far_obs;
+  for (int v = 0; v < 2; ++v) far_obs.push_back({v, *project_point(cams[v], far_point)});
+  EXPECT_EQ(triangulate_track(cams, far_obs, SparseOptions{}, &t), TrackVerdict::kAngle);
+
+  // Two rays that meet behind the cameras (both observations pushed outwards past the vanishing direction).
+  Camera left = look_at("l", {-1, 0, 0}, {-1, 0, 5}, 640, 480, 500);
+  Camera right = look_at("r", {1, 0, 0}, {1, 0, 5}, 640, 480, 500);
+  const std::vector<Camera> pair = {left, right};
+  const std::vector<Observation> diverging = {{0, {220, 240}}, {1, {420, 240}}};
+  EXPECT_EQ(triangulate_track(pair, diverging, SparseOptions{}, &t), TrackVerdict::kCheirality);
+}
+
+TEST(Epipolar, FilterKeepsTrueAndRejectsWrongMatches) {
+  const std::vector<Camera> cams = three_cameras(640, 480, 500);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> box(-1.0, 1.0);
+  std::vector<Eigen::Vector2d> xa, xb;
+  for (int i = 0; i < 300; ++i) {
+    const Eigen::Vector3d X(box(rng), box(rng), 4.0 + box(rng));
+    xa.push_back(*project_point(cams[0], X));
+    xb.push_back(*project_point(cams[1], X));
+  }
+  const Eigen::Matrix3d F = fundamental_matrix(cams[0], cams[1]);
+  for (int i = 0; i < 300; ++i) EXPECT_LT(epipolar_distance(F, xa[i], xb[i]), 1e-6);
+
+  std::vector<Match> right, wrong;
+  for (int i = 0; i < 300; ++i) {
+    right.push_back({i, i});
+    wrong.push_back({i, (i * 7 + 13) % 300});
+  }
+  EXPECT_EQ(epipolar_filter(cams[0], cams[1], xa, xb, right, 2.0).size(), 300u);
+  const size_t survivors = epipolar_filter(cams[0], cams[1], xa, xb, wrong, 2.0).size();
+  EXPECT_LT(survivors, 15u) << "wrong matches should rarely lie within 2 px of the epipolar line";
+}
+
+TEST(Tracks, UnionFindMergesChainsAndDropsAmbiguousViews) {
+  // 0:0 - 1:0 - 2:0 forms one track; 0:1 - 1:1 and 0:2 - 1:1 put two keypoints of view 0 in one component.
+  std::vector<std::vector<std::vector<Match>>> m(3, std::vector<std::vector<Match>>(3));
+  m[0][1] = {{0, 0}, {1, 1}, {2, 1}};
+  m[1][2] = {{0, 0}, {1, 1}};
+  const auto tracks = build_tracks({3, 2, 2}, m);
+  ASSERT_EQ(tracks.size(), 2u);
+  for (const auto& t : tracks) {
+    if (t.size() == 3) {
+      EXPECT_EQ(t[0], std::make_pair(0, 0));
+    } else {
+      ASSERT_EQ(t.size(), 2u);  // view 0 was ambiguous: only views 1 and 2 remain
+      EXPECT_EQ(t[0].first, 1);
+      EXPECT_EQ(t[1].first, 2);
+    }
+  }
+}
+
+TEST(Sparse, TriangulatesASyntheticPlane) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(320, 240, 300);
+  auto result = sparse_reconstruct(cams, render_all(plane, cams));
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_GT(result->stats.points, 50) << result->stats.keypoints << " keypoints";
+  EXPECT_LT(result->stats.median_reprojection_px, 0.5);
+  const auto xyz = result->points.xyz.accessor<float, 2>();
+  int on_plane = 0;
+  for (int64_t i = 0; i < result->points.xyz.size(0); ++i) {
+    const Eigen::Vector3d X(xyz[i][0], xyz[i][1], xyz[i][2]);
+    on_plane += std::abs(plane.normal.dot(X - plane.point)) < 0.04;
+  }
+  EXPECT_GT(on_plane, 0.95 * result->stats.points);
+}
+
+TEST(PlaneSweep, RecoversTheDepthOfATexturedPlane) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(160, 120, 150);
+  std::vector<at::Tensor> images;
+  at::Tensor truth;
+  for (const Camera& c : cams) {
+    auto [img, depth] = plane.render(c);
+    images.push_back(img);
+    if (!truth.defined()) truth = depth;
+  }
+  DenseOptions o;
+  o.num_planes = 64;
+  const DepthMap map = plane_sweep(cams[0], images[0], {cams[1], cams[2]}, {images[1], images[2]}, 2.0, 8.0, o);
+  const at::Tensor valid = map.depth > 0;
+  const double fraction = valid.to(at::kFloat).mean().item<double>();
+  EXPECT_GT(fraction, 0.5);
+  const at::Tensor rel = ((map.depth - truth).abs() / truth).index({valid});
+  const double median = rel.median().item<double>();
+  EXPECT_LT(median, 0.01) << "valid fraction " << fraction;
+  // Inverse-depth plane spacing here is ~1.2% of depth at 4 units: the parabola refines below a plane.
+  EXPECT_LT(median, 0.005);
+}
+
+DepthMap map_from_truth(const Camera& c, const at::Tensor& image, const at::Tensor& depth) {
+  DepthMap m;
+  m.camera = c;
+  m.image = image;
+  m.depth = depth;
+  m.score = at::ones_like(depth);
+  m.margin = at::ones_like(depth);
+  m.support = at::ones_like(depth, at::kInt);
+  return m;
+}
+
+TEST(Fusion, KeepsConsistentAndRejectsContradictingDepths) {
+  const TexturedPlane plane(4.0), other(5.0);
+  const std::vector<Camera> cams = three_cameras(160, 120, 150);
+  auto [img_a, depth_a] = plane.render(cams[0]);
+  auto [img_b, depth_b] = plane.render(cams[1]);
+  const DenseOptions o;
+  const PointCloud agree =
+      fuse_depth_maps({map_from_truth(cams[0], img_a, depth_a), map_from_truth(cams[1], img_b, depth_b)}, o);
+  EXPECT_GT(agree.xyz.size(0), 0.5 * 160 * 120);
+  // Fused points lie on the plane.
+  const at::Tensor n = at::tensor({plane.normal.x(), plane.normal.y(), plane.normal.z()}, at::kFloat);
+  const double p0 = plane.normal.dot(plane.point);
+  EXPECT_LT((at::matmul(agree.xyz, n) - p0).abs().max().item<double>(), 0.02);
+
+  // View b claims a plane one unit further away (same colours, so only geometry can object): nothing fuses.
+  const at::Tensor wrong_b = other.render(cams[1]).second;
+  const PointCloud contradict =
+      fuse_depth_maps({map_from_truth(cams[0], img_a, depth_a), map_from_truth(cams[1], img_b, wrong_b)}, o);
+  EXPECT_EQ(contradict.xyz.size(0), 0);
+}
+
+TEST(Voxel, CapsThePointCount) {
+  at::manual_seed(1);
+  PointCloud pc{at::rand({50000, 3}), at::rand({50000, 3})};
+  pc.xyz.select(1, 2).zero_();  // a surface, as fused points are
+  double voxel = 0;
+  const PointCloud capped = cap_points(pc, 5000, &voxel);
+  EXPECT_LE(capped.xyz.size(0), 5000);
+  EXPECT_GT(capped.xyz.size(0), 4500);  // about the smallest voxel that meets the cap
+  EXPECT_GT(voxel, 0);
+  EXPECT_EQ(cap_points(pc, 100000, &voxel).xyz.size(0), 50000);
+  EXPECT_EQ(voxel, 0);
+}
+
+TEST(Initializer, SingleViewFallsBackToRandomWithAWarning) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(160, 120, 150);
+  InitOptions o;
+  o.random_points = 1234;
+  std::string report;
+  auto points = initialize_points("mvs", {cams[0]}, {plane.render(cams[0]).first}, o, &report);
+  ASSERT_TRUE(points.ok()) << points.status();
+  EXPECT_EQ(points->xyz.size(0), 1234);
+  EXPECT_NE(report.find("warning: init: mvs needs at least two views"), std::string::npos) << report;
+  EXPECT_NE(report.find("init: random, 1234 points"), std::string::npos) << report;
+
+  // Same centre, different directions: nothing can be triangulated.
+  Camera turned = look_at("t.png", {0, 0, 0}, {1, 0, 4}, 160, 120, 150);
+  const std::vector<Camera> pivot = {cams[0], turned};
+  report.clear();
+  auto pivoted = initialize_points("sparse", pivot, render_all(plane, pivot), o, &report);
+  ASSERT_TRUE(pivoted.ok());
+  EXPECT_EQ(pivoted->xyz.size(0), 1234);
+  EXPECT_NE(report.find("degenerate baseline"), std::string::npos) << report;
+
+  EXPECT_FALSE(initialize_points("colmap", cams, render_all(plane, cams), o, nullptr).ok());
+}
+
+TEST(Initializer, MvsOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(320, 240, 300);
+  const std::vector<at::Tensor> images = render_all(plane, cams);
+  const fs::path dir = fs::temp_directory_path() / ("gaps_init_test_" + std::to_string(::getpid()));
+  InitOptions o;
+  o.cache_dir = dir;
+  o.dense.max_image_side = 200;  // small sweep: this test is about the plumbing
+  o.dense.num_planes = 48;
+  auto first = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->method, "mvs") << (first->warnings.empty() ? "" : first->warnings[0]);
+  EXPECT_FALSE(first->from_cache);
+  EXPECT_GT(first->points.xyz.size(0), 5000);
+  ASSERT_TRUE(fs::exists(first->cache_file));
+
+  auto second = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(second.ok());
+  EXPECT_TRUE(second->from_cache);
+  EXPECT_EQ(second->method, "mvs");
+  EXPECT_TRUE(at::equal(first->points.xyz, second->points.xyz));
+  EXPECT_TRUE(at::equal(first->points.rgb, second->points.rgb));
+  // Another method or other views get another key.
+  EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("mvs", cams, images, o));
+  EXPECT_NE(init_cache_key("mvs", {cams[0], cams[1]}, {images[0], images[1]}, o),
+            init_cache_key("mvs", cams, images, o));
+
+  // mvs that cannot deliver (here: an unreachable point count) falls back to the sparse points, saying why.
+  InitOptions strict = o;
+  strict.cache_dir.clear();
+  strict.min_dense_points = int64_t{1} << 40;
+  std::string report;
+  auto fallback = initialize_points("mvs", cams, images, strict, &report);
+  ASSERT_TRUE(fallback.ok());
+  EXPECT_NE(report.find("warning: init: mvs failed: too few fused points"), std::string::npos) << report;
+  EXPECT_NE(report.find("init: sparse, "), std::string::npos) << report;
+
+  // COLMAP interop: the text model reads back with our cameras and points.
+  ASSERT_TRUE(write_init_as_colmap(dir / "colmap", cams, first->points).ok());
+  auto model = read_colmap_model(dir / "colmap");
+  ASSERT_TRUE(model.ok()) << model.status();
+  EXPECT_EQ(model->images.size(), 3u);
+  EXPECT_EQ(static_cast<int64_t>(model->points.size()), first->points.xyz.size(0));
+  remove_tree(dir);
+}
+
+TEST(Initializer, FernThreeViews) {
+  const fs::path root = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(root)) GTEST_SKIP() << "no benchmark data at " << root;
+  SceneLoadOptions load;
+  load.resolution = 8;
+  auto scene = load_scene(root, load);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  auto split = benchmark_split(static_cast<int>(scene->cameras.size()), 3);
+  ASSERT_TRUE(split.ok());
+  ASSERT_EQ(split->train, (std::vector<int>{1, 10, 19}));
+  std::vector<Camera> cams;
+  std::vector<at::Tensor> images;
+  for (int i : split->train) {
+    auto image = load_camera_image(scene->cameras[i]);
+    ASSERT_TRUE(image.ok()) << image.status();
+    cams.push_back(scene->cameras[i]);
+    images.push_back(*image);
+  }
+  const auto start = std::chrono::steady_clock::now();
+  auto result = run_initialization("mvs", cams, images, InitOptions{});
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  ASSERT_TRUE(result.ok()) << result.status();
+  for (const std::string& n : result->notes) std::cout << n << "\n";
+  ASSERT_EQ(result->method, "mvs") << (result->warnings.empty() ? "" : result->warnings[0]);
+  ASSERT_TRUE(result->sparse);
+  EXPECT_GT(result->sparse->points, 300);
+  EXPECT_LT(result->sparse->median_reprojection_px, 1.5);
+  EXPECT_GT(result->points.xyz.size(0), 5000);
+  for (int i : {0, 8, 16}) {
+    const double coverage = view_coverage(scene->cameras[i], result->points.xyz);
+    std::cout << "test view " << i << " coverage " << coverage << "\n";
+    EXPECT_GT(coverage, 0.5) << "test view " << i;
+  }
+  std::cout << "fern 3 views: " << result->points.xyz.size(0) << " points in " << seconds << " s\n";
+  EXPECT_LT(seconds, 60.0);
+}
+
+}  // namespace
+}  // namespace gaps
