@@ -3,6 +3,7 @@
 //   gaps demo  [--out DIR] [--iterations K]
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -28,7 +29,8 @@ ABSL_FLAG(int, iterations, 10000, "training iterations");
 ABSL_FLAG(uint64_t, seed, 0, "random seed");
 ABSL_FLAG(std::string, device, "", "cpu or cuda (default: cuda when available)");
 ABSL_FLAG(std::string, out, "", "output folder (PLY, renders, metrics.json)");
-ABSL_FLAG(std::string, init, "random", "initial points: random, scene (the scene's own points) or ply");
+ABSL_FLAG(std::string, init, "mvs", "initial points: mvs (from the training views), sparse, random, scene or ply");
+ABSL_FLAG(std::string, init_cache, "", "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, init_ply, "", "PLY point cloud for --init ply (given alone, implies it)");
 ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
 ABSL_FLAG(std::string, config, "", "JSON file of training options (TrainConfig field names)");
@@ -82,6 +84,13 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
   o.init_ply = absl::GetFlag(FLAGS_init_ply);
   if (!o.init_ply.empty()) o.init = "ply";
   o.random_points = absl::GetFlag(FLAGS_random_points);
+  o.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
+  if (o.init_cache_dir.empty()) {
+    const char* cache = std::getenv("GAPS_CACHE");
+    const char* home = std::getenv("HOME");
+    if (cache) o.init_cache_dir = std::filesystem::path(cache) / "init";
+    else if (home) o.init_cache_dir = std::filesystem::path(home) / ".cache" / "gaps" / "init";
+  }
   o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);
   o.lpips_weights = absl::GetFlag(FLAGS_lpips_weights);
   if (const std::string path = absl::GetFlag(FLAGS_config); !path.empty()) {

@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "gs_trainer/image_io.h"
+#include "gs_trainer/initializer.h"
 #include "gs_trainer/lpips.h"
 #include "gs_trainer/ply.h"
 #include "gs_trainer/render.h"
@@ -38,16 +39,20 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
     log("warning: initialising from the scene's own points; they may have been reconstructed with the test views");
     return *scene.points;
   }
-  if (o.init != "random")
-    return absl::InvalidArgumentError(absl::StrCat("unknown --init '", o.init, "' (random, scene or ply)"));
-  std::vector<Camera> cams;
-  double far = 0;
+  std::vector<Camera> cameras;
+  std::vector<at::Tensor> images;
   for (const auto& v : train) {
-    cams.push_back(v.camera);
-    far = std::max(far, v.camera.far);
+    cameras.push_back(v.camera);
+    images.push_back(v.image.cpu());
   }
-  if (far <= 0) far = 2.0 * cameras_extent(cams) + 1.0;
-  return random_points_in_views(cams, o.random_points, far, o.config.seed);
+  InitOptions init;
+  init.cache_dir = o.init_cache_dir;
+  init.random_points = o.random_points;
+  init.seed = o.config.seed;
+  std::string report;
+  auto points = initialize_points(o.init, cameras, images, init, &report);
+  if (!report.empty()) log(report);
+  return points;
 }
 
 absl::Status write_json(const std::filesystem::path& path, const nlohmann::json& j) {

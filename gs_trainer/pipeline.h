@@ -18,10 +18,13 @@ struct RunOptions {
   int views = 3;        // training views (<= 0: every non-test view)
   int resolution = 8;   // downscale factor
   std::filesystem::path out_dir;
-  // "random" (uniform in the training cameras' frusta), "scene" (points shipped with the scene, e.g. a
-  // COLMAP model: only honest when they were reconstructed without the test views) or "ply" (init_ply).
-  std::string init = "random";
+  // "mvs" (sparse triangulation + plane-sweep stereo from the training views only; falls back to "sparse",
+  // then "random", saying why), "sparse", "random" (uniform in the training cameras' frusta), "scene" (points
+  // shipped with the scene, e.g. a COLMAP model: only honest when made without the test views) or "ply".
+  std::string init = "mvs";
   std::filesystem::path init_ply;
+  // Initial point clouds are cached here per scene, views, resolution and method (empty: no cache).
+  std::filesystem::path init_cache_dir;
   int64_t random_points = 20000;
   // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
   std::filesystem::path lpips_backbone;

@@ -54,6 +54,7 @@ TEST_F(EndToEnd, SyntheticSceneFromThreeViews) {
   o.out_dir = dir / "out";
   o.views = 3;
   o.resolution = 1;
+  o.init = "random";
   o.random_points = 4000;
   o.config.iterations = 600;
   const auto r = run(o);
@@ -72,6 +73,7 @@ TEST_F(EndToEnd, FernThreeViewsLossFallsAndPsnrClearsAFloor) {
   o.out_dir = dir / "out";
   o.views = 3;
   o.resolution = 8;
+  o.init = "random";
   o.random_points = 4000;
   o.config.iterations = 300;
   const auto r = run(o);

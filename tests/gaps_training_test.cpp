@@ -45,6 +45,7 @@ struct GapsTrainingTest : test::TempDirTest {
     o.out_dir = dir_ / "out";
     o.views = 3;
     o.resolution = 1;
+    o.init = "random";
     o.random_points = 2000;
     o.config.iterations = 90;
     o.variant = variant;
