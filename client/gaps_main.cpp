@@ -48,6 +48,7 @@ namespace {
 constexpr char kUsage[] =
     "gaps <command> [flags]\n"
     "  train   reconstruct a scene from N views and evaluate on the test views\n"
+    "  init    only the initial point cloud of the training views (PLY + COLMAP text model)\n"
     "  demo    build a synthetic scene, reconstruct it from 3 views, print test PSNR\n"
     "Flags accept dashes or underscores (--init-ply or --init_ply).";
 
@@ -170,6 +171,25 @@ int run_train() {
   return report(run_with_generator(*options), *options);
 }
 
+int run_init() {
+  auto options = options_from_flags();
+  if (!options.ok()) {
+    std::cerr << "gaps init: " << options.status().message() << "\n";
+    return 2;
+  }
+  options->scene_dir = absl::GetFlag(FLAGS_scene);
+  options->out_dir = absl::GetFlag(FLAGS_out);
+  if (options->scene_dir.empty() || options->out_dir.empty()) {
+    std::cerr << "gaps init: --scene and --out are required\n";
+    return 2;
+  }
+  if (auto st = gaps::run_init_only(*options, log_line); !st.ok()) {
+    std::cerr << "gaps init: " << st.message() << "\n";
+    return 1;
+  }
+  return 0;
+}
+
 int run_demo() {
   auto options = options_from_flags();
   if (!options.ok()) {
@@ -199,6 +219,7 @@ int main(int argc, char** argv) {
   const std::vector<char*> positional = absl::ParseCommandLine(static_cast<int>(args.size()), args.data());
   const std::string command = positional.size() > 1 ? positional[1] : "";
   if (command == "train") return run_train();
+  if (command == "init") return run_init();
   if (command == "demo") {
     // The demo's own budget, unless the user chose one.
     const bool chosen = std::any_of(storage.begin(), storage.end(),

@@ -43,7 +43,7 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   std::vector<at::Tensor> images;
   for (const auto& v : train) {
     cameras.push_back(v.camera);
-    images.push_back(v.image.cpu());
+    images.push_back(v.image);
   }
   InitOptions init;
   init.cache_dir = o.init_cache_dir;
@@ -109,6 +109,25 @@ absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& mo
     }
   }
   return out;
+}
+
+absl::Status run_init_only(const RunOptions& o, const std::function<void(const std::string&)>& log) {
+  const at::Device device(o.config.device);
+  SceneLoadOptions load;
+  load.resolution = o.resolution;
+  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(o.scene_dir, load));
+  GAPS_ASSIGN_OR_RETURN(Split split, benchmark_split(static_cast<int>(scene.cameras.size()), o.views));
+  log(describe(scene, split));
+  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
+  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
+  std::filesystem::create_directories(o.out_dir);
+  GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
+  std::vector<Camera> cameras;
+  for (const auto& v : train) cameras.push_back(v.camera);
+  GAPS_RETURN_IF_ERROR(write_init_as_colmap(o.out_dir / "sparse" / "0", cameras, points));
+  log(absl::StrCat(points.xyz.size(0), " points written to ", (o.out_dir / "points.ply").string(), " and ",
+                   (o.out_dir / "sparse" / "0").string()));
+  return absl::OkStatus();
 }
 
 absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallback& on_progress,

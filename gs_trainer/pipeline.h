@@ -53,6 +53,10 @@ using ProgressCallback = std::function<void(const TrainProgress&)>;
 absl::StatusOr<RunResult> run_pipeline(const RunOptions& options, const ProgressCallback& on_progress,
                                        const std::function<void(const std::string&)>& log);
 
+// `gaps init`: the initial point cloud of a run's training views, written to out_dir as points.ply and as a
+// COLMAP text model (sparse/0/{cameras,images,points3D}.txt) that COLMAP users can inspect or replace.
+absl::Status run_init_only(const RunOptions& options, const std::function<void(const std::string&)>& log);
+
 // Evaluates a model on cameras with known images; writes renders to `render_dir` when not empty.
 absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& model,
                                                          const std::vector<TrainingView>& views,
