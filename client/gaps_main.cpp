@@ -145,6 +145,15 @@ auto progress_printer() {
 
 void log_line(const std::string& s) { std::cerr << s << "\n"; }
 
+// The command line as typed (flag names normalised), for defaults that depend on whether a flag was given.
+std::vector<std::string> storage_;
+
+bool flag_given(const std::vector<std::string>& args, const std::string& name) {
+  return std::any_of(args.begin(), args.end(), [&](const std::string& a) {
+    return a == name || a.rfind(name + "=", 0) == 0;
+  });
+}
+
 // Runs the pipeline with the generator the flags ask for (only the method variants use one).
 absl::StatusOr<gaps::RunResult> run_with_generator(gaps::RunOptions& o) {
   std::unique_ptr<gaps::Generator> generator;
@@ -201,6 +210,10 @@ int run_demo() {
   options->scene_dir = options->out_dir / "scene";
   options->resolution = 1;
   options->views = 3;
+  // Three 160x120 views carry too few features for the MVS initialiser (it would fall back anyway), and a
+  // small random cloud keeps the demo within minutes on two cores.
+  if (!flag_given(storage_, "--init")) options->init = "random";
+  if (!flag_given(storage_, "--random_points")) options->random_points = 5000;
   std::cerr << "demo: rendering a synthetic scene (16 views, 160x120) into " << options->scene_dir << "\n";
   if (auto st = gaps::write_synthetic_scene(options->scene_dir, {}); !st.ok()) {
     std::cerr << "gaps demo: " << st.message() << "\n";
@@ -214,7 +227,7 @@ int run_demo() {
 
 int main(int argc, char** argv) {
   absl::SetProgramUsageMessage(kUsage);
-  std::vector<std::string> storage;
+  std::vector<std::string>& storage = storage_;
   std::vector<char*> args = normalise_flag_names(argc, argv, storage);
   const std::vector<char*> positional = absl::ParseCommandLine(static_cast<int>(args.size()), args.data());
   const std::string command = positional.size() > 1 ? positional[1] : "";
@@ -222,9 +235,7 @@ int main(int argc, char** argv) {
   if (command == "init") return run_init();
   if (command == "demo") {
     // The demo's own budget, unless the user chose one.
-    const bool chosen = std::any_of(storage.begin(), storage.end(),
-                                    [](const std::string& a) { return a.rfind("--iterations", 0) == 0; });
-    if (!chosen) absl::SetFlag(&FLAGS_iterations, 2000);
+    if (!flag_given(storage, "--iterations")) absl::SetFlag(&FLAGS_iterations, 1500);
     return run_demo();
   }
   std::cerr << kUsage << "\n";

@@ -5,6 +5,7 @@
 #include <random>
 
 #include <ATen/ATen.h>
+#include <Eigen/SVD>
 #include <opencv2/flann.hpp>
 #include "absl/strings/str_cat.h"
 #include "gs_trainer/ply.h"
@@ -85,6 +86,29 @@ PointCloud random_points_in_views(const std::vector<Camera>& cameras, int64_t co
   float* r = rgb.data_ptr<float>();
   for (int64_t i = 0; i < count * 3; ++i) r[i] = static_cast<float>(u(rng));
   return {xyz, rgb};
+}
+
+double default_far_bound(const std::vector<Camera>& cameras) {
+  // Least squares: sum over cameras of (I - d d^T)(x - c) = 0.
+  Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
+  Eigen::Vector3d b = Eigen::Vector3d::Zero();
+  for (const auto& c : cameras) {
+    const Eigen::Vector3d d = c.forward().normalized();
+    const Eigen::Matrix3d P = Eigen::Matrix3d::Identity() - d * d.transpose();
+    A += P;
+    b += P * c.center();
+  }
+  const double fallback = 2.0 * cameras_extent(cameras) + 1.0;
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(A, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  if (cameras.size() < 2 || svd.singularValues()(2) < 1e-6 * svd.singularValues()(0)) return fallback;
+  const Eigen::Vector3d target = svd.solve(b);
+  double far = 0;
+  for (const auto& c : cameras) {
+    const Eigen::Vector3d v = target - c.center();
+    if (v.dot(c.forward()) <= 0) return fallback;
+    far = std::max(far, 2.0 * v.norm());
+  }
+  return std::max(far, fallback);
 }
 
 double cameras_extent(const std::vector<Camera>& cameras) {

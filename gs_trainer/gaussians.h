@@ -40,6 +40,11 @@ GaussianModel gaussians_from_points(const PointCloud& points, int max_sh_degree)
 PointCloud random_points_in_views(const std::vector<Camera>& cameras, int64_t count, double fallback_far,
                                   uint64_t seed);
 
+// A far bound for scenes whose format gives none: twice the distance from the cameras to the point their
+// optical axes pass closest to (what a capture looks at), or 2 * cameras_extent + 1 when the axes do not
+// converge in front of the cameras (e.g. parallel).
+double default_far_bound(const std::vector<Camera>& cameras);
+
 // Radius of the sphere around the camera centres, x1.1 (3DGS's "cameras extent"); scales learning rates
 // and densification thresholds.
 double cameras_extent(const std::vector<Camera>& cameras);

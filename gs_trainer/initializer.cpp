@@ -81,7 +81,7 @@ absl::Status check_inputs(const std::string& method, const std::vector<Camera>& 
 PointCloud random_cloud(const std::vector<Camera>& cameras, const InitOptions& opts) {
   double far = 0;
   for (const Camera& c : cameras) far = std::max(far, c.far);
-  if (far <= 0) far = 2.0 * cameras_extent(cameras) + 1.0;
+  if (far <= 0) far = default_far_bound(cameras);
   return random_points_in_views(cameras, opts.random_points, far, opts.seed);
 }
 

@@ -150,7 +150,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
   GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> test, load_views(scene, split.test, device));
   GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
-  log(absl::StrCat("initialisation: ", o.init, ", ", points.xyz.size(0), " points"));
+  log(absl::StrCat("initial points: ", points.xyz.size(0)));
 
   std::filesystem::create_directories(o.out_dir);
   const std::vector<TrainingView> references = train;

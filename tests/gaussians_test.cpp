@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <ATen/ATen.h>
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
 #include "gs_trainer/gaussians.h"
@@ -65,6 +66,24 @@ TEST(CamerasExtent, IsTheEnclosingRadiusTimesOnePointOne) {
   a.t = Eigen::Vector3d(-1, 0, 0);  // centre (1, 0, 0)
   b.t = Eigen::Vector3d(1, 0, 0);   // centre (-1, 0, 0)
   EXPECT_NEAR(cameras_extent({a, b}), 1.1, 1e-12);
+}
+
+TEST(DefaultFarBound, IsTwiceTheDistanceToWhereTheAxesMeet) {
+  // Two cameras 2 apart on the x axis, both looking at (0, 0, 3).
+  std::vector<Camera> cams(2);
+  for (int i = 0; i < 2; ++i) {
+    const Eigen::Vector3d eye(i == 0 ? -1.0 : 1.0, 0, 0), target(0, 0, 3);
+    const Eigen::Vector3d z = (target - eye).normalized(), x = Eigen::Vector3d(0, 1, 0).cross(z).normalized();
+    cams[i].R.row(0) = x.transpose();
+    cams[i].R.row(1) = z.cross(x).transpose();
+    cams[i].R.row(2) = z.transpose();
+    cams[i].t = -cams[i].R * eye;
+  }
+  EXPECT_NEAR(default_far_bound(cams), 2.0 * std::sqrt(10.0), 1e-9);
+  // Parallel axes never meet: the extent-based fallback.
+  std::vector<Camera> parallel(2);
+  parallel[1].t = Eigen::Vector3d(-1, 0, 0);
+  EXPECT_NEAR(default_far_bound(parallel), 2.0 * cameras_extent(parallel) + 1.0, 1e-12);
 }
 
 TEST(GaussiansPly, RoundTripKeepsEveryParameter) {
