@@ -3,6 +3,7 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/gaps_training.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
@@ -117,6 +118,40 @@ TEST_F(GapsTrainingTest, MethodVariantsNeedAGenerator) {
   auto r = run_pipeline(options(Variant::kFull, nullptr), nullptr, [](const std::string&) {});
   ASSERT_FALSE(r.ok());
   EXPECT_NE(std::string(r.status().message()).find("generator"), std::string::npos);
+}
+
+// The real scene with the reproject backend: two phases on fern (3 views, -r 8), views admitted, finite.
+TEST(GapsOnFern, TwoPhasesWithTheReprojectBackendAdmitAndStayFinite) {
+  const std::filesystem::path fern = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!std::filesystem::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
+  const auto out = std::filesystem::path(::testing::TempDir()) / "gaps_fern_reproject";
+  test::remove_tree(out);
+  auto generator = make_generator("reproject", "");
+  ASSERT_TRUE(generator.ok()) << generator.status();
+  RunOptions o;
+  o.scene_dir = fern;
+  o.out_dir = out;
+  o.views = 3;
+  o.resolution = 8;
+  o.init = "random";
+  o.random_points = 3000;
+  o.config.iterations = 120;
+  o.variant = Variant::kFull;
+  o.generator = generator->get();
+  o.gaps.warmup_iterations = 40;
+  o.gaps.phase_interval = 40;
+  o.n_active = 4;
+  std::vector<double> losses;
+  auto r = run_pipeline(o, [&](const TrainProgress& p) { losses.push_back(p.loss); }, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  for (double l : losses) EXPECT_TRUE(std::isfinite(l));
+  EXPECT_TRUE(std::isfinite(r->metrics.psnr));
+  const auto phases = read_json(out / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);  // at iterations 40 and 80
+  int admitted = 0;
+  for (const auto& p : phases) admitted += p["admitted"].get<int>();
+  EXPECT_GT(admitted, 0);
+  test::remove_tree(out);
 }
 
 TEST(Variants, ParseAndName) {
