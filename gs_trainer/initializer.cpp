@@ -20,7 +20,8 @@ namespace {
 namespace fs = std::filesystem;
 
 // Bumped whenever the algorithms change what a key produces, so stale caches are not reused.
-constexpr char kCacheVersion[] = "init-v1";
+// Bumped whenever an algorithm or default changes what a method produces, so stale caches are not reused.
+constexpr char kCacheVersion[] = "init-v2";
 
 uint64_t fnv1a(const std::string& text) {
   uint64_t h = 1469598103934665603ull;
@@ -221,7 +222,8 @@ absl::StatusOr<InitResult> run_initialization(const std::string& method, const s
                                               const std::vector<at::Tensor>& train_images, const InitOptions& opts) {
   GAPS_RETURN_IF_ERROR(check_inputs(method, train_cameras, train_images));
   fs::path cache;
-  if (!opts.cache_dir.empty()) {
+  // Random points cost nothing to draw again; caching them would only hide changes.
+  if (!opts.cache_dir.empty() && method != "random") {
     cache = opts.cache_dir / (init_cache_key(method, train_cameras, train_images, opts) + ".ply");
     if (std::optional<InitResult> cached = read_cache(cache)) return std::move(*cached);
   }
