@@ -3,7 +3,9 @@
 // SH degree 3, every Gaussian in the view: the setup of the Inria rasterizer figures in
 // shared/gpu/README.md. Also the split between the rasterizer's stages (backend calls, synchronised
 // one by one). CUDA for every case, CPU for the smallest. One JSON line per case and device.
-//   rasterizer_speed_bench [--runs 20] [--cpu_runs 3] [--json results.jsonl]
+// With --dump_dir, each case's Gaussians (standard 3DGS PLY) and camera (JSON) are written there, so that
+// bench/gsplat_compare.py times gsplat on exactly the same input in the same run.
+//   rasterizer_speed_bench [--runs 20] [--cpu_runs 3] [--json results.jsonl] [--dump_dir DIR]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -26,12 +28,14 @@
 
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDACachingAllocator.h>
 #include <cuda_runtime.h>
 #endif
 
 ABSL_FLAG(int, runs, 20, "timed CUDA runs per case (the median is reported)");
 ABSL_FLAG(int, cpu_runs, 3, "timed CPU runs for the smallest case (0: skip the CPU)");
 ABSL_FLAG(std::string, json, "", "also append the JSON lines to this file");
+ABSL_FLAG(std::string, dump_dir, "", "write each case's Gaussians (PLY) and camera (JSON) to this folder");
 
 namespace {
 
@@ -97,8 +101,42 @@ gaps::GaussianModel make_model(int64_t n, const gaps::Camera& c, uint64_t seed) 
   return m;
 }
 
+void reset_peak_memory(const at::Device& device) {
+#if defined(GAPS_CUDA_KERNELS)
+  if (device.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(device.index());
+#else
+  (void)device;
+#endif
+}
+
+// Peak bytes held by tensors on the device since the last reset (the caching allocator's own figure, as
+// torch.cuda.max_memory_allocated reports it); -1 on the CPU.
+double peak_memory_mib(const at::Device& device) {
+#if defined(GAPS_CUDA_KERNELS)
+  if (device.is_cuda()) {
+    const auto stats = c10::cuda::CUDACachingAllocator::getDeviceStats(device.index());
+    return static_cast<double>(stats.allocated_bytes[0].peak) / (1024.0 * 1024.0);
+  }
+#else
+  (void)device;
+#endif
+  return -1.0;
+}
+
+void dump_case(const Case& cs, const gaps::GaussianModel& model, const gaps::Camera& camera,
+               const std::string& dir) {
+  const std::string stem = dir + "/" + cs.name;
+  const absl::Status saved = gaps::save_gaussians_ply(model, stem + ".ply");
+  TORCH_CHECK(saved.ok(), "writing ", stem, ".ply: ", saved.message());
+  nlohmann::json j = {{"width", camera.width}, {"height", camera.height}, {"fx", camera.fx},   {"fy", camera.fy},
+                      {"cx", camera.cx},       {"cy", camera.cy},         {"viewmat", "identity"}};
+  std::ofstream(stem + ".json") << j.dump(1) << "\n";
+}
+
 nlohmann::json time_case(const Case& cs, const at::Device& device, int runs) {
   const gaps::Camera camera = make_camera(cs.width, cs.height);
+  if (!absl::GetFlag(FLAGS_dump_dir).empty() && device.is_cuda())
+    dump_case(cs, make_model(cs.n, camera, 1), camera, absl::GetFlag(FLAGS_dump_dir));
   gaps::GaussianModel model = make_model(cs.n, camera, 1).to(device);
   for (at::Tensor* p : model.parameters()) p->requires_grad_(true);
   const auto opts = model.means.options();
@@ -118,11 +156,13 @@ nlohmann::json time_case(const Case& cs, const at::Device& device, int runs) {
     c10::NoGradGuard no_grad;
     j["forward_ms"] = median_ms(device, warmup, runs, [&] { gaps::render(model, camera); });
   }
+  reset_peak_memory(device);
   j["forward_backward_ms"] = median_ms(device, warmup, runs, [&] {
     for (at::Tensor* p : model.parameters()) p->mutable_grad().reset();
     const auto out = gaps::render(model, camera);
     ((out.rgb * w_rgb).sum() + (out.alpha * w_alpha).sum()).backward();
   });
+  j["forward_backward_peak_mib"] = peak_memory_mib(device);
 
   // Stage split through the backend (what the autograd functions call), colours precomputed.
   namespace be = gaps::backend;

@@ -1,16 +1,22 @@
 // CPU (or CUDA) training throughput on a real scene: iterations per second of the vanilla trainer and the
 // split between forward render, backward and the rest, on the benchmark protocol's views.
+// With --trace, iterations [trace_at, trace_at + trace_iterations) run under the PyTorch (Kineto) profiler
+// and its Chrome trace is written there; bench/trace_summary.py ranks host operations and GPU kernels.
 //   train_throughput_bench --scene ../shared/data/llff/fern --views 3 --resolution 8 --iterations 500
+//   train_throughput_bench --device cuda --init_ply points.ply --iterations 10000 --trace t.json --trace_at 3000
 #include <chrono>
 #include <fstream>
 #include <iostream>
+#include <set>
 
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
+#include <torch/csrc/autograd/profiler_kineto.h>
 #include "gs_trainer/image_io.h"
+#include "gs_trainer/ply.h"
 #include "gs_trainer/losses.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/render.h"
@@ -22,6 +28,10 @@ ABSL_FLAG(int, iterations, 500, "training iterations to time");
 ABSL_FLAG(int64_t, random_points, 20000, "random initial points");
 ABSL_FLAG(std::string, device, "cpu", "cpu or cuda");
 ABSL_FLAG(std::string, json, "", "append the result as one JSON line to this file");
+ABSL_FLAG(std::string, init_ply, "", "initial points (PLY, e.g. from `gaps init`) instead of random ones");
+ABSL_FLAG(std::string, trace, "", "write a profiler trace (Chrome JSON) of some iterations to this file");
+ABSL_FLAG(int, trace_at, 1000, "first traced iteration");
+ABSL_FLAG(int, trace_iterations, 50, "traced iterations");
 
 namespace {
 
@@ -63,7 +73,17 @@ int main(int argc, char** argv) {
   }
   double far = 0;
   for (const auto& c : cams) far = std::max(far, c.far);
-  const auto points = gaps::random_points_in_views(cams, absl::GetFlag(FLAGS_random_points), far, 0);
+  gaps::PointCloud points;
+  if (const std::string ply = absl::GetFlag(FLAGS_init_ply); !ply.empty()) {
+    auto read = gaps::read_point_cloud_ply(ply);
+    if (!read.ok()) {
+      std::cerr << read.status().message() << "\n";
+      return 1;
+    }
+    points = *std::move(read);
+  } else {
+    points = gaps::random_points_in_views(cams, absl::GetFlag(FLAGS_random_points), far, 0);
+  }
   gaps::TrainConfig config;
   config.iterations = absl::GetFlag(FLAGS_iterations);
   config.device = device.str();
@@ -87,14 +107,29 @@ int main(int argc, char** argv) {
   }
 
   gaps::Trainer trainer(model, views, config);
+  namespace prof = torch::profiler::impl;
+  const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
+  const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU, prof::ActivityType::CUDA};
+  const std::string trace = absl::GetFlag(FLAGS_trace);
+  const int trace_begin = absl::GetFlag(FLAGS_trace_at), trace_end = trace_begin + absl::GetFlag(FLAGS_trace_iterations);
+  if (!trace.empty()) torch::autograd::profiler::prepareProfiler(trace_config, activities);
+  double traced_seconds = 0;
   const auto start = std::chrono::steady_clock::now();
-  auto status = trainer.run(nullptr, 50);
+  for (int it = 0; it < config.iterations; ++it) {
+    if (!trace.empty() && it == trace_begin) {
+      sync(device);
+      torch::autograd::profiler::enableProfiler(trace_config, activities);
+    }
+    const auto t0 = std::chrono::steady_clock::now();
+    trainer.step();
+    if (!trace.empty() && it + 1 == trace_end) {
+      sync(device);
+      torch::autograd::profiler::disableProfiler()->save(trace);
+    }
+    if (it >= trace_begin && it < trace_end) traced_seconds += seconds_since(t0);
+  }
   sync(device);
   const double total = seconds_since(start);
-  if (!status.ok()) {
-    std::cerr << status.message() << "\n";
-    return 1;
-  }
   nlohmann::json j = {{"bench", "train_throughput"},
                       {"scene", absl::GetFlag(FLAGS_scene)},
                       {"views", absl::GetFlag(FLAGS_views)},
@@ -109,7 +144,13 @@ int main(int argc, char** argv) {
                       {"seconds", total},
                       {"iterations_per_second", config.iterations / total},
                       {"initial_forward_ms", 1000 * t_fwd / reps},
-                      {"initial_backward_ms", 1000 * t_bwd / reps}};
+                      {"initial_backward_ms", 1000 * t_bwd / reps},
+                      {"init", absl::GetFlag(FLAGS_init_ply).empty() ? "random" : absl::GetFlag(FLAGS_init_ply)}};
+  if (!trace.empty()) {
+    j["trace"] = trace;
+    j["traced_iterations"] = {trace_begin, trace_end};
+    j["traced_seconds_with_profiler"] = traced_seconds;
+  }
   std::cout << j.dump() << "\n";
   if (const std::string path = absl::GetFlag(FLAGS_json); !path.empty()) std::ofstream(path, std::ios::app) << j.dump() << "\n";
   return 0;

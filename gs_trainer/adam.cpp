@@ -6,6 +6,10 @@
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 
+#if defined(GAPS_CUDA_KERNELS)
+#include "gs_trainer/cuda/adam_cuda.h"
+#endif
+
 namespace gaps {
 
 GaussianAdam::GaussianAdam(GaussianModel& model, std::vector<double> learning_rates, double eps, double beta1,
@@ -27,6 +31,13 @@ void GaussianAdam::step() {
   for (auto& g : groups_) {
     const at::Tensor& grad = g.param->grad();
     if (!grad.defined()) continue;
+#if defined(GAPS_CUDA_KERNELS)
+    if (g.param->is_cuda() && grad.is_contiguous()) {
+      at::Tensor param = g.param->detach();  // shares storage: the update is in place
+      backend::adam_update_cuda(param, grad, g.exp_avg, g.exp_avg_sq, {g.lr, beta1_, beta2_, eps_, bc1, bc2});
+      continue;
+    }
+#endif
     g.exp_avg.mul_(beta1_).add_(grad, 1 - beta1_);
     g.exp_avg_sq.mul_(beta2_).addcmul_(grad, grad, 1 - beta2_);
     const at::Tensor denom = (g.exp_avg_sq.sqrt() / std::sqrt(bc2)).add_(eps_);

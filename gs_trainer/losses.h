@@ -1,5 +1,5 @@
 #pragma once
-// Image losses for training, differentiable through ATen autograd.
+// Image losses for training, differentiable through autograd (with respect to the prediction).
 //
 // Images are HxWxC tensors (C = 3 for RGB) with values nominally in [0, 1], float32 or float64, on
 // any device; `pred` and `gt` must match in shape, dtype and device. Shape mismatches are

@@ -32,6 +32,15 @@ struct RasterOutput {
   at::Tensor n_contrib;  // H x W int32, entries of the tile list walked up to the last contributor
 };
 
+struct ShadeGrads {
+  at::Tensor means, sh_dc, sh_rest;
+};
+
+// Camera centre of the view being shaded (world coordinates).
+struct Centre {
+  double x, y, z;
+};
+
 struct RasterGrads {
   at::Tensor means2d, conics, opacities, features;
   at::Tensor means2d_abs;  // N x 2: sum over pixels of |dL/dmean2d| contributions (absolute-gradient densification)
@@ -43,6 +52,12 @@ Projection project_forward_cpu(const at::Tensor& means, const at::Tensor& quats,
 ProjectionGrads project_backward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                      const at::Tensor& viewmat, const raster::Intrinsics& K, const at::Tensor& radii,
                                      const at::Tensor& g_means2d, const at::Tensor& g_conics);
+// N x 4 per-Gaussian features (SH colour at the view direction, clamped at 0; distance to the centre).
+// sh_dc: N x 1 x 3, sh_rest: N x R x 3 with R >= (degree + 1)^2 - 1.
+at::Tensor shade_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                             int degree, const Centre& centre);
+ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                              int degree, const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths, int width,
                        int height);
 RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
@@ -59,6 +74,10 @@ ProjectionGrads project_backward_cuda(const at::Tensor& means, const at::Tensor&
                                       const at::Tensor& viewmat, const raster::Intrinsics& K,
                                       const at::Tensor& radii, const at::Tensor& g_means2d,
                                       const at::Tensor& g_conics);
+at::Tensor shade_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                              int degree, const Centre& centre);
+ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                               int degree, const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths, int width,
                         int height);
 RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,

@@ -24,6 +24,50 @@ raster::Intrinsics intrinsics_from(AutogradContext* ctx) {
   return {v[0], v[1], v[2], v[3], static_cast<int>(v[4]), static_cast<int>(v[5])};
 }
 
+backend::Centre centre_from(AutogradContext* ctx) {
+  const auto v = ctx->saved_data["centre"].toDoubleVector();
+  return {v[0], v[1], v[2]};
+}
+
+class ShadeFunction : public torch::autograd::Function<ShadeFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable means, Variable sh_dc, Variable sh_rest, int64_t degree,
+                             std::vector<double> centre) {
+    const backend::Centre c{centre[0], centre[1], centre[2]};
+    at::Tensor features;
+    if (means.is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      features = backend::shade_forward_cuda(means, sh_dc, sh_rest, static_cast<int>(degree), c);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      features = backend::shade_forward_cpu(means, sh_dc, sh_rest, static_cast<int>(degree), c);
+    }
+    ctx->save_for_backward({means, sh_dc, sh_rest});
+    ctx->saved_data["centre"] = centre;
+    ctx->saved_data["degree"] = degree;
+    return {features};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const auto s = ctx->get_saved_variables();
+    const int degree = static_cast<int>(ctx->saved_data["degree"].toInt());
+    const at::Tensor g = grads[0].defined() ? grads[0] : at::zeros({s[0].size(0), 4}, s[0].options());
+    backend::ShadeGrads out;
+    if (s[0].is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      out = backend::shade_backward_cuda(s[0], s[1], s[2], degree, centre_from(ctx), g);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      out = backend::shade_backward_cpu(s[0], s[1], s[2], degree, centre_from(ctx), g);
+    }
+    return {out.means, out.sh_dc, out.sh_rest, Variable(), Variable()};
+  }
+};
+
 class ProjectFunction : public torch::autograd::Function<ProjectFunction> {
  public:
   static tensor_list forward(AutogradContext* ctx, Variable means, Variable quats, Variable scales,
@@ -117,6 +161,19 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
 };
 
 }  // namespace
+
+at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                           const std::array<double, 3>& centre) {
+  TORCH_CHECK(degree >= 0 && degree <= 3, "SH degree must be 0..3, got ", degree);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be N x 3, got ", means.sizes());
+  const int64_t n = means.size(0), needed = (degree + 1) * (degree + 1) - 1;
+  TORCH_CHECK(sh_dc.sizes() == at::IntArrayRef({n, 1, 3}), "sh_dc must be N x 1 x 3, got ", sh_dc.sizes());
+  TORCH_CHECK(sh_rest.dim() == 3 && sh_rest.size(0) == n && sh_rest.size(1) >= needed && sh_rest.size(2) == 3,
+              "sh_rest must be N x R x 3 with R >= ", needed, " for SH degree ", degree, ", got ", sh_rest.sizes());
+  TORCH_CHECK(sh_dc.scalar_type() == means.scalar_type() && sh_rest.scalar_type() == means.scalar_type(),
+              "means and SH coefficients must share a dtype");
+  return ShadeFunction::apply(means, sh_dc, sh_rest, degree, std::vector<double>(centre.begin(), centre.end()))[0];
+}
 
 ProjectedGaussians project_gaussians(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                      const at::Tensor& viewmat, const raster::Intrinsics& K) {

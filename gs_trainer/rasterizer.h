@@ -1,14 +1,23 @@
 #pragma once
-// The differentiable rasterizer: two autograd operations, the same on every device.
+// The differentiable rasterizer: three autograd operations, the same on every device.
+//   shade_gaussians:     3D means, SH coefficients, camera centre -> colour and distance per Gaussian
 //   project_gaussians:   3D means, quaternions, scales  -> 2D means, conics (+ depths, radii)
 //   rasterize_gaussians: 2D Gaussians, opacities, per-Gaussian features -> feature image, alpha
 // Features are any number of channels composited with the same weights (colour, depth, ...). The CPU
 // implementation is the reference; the CUDA one must match it (see tests/rasterizer_test.cpp).
+#include <array>
+
 #include <ATen/Tensor.h>
 
 #include "gs_trainer/raster_math.h"
 
 namespace gaps {
+
+// N x 4: colour max(SH(view direction) + 0.5, 0) with the first (degree + 1)^2 coefficients (sh_dc N x 1 x 3,
+// sh_rest N x R x 3), and the distance from `centre` (what the paper's depth composites). The readable
+// reference is sh_to_color (spherical_harmonics.h) plus a norm.
+at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                           const std::array<double, 3>& centre);
 
 struct ProjectedGaussians {
   at::Tensor means2d;  // N x 2, differentiable (its gradient drives densification)

@@ -3,7 +3,6 @@
 #include <ATen/ATen.h>
 
 #include "gs_trainer/rasterizer.h"
-#include "gs_trainer/spherical_harmonics.h"
 
 namespace gaps {
 namespace {
@@ -22,15 +21,12 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
   auto proj = project_gaussians(model.means, model.quats, model.scales(), upload(camera.viewmat(), opts), K);
 
   const Eigen::Vector3d c = camera.center();
-  const at::Tensor origin = upload(at::tensor({c.x(), c.y(), c.z()}, at::kDouble), opts);
-  const at::Tensor offsets = model.means - origin;
-  const at::Tensor distance = offsets.norm(2, {1}, true);
-  const at::Tensor dirs = offsets / distance.clamp_min(1e-12);
-  const at::Tensor colors = sh_to_color(model.sh_degree, model.sh(), dirs);
+  const at::Tensor colour_and_distance =
+      shade_gaussians(model.means, model.sh_dc, model.sh_rest, model.sh_degree, {c.x(), c.y(), c.z()});
 
   at::Tensor opacities = model.opacities();
   if (options.opacity_scale.defined()) opacities = opacities * options.opacity_scale;
-  const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, at::cat({colors, distance}, 1),
+  const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, colour_and_distance,
                                           proj.depths, proj.radii, camera.width, camera.height,
                                           options.means2d_abs_sink);
   RenderOutput out;

@@ -64,6 +64,34 @@ TEST(GaussianAdam, StateFollowsRowsThroughKeepAndAppend) {
   EXPECT_EQ((m.means[4] - before[4]).abs().sum().item<double>(), 0.0);
 }
 
+// The fused CUDA update against the ATen one on the CPU, over a few steps with random gradients.
+TEST(GaussianAdamCuda, MatchesCpu) {
+#if defined(GAPS_CUDA_KERNELS)
+  if (!at::hasCUDA()) GTEST_SKIP() << "needs a CUDA device";
+#else
+  GTEST_SKIP() << "built without the CUDA kernels";
+#endif
+  at::manual_seed(5);
+  GaussianModel cpu = tiny_model(1000);
+  for (at::Tensor* p : cpu.parameters()) *p = *p + at::randn_like(*p);
+  GaussianModel cuda = cpu.to(at::Device(at::kCUDA, 0));
+  const std::vector<double> lrs = {0.01, 0.02, 0.03, 0.04, 0.05, 0.06};
+  GaussianAdam adam_cpu(cpu, lrs, 1e-15), adam_cuda(cuda, lrs, 1e-15);
+  for (int step = 0; step < 3; ++step) {
+    auto cpu_params = cpu.parameters(), cuda_params = cuda.parameters();
+    for (size_t k = 0; k < cpu_params.size(); ++k) {
+      const at::Tensor g = at::randn_like(*cpu_params[k]);
+      cpu_params[k]->mutable_grad() = g;
+      cuda_params[k]->mutable_grad() = g.cuda();
+    }
+    adam_cpu.step();
+    adam_cuda.step();
+  }
+  auto cpu_params = cpu.parameters(), cuda_params = cuda.parameters();
+  for (size_t k = 0; k < cpu_params.size(); ++k)
+    EXPECT_LT((cuda_params[k]->detach().cpu() - cpu_params[k]->detach()).abs().max().item<double>(), 1e-5) << k;
+}
+
 TEST(ExponentialLr, InterpolatesLogLinearlyAndClamps) {
   EXPECT_DOUBLE_EQ(exponential_lr(0, 1e-2, 1e-4, 100), 1e-2);
   EXPECT_NEAR(exponential_lr(50, 1e-2, 1e-4, 100), 1e-3, 1e-12);

@@ -9,6 +9,7 @@
 #include <ATen/ops/empty_like.h>
 #include <c10/cuda/CUDAGuard.h>
 
+#include "gs_trainer/cuda/cuda_common.h"
 #include "gs_trainer/rasterize_backend.h"
 
 namespace gaps::backend {
@@ -16,12 +17,6 @@ namespace {
 
 using raster::Intrinsics;
 using raster::Mat3;
-
-void check_cuda_float(const char* name, const at::Tensor& t) {
-  TORCH_CHECK(t.is_cuda(), name, " must be a CUDA tensor");
-  TORCH_CHECK(t.scalar_type() == at::kFloat, "the CUDA rasterizer computes in float32 only; ", name, " is ",
-              t.scalar_type(), " (use the CPU backend for double precision)");
-}
 
 // The world-to-camera rotation and translation, read on the device so that no host copy of the (CUDA)
 // view matrix is needed.
@@ -84,9 +79,7 @@ __global__ void project_backward_kernel(int64_t n, const float* __restrict__ mea
   for (int k = 0; k < 3; ++k) g_scales[3 * i + k] = gs[k];
 }
 
-constexpr int kThreads = 256;
-
-int blocks_for(int64_t n) { return static_cast<int>((n + kThreads - 1) / kThreads); }
+constexpr int kThreads = kElementwiseThreads;
 
 }  // namespace
 
