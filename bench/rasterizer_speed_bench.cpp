@@ -182,9 +182,9 @@ nlohmann::json time_case(const Case& cs, const at::Device& device, int runs) {
   const be::Projection p = project();
   auto bin = [&] {
 #if defined(GAPS_CUDA_KERNELS)
-    if (cuda) return be::bin_tiles_cuda(p.means2d, p.radii, p.depths, cs.width, cs.height);
+    if (cuda) return be::bin_tiles_cuda(p.means2d, p.conics, opacities, p.radii, p.depths, cs.width, cs.height);
 #endif
-    return be::bin_tiles_cpu(p.means2d, p.radii, p.depths, cs.width, cs.height);
+    return be::bin_tiles_cpu(p.means2d, p.conics, opacities, p.radii, p.depths, cs.width, cs.height);
   };
   const be::TileBins bins = bin();
   auto composite = [&] {

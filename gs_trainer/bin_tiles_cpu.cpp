@@ -1,5 +1,5 @@
-// Tile binning on the CPU: every visible Gaussian is listed in each 16x16 tile its 3-sigma footprint
-// touches, and each tile's list is sorted front to back (ties broken by index, so results are deterministic).
+// Tile binning on the CPU: every visible Gaussian is listed in each 16x16 tile its footprint touches
+// (raster::tile_rect), and each tile's list is sorted front to back (ties broken by index, so results are deterministic).
 //
 // Instead of sorting every tile's list, the visible Gaussians are sorted once by (depth, index) and then
 // written to their tiles in that order, which leaves every list sorted. The writing is split into
@@ -16,20 +16,6 @@
 
 namespace gaps::backend {
 namespace {
-
-struct TileRect {
-  int x0, y0, x1, y1;  // [x0, x1) x [y0, y1) in tiles
-};
-
-template <typename T> TileRect tile_rect(T mx, T my, int radius, int tiles_x, int tiles_y) {
-  const T r = T(radius);
-  auto clampi = [](int v, int hi) { return std::min(std::max(v, 0), hi); };
-  const int ts = raster::kTileSize;
-  return {clampi(static_cast<int>(std::floor((mx - r) / ts)), tiles_x),
-          clampi(static_cast<int>(std::floor((my - r) / ts)), tiles_y),
-          clampi(static_cast<int>(std::ceil((mx + r) / ts)), tiles_x),
-          clampi(static_cast<int>(std::ceil((my + r) / ts)), tiles_y)};
-}
 
 // The visible Gaussians (radius > 0) in (depth, index) order.
 template <typename T> std::vector<int32_t> depth_order(int64_t n, const int32_t* rad, const T* dep) {
@@ -49,12 +35,14 @@ template <typename T> std::vector<int32_t> depth_order(int64_t n, const int32_t*
 }
 
 template <typename T>
-TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths, int width,
-                  int height) {
+TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                  const at::Tensor& radii, const at::Tensor& depths, int width, int height) {
   const int tiles_x = (width + raster::kTileSize - 1) / raster::kTileSize;
   const int tiles_y = (height + raster::kTileSize - 1) / raster::kTileSize;
   const int num_tiles = tiles_x * tiles_y;
   const T* m2 = means2d.data_ptr<T>();
+  const T* con = conics.data_ptr<T>();
+  const T* op = opacities.data_ptr<T>();
   const int32_t* rad = radii.data_ptr<int32_t>();
   const std::vector<int32_t> order = depth_order(means2d.size(0), rad, depths.data_ptr<T>());
   const int64_t visible = static_cast<int64_t>(order.size());
@@ -64,7 +52,9 @@ TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& radii, const at::
   auto for_each_entry = [&](int64_t c, auto&& body) {
     for (int64_t j = visible * c / chunks; j < visible * (c + 1) / chunks; ++j) {
       const int32_t i = order[j];
-      const TileRect r = tile_rect(m2[2 * i], m2[2 * i + 1], rad[i], tiles_x, tiles_y);
+      const raster::TileRect r = raster::tile_rect<T>({m2[2 * i], m2[2 * i + 1]},
+                                                      {con[3 * i], con[3 * i + 1], con[3 * i + 2]}, op[i],
+                                                      rad[i], tiles_x, tiles_y);
       for (int ty = r.y0; ty < r.y1; ++ty)
         for (int tx = r.x0; tx < r.x1; ++tx) body(ty * tiles_x + tx, i);
     }
@@ -99,11 +89,12 @@ TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& radii, const at::
 
 }  // namespace
 
-TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths, int width,
-                       int height) {
+TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                       const at::Tensor& radii, const at::Tensor& depths, int width, int height) {
   TileBins bins;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_tiles_cpu", [&] {
-    bins = bin_impl<scalar_t>(means2d.contiguous(), radii.contiguous(), depths.contiguous(), width, height);
+    bins = bin_impl<scalar_t>(means2d.contiguous(), conics.contiguous(), opacities.to(means2d.scalar_type()).contiguous(),
+                              radii.contiguous(), depths.contiguous(), width, height);
   });
   return bins;
 }

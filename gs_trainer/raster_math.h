@@ -228,6 +228,40 @@ GAPS_HD void project_one_vjp(const ProjectionCache<T>& c, const Mat3<T>& W, cons
   for (int k = 0; k < 4; ++k) g_quat[k] = (g_qn[k] - c.qn[k] * dot) / c.qnorm;
 }
 
+struct TileRect {
+  int x0, y0, x1, y1;  // [x0, x1) x [y0, y1) in tiles
+};
+
+// The tiles a Gaussian is listed in: its 3-sigma square footprint (`radius`), cut down to the bounding box
+// of the ellipse outside which opacity * exp(power) < kMinAlpha, where eval_alpha skips it anyway. The cut
+// changes no image and no gradient, only how many (tile, Gaussian) pairs are sorted and walked: a
+// Gaussian of opacity 0.01 (as after an opacity reset) reaches 1.4 sigma, not 3, and an elongated one
+// only its own box. Slack of 1e-3 relative plus half a pixel keeps every pixel whose alpha could round
+// over the threshold. Computed in double on both backends so they list the same tiles.
+template <typename T>
+GAPS_HD TileRect tile_rect(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, int radius, int tiles_x,
+                           int tiles_y) {
+  const double op = static_cast<double>(opacity);
+  if (!(op * 255.0 >= 1.0 - 1e-6)) return {0, 0, 0, 0};
+  double ex = radius, ey = radius;
+  const double a = conic.a, b = conic.b, c = conic.c;
+  const double det = a * c - b * b;
+  if (det > 0) {
+    const double l = log(255.0 * op);
+    const double r2 = (l > 0 ? 2.0 * l : 0.0) * (1.0 + 1e-3) + 1e-4;
+    const double bx = sqrt(r2 * c / det) + 0.5, by = sqrt(r2 * a / det) + 0.5;
+    ex = bx < ex ? bx : ex;
+    ey = by < ey ? by : ey;
+  }
+  const double ts = kTileSize, mx = mean2d.x, my = mean2d.y;
+  auto clamp_tile = [](double v, int hi) {
+    const int t = static_cast<int>(v);
+    return t < 0 ? 0 : (t > hi ? hi : t);
+  };
+  return {clamp_tile(floor((mx - ex) / ts), tiles_x), clamp_tile(floor((my - ey) / ts), tiles_y),
+          clamp_tile(ceil((mx + ex) / ts), tiles_x), clamp_tile(ceil((my + ey) / ts), tiles_y)};
+}
+
 // Opacity-weighted Gaussian value at a pixel centre; returns false when the Gaussian is skipped there.
 template <typename T>
 GAPS_HD bool eval_alpha(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,

@@ -58,8 +58,8 @@ at::Tensor shade_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, c
                              int degree, const Centre& centre);
 ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
                               int degree, const Centre& centre, const at::Tensor& g_features);
-TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths, int width,
-                       int height);
+TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                       const at::Tensor& radii, const at::Tensor& depths, int width, int height);
 RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                    const at::Tensor& opacities, const at::Tensor& features, int width, int height);
 RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
@@ -78,8 +78,8 @@ at::Tensor shade_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, 
                               int degree, const Centre& centre);
 ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
                                int degree, const Centre& centre, const at::Tensor& g_features);
-TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths, int width,
-                        int height);
+TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                        const at::Tensor& radii, const at::Tensor& depths, int width, int height);
 RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                     const at::Tensor& opacities, const at::Tensor& features, int width,
                                     int height);

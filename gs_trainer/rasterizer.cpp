@@ -118,13 +118,13 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
     backend::RasterOutput out;
     if (means2d.is_cuda()) {
 #if defined(GAPS_CUDA_KERNELS)
-      bins = backend::bin_tiles_cuda(means2d, radii, depths, w, h);
+      bins = backend::bin_tiles_cuda(means2d, conics, opacities, radii, depths, w, h);
       out = backend::rasterize_forward_cuda(bins, means2d, conics, opacities, features, w, h);
 #else
       no_cuda_backend();
 #endif
     } else {
-      bins = backend::bin_tiles_cpu(means2d, radii, depths, w, h);
+      bins = backend::bin_tiles_cpu(means2d, conics, opacities, radii, depths, w, h);
       out = backend::rasterize_forward_cpu(bins, means2d, conics, opacities, features, w, h);
     }
     ctx->save_for_backward({means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_ranges,

@@ -188,9 +188,10 @@ TEST(RasterizerCuda, ProjectionAndTileListsMatchCpuExactly) {
   expect_close("projection depths", pg.depths, pc.depths, 1e-6, 1e-6);
 
   // Binning the same projection on both devices: identical lists, entry for entry.
-  const auto bc = backend::bin_tiles_cpu(pc.means2d, pc.radii, pc.depths, cpu.K.width, cpu.K.height);
-  const auto bg = backend::bin_tiles_cuda(pc.means2d.to(kCuda), pc.radii.to(kCuda), pc.depths.to(kCuda),
-                                          cpu.K.width, cpu.K.height);
+  const auto bc = backend::bin_tiles_cpu(pc.means2d, pc.conics, cpu.opacities, pc.radii, pc.depths, cpu.K.width,
+                                         cpu.K.height);
+  const auto bg = backend::bin_tiles_cuda(pc.means2d.to(kCuda), pc.conics.to(kCuda), gpu.opacities, pc.radii.to(kCuda),
+                                          pc.depths.to(kCuda), cpu.K.width, cpu.K.height);
   EXPECT_TRUE(at::equal(bg.gaussian_ids.cpu(), bc.gaussian_ids)) << "tile lists";
   const auto rg = bg.tile_ranges.cpu(), rc = bc.tile_ranges;
   const auto count_g = rg.select(1, 1) - rg.select(1, 0), count_c = rc.select(1, 1) - rc.select(1, 0);
@@ -221,8 +222,8 @@ TEST(RasterizerCuda, CompositingStateMatchesCpu) {
   const int w = cpu.K.width, h = cpu.K.height;
   const auto pc = backend::project_forward_cpu(cpu.means, cpu.quats, cpu.scales, cpu.viewmat, cpu.K);
   const auto pg = backend::project_forward_cuda(gpu.means, gpu.quats, gpu.scales, gpu.viewmat, gpu.K);
-  const auto bc = backend::bin_tiles_cpu(pc.means2d, pc.radii, pc.depths, w, h);
-  const auto bg = backend::bin_tiles_cuda(pg.means2d, pg.radii, pg.depths, w, h);
+  const auto bc = backend::bin_tiles_cpu(pc.means2d, pc.conics, cpu.opacities, pc.radii, pc.depths, w, h);
+  const auto bg = backend::bin_tiles_cuda(pg.means2d, pg.conics, gpu.opacities, pg.radii, pg.depths, w, h);
   const auto oc = backend::rasterize_forward_cpu(bc, pc.means2d, pc.conics, cpu.opacities, cpu.features, w, h);
   const auto og = backend::rasterize_forward_cuda(bg, pg.means2d, pg.conics, gpu.opacities, gpu.features, w, h);
   expect_image_close("wide final_T", og.final_T, oc.final_T);

@@ -9,6 +9,7 @@
 #include <Eigen/Dense>
 #include <gtest/gtest.h>
 
+#include "gs_trainer/rasterize_backend.h"
 #include "gs_trainer/rasterizer.h"
 
 namespace gaps {
@@ -115,6 +116,25 @@ TEST(Rasterizer, ForwardMatchesSlowReference) {
   EXPECT_GT(out.alpha.max().item<double>(), 0.3) << "scene should cover part of the image";
   EXPECT_LT((out.features - ref.features).abs().max().item<double>(), 1e-10);
   EXPECT_LT((out.alpha - ref.alpha).abs().max().item<double>(), 1e-10);
+}
+
+// Tiles are cut to where alpha can reach 1/255 (raster::tile_rect): faint and elongated Gaussians must
+// still render exactly as the reference (which tests every Gaussian at every pixel), with far fewer
+// (tile, Gaussian) pairs than their 3-sigma squares.
+TEST(Rasterizer, OpacityAwareTilesLoseNoContribution) {
+  auto s = make_scene(150, 64, 48, at::kDouble, 13);
+  s.opacities = at::rand({150}, at::kDouble) * 0.05 + 0.0035;  // 0.9 to 13.6 times the 1/255 threshold
+  s.scales = s.scales * at::tensor({1.0, 0.2, 0.6}, at::kDouble);  // elongated
+  const auto out = render(s);
+  const auto ref = reference_render(s);
+  EXPECT_GT(out.alpha.max().item<double>(), 0.05) << "scene should show";
+  EXPECT_LT((out.features - ref.features).abs().max().item<double>(), 1e-10);
+  EXPECT_LT((out.alpha - ref.alpha).abs().max().item<double>(), 1e-10);
+  const auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
+  const auto faint = backend::bin_tiles_cpu(p.means2d, p.conics, s.opacities, p.radii, p.depths, 64, 48);
+  const auto opaque =
+      backend::bin_tiles_cpu(p.means2d, p.conics, at::full_like(s.opacities, 0.999), p.radii, p.depths, 64, 48);
+  EXPECT_LT(faint.gaussian_ids.numel(), 0.8 * opaque.gaussian_ids.numel());  // 16-pixel tiles bound the gain here
 }
 
 TEST(Rasterizer, FloatMatchesDouble) {

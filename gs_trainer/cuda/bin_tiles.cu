@@ -1,5 +1,5 @@
 // Tile binning on the GPU, as in 3DGS: every visible Gaussian emits one (key, index) pair per 16x16 tile
-// its 3-sigma footprint touches, with key = tile << 32 | depth bits, and one radix sort orders the pairs
+// its footprint touches (raster::tile_rect), with key = tile << 32 | depth bits, and one radix sort orders the pairs
 // by tile, then depth. The pairs are emitted in increasing Gaussian index and CUB's radix sort is stable,
 // so equal depths keep increasing index: the (depth, index) order of bin_tiles_cpu.cpp, entry for entry.
 #include <cub/device/device_radix_sort.cuh>
@@ -19,42 +19,37 @@ namespace {
 
 constexpr int kThreads = 256;
 
-struct TileRect {
-  int x0, y0, x1, y1;  // [x0, x1) x [y0, y1) in tiles
-};
-
-__device__ int clamp_tile(int v, int hi) { return min(max(v, 0), hi); }
-
-// The same float operations as tile_rect() in bin_tiles_cpu.cpp, so both backends pick the same tiles.
-__device__ TileRect tile_rect(float mx, float my, int radius, int tiles_x, int tiles_y) {
-  const float r = static_cast<float>(radius);
-  const int ts = raster::kTileSize;
-  return {clamp_tile(static_cast<int>(floorf((mx - r) / ts)), tiles_x),
-          clamp_tile(static_cast<int>(floorf((my - r) / ts)), tiles_y),
-          clamp_tile(static_cast<int>(ceilf((mx + r) / ts)), tiles_x),
-          clamp_tile(static_cast<int>(ceilf((my + r) / ts)), tiles_y)};
+// Gaussian i's tiles (raster::tile_rect, as bin_tiles_cpu.cpp computes them).
+__device__ raster::TileRect tiles_of(int64_t i, const float* __restrict__ means2d, const float* __restrict__ conics,
+                                     const float* __restrict__ opacities, const int32_t* __restrict__ radii,
+                                     int tiles_x, int tiles_y) {
+  return raster::tile_rect<float>({means2d[2 * i], means2d[2 * i + 1]},
+                                  {conics[3 * i], conics[3 * i + 1], conics[3 * i + 2]}, opacities[i], radii[i],
+                                  tiles_x, tiles_y);
 }
 
-__global__ void count_tiles_kernel(int64_t n, const float* __restrict__ means2d, const int32_t* __restrict__ radii,
+__global__ void count_tiles_kernel(int64_t n, const float* __restrict__ means2d, const float* __restrict__ conics,
+                                   const float* __restrict__ opacities, const int32_t* __restrict__ radii,
                                    int tiles_x, int tiles_y, int64_t* __restrict__ counts) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   int64_t count = 0;
   if (radii[i] > 0) {
-    const TileRect r = tile_rect(means2d[2 * i], means2d[2 * i + 1], radii[i], tiles_x, tiles_y);
+    const raster::TileRect r = tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y);
     count = static_cast<int64_t>(r.x1 - r.x0) * (r.y1 - r.y0);
   }
   counts[i] = count;
 }
 
 // Gaussian i writes its pairs at [offsets[i] - count_i, offsets[i]) (offsets is the inclusive scan).
-__global__ void emit_pairs_kernel(int64_t n, const float* __restrict__ means2d, const int32_t* __restrict__ radii,
+__global__ void emit_pairs_kernel(int64_t n, const float* __restrict__ means2d, const float* __restrict__ conics,
+                                  const float* __restrict__ opacities, const int32_t* __restrict__ radii,
                                   const float* __restrict__ depths, const int64_t* __restrict__ offsets,
                                   int tiles_x, int tiles_y, uint64_t* __restrict__ keys,
                                   int32_t* __restrict__ ids) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n || radii[i] <= 0) return;
-  const TileRect r = tile_rect(means2d[2 * i], means2d[2 * i + 1], radii[i], tiles_x, tiles_y);
+  const raster::TileRect r = tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y);
   // Depths are > kNearPlane > 0, and the bits of positive floats order like their values.
   const uint64_t depth_bits = __float_as_uint(depths[i]);
   int64_t k = offsets[i] - static_cast<int64_t>(r.x1 - r.x0) * (r.y1 - r.y0);
@@ -89,12 +84,14 @@ int bit_width(uint32_t v) {
 
 }  // namespace
 
-TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& radii_in, const at::Tensor& depths_in,
-                        int width, int height) {
-  TORCH_CHECK(means2d_in.is_cuda() && means2d_in.scalar_type() == at::kFloat,
-              "bin_tiles_cuda: means2d must be a float32 CUDA tensor, got ", means2d_in.scalar_type());
+TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_in, const at::Tensor& opacities_in,
+                        const at::Tensor& radii_in, const at::Tensor& depths_in, int width, int height) {
+  for (const auto* t : {&means2d_in, &conics_in, &opacities_in})
+    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
+                "bin_tiles_cuda: means2d, conics and opacities must be float32 CUDA tensors, got ", t->scalar_type());
   const c10::cuda::CUDAGuard guard(means2d_in.device());
   const auto means2d = means2d_in.contiguous(), radii = radii_in.contiguous(), depths = depths_in.contiguous();
+  const auto conics = conics_in.contiguous(), opacities = opacities_in.contiguous();
   const int tiles_x = (width + raster::kTileSize - 1) / raster::kTileSize;
   const int tiles_y = (height + raster::kTileSize - 1) / raster::kTileSize;
   const int num_tiles = tiles_x * tiles_y;
@@ -109,9 +106,9 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& radii_in
     return bins;
   }
   at::Tensor counts = at::empty({n}, opts.dtype(at::kLong));
-  count_tiles_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, means2d.data_ptr<float>(),
-                                                               radii.data_ptr<int32_t>(), tiles_x, tiles_y,
-                                                               counts.data_ptr<int64_t>());
+  count_tiles_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                                                               opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
+                                                               tiles_x, tiles_y, counts.data_ptr<int64_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   const at::Tensor offsets = at::cumsum(counts, 0);
   // The one host synchronisation of the pipeline: the number of pairs sizes the sort buffers.
@@ -124,7 +121,8 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& radii_in
   at::Tensor ids = at::empty({m}, opts.dtype(at::kInt));
   auto* keys_ptr = reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>());
   emit_pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
-      n, means2d.data_ptr<float>(), radii.data_ptr<int32_t>(), depths.data_ptr<float>(),
+      n, means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
+      depths.data_ptr<float>(),
       offsets.data_ptr<int64_t>(), tiles_x, tiles_y, keys_ptr, ids.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 
