@@ -18,6 +18,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "diffusion_worker/backend_registry.h"
+#include "gs_trainer/divergence.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/status_macros.h"
 #include "gs_trainer/synthetic.h"
@@ -41,6 +42,8 @@ ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), 
 ABSL_FLAG(std::string, backend, "reproject", "pseudo-view generator backend for the method variants");
 ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
 ABSL_FLAG(std::string, gaps_config, "", "JSON file of GAPS options (GapsConfig field names)");
+ABSL_FLAG(int, eval_every, 1000, "evaluate the test views every N iterations into metrics.json's curve (0: only at the end)");
+ABSL_FLAG(bool, report, true, "write report.html (metrics, curve, renders next to ground truth, pseudo-views)");
 ABSL_FLAG(int, n_active, 0, "pseudo-views selected per phase (0: 16, or 24 for scenes of more than 100 images)");
 
 namespace {
@@ -114,6 +117,9 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
     }
   }
   o.n_active = absl::GetFlag(FLAGS_n_active);
+  o.eval_every = absl::GetFlag(FLAGS_eval_every);
+  o.html_report = absl::GetFlag(FLAGS_report);
+  if (o.eval_every < 0) return absl::InvalidArgumentError("--eval-every must be 0 or positive");
   o.config.iterations = absl::GetFlag(FLAGS_iterations);
   o.config.seed = absl::GetFlag(FLAGS_seed);
   const std::string device = absl::GetFlag(FLAGS_device);
@@ -126,13 +132,15 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
 int report(const absl::StatusOr<gaps::RunResult>& result, const gaps::RunOptions& o) {
   if (!result.ok()) {
     std::cerr << "gaps: " << result.status().message() << "\n";
-    return 1;
+    // A diverged run is a result (metrics.json says "diverged"), not a crash: its own exit status.
+    return gaps::is_divergence(result.status()) ? 3 : 1;
   }
   const auto& m = result->metrics;
   std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training\n",
                                m.psnr, m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : "n/a (no backbone)",
                                result->num_gaussians, result->train_seconds);
-  std::cout << "outputs in " << o.out_dir.string() << " (point_cloud.ply, renders/, metrics.json)\n";
+  std::cout << "outputs in " << o.out_dir.string() << " (point_cloud.ply, renders/, metrics.json"
+            << (o.html_report ? ", report.html)\n" : ")\n");
   return 0;
 }
 

@@ -14,6 +14,8 @@ absl::StatusOr<at::Tensor> read_image(const std::filesystem::path& path);
 absl::StatusOr<std::pair<int, int>> read_image_size(const std::filesystem::path& path);
 // 8-bit PNG; values are clamped to [0, 1]. Accepts HxWx3 or HxWx1 (grey).
 absl::Status write_png(const std::filesystem::path& path, const at::Tensor& image);
+// The bytes write_png would write.
+absl::StatusOr<std::string> encode_png(const at::Tensor& image);
 // Area-averaging resize (exact box filter for integer factors), as used to build images_N folders.
 at::Tensor resize_image(const at::Tensor& image, int width, int height);
 

@@ -7,15 +7,20 @@
 #include <ATen/core/grad_mode.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "gs_trainer/divergence.h"
 #include "gs_trainer/image_io.h"
 #include "gs_trainer/initializer.h"
 #include "gs_trainer/lpips.h"
 #include "gs_trainer/ply.h"
 #include "gs_trainer/render.h"
+#include "gs_trainer/report.h"
 #include "gs_trainer/status_macros.h"
 
 namespace gaps {
 namespace {
+
+// Loss and parameters are checked for finiteness this often (one device synchronisation each time).
+constexpr int kDivergenceCheckEvery = 10;
 
 absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const std::vector<int>& indices,
                                                      const at::Device& device) {
@@ -62,13 +67,21 @@ absl::Status write_json(const std::filesystem::path& path, const nlohmann::json&
   return absl::OkStatus();
 }
 
-absl::Status write_metrics(const RunOptions& o, const RunResult& r) {
+// `failure` empty: a finished run; otherwise the run's status ("diverged") and error, without final metrics.
+absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::string& failure = "",
+                           const std::string& error = "") {
   nlohmann::json j;
+  j["status"] = failure.empty() ? "ok" : failure;
+  if (!failure.empty()) j["error"] = error;
   j["psnr"] = r.metrics.psnr;
   j["ssim"] = r.metrics.ssim;
   j["lpips"] = r.metrics.lpips ? nlohmann::json(*r.metrics.lpips) : nlohmann::json(nullptr);
   j["num_gaussians"] = r.num_gaussians;
   j["train_seconds"] = r.train_seconds;
+  j["eval_every"] = o.eval_every;
+  j["curve"] = r.curve;
+  j["peak_memory"] = r.peak_memory;
+  j["generator_seconds"] = r.generator_seconds ? nlohmann::json(*r.generator_seconds) : nlohmann::json(nullptr);
   j["iterations"] = o.config.iterations;
   j["views"] = o.views;
   j["resolution"] = o.resolution;
@@ -76,6 +89,9 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r) {
   j["seed"] = o.config.seed;
   j["init"] = o.init;
   j["variant"] = variant_name(o.variant);
+  if (!failure.empty()) {
+    for (const char* key : {"psnr", "ssim", "lpips"}) j[key] = nullptr;
+  }
   if (o.variant != Variant::kVanilla) {
     j["gaps"] = o.gaps;
     j["generator"] = o.generator->name();
@@ -153,34 +169,70 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
 
   std::filesystem::create_directories(o.out_dir);
+  const PeakMemoryMeter memory(device);
   const std::vector<TrainingView> references = train;
   Trainer trainer(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config);
+  std::optional<TimedGenerator> generator;
   std::optional<GapsTraining> method;
-  Trainer::StepFunction step;
+  Trainer::StepFunction step = [&]() -> absl::StatusOr<at::Tensor> { return trainer.step(); };
   if (o.variant != Variant::kVanilla) {
     if (!o.generator)
       return absl::InvalidArgumentError(absl::StrCat("variant ", variant_name(o.variant), " needs a generator backend"));
     GapsConfig gaps = o.gaps;
     gaps.n_active = o.n_active > 0 ? o.n_active : (scene.cameras.size() > 100 ? kNActiveMip360 : kNActiveLlff);
-    method.emplace(trainer, o.generator, references, gaps, o.variant, o.config.seed);
+    generator.emplace(o.generator);
+    method.emplace(trainer, &*generator, references, gaps, o.variant, o.config.seed);
     method->set_inspection_dir(o.out_dir / "pseudo_views");
     step = [&] { return method->step(); };
     log(absl::StrCat("method: ", variant_name(o.variant), " with generator ", o.generator->name()));
   }
+  const Lpips* lpips_model = lpips ? &*lpips : nullptr;
   const auto start = std::chrono::steady_clock::now();
-  const absl::Status trained = trainer.run(on_progress, 10, step);
+  const auto seconds_since = [](std::chrono::steady_clock::time_point t) {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+  };
+  double eval_seconds = 0.0;
+  DivergenceGuard guard(kDivergenceCheckEvery, o.config.iterations);
+  // Each iteration: the step, the divergence guard, and at the curve's iterations an evaluation whose time
+  // is left out of the training time (the last iteration's is the final evaluation below).
+  const Trainer::StepFunction monitored = [&]() -> absl::StatusOr<at::Tensor> {
+    GAPS_ASSIGN_OR_RETURN(at::Tensor loss, step());
+    const int it = trainer.iteration();
+    GAPS_RETURN_IF_ERROR(guard.observe(it, loss, trainer.model()));
+    if (o.eval_every <= 0 || it % o.eval_every != 0 || it >= o.config.iterations) return loss;
+    (void)loss.item<double>();  // the queued training work belongs to the training time
+    const auto eval_start = std::chrono::steady_clock::now();
+    GAPS_ASSIGN_OR_RETURN(const std::vector<ImageMetrics> views,
+                          evaluate_views(trainer.model(), test, o.config.background, lpips_model, {}));
+    GAPS_ASSIGN_OR_RETURN(const ImageMetrics average, average_metrics(views));
+    result.curve.push_back({it, std::chrono::duration<double>(eval_start - start).count() - eval_seconds, average,
+                            trainer.model().size()});
+    eval_seconds += seconds_since(eval_start);
+    return loss;
+  };
+  const absl::Status trained = trainer.run(on_progress, 10, monitored);
   if (method) GAPS_RETURN_IF_ERROR(write_json(o.out_dir / "phases.json", method->phase_log()));
-  result.train_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  result.train_seconds = seconds_since(start) - eval_seconds;
+  result.num_gaussians = trainer.model().size();
+  result.peak_memory = memory.read();
+  if (generator) result.generator_seconds = generator->seconds();
   // Whatever happened, keep what was computed.
   GAPS_RETURN_IF_ERROR(save_gaussians_ply(trainer.model(), o.out_dir / "point_cloud.ply"));
+  if (is_divergence(trained)) {
+    log(std::string(trained.message()));
+    GAPS_RETURN_IF_ERROR(write_metrics(o, result, "diverged", std::string(trained.message())));
+    if (o.html_report) GAPS_RETURN_IF_ERROR(write_run_report(o.out_dir, test));
+  }
   GAPS_RETURN_IF_ERROR(trained);
 
   GAPS_ASSIGN_OR_RETURN(result.per_view,
-                        evaluate_views(trainer.model(), test, o.config.background, lpips ? &*lpips : nullptr,
+                        evaluate_views(trainer.model(), test, o.config.background, lpips_model,
                                        o.save_renders ? o.out_dir / "renders" : std::filesystem::path()));
   GAPS_ASSIGN_OR_RETURN(result.metrics, average_metrics(result.per_view));
-  result.num_gaussians = trainer.model().size();
+  if (o.eval_every > 0) result.curve.push_back({o.config.iterations, result.train_seconds, result.metrics, result.num_gaussians});
+  result.peak_memory = memory.read();
   GAPS_RETURN_IF_ERROR(write_metrics(o, result));
+  if (o.html_report) GAPS_RETURN_IF_ERROR(write_run_report(o.out_dir, test));
   return result;
 }
 

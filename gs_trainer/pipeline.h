@@ -8,6 +8,7 @@
 #include "absl/status/statusor.h"
 #include "gs_trainer/gaps_training.h"
 #include "gs_trainer/metrics.h"
+#include "gs_trainer/run_stats.h"
 #include "gs_trainer/scene.h"
 #include "gs_trainer/trainer.h"
 
@@ -38,18 +39,27 @@ struct RunOptions {
   // more than 100 images (Mip-NeRF 360-like).
   int n_active = 0;
   Generator* generator = nullptr;
+  // Every this many iterations the test views are evaluated into the run's curve (0: only at the end).
+  int eval_every = 0;
+  // A self-contained report.html in out_dir (metrics, curve, renders next to ground truth, pseudo-views).
+  bool html_report = true;
 };
 
 struct RunResult {
   ImageMetrics metrics;
   std::vector<ImageMetrics> per_view;
   int64_t num_gaussians = 0;
-  double train_seconds = 0.0;
+  double train_seconds = 0.0;  // without the evaluations of the curve
   std::string summary;  // what was loaded
+  std::vector<CurvePoint> curve;  // ends with the final evaluation when eval_every > 0
+  PeakMemory peak_memory;
+  std::optional<double> generator_seconds;  // method variants only
 };
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;
 
+// A run stopped by divergence (non-finite loss or parameters) returns an Aborted status (is_divergence())
+// and still writes metrics.json, with "status": "diverged", the error and the curve up to then.
 absl::StatusOr<RunResult> run_pipeline(const RunOptions& options, const ProgressCallback& on_progress,
                                        const std::function<void(const std::string&)>& log);
 

@@ -12,7 +12,7 @@ DEBIAN_PACKAGES=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
   libopencv-dev libeigen3-dev libstb-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
 )
-PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm)
+PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib)
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
@@ -26,7 +26,7 @@ if [ ${#missing[@]} -gt 0 ]; then
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
 fi
 
-if ! "$VENV/bin/python" -c "import torch, lpips, torchvision; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
+if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
   echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI) into $VENV"
   mkdir -p "$GAPS_CACHE"
   [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"

@@ -1,0 +1,271 @@
+#!/usr/bin/env python3
+"""Runs a benchmark matrix (scenes x view counts x variants x seeds) through `gaps train`.
+
+Standard library only, so it runs on any machine that has the gaps binary. Every cell trains into
+OUT/<cell>/ (metrics.json with the evaluation curve, renders, report.html); a cell whose metrics.json
+exists is finished and skipped, so an interrupted matrix resumes where it stopped. Each finished cell adds
+one row to OUT/results.jsonl (with the curve) and OUT/results.csv (without it).
+
+  bench/harness.py --config bench/configs/llff_protocol.json --data ../shared/data --out runs/llff \
+      [--jobs 4] [--gpus 0,1] [--gaps build/client/gaps] [--flag KEY=VALUE ...] [--only REGEX] [--dry-run]
+"""
+import argparse
+import concurrent.futures
+import csv
+import itertools
+import json
+import os
+import platform
+import queue
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+CSV_FIELDS = [
+    "config", "cell", "scene", "views", "variant", "seed", "status", "psnr", "ssim", "lpips",
+    "num_gaussians", "peak_memory_bytes", "peak_memory_kind", "train_seconds", "generator_seconds",
+    "wall_seconds", "iterations", "resolution", "init", "commit", "device", "error",
+]
+# `gaps train` exits with 3 when the run diverged: metrics.json then records it (a result, not a crash).
+EXIT_DIVERGED = 3
+# Flags the harness sets per cell; a config may not set them.
+CELL_FLAGS = {"scene", "views", "variant", "seed", "out"}
+PATH_FLAGS = {"config", "gaps_config", "init_ply"}
+
+
+class ConfigError(Exception):
+    pass
+
+
+def load_config(path):
+    with open(path) as f:
+        config = json.load(f)
+    for key in ("scenes", "variants", "seeds"):
+        if not config.get(key):
+            raise ConfigError(f"{path}: '{key}' must be a non-empty list")
+    config.setdefault("name", Path(path).stem)
+    # Files a config names (a TrainConfig or GapsConfig JSON) are relative to the config file.
+    for flags in [config.setdefault("flags", {})] + list(config.get("variant_flags", {}).values()):
+        for key in list(flags):
+            if key.replace("-", "_") in PATH_FLAGS and not Path(str(flags[key])).is_absolute():
+                flags[key] = str((Path(path).resolve().parent / str(flags[key])).resolve())
+    for scene in config["scenes"]:
+        if "name" not in scene or "path" not in scene:
+            raise ConfigError(f"{path}: every scene needs 'name' and 'path' (relative to --data)")
+        if not scene.get("views", config.get("views")):
+            raise ConfigError(f"{path}: scene {scene['name']} has no view counts ('views' on the scene or the config)")
+    for flags in [config.get("flags", {})] + list(config.get("variant_flags", {}).values()):
+        clash = CELL_FLAGS & {k.replace("_", "-") for k in flags}
+        if clash:
+            raise ConfigError(f"{path}: flags {sorted(clash)} are set per cell by the harness")
+    return config
+
+
+def cell_name(scene, views, variant, seed):
+    return f"{scene}_v{views}_{variant}_s{seed}"
+
+
+def expand(config):
+    """The matrix in a fixed order: scene, views, variant, seed."""
+    cells = []
+    for scene in config["scenes"]:
+        for views, variant, seed in itertools.product(scene.get("views", config.get("views")), config["variants"],
+                                                      config["seeds"]):
+            cells.append({"scene": scene["name"], "scene_path": scene["path"], "views": views, "variant": variant,
+                          "seed": seed, "cell": cell_name(scene["name"], views, variant, seed)})
+    return cells
+
+
+def flag_args(flags):
+    args = []
+    for key, value in flags.items():
+        value = str(value).lower() if isinstance(value, bool) else str(value)
+        args.append(f"--{key.replace('_', '-')}={value}")
+    return args
+
+
+def command(config, cell, gaps, data, out, extra_flags=()):
+    flags = dict(config.get("flags", {}))
+    flags.update(config.get("variant_flags", {}).get(cell["variant"], {}))
+    for item in extra_flags:
+        key, _, value = item.partition("=")
+        flags[key.lstrip("-")] = value
+    return [str(gaps), "train", f"--scene={Path(data) / cell['scene_path']}", f"--views={cell['views']}",
+            f"--variant={cell['variant']}", f"--seed={cell['seed']}", f"--out={Path(out) / cell['cell']}",
+            "--quiet"] + flag_args(flags)
+
+
+def git_commit():
+    try:
+        head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+        return head + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def describe_device(gpu):
+    """The GPU's name (for the device the cell ran on), else the CPU model."""
+    if gpu is not None and shutil.which("nvidia-smi"):
+        result = subprocess.run(["nvidia-smi", f"--id={gpu}", "--query-gpu=name", "--format=csv,noheader"],
+                                capture_output=True, text=True)
+        if result.returncode == 0 and result.stdout.strip():
+            return result.stdout.strip().splitlines()[0]
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} threads)"
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def row_from_metrics(config, cell, metrics, commit, device, wall_seconds):
+    peak = metrics.get("peak_memory") or {}
+    row = {
+        "config": config["name"], "cell": cell["cell"], "scene": cell["scene"], "views": cell["views"],
+        "variant": cell["variant"], "seed": cell["seed"], "status": metrics.get("status", "ok"),
+        "psnr": metrics.get("psnr"), "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"),
+        "num_gaussians": metrics.get("num_gaussians"), "peak_memory_bytes": peak.get("bytes"),
+        "peak_memory_kind": peak.get("kind"), "train_seconds": metrics.get("train_seconds"),
+        "generator_seconds": metrics.get("generator_seconds"), "wall_seconds": wall_seconds,
+        "iterations": metrics.get("iterations"), "resolution": metrics.get("resolution"),
+        "init": metrics.get("init"), "commit": commit, "device": f"{metrics.get('device')}: {device}",
+        "error": metrics.get("error"), "curve": metrics.get("curve", []),
+    }
+    return row
+
+
+class Results:
+    """results.jsonl and results.csv under OUT, one row per finished cell, appended as cells finish."""
+
+    def __init__(self, out):
+        self.jsonl = Path(out) / "results.jsonl"
+        self.csv = Path(out) / "results.csv"
+        self.lock = threading.Lock()
+        self.cells = set()
+        if self.jsonl.exists():
+            with open(self.jsonl) as f:
+                self.cells = {json.loads(line)["cell"] for line in f if line.strip()}
+
+    def has(self, cell):
+        return cell in self.cells
+
+    def append(self, row):
+        with self.lock:
+            with open(self.jsonl, "a") as f:
+                f.write(json.dumps(row) + "\n")
+            new_csv = not self.csv.exists()
+            with open(self.csv, "a", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+                if new_csv:
+                    writer.writeheader()
+                writer.writerow({k: "" if row.get(k) is None else row[k] for k in CSV_FIELDS})
+            self.cells.add(row["cell"])
+
+
+def read_metrics(out, cell):
+    path = Path(out) / cell["cell"] / "metrics.json"
+    if not path.exists():
+        return None
+    with open(path) as f:
+        return json.load(f)
+
+
+def run_cell(config, cell, args, gpus, results, commit, log):
+    gpu = gpus.get() if gpus else None
+    try:
+        cmd = command(config, cell, args.gaps, args.data, args.out, args.flag)
+        env = dict(os.environ)
+        if gpu is not None:
+            env["CUDA_VISIBLE_DEVICES"] = gpu
+        log_dir = Path(args.out) / "logs"
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log(f"start  {cell['cell']}" + (f" on GPU {gpu}" if gpu is not None else ""))
+        start = time.monotonic()
+        with open(log_dir / f"{cell['cell']}.log", "w") as f:
+            f.write(" ".join(cmd) + "\n")
+            f.flush()
+            code = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
+        wall = time.monotonic() - start
+        metrics = read_metrics(args.out, cell)
+        if metrics is None or code not in (0, EXIT_DIVERGED):
+            log(f"FAILED {cell['cell']} (exit status {code}; see {log_dir / (cell['cell'] + '.log')})")
+            return False
+        results.append(row_from_metrics(config, cell, metrics, commit, describe_device(gpu), wall))
+        log(f"done   {cell['cell']}: {metrics.get('status')} PSNR {metrics.get('psnr')} in {wall:.0f} s")
+        return True
+    finally:
+        if gpus:
+            gpus.put(gpu)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", required=True, help="matrix description (JSON, see bench/README.md)")
+    parser.add_argument("--data", required=True, help="root the configs' scene paths are relative to")
+    parser.add_argument("--out", required=True, help="output folder: one subfolder per cell, results.{jsonl,csv}")
+    parser.add_argument("--gaps", default=str(REPO / "build" / "client" / "gaps"), help="the gaps binary")
+    parser.add_argument("--jobs", type=int, default=1, help="cells trained at the same time")
+    parser.add_argument("--gpus", default="", help="comma-separated device ids, spread over the jobs "
+                        "through CUDA_VISIBLE_DEVICES (default: leave it as it is)")
+    parser.add_argument("--flag", action="append", default=[], metavar="KEY=VALUE",
+                        help="a gaps train flag for every cell, overriding the config's (repeatable), e.g. "
+                        "--flag device=cuda --flag lpips-backbone=/models/vgg16.pth")
+    parser.add_argument("--only", default="", help="regular expression: only cells whose name matches")
+    parser.add_argument("--commit", default="", help="recorded in every row (default: git HEAD of this checkout)")
+    parser.add_argument("--dry-run", action="store_true", help="print the commands of the unfinished cells")
+    args = parser.parse_args(argv)
+    if args.jobs < 1:
+        parser.error("--jobs must be at least 1")
+    try:
+        config = load_config(args.config)
+    except (OSError, ValueError, ConfigError) as e:
+        parser.error(str(e))
+    if not args.dry_run and not os.access(args.gaps, os.X_OK):
+        parser.error(f"{args.gaps}: no gaps binary there (build it, or pass --gaps)")
+    cells = [c for c in expand(config) if re.search(args.only, c["cell"])]
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    results = Results(args.out)
+    commit = args.commit or git_commit()
+    log_lock = threading.Lock()
+
+    def log(message):
+        with log_lock:
+            print(f"[{time.strftime('%H:%M:%S')}] {message}", flush=True)
+
+    todo = []
+    for cell in cells:
+        metrics = read_metrics(args.out, cell)
+        if metrics is None:
+            todo.append(cell)
+        elif not results.has(cell["cell"]):  # finished before its row was written
+            results.append(row_from_metrics(config, cell, metrics, commit, describe_device(None), None))
+    log(f"{config['name']}: {len(cells)} cells, {len(cells) - len(todo)} finished, {len(todo)} to run")
+    if args.dry_run:
+        for cell in todo:
+            print(" ".join(command(config, cell, args.gaps, args.data, args.out, args.flag)))
+        return 0
+    gpus = None
+    if args.gpus:
+        ids = [g.strip() for g in args.gpus.split(",") if g.strip()]
+        gpus = queue.Queue()
+        for slot in range(args.jobs):  # the slots of the jobs, spread round-robin over the devices
+            gpus.put(ids[slot % len(ids)])
+    with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log), todo))
+    failed = outcomes.count(False)
+    log(f"{config['name']}: {len(todo) - failed} cells run, {failed} failed; rows in {results.jsonl}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

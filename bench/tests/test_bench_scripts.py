@@ -1,0 +1,253 @@
+"""Tests of bench/harness.py, bench/tables.py and bench/charts.py.
+
+The harness runs against a stand-in for `gaps train` (a script writing metrics.json as the trainer does),
+so resuming, concurrency, GPU assignment, divergence and crashes can be checked in seconds.
+"""
+import csv
+import io
+import json
+import os
+import stat
+import sys
+import tempfile
+import textwrap
+import unittest
+from contextlib import redirect_stdout
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(BENCH))
+import charts  # noqa: E402
+import harness  # noqa: E402
+import tables  # noqa: E402
+
+# Stands in for `gaps train`: PSNR from views, seed and variant; variant "no-gaps" diverges (exit 3 with a
+# metrics.json saying so), "crash" fails without metrics unless ALLOW_CRASH exists; every call is logged.
+FAKE_GAPS = textwrap.dedent("""\
+    #!{python}
+    import json, os, sys, time
+    args = dict(a[2:].split("=", 1) for a in sys.argv[2:] if "=" in a)
+    out = args["out"]
+    log_dir = os.path.dirname(out)
+    with open(os.path.join(log_dir, "calls.log"), "a") as f:
+        f.write(json.dumps({{"cell": os.path.basename(out), "start": time.time(),
+                             "gpu": os.environ.get("CUDA_VISIBLE_DEVICES")}}) + "\\n")
+    time.sleep(0.3)
+    variant, views, seed = args["variant"], int(args["views"]), int(args["seed"])
+    if variant == "crash" and not os.path.exists(os.path.join(log_dir, "ALLOW_CRASH")):
+        sys.exit(1)
+    os.makedirs(out, exist_ok=True)
+    psnr = 20 + views + 0.1 * seed + (1.0 if variant == "full" else 0.0)
+    m = {{"status": "ok", "psnr": psnr, "ssim": 0.5, "lpips": None, "num_gaussians": 1000 * views,
+          "train_seconds": 10.0, "generator_seconds": None if variant == "vanilla" else 2.0,
+          "peak_memory": {{"kind": "cuda_allocator", "bytes": 2 ** 30}}, "iterations": 100, "resolution": 8,
+          "init": args.get("init"), "device": "cuda", "argv": sys.argv[1:],
+          "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
+          "curve": [{{"iteration": 50, "train_seconds": 5.0, "psnr": psnr - 1, "ssim": 0.4, "lpips": None,
+                      "num_gaussians": 500}},
+                     {{"iteration": 100, "train_seconds": 10.0, "psnr": psnr, "ssim": 0.5, "lpips": None,
+                       "num_gaussians": 1000 * views}}]}}
+    if variant == "no-gaps":
+        m.update(status="diverged", psnr=None, ssim=None, error="training diverged at iteration 40 (9 Gaussians): non-finite loss")
+    with open(os.path.join(out, "metrics.json"), "w") as f:
+        json.dump(m, f)
+    sys.exit(3 if variant == "no-gaps" else 0)
+    """)
+
+
+class HarnessTest(unittest.TestCase):
+    def setUp(self):
+        self.tmp = tempfile.TemporaryDirectory()
+        self.dir = Path(self.tmp.name)
+        self.gaps = self.dir / "gaps"
+        self.gaps.write_text(FAKE_GAPS.format(python=sys.executable))
+        self.gaps.chmod(self.gaps.stat().st_mode | stat.S_IEXEC)
+        self.out = self.dir / "out"
+        self.config = self.dir / "matrix.json"
+        self.write_config({
+            "name": "unit",
+            "scenes": [{"name": "fern", "path": "llff/fern"}, {"name": "bonsai", "path": "m360/bonsai", "views": [12]}],
+            "views": [3],
+            "variants": ["vanilla", "full", "no-gaps", "crash"],
+            "seeds": [0, 1],
+            "flags": {"resolution": 8, "init": "mvs", "eval_every": 50},
+            "variant_flags": {"full": {"n-active": 4}},
+        })
+
+    def tearDown(self):
+        self.tmp.cleanup()
+
+    def write_config(self, config):
+        self.config.write_text(json.dumps(config))
+
+    def run_harness(self, *extra):
+        with redirect_stdout(io.StringIO()) as output:
+            code = harness.main(["--config", str(self.config), "--data", "/data", "--out", str(self.out),
+                                 "--gaps", str(self.gaps), "--commit", "abc123"] + list(extra))
+        return code, output.getvalue()
+
+    def rows(self):
+        with open(self.out / "results.jsonl") as f:
+            return [json.loads(line) for line in f]
+
+    def calls(self):
+        with open(self.out / "calls.log") as f:
+            return [json.loads(line) for line in f]
+
+    def test_runs_every_cell_records_rows_and_resumes(self):
+        code, output = self.run_harness()
+        self.assertEqual(code, 1, "crashed cells make the harness fail")
+        self.assertIn("FAILED fern_v3_crash_s0", output)
+        rows = {r["cell"]: r for r in self.rows()}
+        # 2 scenes x 1 view count x 4 variants x 2 seeds, minus the 4 crashed cells.
+        self.assertEqual(len(rows), 12)
+        self.assertEqual(set(rows), {f"{s}_{v}_s{seed}" for s in ("fern_v3", "bonsai_v12")
+                                     for v in ("vanilla", "full", "no-gaps") for seed in (0, 1)})
+        full = rows["bonsai_v12_full_s1"]
+        self.assertEqual((full["scene"], full["views"], full["variant"], full["seed"]), ("bonsai", 12, "full", 1))
+        self.assertAlmostEqual(full["psnr"], 33.1)
+        self.assertEqual(full["commit"], "abc123")
+        self.assertEqual(full["peak_memory_bytes"], 2 ** 30)
+        self.assertEqual(full["generator_seconds"], 2.0)
+        self.assertEqual(len(full["curve"]), 2)
+        self.assertTrue(full["device"].startswith("cuda: "))
+        diverged = rows["fern_v3_no-gaps_s0"]
+        self.assertEqual(diverged["status"], "diverged")
+        self.assertIsNone(diverged["psnr"])
+        self.assertIn("iteration 40", diverged["error"])
+        # Flags: the config's, the variant's, and the cell's own.
+        argv = json.loads((self.out / "fern_v3_full_s0" / "metrics.json").read_text())["argv"]
+        for flag in ("--resolution=8", "--init=mvs", "--eval-every=50", "--n-active=4", "--views=3",
+                     "--variant=full", "--seed=0", "--scene=/data/llff/fern", "--quiet"):
+            self.assertIn(flag, argv)
+        self.assertTrue((self.out / "logs" / "fern_v3_crash_s0.log").exists())
+        with open(self.out / "results.csv") as f:
+            csv_rows = list(csv.DictReader(f))
+        self.assertEqual(len(csv_rows), 12)
+        self.assertNotIn("curve", csv_rows[0])
+        self.assertEqual(list(csv_rows[0]), harness.CSV_FIELDS)
+
+        # Resume: only the crashed cells run again; nothing is recorded twice.
+        first_calls = len(self.calls())
+        (self.out / "ALLOW_CRASH").write_text("")
+        code, _ = self.run_harness()
+        self.assertEqual(code, 0)
+        again = self.calls()[first_calls:]
+        self.assertEqual(sorted(c["cell"] for c in again),
+                         sorted(f"{s}_crash_s{seed}" for s in ("fern_v3", "bonsai_v12") for seed in (0, 1)))
+        self.assertEqual(len(self.rows()), 16)
+        code, _ = self.run_harness()
+        self.assertEqual(len(self.calls()), first_calls + 4, "a finished matrix runs nothing")
+        self.assertEqual(len(self.rows()), 16)
+
+    def test_concurrent_jobs_spread_over_gpus(self):
+        code, _ = self.run_harness("--jobs", "2", "--gpus", "0,1", "--only", "vanilla|full")
+        self.assertEqual(code, 0)
+        calls = self.calls()
+        self.assertEqual(len(calls), 8)
+        self.assertEqual({c["gpu"] for c in calls}, {"0", "1"})
+        # Two at a time: each call starts before the one two places earlier could have finished twice over.
+        starts = sorted(c["start"] for c in calls)
+        self.assertLess(starts[1] - starts[0], 0.3, "the second job did not start while the first ran")
+        for r in self.rows():
+            self.assertEqual(json.loads((self.out / r["cell"] / "metrics.json").read_text())["gpu"] in ("0", "1"), True)
+
+    def test_extra_flags_and_only(self):
+        code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "device=cuda", "--flag", "init=random")
+        self.assertEqual(code, 0)
+        self.assertEqual([c["cell"] for c in self.calls()], ["fern_v3_vanilla_s0"])
+        argv = json.loads((self.out / "fern_v3_vanilla_s0" / "metrics.json").read_text())["argv"]
+        self.assertIn("--device=cuda", argv)
+        self.assertIn("--init=random", argv)
+        self.assertNotIn("--init=mvs", argv)
+
+    def test_config_may_not_set_per_cell_flags(self):
+        self.write_config({"scenes": [{"name": "a", "path": "a"}], "views": [3], "variants": ["vanilla"],
+                           "seeds": [0], "flags": {"seed": 4}})
+        with self.assertRaises(harness.ConfigError):
+            harness.load_config(self.config)
+
+    def test_shipped_configs_expand(self):
+        sizes = {"llff_protocol": 2 * 3 * 3, "mipnerf360_protocol": 2 * 2 * 3, "ablation": 4 * 3}
+        for name, size in sizes.items():
+            config = harness.load_config(BENCH / "configs" / f"{name}.json")
+            self.assertEqual(len(harness.expand(config)), size, name)
+
+
+def row(scene, views, variant, seed, psnr, ssim=0.5, lpips=None, gaussians=1000, status="ok"):
+    return {"config": "paper", "cell": harness.cell_name(scene, views, variant, seed), "scene": scene,
+            "views": views, "variant": variant, "seed": seed, "status": status, "psnr": psnr, "ssim": ssim,
+            "lpips": lpips, "num_gaussians": gaussians, "peak_memory_bytes": 2 ** 30, "peak_memory_kind": "cuda_allocator",
+            "train_seconds": 60.0, "generator_seconds": None if variant == "vanilla" else 5.0, "commit": "abc",
+            "device": "cuda: H200", "error": None if status == "ok" else "diverged",
+            "curve": [] if psnr is None else [
+                {"iteration": 500, "train_seconds": 30.0, "psnr": psnr - 2, "num_gaussians": gaussians // 2},
+                {"iteration": 1000, "train_seconds": 60.0, "psnr": psnr, "num_gaussians": gaussians}]}
+
+
+ROWS = [
+    row("fern", 3, "vanilla", 0, 20.0, lpips=0.30), row("fern", 3, "vanilla", 1, 22.0, lpips=0.32),
+    row("fern", 3, "full", 0, 21.0, lpips=0.28), row("fern", 3, "full", 1, 23.5, lpips=0.26),
+    row("trex", 3, "vanilla", 0, 18.0, lpips=0.40), row("trex", 3, "vanilla", 1, 18.0, lpips=0.40),
+    row("trex", 3, "full", 0, 19.0, lpips=0.35), row("trex", 3, "full", 1, 19.0, lpips=0.35),
+    row("fern", 6, "vanilla", 0, 24.0), row("fern", 6, "full", 0, 25.0),
+    row("trex", 6, "vanilla", 0, 23.0), row("trex", 6, "full", 0, None, status="diverged"),
+]
+
+
+class TablesTest(unittest.TestCase):
+    def setUp(self):
+        self.text = tables.render_all(ROWS)["paper"]
+
+    def test_averages_are_per_seed_scene_means_with_std(self):
+        # vanilla 3 views: seed 0 (20+18)/2 = 19, seed 1 (22+18)/2 = 20 -> 19.50 ± 0.71.
+        self.assertIn("| vanilla | 19.50 ± 0.71 | 0.5000 ± 0.0000 | 0.3550 ± 0.0071 |", self.text)
+        # full 3 views: 20 and 21.25 -> 20.62 ± 0.88; deltas of means: PSNR 20.625 - 19.5, LPIPS 0.31 - 0.355.
+        self.assertIn("| full | 20.62 ± 0.88 |", self.text)
+        self.assertIn("| Δ full − vanilla | +1.12 | +0.0000 | -0.0450 |", self.text)
+
+    def test_per_scene_psnr_with_delta(self):
+        self.assertIn("| fern | full | 22.25 ± 1.77 (+1.25) | 25.00 (+1.00) |", self.text)
+        self.assertIn("| trex | vanilla | 18.00 ± 0.00 | 23.00 |", self.text)
+
+    def test_unfinished_runs_are_named_and_left_out(self):
+        self.assertIn("trex_v6_full_s0: diverged", self.text)
+        # 6 views, full: only fern finished, so no scene average over fern and trex exists.
+        self.assertIn("| trex | full | 19.00 ± 0.00 (+1.00) | n/a |", self.text)
+
+    def test_cost_table(self):
+        self.assertIn("| 3 | full | 4 | 1000 ± 0 | 1024 ± 0 (cuda_allocator) | 60.0 ± 0.0 | 5.0 ± 0.0 | cuda: H200 |", self.text)
+
+    def test_insert_between_markers(self):
+        doc = "# B\n<!-- bench-tables:paper begin -->\nold\n<!-- bench-tables:paper end -->\ntail\n"
+        new = tables.insert(doc, {"paper": "T\n"})
+        self.assertEqual(new, "# B\n<!-- bench-tables:paper begin -->\nT\n<!-- bench-tables:paper end -->\ntail\n")
+        with self.assertRaises(KeyError):
+            tables.insert("# no markers\n", {"paper": "T\n"})
+
+
+class ChartsTest(unittest.TestCase):
+    def test_charts_are_written_as_png_and_svg_with_an_index(self):
+        with tempfile.TemporaryDirectory() as out:
+            written = charts.render_all(ROWS, out, ["png", "svg"])
+            charts.write_index(out, written, ["results.jsonl"])
+            names = sorted(p.name for _, paths in written for p in paths)
+            self.assertEqual(names, sorted([
+                "paper_fern_v3_psnr_vs_time.png", "paper_fern_v3_psnr_vs_time.svg",
+                "paper_fern_v6_psnr_vs_time.png", "paper_fern_v6_psnr_vs_time.svg",
+                "paper_trex_v3_psnr_vs_time.png", "paper_trex_v3_psnr_vs_time.svg",
+                "paper_trex_v6_psnr_vs_time.png", "paper_trex_v6_psnr_vs_time.svg",
+                "paper_psnr_vs_gaussians.png", "paper_psnr_vs_gaussians.svg"]))
+            for _, paths in written:
+                for p in paths:
+                    self.assertGreater(p.stat().st_size, 1000, p)
+            self.assertTrue(Path(out, "paper_psnr_vs_gaussians.png").read_bytes().startswith(b"\x89PNG"))
+            svg = Path(out, "paper_fern_v3_psnr_vs_time.svg").read_text()
+            self.assertIn("<svg", svg)
+            self.assertIn("vanilla", svg)
+            index = Path(out, "README.md").read_text()
+            self.assertIn("![paper: fern, 3 views — test PSNR over training time](paper_fern_v3_psnr_vs_time.png)", index)
+
+
+if __name__ == "__main__":
+    unittest.main()
