@@ -101,6 +101,9 @@ def command(config, cell, gaps, data, out, extra_flags=()):
 
 
 def git_commit():
+    # A copy of the tree without its .git (e.g. shipped to a GPU host) names its commit in GAPS_COMMIT.
+    if os.environ.get("GAPS_COMMIT"):
+        return os.environ["GAPS_COMMIT"]
     try:
         head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True, check=True).stdout.strip()

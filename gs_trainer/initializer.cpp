@@ -19,7 +19,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// Bumped whenever the algorithms change what a key produces, so stale caches are not reused.
 // Bumped whenever an algorithm or default changes what a method produces, so stale caches are not reused.
 constexpr char kCacheVersion[] = "init-v2";
 
