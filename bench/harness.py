@@ -214,7 +214,8 @@ def main(argv=None):
     parser.add_argument("--data", required=True, help="root the configs' scene paths are relative to")
     parser.add_argument("--out", required=True, help="output folder: one subfolder per cell, results.{jsonl,csv}")
     parser.add_argument("--gaps", default=str(REPO / "build" / "client" / "gaps"), help="the gaps binary")
-    parser.add_argument("--jobs", type=int, default=1, help="cells trained at the same time")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="cells trained at the same time (default: one per --gpus device, else 1)")
     parser.add_argument("--gpus", default="", help="comma-separated device ids, spread over the jobs "
                         "through CUDA_VISIBLE_DEVICES (default: leave it as it is)")
     parser.add_argument("--flag", action="append", default=[], metavar="KEY=VALUE",
@@ -224,6 +225,9 @@ def main(argv=None):
     parser.add_argument("--commit", default="", help="recorded in every row (default: git HEAD of this checkout)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands of the unfinished cells")
     args = parser.parse_args(argv)
+    gpu_ids = [g.strip() for g in args.gpus.split(",") if g.strip()]
+    if args.jobs is None:
+        args.jobs = max(1, len(gpu_ids))
     if args.jobs < 1:
         parser.error("--jobs must be at least 1")
     try:
@@ -255,11 +259,10 @@ def main(argv=None):
             print(" ".join(command(config, cell, args.gaps, args.data, args.out, args.flag)))
         return 0
     gpus = None
-    if args.gpus:
-        ids = [g.strip() for g in args.gpus.split(",") if g.strip()]
+    if gpu_ids:
         gpus = queue.Queue()
         for slot in range(args.jobs):  # the slots of the jobs, spread round-robin over the devices
-            gpus.put(ids[slot % len(ids)])
+            gpus.put(gpu_ids[slot % len(gpu_ids)])
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log), todo))
     failed = outcomes.count(False)
