@@ -200,7 +200,11 @@ def run_cell(config, cell, args, gpus, results, commit, log):
         if metrics is None or code not in (0, EXIT_DIVERGED):
             log(f"FAILED {cell['cell']} (exit status {code}; see {log_dir / (cell['cell'] + '.log')})")
             return False
-        results.append(row_from_metrics(config, cell, metrics, commit, describe_device(gpu), wall))
+        device = describe_device(gpu)
+        # What only the harness knows, kept with the cell so its row can be rebuilt later.
+        with open(Path(args.out) / cell["cell"] / "harness.json", "w") as f:
+            json.dump({"device": device, "wall_seconds": wall, "gpu": gpu, "commit": commit}, f)
+        results.append(row_from_metrics(config, cell, metrics, commit, device, wall))
         log(f"done   {cell['cell']}: {metrics.get('status')} PSNR {metrics.get('psnr')} in {wall:.0f} s")
         return True
     finally:
@@ -252,7 +256,10 @@ def main(argv=None):
         if metrics is None:
             todo.append(cell)
         elif not results.has(cell["cell"]):  # finished before its row was written
-            results.append(row_from_metrics(config, cell, metrics, commit, describe_device(None), None))
+            extra_path = Path(args.out) / cell["cell"] / "harness.json"
+            extra = json.loads(extra_path.read_text()) if extra_path.exists() else {}
+            results.append(row_from_metrics(config, cell, metrics, extra.get("commit", commit),
+                                            extra.get("device", "unknown"), extra.get("wall_seconds")))
     log(f"{config['name']}: {len(cells)} cells, {len(cells) - len(todo)} finished, {len(todo)} to run")
     if args.dry_run:
         for cell in todo:

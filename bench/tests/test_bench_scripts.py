@@ -147,6 +147,16 @@ class HarnessTest(unittest.TestCase):
         self.assertEqual(len(self.calls()), first_calls + 4, "a finished matrix runs nothing")
         self.assertEqual(len(self.rows()), 16)
 
+        # Rows lost (results files removed) are rebuilt from the cells without training again.
+        before = {r["cell"]: r for r in self.rows()}
+        (self.out / "results.jsonl").unlink()
+        (self.out / "results.csv").unlink()
+        code, _ = self.run_harness("--commit", "other")
+        self.assertEqual(code, 0)
+        self.assertEqual(len(self.calls()), first_calls + 4)
+        rebuilt = {r["cell"]: r for r in self.rows()}
+        self.assertEqual(rebuilt, before)
+
     def require_concurrent_starts(self, n):
         self.out.mkdir(parents=True)
         (self.out / "BARRIER").write_text(str(n))
