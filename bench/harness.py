@@ -203,7 +203,11 @@ def run_cell(config, cell, args, gpus, results, commit, log):
         if metrics is None or code not in (0, EXIT_DIVERGED):
             log(f"FAILED {cell['cell']} (exit status {code}; see {log_dir / (cell['cell'] + '.log')})")
             return False
-        results.append(row_from_metrics(config, cell, metrics, commit, describe_device(gpu), wall))
+        device = describe_device(gpu)
+        # What only the harness knows, kept with the cell so its row can be rebuilt later.
+        with open(Path(args.out) / cell["cell"] / "harness.json", "w") as f:
+            json.dump({"device": device, "wall_seconds": wall, "gpu": gpu, "commit": commit}, f)
+        results.append(row_from_metrics(config, cell, metrics, commit, device, wall))
         log(f"done   {cell['cell']}: {metrics.get('status')} PSNR {metrics.get('psnr')} in {wall:.0f} s")
         return True
     finally:
@@ -217,7 +221,8 @@ def main(argv=None):
     parser.add_argument("--data", required=True, help="root the configs' scene paths are relative to")
     parser.add_argument("--out", required=True, help="output folder: one subfolder per cell, results.{jsonl,csv}")
     parser.add_argument("--gaps", default=str(REPO / "build" / "client" / "gaps"), help="the gaps binary")
-    parser.add_argument("--jobs", type=int, default=1, help="cells trained at the same time")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="cells trained at the same time (default: one per --gpus device, else 1)")
     parser.add_argument("--gpus", default="", help="comma-separated device ids, spread over the jobs "
                         "through CUDA_VISIBLE_DEVICES (default: leave it as it is)")
     parser.add_argument("--flag", action="append", default=[], metavar="KEY=VALUE",
@@ -227,6 +232,9 @@ def main(argv=None):
     parser.add_argument("--commit", default="", help="recorded in every row (default: git HEAD of this checkout)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands of the unfinished cells")
     args = parser.parse_args(argv)
+    gpu_ids = [g.strip() for g in args.gpus.split(",") if g.strip()]
+    if args.jobs is None:
+        args.jobs = max(1, len(gpu_ids))
     if args.jobs < 1:
         parser.error("--jobs must be at least 1")
     try:
@@ -251,18 +259,20 @@ def main(argv=None):
         if metrics is None:
             todo.append(cell)
         elif not results.has(cell["cell"]):  # finished before its row was written
-            results.append(row_from_metrics(config, cell, metrics, commit, describe_device(None), None))
+            extra_path = Path(args.out) / cell["cell"] / "harness.json"
+            extra = json.loads(extra_path.read_text()) if extra_path.exists() else {}
+            results.append(row_from_metrics(config, cell, metrics, extra.get("commit", commit),
+                                            extra.get("device", "unknown"), extra.get("wall_seconds")))
     log(f"{config['name']}: {len(cells)} cells, {len(cells) - len(todo)} finished, {len(todo)} to run")
     if args.dry_run:
         for cell in todo:
             print(" ".join(command(config, cell, args.gaps, args.data, args.out, args.flag)))
         return 0
     gpus = None
-    if args.gpus:
-        ids = [g.strip() for g in args.gpus.split(",") if g.strip()]
+    if gpu_ids:
         gpus = queue.Queue()
         for slot in range(args.jobs):  # the slots of the jobs, spread round-robin over the devices
-            gpus.put(ids[slot % len(ids)])
+            gpus.put(gpu_ids[slot % len(gpu_ids)])
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log), todo))
     failed = outcomes.count(False)

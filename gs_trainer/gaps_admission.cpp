@@ -7,6 +7,8 @@
 
 #include <absl/strings/str_format.h>
 
+#include "gs_trainer/metrics.h"
+
 namespace gaps {
 
 namespace {
@@ -60,7 +62,19 @@ AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Te
                                     const at::Tensor& alpha, const GapsConfig& c) {
   const double mean_residual = uncertainty_map(hallucinated, rendered).to(at::kDouble).mean().item<double>();
   const double mean_alpha = alpha.to(at::kDouble).mean().item<double>();
-  return decide_admission(mean_alpha, mean_residual, c);
+  AdmissionDecision d = decide_admission(mean_alpha, mean_residual, c);
+  if (c.admit_min_structure <= 0) return d;
+  d.structure = ssim_metric(hallucinated.to(at::kFloat), rendered.to(at::kFloat));
+  const bool structured = *d.structure >= c.admit_min_structure;
+  const std::string reason = absl::StrFormat("SSIM to the render %.4f %s %.4g", *d.structure,
+                                             structured ? ">=" : "<", c.admit_min_structure);
+  if (structured) {
+    d.reason += d.admitted ? ", " + reason : "";
+  } else {
+    d.reason = (d.admitted ? std::string("rejected:") : d.reason) + " structure (" + reason + ")";
+    d.admitted = false;
+  }
+  return d;
 }
 
 at::Tensor confidence_weight(const at::Tensor& alpha, const at::Tensor& uncertainty, const GapsConfig& c) {

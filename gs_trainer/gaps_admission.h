@@ -25,10 +25,12 @@ struct AdmissionDecision {
   bool admitted = false;
   double mean_alpha = 0;     // ᾱ_v of the full-fidelity render
   double mean_residual = 0;  // mean |I_hall - I_GS| over pixels and channels
+  std::optional<double> structure;  // SSIM(I_hall, I_GS), when admit_min_structure > 0
   std::string reason;        // which criterion passed or failed, with the numbers
 };
 
-// Dual-criterion admission (sec. 3.6): ᾱ_v >= admit_min_alpha and mean residual < admit_max_residual.
+// Dual-criterion admission (sec. 3.6): ᾱ_v >= admit_min_alpha and mean residual < admit_max_residual;
+// admit_pseudo_view adds the structure guard SSIM >= admit_min_structure (see gaps_config.h).
 // Rejected views stay in the candidate pool (the caller keeps them; nothing here removes them).
 AdmissionDecision decide_admission(double mean_alpha, double mean_residual, const GapsConfig& c);
 AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered,

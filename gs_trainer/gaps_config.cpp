@@ -15,7 +15,7 @@ namespace gaps {
   X(w_novelty) X(novelty_gain) X(entropy_bins) X(gamma_hist) X(w_init) X(w_ref) X(init_coverage_weight)  \
   X(contrast_ref) X(coverage_alpha_threshold) X(ref_distance_scale) X(hist_variance_scale)               \
   X(diversity_radius) X(exploration_period) X(exploration_fraction) X(admit_min_alpha)                   \
-  X(admit_max_residual) X(uncertainty_lambda) X(uncertainty_eps) X(extrap_kappa) X(pseudo_loss_weight)   \
+  X(admit_max_residual) X(admit_min_structure) X(uncertainty_lambda) X(uncertainty_eps) X(extrap_kappa) X(pseudo_loss_weight)   \
   X(drop_max) X(drop_n_ref) X(strength_max) X(strength_min) X(cn_scale) X(cn_coverage)                   \
   X(ip_adapter_scale) X(lora_rank) X(lora_steps) X(inpaint_uncovered_fraction) X(inpaint_dilation)
 

@@ -74,6 +74,10 @@ struct GapsConfig {
   // --- Admission and pseudo loss (sec. 3.6).
   double admit_min_alpha = 0.25;    // τ_cov: mean alpha >= τ_cov
   double admit_max_residual = 0.7;  // τ_res: mean |I_hall - I_GS| < τ_res
+  // Not in the paper: SSIM(I_hall, I_GS) >= this (0 disables). τ_res alone admits uniform noise (its mean
+  // residual against a render is about 1/3); noise has an SSIM near 0 with any render, while a generation
+  // anchored on the render keeps its structure. Low on purpose: it only rejects images without structure.
+  double admit_min_structure = 0.1;
   double uncertainty_lambda = 0.7;  // λ_u (eq:confidence_weight)
   double uncertainty_eps = 1e-6;    // ε (eq:confidence_weight)
   double extrap_kappa = 2.0;        // κ (eq:extrap_decay)

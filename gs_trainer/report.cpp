@@ -19,7 +19,9 @@ namespace {
 namespace fs = std::filesystem;
 using nlohmann::json;
 
+// Test views at a comparable size; pseudo-views smaller, as a run has hundreds of them (18 phases of up to 24).
 constexpr int kThumbnailWidth = 240;
+constexpr int kPseudoThumbnailWidth = 160;
 constexpr const char* kSeriesColours[] = {"#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"};
 
 std::string escape(const std::string& s) {
@@ -40,17 +42,18 @@ std::string base64(const std::string& bytes) {
 }
 
 // An <img> of the image shrunk to the thumbnail width (never enlarged).
-absl::StatusOr<std::string> thumbnail_img(const at::Tensor& image, const std::string& alt) {
+absl::StatusOr<std::string> thumbnail_img(const at::Tensor& image, const std::string& alt,
+                                          int width = kThumbnailWidth) {
   const int h = static_cast<int>(image.size(0)), w = static_cast<int>(image.size(1));
-  const int tw = std::min(w, kThumbnailWidth), th = std::max(1, static_cast<int>(std::lround(double(h) * tw / w)));
+  const int tw = std::min(w, width), th = std::max(1, static_cast<int>(std::lround(double(h) * tw / w)));
   GAPS_ASSIGN_OR_RETURN(const std::string png, encode_png(resize_image(image, tw, th)));
   return absl::StrCat("<img alt=\"", escape(alt), "\" width=\"", tw, "\" height=\"", th,
                       "\" src=\"data:image/png;base64,", base64(png), "\">");
 }
 
-absl::StatusOr<std::string> thumbnail_file(const fs::path& path) {
+absl::StatusOr<std::string> thumbnail_file(const fs::path& path, int width = kThumbnailWidth) {
   GAPS_ASSIGN_OR_RETURN(const at::Tensor image, read_image(path));
-  return thumbnail_img(image, path.filename().string());
+  return thumbnail_img(image, path.filename().string(), width);
 }
 
 // Ticks at 1, 2 or 5 times a power of ten, about `target` of them over [lo, hi].
@@ -163,7 +166,7 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
                              absl::StrFormat("cand_%03d_%s.png", s.value("id", -1), admitted ? "admitted" : "rejected");
       std::string img = "(image not saved)";
       if (fs::exists(image)) {
-        GAPS_ASSIGN_OR_RETURN(img, thumbnail_file(image));
+        GAPS_ASSIGN_OR_RETURN(img, thumbnail_file(image, kPseudoThumbnailWidth));
       }
       absl::StrAppend(&html, "<figure class=\"", admitted ? "admitted" : "rejected", "\">", img, "<figcaption>candidate ",
                       s.value("id", -1), ", coverage ", json_number(s.value("coverage", json()), "%.2f"), "<br><b>",
@@ -179,7 +182,7 @@ constexpr char kStyle[] =
     "body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;margin:1em 0}"
     "th,td{border:1px solid #ccc;padding:4px 8px;text-align:left;vertical-align:top}"
     ".charts{display:flex;flex-wrap:wrap;gap:1em}.grid{display:flex;flex-wrap:wrap;gap:8px}"
-    "figure{margin:0;padding:4px;width:250px;font-size:12px}figure.admitted{border:3px solid #2ca02c}"
+    "figure{margin:0;padding:4px;width:170px;font-size:12px}figure.admitted{border:3px solid #2ca02c}"
     "figure.rejected{border:3px solid #d62728}";
 
 }  // namespace

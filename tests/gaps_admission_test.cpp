@@ -181,5 +181,39 @@ TEST(GenerationControls, AdaptiveControlScale) {
   EXPECT_DOUBLE_EQ(adaptive_control_scale(1.0, half), 0.5);
 }
 
+// ---------------------------------------------------------------- structure guard (not in the paper)
+
+// A smooth textured "render" and uniform noise: the noise passes τ_res = 0.7 (mean residual about 1/3), so
+// only the structure guard stops it; a generation that keeps the render's structure passes it.
+TEST(StructureGuard, RejectsNoiseThatTheResidualCriterionAdmits) {
+  const GapsConfig c;
+  constexpr int64_t kSize = 128;
+  const at::Tensor ramp = at::linspace(0.1, 0.9, kSize, kDouble);
+  const at::Tensor render = (0.5 + 0.4 * at::sin(ramp.view({kSize, 1}) * 20) * at::cos(ramp.view({1, kSize}) * 15))
+                                .unsqueeze(2)
+                                .expand({kSize, kSize, 3})
+                                .contiguous();
+  const at::Tensor alpha = at::ones({kSize, kSize}, kDouble);
+  at::manual_seed(3);
+  const at::Tensor noise = at::rand({kSize, kSize, 3}, kDouble);
+  const AdmissionDecision rejected = admit_pseudo_view(noise, render, alpha, c);
+  EXPECT_LT(rejected.mean_residual, c.admit_max_residual);
+  ASSERT_TRUE(rejected.structure.has_value());
+  EXPECT_LT(*rejected.structure, c.admit_min_structure);
+  EXPECT_FALSE(rejected.admitted);
+  EXPECT_TRUE(contains(rejected.reason, "rejected: structure (SSIM to the render")) << rejected.reason;
+
+  const AdmissionDecision kept = admit_pseudo_view((render * 0.9 + 0.05).contiguous(), render, alpha, c);
+  EXPECT_TRUE(kept.admitted) << kept.reason;
+  EXPECT_GT(*kept.structure, 0.5);
+  EXPECT_TRUE(contains(kept.reason, "SSIM to the render")) << kept.reason;
+
+  GapsConfig off = c;
+  off.admit_min_structure = 0;
+  const AdmissionDecision paper_only = admit_pseudo_view(noise, render, alpha, off);
+  EXPECT_TRUE(paper_only.admitted) << paper_only.reason;
+  EXPECT_FALSE(paper_only.structure.has_value());
+}
+
 }  // namespace
 }  // namespace gaps

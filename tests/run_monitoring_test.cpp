@@ -154,6 +154,21 @@ TEST_F(RunMonitoring, CurvePeakMemoryAndReportOfAVanillaRun) {
   EXPECT_NE(html.find("No pseudo-view phases"), std::string::npos);
 }
 
+TEST_F(RunMonitoring, PeakMemoryOnCudaComesFromTheCachingAllocator) {
+  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
+  RunOptions o = options();
+  o.config.device = "cuda";
+  o.html_report = false;
+  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  const auto m = read_json(o.out_dir / "metrics.json");
+  EXPECT_EQ(m["peak_memory"]["kind"], "cuda_allocator");
+  // At least the 2,000 initial Gaussians' parameters (59 floats each) were on the device at once.
+  EXPECT_GT(m["peak_memory"]["bytes"].get<int64_t>(), 2000 * 59 * 4);
+  EXPECT_GE(m["peak_memory"]["reserved_bytes"].get<int64_t>(), m["peak_memory"]["bytes"].get<int64_t>());
+  EXPECT_EQ(m["curve"].size(), 3u);
+}
+
 TEST_F(RunMonitoring, ReportShowsAdmittedAndRejectedPseudoViewsAndGeneratorTime) {
   HalfGarbageGenerator generator;
   RunOptions o = options();

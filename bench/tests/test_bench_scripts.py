@@ -32,7 +32,14 @@ FAKE_GAPS = textwrap.dedent("""\
     with open(os.path.join(log_dir, "calls.log"), "a") as f:
         f.write(json.dumps({{"cell": os.path.basename(out), "start": time.time(),
                              "gpu": os.environ.get("CUDA_VISIBLE_DEVICES")}}) + "\\n")
-    time.sleep(0.3)
+    barrier = os.path.join(log_dir, "BARRIER")
+    if os.path.exists(barrier):  # wait until that many cells have started: only concurrent runs get through
+        open(os.path.join(log_dir, "started_" + os.path.basename(out)), "w").close()
+        need, deadline = int(open(barrier).read()), time.time() + 60
+        while len([n for n in os.listdir(log_dir) if n.startswith("started_")]) < need:
+            if time.time() > deadline:
+                sys.exit(1)
+            time.sleep(0.05)
     variant, views, seed = args["variant"], int(args["views"]), int(args["seed"])
     if variant == "crash" and not os.path.exists(os.path.join(log_dir, "ALLOW_CRASH")):
         sys.exit(1)
@@ -140,17 +147,36 @@ class HarnessTest(unittest.TestCase):
         self.assertEqual(len(self.calls()), first_calls + 4, "a finished matrix runs nothing")
         self.assertEqual(len(self.rows()), 16)
 
-    def test_concurrent_jobs_spread_over_gpus(self):
-        code, _ = self.run_harness("--jobs", "2", "--gpus", "0,1", "--only", "vanilla|full")
+        # Rows lost (results files removed) are rebuilt from the cells without training again.
+        before = {r["cell"]: r for r in self.rows()}
+        (self.out / "results.jsonl").unlink()
+        (self.out / "results.csv").unlink()
+        code, _ = self.run_harness("--commit", "other")
         self.assertEqual(code, 0)
+        self.assertEqual(len(self.calls()), first_calls + 4)
+        rebuilt = {r["cell"]: r for r in self.rows()}
+        self.assertEqual(rebuilt, before)
+
+    def require_concurrent_starts(self, n):
+        self.out.mkdir(parents=True)
+        (self.out / "BARRIER").write_text(str(n))
+
+    def test_concurrent_jobs_spread_over_gpus(self):
+        self.require_concurrent_starts(2)
+        code, _ = self.run_harness("--jobs", "2", "--gpus", "0,1", "--only", "vanilla|full")
+        self.assertEqual(code, 0, "the first two cells did not run at the same time")
         calls = self.calls()
         self.assertEqual(len(calls), 8)
         self.assertEqual({c["gpu"] for c in calls}, {"0", "1"})
-        # Two at a time: each call starts before the one two places earlier could have finished twice over.
-        starts = sorted(c["start"] for c in calls)
-        self.assertLess(starts[1] - starts[0], 0.3, "the second job did not start while the first ran")
+        self.assertEqual(sorted(c["gpu"] for c in calls[:2]), ["0", "1"], "two concurrent jobs shared a GPU")
         for r in self.rows():
             self.assertEqual(json.loads((self.out / r["cell"] / "metrics.json").read_text())["gpu"] in ("0", "1"), True)
+
+    def test_one_job_per_gpu_by_default(self):
+        self.require_concurrent_starts(2)
+        code, _ = self.run_harness("--gpus", "3,5", "--only", "^fern_v3_vanilla")
+        self.assertEqual(code, 0, "the two cells did not run at the same time")
+        self.assertEqual(sorted(c["gpu"] for c in self.calls()), ["3", "5"])
 
     def test_extra_flags_and_only(self):
         code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "device=cuda", "--flag", "init=random")
