@@ -1,0 +1,65 @@
+// SDXL img2img against diffusers' StableDiffusionXLImg2ImgPipeline on the tiny fixture: two images, two
+// prompts, strength 0.5 of 4 Euler steps (2 run), guidance 5, one CPU generator seeded 1234 (the same
+// random draws in LibTorch and PyTorch). Tolerance: max abs diff <= 1e-4 on images in [0, 1].
+#include <fstream>
+
+#include <ATen/ATen.h>
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include "diffusion_worker/sdxl/pipeline.h"
+#include "tests/sdxl_test_util.h"
+
+namespace gaps::sdxl {
+namespace {
+
+TEST(SdxlPipelineTest, Img2ImgMatchesDiffusers) {
+  std::ifstream in(test::sdxl_fixture_dir() + "/reference/img2img.json");
+  const nlohmann::json setup = nlohmann::json::parse(in);
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const TensorMap ref = test::sdxl_reference("img2img");
+  Img2ImgParams params;
+  params.strength = setup["strength"].get<double>();
+  params.steps = setup["num_inference_steps"].get<int64_t>();
+  params.guidance_scale = setup["guidance_scale"].get<double>();
+  auto out = (*pipeline)->img2img(ref.at("image"), setup["prompts"].get<std::vector<std::string>>(), params,
+                                  {setup["seed"].get<uint64_t>()});
+  ASSERT_TRUE(out.ok()) << out.status();
+  test::expect_close(*out, ref.at("out"), 1e-4, "img2img output");
+  // A different seed gives a different image (the draws are used).
+  auto other = (*pipeline)->img2img(ref.at("image"), setup["prompts"].get<std::vector<std::string>>(), params, {7});
+  ASSERT_TRUE(other.ok());
+  EXPECT_GT((*other - *out).abs().max().item<double>(), 1e-3);
+}
+
+TEST(SdxlPipelineTest, RejectsBadRequests) {
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const at::Tensor image = at::rand({1, 3, 8, 8});
+  Img2ImgParams params;
+  params.steps = 4;
+  params.strength = 0.1;  // int(4 * 0.1) = 0 steps
+  EXPECT_FALSE((*pipeline)->img2img(image, {"a"}, params, {1}).ok());
+  params.strength = 0.5;
+  EXPECT_FALSE((*pipeline)->img2img(at::rand({1, 3, 9, 8}), {"a"}, params, {1}).ok());
+  EXPECT_FALSE((*pipeline)->img2img(image, {"a", "b"}, params, {1}).ok());
+}
+
+TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
+  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
+  for (at::ScalarType dtype : {at::kHalf, at::kBFloat16}) {
+    auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{dtype, at::Device(at::kCUDA), ""});
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    const TensorMap ref = test::sdxl_reference("img2img");
+    Img2ImgParams params;
+    params.steps = 4;
+    auto out = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+    ASSERT_TRUE(out.ok()) << out.status();
+    // Half precision follows the float32 result closely on these tiny random weights.
+    test::expect_close(*out, ref.at("out"), 5e-2, "half-precision img2img output");
+  }
+}
+
+}  // namespace
+}  // namespace gaps::sdxl
