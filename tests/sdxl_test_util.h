@@ -5,10 +5,15 @@
 #include <string>
 
 #include <ATen/ATen.h>
+#include <ATen/Parallel.h>
 #include <gtest/gtest.h>
 #include "diffusion_worker/sdxl/safetensors.h"
 
 namespace gaps::test {
+
+// The tiny models gain nothing from intra-op threads, and on a loaded machine the thread pool's
+// contention dominates their run time.
+inline const bool kSdxlSingleThreaded = (at::set_num_threads(1), true);
 
 inline std::string sdxl_fixture_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_tiny"; }
 inline std::string sdxl_model_dir() { return sdxl_fixture_dir() + "/model"; }
