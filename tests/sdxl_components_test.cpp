@@ -115,6 +115,23 @@ TEST(UNet2DConditionTest, MatchesDiffusersWithTextTimeConditioning) {
   expect_close(unet->forward(in), ref.at("out"), kTolerance, "UNet output");
 }
 
+TEST(WeightSpecsTest, ListExactlyTheCheckpointsTensors) {
+  const ModelFolder f = folder();
+  const auto matches = [](const std::vector<TensorSpec>& specs, const TensorMap& checkpoint, const std::string& what) {
+    TensorMap weights;  // transformers writes CLIPTextModelWithProjection's tower under "text_model."
+    for (const auto& [name, t] : checkpoint) weights.emplace(name.rfind("text_model.", 0) == 0 ? name.substr(11) : name, t);
+    EXPECT_EQ(specs.size(), weights.size()) << what;
+    for (const auto& spec : specs) {
+      ASSERT_TRUE(weights.count(spec.name)) << what << ": " << spec.name;
+      EXPECT_EQ(weights.at(spec.name).sizes().vec(), spec.shape) << what << ": " << spec.name;
+    }
+  };
+  matches(UNet2DCondition::weight_specs(*UNetConfig::from_json(*f.read_json("unet"))), *f.read_weights("unet"), "unet");
+  matches(AutoencoderKL::weight_specs(*VaeConfig::from_json(*f.read_json("vae"))), *f.read_weights("vae"), "vae");
+  matches(ClipTextEncoder::weight_specs(*ClipTextConfig::from_json(*f.read_json("text_encoder_2")), true),
+          *f.read_weights("text_encoder_2"), "text_encoder_2");
+}
+
 TEST(UNet2DConditionTest, ControlResidualsAndAttentionProcessorsChangeTheOutput) {
   const ModelFolder f = folder();
   auto unet = UNet2DCondition::load(*UNetConfig::from_json(*f.read_json("unet")), *f.read_weights("unet"),

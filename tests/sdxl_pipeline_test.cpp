@@ -7,8 +7,11 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/pipeline.h"
+#include "diffusion_worker/sdxl/random_model.h"
 #include "tests/sdxl_test_util.h"
+#include "tests/test_util.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -59,6 +62,46 @@ TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
     // Half precision follows the float32 result closely on these tiny random weights.
     test::expect_close(*out, ref.at("out"), 5e-2, "half-precision img2img output");
   }
+}
+
+class RandomModelTest : public test::TempDirTest {};
+
+// The writer of random full-size models (for the speed benchmark), exercised with the tiny configs: the
+// folder it writes must load as an SDXL pipeline and run.
+TEST_F(RandomModelTest, WritesALoadableSdxlFolder) {
+  const ModelFolder fixture = *ModelFolder::open(test::sdxl_model_dir());
+  SdxlConfigs configs{*fixture.read_json("unet"), *fixture.read_json("vae"), *fixture.read_json("text_encoder"),
+                      *fixture.read_json("text_encoder_2"), *fixture.read_json("scheduler", "scheduler_config.json")};
+  ASSERT_TRUE(write_random_sdxl_model(dir_.string(), configs, 5, "float32").ok());
+  auto pipeline = SdxlPipeline::load(dir_.string(), PipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  Img2ImgParams params;
+  params.steps = 2;
+  params.strength = 1.0;
+  auto out = (*pipeline)->img2img(at::rand({1, 3, 8, 8}), {"a fern"}, params, {1});
+  ASSERT_TRUE(out.ok()) << out.status();
+  EXPECT_TRUE(out->isfinite().all().item<bool>());
+  // Same seed, same weights.
+  const std::string again = (dir_ / "again").string();
+  ASSERT_TRUE(write_random_sdxl_model(again, configs, 5, "float32").ok());
+  auto a = read_safetensors((dir_ / "unet/diffusion_pytorch_model.safetensors").string());
+  auto b = read_safetensors(again + "/unet/diffusion_pytorch_model.safetensors");
+  EXPECT_TRUE(at::equal(a->at("conv_in.weight"), b->at("conv_in.weight")));
+  EXPECT_FALSE(write_random_sdxl_model(again, configs, 5, "int8").ok());
+}
+
+TEST(RandomModelConfigTest, BaseConfigsDescribeTheFullSizeSdxl) {
+  const SdxlConfigs base = SdxlConfigs::base();
+  int64_t unet_parameters = 0;
+  for (const auto& spec : UNet2DCondition::weight_specs(*UNetConfig::from_json(base.unet))) {
+    int64_t n = 1;
+    for (int64_t d : spec.shape) n *= d;
+    unet_parameters += n;
+  }
+  EXPECT_EQ(unet_parameters, 2567463684);  // SDXL base 1.0's UNet
+  EXPECT_TRUE(VaeConfig::from_json(base.vae).ok());
+  EXPECT_TRUE(ClipTextConfig::from_json(base.text_encoder_2).ok());
+  EXPECT_TRUE(SchedulerConfig::from_json(base.scheduler).ok());
 }
 
 }  // namespace

@@ -41,6 +41,19 @@ absl::StatusOr<ClipTextEncoder> ClipTextEncoder::load(const ClipTextConfig& c, b
   }
   renamed.erase("embeddings.position_ids");  // a buffer some checkpoints carry, not a weight
   WeightLoader w(source, std::move(renamed), options);
+  GAPS_ASSIGN_OR_RETURN(ClipTextEncoder e, build(c, with_projection, w, source));
+  GAPS_RETURN_IF_ERROR(w.finish());
+  return e;
+}
+
+std::vector<TensorSpec> ClipTextEncoder::weight_specs(const ClipTextConfig& c, bool with_projection) {
+  WeightLoader w("", {}, at::TensorOptions().device(at::kMeta));
+  (void)build(c, with_projection, w, "");
+  return w.requested();
+}
+
+absl::StatusOr<ClipTextEncoder> ClipTextEncoder::build(const ClipTextConfig& c, bool with_projection, WeightLoader& w,
+                                                       const std::string& source) {
   ClipTextEncoder e;
   e.config_ = c;
   const int64_t d = c.hidden_size;
@@ -61,7 +74,6 @@ absl::StatusOr<ClipTextEncoder> ClipTextEncoder::load(const ClipTextConfig& c, b
     if (c.projection_dim <= 0) return absl::InvalidArgumentError(absl::StrCat(source, ": projection_dim missing from the config"));
     e.text_projection_ = Linear::load(w, "text_projection", d, c.projection_dim, /*with_bias=*/false);
   }
-  GAPS_RETURN_IF_ERROR(w.finish());
   return e;
 }
 

@@ -32,6 +32,7 @@ class ClipTextEncoder {
   // without the "text_model." prefix are accepted.
   static absl::StatusOr<ClipTextEncoder> load(const ClipTextConfig& config, bool with_projection, TensorMap weights,
                                               at::TensorOptions options, const std::string& source);
+  static std::vector<TensorSpec> weight_specs(const ClipTextConfig& config, bool with_projection);
   // input_ids: B x T int64 (T <= max_position_embeddings).
   ClipTextOutput forward(const at::Tensor& input_ids) const;
   const ClipTextConfig& config() const { return config_; }
@@ -41,6 +42,8 @@ class ClipTextEncoder {
     LayerNorm layer_norm1, layer_norm2;
     Linear q_proj, k_proj, v_proj, out_proj, fc1, fc2;
   };
+  static absl::StatusOr<ClipTextEncoder> build(const ClipTextConfig& config, bool with_projection, WeightLoader& w,
+                                               const std::string& source);
   at::Tensor layer_forward(const Layer& layer, const at::Tensor& x) const;
   at::Tensor activation(const at::Tensor& x) const;
 

@@ -118,6 +118,18 @@ UNet2DCondition::Transformer2D UNet2DCondition::load_transformer(WeightLoader& w
 absl::StatusOr<UNet2DCondition> UNet2DCondition::load(const UNetConfig& c, TensorMap weights, at::TensorOptions options,
                                                       const std::string& source) {
   WeightLoader w(source, std::move(weights), options);
+  GAPS_ASSIGN_OR_RETURN(UNet2DCondition u, build(c, w, source));
+  GAPS_RETURN_IF_ERROR(w.finish());
+  return u;
+}
+
+std::vector<TensorSpec> UNet2DCondition::weight_specs(const UNetConfig& c) {
+  WeightLoader w("", {}, at::TensorOptions().device(at::kMeta));
+  (void)build(c, w, "");
+  return w.requested();
+}
+
+absl::StatusOr<UNet2DCondition> UNet2DCondition::build(const UNetConfig& c, WeightLoader& w, const std::string& source) {
   UNet2DCondition u;
   u.config_ = c;
   const auto& ch = c.block_out_channels;
@@ -172,7 +184,6 @@ absl::StatusOr<UNet2DCondition> UNet2DCondition::load(const UNetConfig& c, Tenso
   }
   u.norm_out_ = GroupNorm::load(w, "conv_norm_out", g, ch[0], c.norm_eps);
   u.conv_out_ = Conv2d::load(w, "conv_out", ch[0], c.out_channels, 3);
-  GAPS_RETURN_IF_ERROR(w.finish());
   return u;
 }
 

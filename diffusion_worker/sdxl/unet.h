@@ -49,6 +49,8 @@ class UNet2DCondition {
  public:
   static absl::StatusOr<UNet2DCondition> load(const UNetConfig& config, TensorMap weights, at::TensorOptions options,
                                               const std::string& source);
+  // Every tensor the config needs (name, shape), without loading anything.
+  static std::vector<TensorSpec> weight_specs(const UNetConfig& config);
   // The predicted noise (or v), B x out_channels x h x w.
   at::Tensor forward(const UNetInputs& inputs) const;
 
@@ -77,6 +79,7 @@ class UNet2DCondition {
     std::optional<Upsample> up;
   };
 
+  static absl::StatusOr<UNet2DCondition> build(const UNetConfig& config, WeightLoader& w, const std::string& source);
   Transformer2D load_transformer(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t heads,
                                  int64_t layers) const;
   at::Tensor transformer_forward(const Transformer2D& t, const at::Tensor& x, const at::Tensor& context) const;

@@ -74,6 +74,18 @@ at::Tensor VaeMidBlock::operator()(const at::Tensor& x) const {
 absl::StatusOr<AutoencoderKL> AutoencoderKL::load(const VaeConfig& c, TensorMap weights, at::TensorOptions options,
                                                   const std::string& source) {
   WeightLoader w(source, std::move(weights), options);
+  AutoencoderKL vae = build(c, w);
+  GAPS_RETURN_IF_ERROR(w.finish());
+  return vae;
+}
+
+std::vector<TensorSpec> AutoencoderKL::weight_specs(const VaeConfig& c) {
+  WeightLoader w("", {}, at::TensorOptions().device(at::kMeta));
+  build(c, w);
+  return w.requested();
+}
+
+AutoencoderKL AutoencoderKL::build(const VaeConfig& c, WeightLoader& w) {
   AutoencoderKL vae;
   vae.config_ = c;
   const auto& ch = c.block_out_channels;
@@ -114,7 +126,6 @@ absl::StatusOr<AutoencoderKL> AutoencoderKL::load(const VaeConfig& c, TensorMap 
   }
   vae.dec_norm_out = GroupNorm::load(w, "decoder.conv_norm_out", g, ch[0], kVaeEps);
   vae.dec_conv_out = Conv2d::load(w, "decoder.conv_out", ch[0], c.out_channels, 3);
-  GAPS_RETURN_IF_ERROR(w.finish());
   return vae;
 }
 

@@ -41,6 +41,8 @@ class AutoencoderKL {
   static absl::StatusOr<AutoencoderKL> load(const VaeConfig& config, TensorMap weights, at::TensorOptions options,
                                             const std::string& source);
 
+  static std::vector<TensorSpec> weight_specs(const VaeConfig& config);
+
   // images B x 3 x H x W in [-1, 1] -> moments B x 2L x H/f x W/f (mean, then log-variance).
   at::Tensor encode_moments(const at::Tensor& images) const;
   // A draw from the latent distribution (mean + std * N(0, 1) from generator), unscaled.
@@ -54,6 +56,8 @@ class AutoencoderKL {
   int64_t scale_factor() const { return int64_t{1} << (config_.block_out_channels.size() - 1); }
 
  private:
+  static AutoencoderKL build(const VaeConfig& config, WeightLoader& w);
+
   VaeConfig config_;
   Conv2d enc_conv_in, enc_conv_out, quant_conv, post_quant_conv, dec_conv_in, dec_conv_out;
   std::vector<std::vector<ResnetBlock>> enc_resnets, dec_resnets;

@@ -30,6 +30,7 @@ WeightLoader::WeightLoader(std::string source, TensorMap tensors, at::TensorOpti
     : source_(std::move(source)), tensors_(std::move(tensors)), options_(options) {}
 
 at::Tensor WeightLoader::take(const std::string& name, at::IntArrayRef shape) {
+  requested_.push_back({name, shape.vec()});
   const auto it = tensors_.find(name);
   if (it == tensors_.end()) {
     missing_.push_back(absl::StrCat(name, " ", shape_string(shape)));

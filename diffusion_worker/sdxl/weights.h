@@ -11,6 +11,12 @@
 
 namespace gaps::sdxl {
 
+// A tensor a module asks for: its name and shape.
+struct TensorSpec {
+  std::string name;
+  std::vector<int64_t> shape;
+};
+
 class WeightLoader {
  public:
   // source names the checkpoint in errors; tensors are converted to options' dtype and device on take().
@@ -27,6 +33,8 @@ class WeightLoader {
   absl::Status finish() const;
 
   const at::TensorOptions& options() const { return options_; }
+  // Every take() so far, in order: with an empty map on the meta device, a module's full weight list.
+  const std::vector<TensorSpec>& requested() const { return requested_; }
 
  private:
   std::string source_;
@@ -34,6 +42,7 @@ class WeightLoader {
   at::TensorOptions options_;
   std::set<std::string> taken_;
   std::vector<std::string> missing_, misshaped_;
+  std::vector<TensorSpec> requested_;
 };
 
 // "a.b" from prefix "a" and name "b" (name alone when prefix is empty).
