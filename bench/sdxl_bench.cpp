@@ -123,6 +123,48 @@ Timing unet_graph_ms(const gaps::sdxl::UNet2DCondition& unet, const gaps::sdxl::
   }
   return time_ms(3, runs, [&] { graph.replay(); });
 }
+
+// Times the whole img2img at each size, eagerly or replaying UNet graphs; false (with a message) on error.
+bool time_img2img(gaps::sdxl::SdxlPipeline& pipeline, const std::vector<Size>& sizes, bool graphs,
+                  const nlohmann::json& common) {
+  if (const absl::Status s = pipeline.set_cuda_graphs(graphs); !s.ok()) {
+    std::cerr << "sdxl_bench: " << s << "\n";
+    return false;
+  }
+  gaps::sdxl::Img2ImgParams params;
+  params.steps = absl::GetFlag(FLAGS_steps);
+  params.strength = absl::GetFlag(FLAGS_strength);
+  params.guidance_scale = absl::GetFlag(FLAGS_guidance);
+  for (const Size& s : sizes) {
+    at::manual_seed(4);
+    const at::Tensor view = at::rand({1, 3, s.height, s.width});
+    const at::Tensor image = at::replication_pad2d(view, {0, s.run_width - s.width, 0, s.run_height - s.height});
+    reset_peak();
+    absl::Status failure;
+    const Timing t = time_ms(1, absl::GetFlag(FLAGS_img2img_runs), [&] {
+      auto out = pipeline.img2img(image, {"a photo of a fern in a garden"}, params, {1234});
+      if (!out.ok()) failure = out.status();
+    });
+    if (!failure.ok()) {
+      std::cerr << "sdxl_bench: img2img failed: " << failure << "\n";
+      return false;
+    }
+    nlohmann::json j = common;
+    j["case"] = "img2img";
+    j["cuda_graphs"] = graphs;
+    j["size"] = s.name;
+    j["run_size"] = {s.run_width, s.run_height};
+    j["steps"] = params.steps;
+    j["strength"] = params.strength;
+    j["unet_steps"] = static_cast<int>(params.steps * params.strength);
+    j["guidance"] = params.guidance_scale;
+    j["ms"] = t.median_ms;
+    j["min_ms"] = t.min_ms;
+    j["peak_gpu_memory_gib"] = peak_gib();
+    emit(j);
+  }
+  return true;
+}
 #endif
 
 // Writes the random-weight folder when asked and missing; false (with a message) on failure.
@@ -225,36 +267,9 @@ int main(int argc, char** argv) {
     }
     emit(j);
   }
-  for (const Size& s : sizes) {
-    gaps::sdxl::Img2ImgParams params;
-    params.steps = absl::GetFlag(FLAGS_steps);
-    params.strength = absl::GetFlag(FLAGS_strength);
-    params.guidance_scale = absl::GetFlag(FLAGS_guidance);
-    at::manual_seed(4);
-    const at::Tensor view = at::rand({1, 3, s.height, s.width});
-    const at::Tensor image = at::replication_pad2d(view, {0, s.run_width - s.width, 0, s.run_height - s.height});
-    reset_peak();
-    absl::Status failure;
-    const Timing t = time_ms(1, absl::GetFlag(FLAGS_img2img_runs), [&] {
-      auto out = (*pipeline)->img2img(image, {"a photo of a fern in a garden"}, params, {1234});
-      if (!out.ok()) failure = out.status();
-    });
-    if (!failure.ok()) {
-      std::cerr << "sdxl_bench: img2img failed: " << failure << "\n";
-      return 1;
-    }
-    nlohmann::json j = common;
-    j["case"] = "img2img";
-    j["size"] = s.name;
-    j["run_size"] = {s.run_width, s.run_height};
-    j["steps"] = params.steps;
-    j["strength"] = params.strength;
-    j["unet_steps"] = static_cast<int>(params.steps * params.strength);
-    j["guidance"] = params.guidance_scale;
-    j["ms"] = t.median_ms;
-    j["min_ms"] = t.min_ms;
-    j["peak_gpu_memory_gib"] = peak_gib();
-    emit(j);
+  for (const bool graphs : {false, true}) {
+    if (graphs && !absl::GetFlag(FLAGS_cuda_graph)) break;
+    if (!time_img2img(**pipeline, sizes, graphs, common)) return 1;
   }
   return 0;
 #endif

@@ -43,12 +43,15 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     } else if (key == "steps" || key == "batch_size") {
       GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
       (key == "steps" ? o.steps : o.batch_size) = v.get<int64_t>();
+    } else if (key == "cuda_graphs") {
+      GAPS_RETURN_IF_ERROR(need(v.is_boolean(), "true or false"));
+      o.cuda_graphs = v.get<bool>();
     } else if (key == "guidance") {
       GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
       o.guidance = v.get<double>();
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
-          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, batch_size"));
+          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, batch_size, cuda_graphs"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
@@ -70,7 +73,7 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (device.is_cuda() && !at::hasCUDA()) return option_error("device", "CUDA requested but no CUDA device is available");
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
-  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler});
+  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs});
   if (!pipeline.ok()) {
     return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
                                                                " is not a usable SDXL model: ", pipeline.status().message()));

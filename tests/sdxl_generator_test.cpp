@@ -79,6 +79,9 @@ TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {
   EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"dtype\": \"float16\"")).status().message()),
                            {"float32"}));
 
+  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"cuda_graphs\": true")).status().message()),
+                           {"CUDA"}));
+
   const auto missing = make_generator("sdxl", options_json((dir_ / "absent").string()));
   EXPECT_TRUE(contains_all(std::string(missing.status().message()), {"not a usable SDXL model", "does not exist"}));
 

@@ -47,6 +47,7 @@ TEST(SdxlPipelineTest, RejectsBadRequests) {
   params.strength = 0.5;
   EXPECT_FALSE((*pipeline)->img2img(at::rand({1, 3, 9, 8}), {"a"}, params, {1}).ok());
   EXPECT_FALSE((*pipeline)->img2img(image, {"a", "b"}, params, {1}).ok());
+  EXPECT_FALSE((*pipeline)->set_cuda_graphs(true).ok());  // CPU pipeline
 }
 
 TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
@@ -61,6 +62,13 @@ TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
     ASSERT_TRUE(out.ok()) << out.status();
     // Half precision follows the float32 result closely on these tiny random weights.
     test::expect_close(*out, ref.at("out"), 5e-2, "half-precision img2img output");
+    // Replaying captured UNet graphs gives the eager result.
+    ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+    for (int run = 0; run < 2; ++run) {  // capture, then replay the captured graph
+      auto graphed = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+      ASSERT_TRUE(graphed.ok()) << graphed.status();
+      test::expect_close(*graphed, *out, 1e-3, "img2img with CUDA graphs");
+    }
   }
 }
 

@@ -24,7 +24,12 @@ struct PipelineOptions {
                                       // config asks for force_upcast (SDXL's VAE overflows in fp16)
   at::Device device = at::kCPU;
   std::string scheduler;  // "" = the folder's scheduler; else euler | ddim | dpmpp2m with its config
+  // Capture the UNet's forward as a CUDA graph per input shape and replay it at every step (CUDA
+  // devices in CUDA builds only; removes the per-kernel launch cost that dominates small images).
+  bool cuda_graphs = false;
 };
+
+struct UNetGraphs;  // the captured graphs (CUDA builds only)
 
 struct Img2ImgParams {
   double strength = 0.5;        // fraction of the schedule re-run: steps from int(steps * strength) back
@@ -52,6 +57,9 @@ class SdxlPipeline {
   absl::StatusOr<at::Tensor> img2img(const at::Tensor& images, const std::vector<std::string>& prompts,
                                      const Img2ImgParams& params, const std::vector<uint64_t>& seeds);
 
+  // Switches UNet graph capture and replay on or off (see PipelineOptions::cuda_graphs).
+  absl::Status set_cuda_graphs(bool on);
+
   const UNet2DCondition& unet() const { return *unet_; }
   UNet2DCondition& unet() { return *unet_; }
   const AutoencoderKL& vae() const { return *vae_; }
@@ -65,6 +73,12 @@ class SdxlPipeline {
   std::optional<ClipTextEncoder> text_encoder_, text_encoder_2_;
   std::optional<UNet2DCondition> unet_;
   std::optional<AutoencoderKL> vae_;
+  std::shared_ptr<UNetGraphs> graphs_;  // set while graph replay is on
+
+  at::Tensor run_unet(const UNetInputs& in);
+  // Steps start.. of the scheduler from noised latents, with classifier-free guidance when > 1.
+  at::Tensor denoise(Scheduler& scheduler, at::Tensor latents, int64_t start, const std::vector<std::string>& prompts,
+                     int64_t height, int64_t width, double guidance_scale);
 };
 
 }  // namespace gaps::sdxl
