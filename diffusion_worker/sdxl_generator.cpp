@@ -35,11 +35,12 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     const std::string& key = it.key();
     const nlohmann::json& v = it.value();
     const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
-    if (key == "weights" || key == "dtype" || key == "device" || key == "prompt" || key == "scheduler") {
+    const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
+                                                      {"device", &o.device},   {"prompt", &o.prompt},
+                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant}};
+    if (strings.count(key)) {
       GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
-      std::string& field = key == "weights" ? o.weights : key == "dtype" ? o.dtype : key == "device" ? o.device
-                           : key == "prompt" ? o.prompt : o.scheduler;
-      field = v.get<std::string>();
+      *strings.at(key) = v.get<std::string>();
     } else if (key == "steps" || key == "batch_size") {
       GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
       (key == "steps" ? o.steps : o.batch_size) = v.get<int64_t>();
@@ -51,7 +52,7 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
       o.guidance = v.get<double>();
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
-          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, batch_size, cuda_graphs"));
+          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, cuda_graphs"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
@@ -73,7 +74,7 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (device.is_cuda() && !at::hasCUDA()) return option_error("device", "CUDA requested but no CUDA device is available");
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
-  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs});
+  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant});
   if (!pipeline.ok()) {
     return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
                                                                " is not a usable SDXL model: ", pipeline.status().message()));

@@ -21,6 +21,7 @@ struct SdxlOptions {
   std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m
   int64_t batch_size = 4;         // requests of one size and strength denoised together
   bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
+  std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
 };
 
 // JSON object with the keys above ("weights" required); unknown keys and bad values are errors.

@@ -82,6 +82,9 @@ TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {
   EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"cuda_graphs\": true")).status().message()),
                            {"CUDA"}));
 
+  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"variant\": \"fp16\"")).status().message()),
+                           {"no fp16 *.safetensors weights"}));
+
   const auto missing = make_generator("sdxl", options_json((dir_ / "absent").string()));
   EXPECT_TRUE(contains_all(std::string(missing.status().message()), {"not a usable SDXL model", "does not exist"}));
 

@@ -130,7 +130,7 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     GAPS_RETURN_IF_ERROR(in_component(name, json.status()));
     auto config = ClipTextConfig::from_json(*json);
     GAPS_RETURN_IF_ERROR(in_component(name, config.status()));
-    auto weights = folder.read_weights(name);
+    auto weights = folder.read_weights(name, options.variant);
     GAPS_RETURN_IF_ERROR(in_component(name, weights.status()));
     auto encoder = ClipTextEncoder::load(*config, projection, *std::move(weights), model_options, folder.component_dir(name));
     GAPS_RETURN_IF_ERROR(in_component(name, encoder.status()));
@@ -150,7 +150,7 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
           ", addition_embed_type text_time and projection_class_embeddings_input_dim 6 x addition_time_embed_dim + ",
           p->text_encoder_2_->config().projection_dim, ")"));
     }
-    auto weights = folder.read_weights("unet");
+    auto weights = folder.read_weights("unet", options.variant);
     GAPS_RETURN_IF_ERROR(in_component("unet", weights.status()));
     auto unet = UNet2DCondition::load(*config, *std::move(weights), model_options, folder.component_dir("unet"));
     GAPS_RETURN_IF_ERROR(in_component("unet", unet.status()));
@@ -162,7 +162,7 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     auto config = VaeConfig::from_json(*json);
     GAPS_RETURN_IF_ERROR(in_component("vae", config.status()));
     const bool upcast = json->value("force_upcast", true);
-    auto weights = folder.read_weights("vae");
+    auto weights = folder.read_weights("vae", options.variant);
     GAPS_RETURN_IF_ERROR(in_component("vae", weights.status()));
     auto vae = AutoencoderKL::load(*config, *std::move(weights), upcast ? model_options.dtype(at::kFloat) : model_options,
                                    folder.component_dir("vae"));

@@ -27,6 +27,9 @@ struct PipelineOptions {
   // Capture the UNet's forward as a CUDA graph per input shape and replay it at every step (CUDA
   // devices in CUDA builds only; removes the per-kernel launch cost that dominates small images).
   bool cuda_graphs = false;
+  // Weight files to read: "" = *.safetensors without a variant tag; "fp16" = *.fp16.safetensors (the
+  // half-precision copies model repositories ship beside the full ones).
+  std::string variant;
 };
 
 struct UNetGraphs;  // the captured graphs (CUDA builds only)
