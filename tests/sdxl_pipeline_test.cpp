@@ -1,6 +1,7 @@
 // SDXL img2img against diffusers' StableDiffusionXLImg2ImgPipeline on the tiny fixture: two images, two
-// prompts, strength 0.5 of 4 Euler steps (2 run), guidance 5, one CPU generator seeded 1234 (the same
-// random draws in LibTorch and PyTorch). Tolerance: max abs diff <= 1e-4 on images in [0, 1].
+// prompts, strength 0.5 of 4 Euler steps (2 run; and of 6 DDIM / DPM-Solver++ steps), guidance 5, one CPU
+// generator seeded 1234 (the same random draws in LibTorch and PyTorch). Tolerance: max abs diff <= 1e-4
+// on images in [0, 1].
 #include <fstream>
 
 #include <ATen/ATen.h>
@@ -34,6 +35,25 @@ TEST(SdxlPipelineTest, Img2ImgMatchesDiffusers) {
   auto other = (*pipeline)->img2img(ref.at("image"), setup["prompts"].get<std::vector<std::string>>(), params, {7});
   ASSERT_TRUE(other.ok());
   EXPECT_GT((*other - *out).abs().max().item<double>(), 1e-3);
+}
+
+// The other schedulers, built from the folder's Euler config as diffusers' from_config does: 3 of 6
+// steps (DPM-Solver++ takes second-order steps).
+TEST(SdxlPipelineTest, Img2ImgWithDdimAndDpmSolverMatchesDiffusers) {
+  for (const char* kind : {"ddim", "dpmpp2m"}) {
+    PipelineOptions options;
+    options.scheduler = kind;
+    auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    const TensorMap ref = test::sdxl_reference(std::string("img2img_") + kind);
+    Img2ImgParams params;
+    params.strength = 0.5;
+    params.steps = 6;
+    params.guidance_scale = 5.0;
+    auto out = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+    ASSERT_TRUE(out.ok()) << out.status();
+    test::expect_close(*out, ref.at("out"), 1e-4, std::string("img2img with ") + kind);
+  }
 }
 
 TEST(SdxlPipelineTest, RejectsBadRequests) {

@@ -1,6 +1,7 @@
 #include "diffusion_worker/sdxl/pipeline.h"
 
 #include <map>
+#include <optional>
 #include <utility>
 #include <vector>
 
@@ -30,6 +31,8 @@ struct UNetGraphs {
     at::Tensor output;
   };
   std::map<std::vector<int64_t>, std::unique_ptr<Entry>> entries;
+  // Graphs never run concurrently, so they share one memory pool (the first graph's).
+  std::optional<at::cuda::MempoolId_t> pool;
 
   at::Tensor run(const UNet2DCondition& unet, const UNetInputs& in) {
     std::vector<int64_t> key = in.sample.sizes().vec();
@@ -50,9 +53,11 @@ struct UNetGraphs {
       {
         c10::cuda::CUDAStreamGuard guard(stream);
         for (int i = 0; i < 2; ++i) entry->output = unet.forward(entry->inputs);  // warm-up before capture
-        entry->graph.capture_begin();
+        // Thread-local capture: other threads (the trainer) may keep using the GPU meanwhile.
+        entry->graph.capture_begin(pool.value_or(at::cuda::MempoolId_t{0, 0}), cudaStreamCaptureModeThreadLocal);
         entry->output = unet.forward(entry->inputs);
         entry->graph.capture_end();
+        if (!pool) pool = entry->graph.pool();
       }
       at::cuda::CUDAEvent captured;
       captured.record(stream);

@@ -105,10 +105,12 @@ class DpmSolverPP2M final : public Scheduler {
     }
     sigmas_.push_back(0.0f);
     previous_x0_ = at::Tensor();
-    steps_done_ = 0;
+    next_index_ = -1;
   }
   at::Tensor step(const at::Tensor& eps, int64_t i, const at::Tensor& sample) override {
-    TORCH_CHECK(i == steps_done_, "DPM-Solver++ steps must run in order: expected step ", steps_done_, ", got ", i);
+    // Any start (img2img starts part-way), then consecutive steps: the history belongs to the last one.
+    TORCH_CHECK(next_index_ < 0 || i == next_index_, "DPM-Solver++ steps must run in order: expected step ",
+                next_index_, ", got ", i);
     const at::Tensor x = sample.to(at::kFloat);
     const Level s0 = level(sigmas_.at(i)), t = level(sigmas_.at(i + 1));
     const at::Tensor x0 = (x - s0.sigma * eps.to(at::kFloat)) / s0.alpha;
@@ -122,7 +124,7 @@ class DpmSolverPP2M final : public Scheduler {
       out = out - 0.5f * decay * ((1.0f / r0) * (x0 - previous_x0_));
     }
     previous_x0_ = x0;
-    ++steps_done_;
+    next_index_ = i + 1;
     return out.to(eps.scalar_type());
   }
   at::Tensor add_noise(const at::Tensor& original, const at::Tensor& noise, int64_t i) const override {
@@ -141,7 +143,7 @@ class DpmSolverPP2M final : public Scheduler {
   }
   std::vector<float> sigmas_;
   at::Tensor previous_x0_;
-  int64_t steps_done_ = 0;
+  int64_t next_index_ = -1;
 };
 
 }  // namespace
@@ -169,8 +171,8 @@ absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json&
   GAPS_ASSIGN_OR_RETURN(c.beta_end, config_value<double>(j, "beta_end", 0.02));
   GAPS_ASSIGN_OR_RETURN(c.beta_schedule, config_value<std::string>(j, "beta_schedule", "linear"));
   GAPS_ASSIGN_OR_RETURN(c.timestep_spacing, config_value<std::string>(j, "timestep_spacing", "linspace"));
-  // A config written for another scheduler class keeps DDIM's own defaults for its DDIM-only keys.
-  GAPS_ASSIGN_OR_RETURN(c.clip_sample, config_value<bool>(j, "clip_sample", c.kind == "ddim" && class_name == "DDIMScheduler"));
+  // Keys a config lacks take the chosen scheduler's diffusers defaults (as from_config does).
+  GAPS_ASSIGN_OR_RETURN(c.clip_sample, config_value<bool>(j, "clip_sample", c.kind == "ddim"));
   GAPS_ASSIGN_OR_RETURN(c.set_alpha_to_one, config_value<bool>(j, "set_alpha_to_one", true));
   if (c.beta_schedule != "scaled_linear" && c.beta_schedule != "linear") {
     return absl::UnimplementedError(absl::StrCat("beta_schedule ", c.beta_schedule, " is not supported"));

@@ -37,7 +37,8 @@ class Scheduler {
   virtual double init_noise_sigma() const { return 1.0; }
   // The UNet's input at step index (identity except for Euler).
   virtual at::Tensor scale_model_input(const at::Tensor& sample, int64_t index) const { return sample; }
-  // The sample after step index, from the model's noise prediction. Steps must run in order.
+  // The sample after step index, from the model's noise prediction. Steps run consecutively from any
+  // start (img2img starts part-way).
   virtual at::Tensor step(const at::Tensor& model_output, int64_t index, const at::Tensor& sample) = 0;
   // Clean latents noised to the level of step index (img2img's start).
   virtual at::Tensor add_noise(const at::Tensor& original, const at::Tensor& noise, int64_t index) const = 0;

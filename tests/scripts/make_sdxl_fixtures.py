@@ -237,6 +237,15 @@ def main():
                    strength=0.5, num_inference_steps=4, guidance_scale=5.0,
                    generator=torch.Generator().manual_seed(1234), output_type="pt").images
         save("img2img", {"image": init_image, "out": out})
+        # The same with the other schedulers built from the folder's config (diffusers' from_config), 6
+        # scheduled steps at strength 0.5: 3 run, so DPM-Solver++ takes second-order steps.
+        for kind, cls in (("ddim", DDIMScheduler), ("dpmpp2m", DPMSolverMultistepScheduler)):
+            pipe.scheduler = cls.from_config(scheduler.config)
+            out = pipe(prompt=["a photo of a fern in a garden", "a bonsai tree"], image=init_image,
+                       strength=0.5, num_inference_steps=6, guidance_scale=5.0,
+                       generator=torch.Generator().manual_seed(1234), output_type="pt").images
+            save("img2img_" + kind, {"image": init_image, "out": out})
+        pipe.scheduler = scheduler
         with open(os.path.join(REF, "img2img.json"), "w") as f:
             json.dump({"prompts": ["a photo of a fern in a garden", "a bonsai tree"], "strength": 0.5,
                        "num_inference_steps": 4, "guidance_scale": 5.0, "seed": 1234,
