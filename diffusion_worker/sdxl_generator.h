@@ -1,6 +1,7 @@
 #pragma once
 // The `sdxl` backend: pseudo-views by SDXL img2img of the render at each pose (diffusion_worker/sdxl),
-// with the request's prompt (or the configured default), strength sigma(v) and seed.
+// with the request's prompt (or the configured default), strength sigma(v) and seed. Its ControlNet scale
+// and reference views are not used yet (the conditioning backends add them).
 #include <memory>
 #include <string>
 #include <vector>

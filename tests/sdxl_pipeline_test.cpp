@@ -72,7 +72,9 @@ TEST(SdxlPipelineTest, RejectsBadRequests) {
 
 TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
   if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  for (at::ScalarType dtype : {at::kHalf, at::kBFloat16}) {
+  // Half precision follows the float32 result on these tiny random weights within its rounding: 5e-2 for
+  // float16 (11-bit mantissa), 1e-1 for bfloat16 (8-bit).
+  for (const auto [dtype, tolerance] : {std::pair{at::kHalf, 5e-2}, std::pair{at::kBFloat16, 1e-1}}) {
     auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{dtype, at::Device(at::kCUDA), ""});
     ASSERT_TRUE(pipeline.ok()) << pipeline.status();
     const TensorMap ref = test::sdxl_reference("img2img");
@@ -80,8 +82,7 @@ TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
     params.steps = 4;
     auto out = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
     ASSERT_TRUE(out.ok()) << out.status();
-    // Half precision follows the float32 result closely on these tiny random weights.
-    test::expect_close(*out, ref.at("out"), 5e-2, "half-precision img2img output");
+    test::expect_close(*out, ref.at("out"), tolerance, "half-precision img2img output");
     // Replaying captured UNet graphs gives the eager result.
     ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
     for (int run = 0; run < 2; ++run) {  // capture, then replay the captured graph
