@@ -5,6 +5,7 @@
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
 
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/sdxl/pipeline.h"
@@ -108,6 +109,14 @@ TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {
   const auto broken = make_generator("sdxl", options_json((dir_ / "copy").string()));
   EXPECT_TRUE(contains_all(std::string(broken.status().message()),
                            {"not a usable SDXL model", "unet", "1 missing: mid_block.resnets.1.conv2.weight"}));
+
+  // A refiner-style index (aesthetic-score conditioning) is refused by name.
+  std::ifstream index_in(test::sdxl_model_dir() + "/model_index.json");
+  nlohmann::json index = nlohmann::json::parse(index_in);
+  index["requires_aesthetics_score"] = true;
+  write("copy/model_index.json", index.dump());
+  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json((dir_ / "copy").string())).status().message()),
+                           {"aesthetic-score"}));
 }
 
 }  // namespace

@@ -100,7 +100,7 @@ class Attention {
   std::shared_ptr<const AttentionProcessor> processor_;
 };
 
-// SiLU(x) and SDXL's sinusoidal timestep features (diffusers get_timestep_embedding).
+// Sinusoidal timestep features, B -> B x dim (diffusers get_timestep_embedding; cos first when flipped).
 at::Tensor timestep_features(const at::Tensor& timesteps, int64_t dim, bool flip_sin_to_cos, double freq_shift);
 
 // diffusers TimestepEmbedding: linear_1, SiLU, linear_2.

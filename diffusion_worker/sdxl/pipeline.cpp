@@ -116,6 +116,9 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
   auto p = std::make_unique<SdxlPipeline>();
   p->options_ = options;
   GAPS_RETURN_IF_ERROR(p->set_cuda_graphs(options.cuda_graphs));
+  if (folder.index().value("requires_aesthetics_score", false)) {
+    return absl::UnimplementedError(absl::StrCat(root, ": aesthetic-score conditioning (the SDXL refiner) is not supported"));
+  }
   if (folder.index().contains("force_zeros_for_empty_prompt")) {
     p->force_zeros_for_empty_prompt_ = folder.index()["force_zeros_for_empty_prompt"].get<bool>();
   }

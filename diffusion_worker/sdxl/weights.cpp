@@ -1,5 +1,6 @@
 #include "diffusion_worker/sdxl/weights.h"
 
+#include <algorithm>
 #include <utility>
 
 #include <ATen/ATen.h>
