@@ -9,8 +9,10 @@ Usage:
 OUT_DIR (default tests/fixtures/sdxl_tiny) receives
   model/        a diffusers-layout SDXL folder (model_index.json, unet, vae, text_encoder, text_encoder_2,
                 tokenizer, tokenizer_2, scheduler), fp32 safetensors, SDXL architecture at tiny sizes;
-  reference/    inputs and outputs of each component's forward, one step of each scheduler and a 2-step
-                img2img, as safetensors (plus tokenizer.json: prompts and their token ids).
+  reference/    inputs and outputs of each component's forward, two steps of each scheduler per timestep
+                spacing, noising at an img2img start step, and img2img at strength 0.5 with a fixed seed
+                (2 of 4 Euler steps; 3 of 6 DDIM and DPM-Solver++ steps), as safetensors (plus
+                tokenizer.json: prompts and their token ids).
 The tokenizer vocabulary is built here (byte-level symbols plus the merges learned from a few sentences),
 since the real CLIP vocabulary is not downloaded.
 """
