@@ -10,7 +10,7 @@
 
 namespace gaps {
 
-// Backend names make_generator accepts: {"reproject"}.
+// Backend names make_generator accepts: {"reproject", "sdxl"}.
 std::vector<std::string> known_generator_backends();
 
 // options_json_or_empty: the backend's options as a JSON object (see e.g. parse_reproject_options), or

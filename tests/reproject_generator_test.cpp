@@ -404,10 +404,10 @@ TEST(ReprojectGeneratorTest, RegistryBuildsBackendsByName) {
   EXPECT_EQ(reproject->options().num_references, 3);
   EXPECT_EQ(reproject->options().inpaint_dilation, 15);
 
-  g = make_generator("sdxl", "");
+  g = make_generator("flux", "");
   ASSERT_FALSE(g.ok());
-  EXPECT_TRUE(contains(g.status(), "'sdxl'")) << g.status();
-  EXPECT_TRUE(contains(g.status(), "known: reproject")) << g.status();
+  EXPECT_TRUE(contains(g.status(), "'flux'")) << g.status();
+  EXPECT_TRUE(contains(g.status(), "known: reproject, sdxl")) << g.status();
 
   EXPECT_TRUE(contains(make_generator("reproject", R"({"footprint": 2})").status(),
                        "unknown reproject option 'footprint'"));

@@ -1,0 +1,312 @@
+#include "diffusion_worker/sdxl/pipeline.h"
+
+#include <map>
+#include <optional>
+#include <utility>
+#include <vector>
+
+#include <ATen/ATen.h>
+#include <ATen/CPUGeneratorImpl.h>
+#include <c10/core/InferenceMode.h>
+#include "absl/strings/str_cat.h"
+#include "diffusion_worker/sdxl/model_folder.h"
+#include "gs_trainer/status_macros.h"
+
+#if defined(GAPS_CUDA_KERNELS)
+#include <ATen/cuda/CUDAEvent.h>
+#include <ATen/cuda/CUDAGraph.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#endif
+
+namespace gaps::sdxl {
+
+#if defined(GAPS_CUDA_KERNELS)
+// One captured UNet forward per input shape, with the static input and output buffers it reads and
+// writes; a step copies its inputs into the buffers and replays.
+struct UNetGraphs {
+  struct Entry {
+    at::cuda::CUDAGraph graph;
+    UNetInputs inputs;
+    at::Tensor output;
+  };
+  std::map<std::vector<int64_t>, std::unique_ptr<Entry>> entries;
+  // Graphs never run concurrently, so they share one memory pool (the first graph's).
+  std::optional<at::cuda::MempoolId_t> pool;
+
+  at::Tensor run(const UNet2DCondition& unet, const UNetInputs& in) {
+    std::vector<int64_t> key = in.sample.sizes().vec();
+    for (int64_t d : in.encoder_hidden_states.sizes()) key.push_back(d);
+    auto it = entries.find(key);
+    if (it == entries.end()) {
+      auto entry = std::make_unique<Entry>();
+      entry->inputs = in;
+      for (at::Tensor* t : {&entry->inputs.sample, &entry->inputs.timestep, &entry->inputs.encoder_hidden_states,
+                            &entry->inputs.text_embeds, &entry->inputs.time_ids}) {
+        *t = t->clone();
+      }
+      const c10::cuda::CUDAStream stream = c10::cuda::getStreamFromPool();
+      const c10::cuda::CUDAStream caller = c10::cuda::getCurrentCUDAStream();
+      at::cuda::CUDAEvent inputs_ready;
+      inputs_ready.record(caller);
+      inputs_ready.block(stream);
+      {
+        c10::cuda::CUDAStreamGuard guard(stream);
+        for (int i = 0; i < 2; ++i) entry->output = unet.forward(entry->inputs);  // warm-up before capture
+        // Thread-local capture: other threads (the trainer) may keep using the GPU meanwhile.
+        entry->graph.capture_begin(pool.value_or(at::cuda::MempoolId_t{0, 0}), cudaStreamCaptureModeThreadLocal);
+        entry->output = unet.forward(entry->inputs);
+        entry->graph.capture_end();
+        if (!pool) pool = entry->graph.pool();
+      }
+      at::cuda::CUDAEvent captured;
+      captured.record(stream);
+      captured.block(caller);
+      it = entries.emplace(key, std::move(entry)).first;
+    }
+    Entry& e = *it->second;
+    e.inputs.sample.copy_(in.sample);
+    e.inputs.timestep.copy_(in.timestep);
+    e.inputs.encoder_hidden_states.copy_(in.encoder_hidden_states);
+    e.inputs.text_embeds.copy_(in.text_embeds);
+    e.inputs.time_ids.copy_(in.time_ids);
+    e.graph.replay();
+    return e.output.clone();
+  }
+};
+#else
+struct UNetGraphs {};
+#endif
+
+namespace {
+
+absl::Status in_component(const std::string& component, const absl::Status& status) {
+  if (status.ok()) return status;
+  return absl::Status(status.code(), absl::StrCat("SDXL component '", component, "': ", status.message()));
+}
+
+absl::Status expect_class(const ModelFolder& folder, const std::string& component, const std::string& expected) {
+  GAPS_ASSIGN_OR_RETURN(std::string cls, folder.component_class(component));
+  if (cls != expected) {
+    return absl::InvalidArgumentError(absl::StrCat(folder.root(), ": component '", component, "' is ", cls,
+                                                   ", an SDXL pipeline needs ", expected));
+  }
+  return absl::OkStatus();
+}
+
+at::Tensor token_tensor(const ClipTokenizer& tok, const std::vector<std::string>& prompts) {
+  std::vector<int64_t> ids;
+  for (const auto& p : prompts) {
+    const auto one = tok.encode(p, tok.model_max_length());
+    ids.insert(ids.end(), one.begin(), one.end());
+  }
+  return at::tensor(ids, at::kLong).view({static_cast<int64_t>(prompts.size()), -1});
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::string& root, const PipelineOptions& options) {
+  GAPS_ASSIGN_OR_RETURN(ModelFolder folder, ModelFolder::open(root));
+  for (const auto& [component, cls] : std::vector<std::pair<std::string, std::string>>{
+           {"unet", "UNet2DConditionModel"}, {"vae", "AutoencoderKL"}, {"text_encoder", "CLIPTextModel"},
+           {"text_encoder_2", "CLIPTextModelWithProjection"}, {"tokenizer", "CLIPTokenizer"},
+           {"tokenizer_2", "CLIPTokenizer"}}) {
+    GAPS_RETURN_IF_ERROR(expect_class(folder, component, cls));
+  }
+  auto p = std::make_unique<SdxlPipeline>();
+  p->options_ = options;
+  GAPS_RETURN_IF_ERROR(p->set_cuda_graphs(options.cuda_graphs));
+  if (folder.index().value("requires_aesthetics_score", false)) {
+    return absl::UnimplementedError(absl::StrCat(root, ": aesthetic-score conditioning (the SDXL refiner) is not supported"));
+  }
+  if (folder.index().contains("force_zeros_for_empty_prompt")) {
+    p->force_zeros_for_empty_prompt_ = folder.index()["force_zeros_for_empty_prompt"].get<bool>();
+  }
+  const at::TensorOptions model_options = at::TensorOptions().dtype(options.dtype).device(options.device);
+
+  GAPS_ASSIGN_OR_RETURN(auto scheduler_json, folder.read_json("scheduler", "scheduler_config.json"));
+  GAPS_ASSIGN_OR_RETURN(p->scheduler_config_, SchedulerConfig::from_json(scheduler_json, options.scheduler));
+
+  for (const char* name : {"tokenizer", "tokenizer_2"}) {
+    auto tok = ClipTokenizer::load(folder.component_dir(name));
+    GAPS_RETURN_IF_ERROR(in_component(name, tok.status()));
+    (std::string(name) == "tokenizer" ? p->tokenizer_ : p->tokenizer_2_) = *std::move(tok);
+  }
+  for (const char* name : {"text_encoder", "text_encoder_2"}) {
+    const bool projection = std::string(name) == "text_encoder_2";
+    auto json = folder.read_json(name);
+    GAPS_RETURN_IF_ERROR(in_component(name, json.status()));
+    auto config = ClipTextConfig::from_json(*json);
+    GAPS_RETURN_IF_ERROR(in_component(name, config.status()));
+    auto weights = folder.read_weights(name, options.variant);
+    GAPS_RETURN_IF_ERROR(in_component(name, weights.status()));
+    auto encoder = ClipTextEncoder::load(*config, projection, *std::move(weights), model_options, folder.component_dir(name));
+    GAPS_RETURN_IF_ERROR(in_component(name, encoder.status()));
+    (projection ? p->text_encoder_2_ : p->text_encoder_) = *std::move(encoder);
+  }
+  {
+    auto json = folder.read_json("unet");
+    GAPS_RETURN_IF_ERROR(in_component("unet", json.status()));
+    auto config = UNetConfig::from_json(*json);
+    GAPS_RETURN_IF_ERROR(in_component("unet", config.status()));
+    const int64_t text_dim = p->text_encoder_->config().hidden_size + p->text_encoder_2_->config().hidden_size;
+    if (config->cross_attention_dim != text_dim || config->addition_embed_type != "text_time" ||
+        config->projection_class_embeddings_input_dim !=
+            6 * config->addition_time_embed_dim + p->text_encoder_2_->config().projection_dim) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          root, ": the UNet is not an SDXL base UNet for these text encoders (needs cross_attention_dim ", text_dim,
+          ", addition_embed_type text_time and projection_class_embeddings_input_dim 6 x addition_time_embed_dim + ",
+          p->text_encoder_2_->config().projection_dim, ")"));
+    }
+    auto weights = folder.read_weights("unet", options.variant);
+    GAPS_RETURN_IF_ERROR(in_component("unet", weights.status()));
+    auto unet = UNet2DCondition::load(*config, *std::move(weights), model_options, folder.component_dir("unet"));
+    GAPS_RETURN_IF_ERROR(in_component("unet", unet.status()));
+    p->unet_ = *std::move(unet);
+  }
+  {
+    auto json = folder.read_json("vae");
+    GAPS_RETURN_IF_ERROR(in_component("vae", json.status()));
+    auto config = VaeConfig::from_json(*json);
+    GAPS_RETURN_IF_ERROR(in_component("vae", config.status()));
+    const bool upcast = json->value("force_upcast", true);
+    auto weights = folder.read_weights("vae", options.variant);
+    GAPS_RETURN_IF_ERROR(in_component("vae", weights.status()));
+    auto vae = AutoencoderKL::load(*config, *std::move(weights), upcast ? model_options.dtype(at::kFloat) : model_options,
+                                   folder.component_dir("vae"));
+    GAPS_RETURN_IF_ERROR(in_component("vae", vae.status()));
+    p->vae_ = *std::move(vae);
+  }
+  return p;
+}
+
+absl::Status SdxlPipeline::set_cuda_graphs(bool on) {
+  if (!on) {
+    graphs_.reset();
+    return absl::OkStatus();
+  }
+#if defined(GAPS_CUDA_KERNELS)
+  if (!options_.device.is_cuda()) return absl::InvalidArgumentError("SDXL pipeline: CUDA graphs need a CUDA device");
+  if (!graphs_) graphs_ = std::make_shared<UNetGraphs>();
+  return absl::OkStatus();
+#else
+  return absl::UnimplementedError("SDXL pipeline: CUDA graphs need a CUDA build of gaps");
+#endif
+}
+
+at::Tensor SdxlPipeline::run_unet(const UNetInputs& in) {
+#if defined(GAPS_CUDA_KERNELS)
+  if (graphs_) return graphs_->run(*unet_, in);
+#endif
+  return unet_->forward(in);
+}
+
+PromptEmbeddings SdxlPipeline::encode_prompts(const std::vector<std::string>& prompts) const {
+  const ClipTextOutput one = text_encoder_->forward(token_tensor(*tokenizer_, prompts));
+  const ClipTextOutput two = text_encoder_2_->forward(token_tensor(*tokenizer_2_, prompts));
+  return {at::cat({one.penultimate, two.penultimate}, -1), two.text_embeds};
+}
+
+namespace {
+
+// diffusers' randn_tensor with CPU generators, in float32: per generator, first the latent-distribution
+// sample, then the noise. One generator draws each for the whole batch; a list draws image by image.
+std::pair<at::Tensor, at::Tensor> draw_latent_and_noise(at::IntArrayRef shape, const std::vector<uint64_t>& seeds) {
+  if (seeds.size() == 1) {
+    at::Generator g = at::make_generator<at::CPUGeneratorImpl>(seeds[0]);
+    at::Tensor latent = at::randn(shape, g, at::kFloat);
+    return {latent, at::randn(shape, g, at::kFloat)};
+  }
+  std::vector<int64_t> one = shape.vec();
+  one[0] = 1;
+  std::vector<at::Tensor> latent, noise;
+  for (uint64_t seed : seeds) {
+    at::Generator g = at::make_generator<at::CPUGeneratorImpl>(seed);
+    latent.push_back(at::randn(one, g, at::kFloat));
+    noise.push_back(at::randn(one, g, at::kFloat));
+  }
+  return {at::cat(latent), at::cat(noise)};
+}
+
+}  // namespace
+
+absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const std::vector<std::string>& prompts,
+                                                 const Img2ImgParams& params, const std::vector<uint64_t>& seeds) {
+  if (images.dim() != 4 || images.size(1) != 3) return absl::InvalidArgumentError("img2img: images must be B x 3 x H x W");
+  const int64_t batch = images.size(0), height = images.size(2), width = images.size(3), f = latent_factor();
+  if (height % f != 0 || width % f != 0) {
+    return absl::InvalidArgumentError(absl::StrCat("img2img: image size ", height, "x", width, " is not a multiple of ", f));
+  }
+  if (prompts.size() != 1 && static_cast<int64_t>(prompts.size()) != batch) {
+    return absl::InvalidArgumentError("img2img: give one prompt, or one per image");
+  }
+  if (seeds.size() != 1 && static_cast<int64_t>(seeds.size()) != batch) {
+    return absl::InvalidArgumentError("img2img: give one seed, or one per image");
+  }
+  if (!(params.strength > 0 && params.strength <= 1) || params.steps < 1) {
+    return absl::InvalidArgumentError("img2img: strength must be in (0, 1] and steps >= 1");
+  }
+  // diffusers' get_timesteps: the last int(steps * strength) steps of the schedule.
+  const int64_t run_steps = std::min<int64_t>(static_cast<int64_t>(params.steps * params.strength), params.steps);
+  if (run_steps < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("img2img: strength ", params.strength, " with ", params.steps,
+                                                   " steps leaves no step to run"));
+  }
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
+  scheduler->set_timesteps(params.steps);
+  at::Tensor result;
+  {
+    // No autograd bookkeeping; the result is cloned outside, so callers get an ordinary tensor.
+    c10::InferenceMode inference;
+    const std::vector<std::string> all_prompts =
+        prompts.size() == 1 ? std::vector<std::string>(batch, prompts[0]) : prompts;
+    const at::Tensor moments = vae_->encode_moments((images.to(options_.device, at::kFloat) * 2 - 1).to(vae_->dtype()));
+    const auto parts = moments.chunk(2, 1);
+    const at::Tensor mean = parts[0].to(at::kCPU, at::kFloat);
+    const at::Tensor std = at::exp(0.5 * at::clamp(parts[1].to(at::kCPU, at::kFloat), -30.0, 20.0));
+    const auto [latent_draw, noise] = draw_latent_and_noise(mean.sizes(), seeds);
+    const double scaling = vae_->config().scaling_factor;
+    const int64_t start = params.steps - run_steps;
+    at::Tensor latents = scheduler->add_noise((mean + std * latent_draw) * scaling, noise, start);
+    latents = denoise(*scheduler, latents.to(options_.device, options_.dtype), start, all_prompts, height, width,
+                      params.guidance_scale);
+    const at::Tensor decoded = vae_->decode((latents / scaling).to(vae_->dtype()));
+    result = (decoded.to(at::kCPU, at::kFloat) / 2 + 0.5).clamp(0, 1);
+  }
+  return result.clone();
+}
+
+at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64_t start,
+                                 const std::vector<std::string>& prompts, int64_t height, int64_t width,
+                                 double guidance_scale) {
+  const bool cfg = guidance_scale > 1.0;
+  const PromptEmbeddings cond = encode_prompts(prompts);
+  UNetInputs in;
+  in.encoder_hidden_states = cond.context;
+  in.text_embeds = cond.pooled;
+  if (cfg) {
+    const PromptEmbeddings uncond =
+        force_zeros_for_empty_prompt_ ? PromptEmbeddings{at::zeros_like(cond.context), at::zeros_like(cond.pooled)}
+                                      : encode_prompts(std::vector<std::string>(prompts.size(), ""));
+    in.encoder_hidden_states = at::cat({uncond.context, cond.context});
+    in.text_embeds = at::cat({uncond.pooled, cond.pooled});
+  }
+  // Micro-conditioning: original size = target size = the image's, crop (0, 0).
+  const auto h = static_cast<float>(height), w = static_cast<float>(width);
+  in.time_ids = at::tensor(std::vector<float>{h, w, 0.0f, 0.0f, h, w})
+                    .view({1, 6})
+                    .expand({in.encoder_hidden_states.size(0), 6})
+                    .contiguous()
+                    .to(options_.device);
+  const auto steps = static_cast<int64_t>(scheduler.timesteps().size());
+  for (int64_t i = start; i < steps; ++i) {
+    in.sample = scheduler.scale_model_input(cfg ? at::cat({latents, latents}) : latents, i);
+    in.timestep = at::scalar_tensor(scheduler.timesteps()[i], at::TensorOptions().device(options_.device));
+    at::Tensor prediction = run_unet(in);
+    if (cfg) prediction = classifier_free_guidance(prediction, guidance_scale);
+    latents = scheduler.step(prediction, i, latents);
+  }
+  return latents;
+}
+
+}  // namespace gaps::sdxl

@@ -1,0 +1,87 @@
+#pragma once
+// SDXL img2img as diffusers' StableDiffusionXLImg2ImgPipeline runs it: both text encoders (penultimate
+// hidden states concatenated, pooled projection of the second), zero negative conditioning for
+// classifier-free guidance (force_zeros_for_empty_prompt), VAE encoding of the input sampled from the
+// latent distribution, noising to the strength's start step, denoising with text_time conditioning
+// (original size = target size = the image's, crop (0, 0)), VAE decoding.
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/statusor.h"
+#include "diffusion_worker/sdxl/clip_text_encoder.h"
+#include "diffusion_worker/sdxl/clip_tokenizer.h"
+#include "diffusion_worker/sdxl/schedulers.h"
+#include "diffusion_worker/sdxl/unet.h"
+#include "diffusion_worker/sdxl/vae.h"
+
+namespace gaps::sdxl {
+
+struct PipelineOptions {
+  at::ScalarType dtype = at::kFloat;  // of the UNet and text encoders; the VAE stays float32 when its
+                                      // config asks for force_upcast (SDXL's VAE overflows in fp16)
+  at::Device device = at::kCPU;
+  std::string scheduler;  // "" = the folder's scheduler; else euler | ddim | dpmpp2m with its config
+  // Capture the UNet's forward as a CUDA graph per input shape and replay it at every step (CUDA
+  // devices in CUDA builds only; removes the per-kernel launch cost that dominates small images).
+  bool cuda_graphs = false;
+  // Weight files to read: "" = *.safetensors without a variant tag; "fp16" = *.fp16.safetensors (the
+  // half-precision copies model repositories ship beside the full ones).
+  std::string variant;
+};
+
+struct UNetGraphs;  // the captured graphs (CUDA builds only)
+
+struct Img2ImgParams {
+  double strength = 0.5;        // fraction of the schedule re-run: steps from int(steps * strength) back
+  int64_t steps = 30;           // steps of the full schedule
+  double guidance_scale = 5.0;  // classifier-free guidance when > 1
+};
+
+struct PromptEmbeddings {
+  at::Tensor context;  // B x 77 x (D1 + D2)
+  at::Tensor pooled;   // B x P
+};
+
+class SdxlPipeline {
+ public:
+  // Loads every component of a diffusers SDXL folder; any missing file, unsupported config or weight
+  // mismatch is an error naming the component and the problem.
+  static absl::StatusOr<std::unique_ptr<SdxlPipeline>> load(const std::string& folder, const PipelineOptions& options);
+
+  PromptEmbeddings encode_prompts(const std::vector<std::string>& prompts) const;
+
+  // images: B x 3 x H x W in [0, 1] (H, W multiples of the latent factor); one prompt per image (or one
+  // for all). seeds: one seed for the whole batch (diffusers' single generator: latent draws for the
+  // batch, then noise for the batch) or one per image (diffusers' generator list). Returns B x 3 x H x W
+  // in [0, 1], float32 on the CPU.
+  absl::StatusOr<at::Tensor> img2img(const at::Tensor& images, const std::vector<std::string>& prompts,
+                                     const Img2ImgParams& params, const std::vector<uint64_t>& seeds);
+
+  // Switches UNet graph capture and replay on or off (see PipelineOptions::cuda_graphs).
+  absl::Status set_cuda_graphs(bool on);
+
+  const UNet2DCondition& unet() const { return *unet_; }
+  UNet2DCondition& unet() { return *unet_; }
+  const AutoencoderKL& vae() const { return *vae_; }
+  int64_t latent_factor() const { return vae_->scale_factor(); }
+
+ private:
+  PipelineOptions options_;
+  SchedulerConfig scheduler_config_;
+  bool force_zeros_for_empty_prompt_ = true;
+  std::optional<ClipTokenizer> tokenizer_, tokenizer_2_;
+  std::optional<ClipTextEncoder> text_encoder_, text_encoder_2_;
+  std::optional<UNet2DCondition> unet_;
+  std::optional<AutoencoderKL> vae_;
+  std::shared_ptr<UNetGraphs> graphs_;  // set while graph replay is on
+
+  at::Tensor run_unet(const UNetInputs& in);
+  // Steps start.. of the scheduler from noised latents, with classifier-free guidance when > 1.
+  at::Tensor denoise(Scheduler& scheduler, at::Tensor latents, int64_t start, const std::vector<std::string>& prompts,
+                     int64_t height, int64_t width, double guidance_scale);
+};
+
+}  // namespace gaps::sdxl

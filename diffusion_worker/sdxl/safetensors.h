@@ -1,0 +1,22 @@
+#pragma once
+// Memory-mapped reader of the safetensors format (8-byte little-endian header length, JSON header, raw
+// data). Tensors view the mapping directly (no copy); the mapping lives as long as any of them.
+#include <map>
+#include <string>
+
+#include <ATen/Tensor.h>
+#include "absl/status/statusor.h"
+
+namespace gaps::sdxl {
+
+// name -> tensor, CPU, in the file's dtype (F32, F16, BF16, F64, I64, I32, I16, I8, U8, BOOL).
+using TensorMap = std::map<std::string, at::Tensor>;
+
+// Maps the file and validates its header: length within the file, JSON object, known dtypes, offsets in
+// bounds, sizes matching shape x dtype, no overlapping tensors. Errors name the file and the tensor.
+absl::StatusOr<TensorMap> read_safetensors(const std::string& path);
+
+// Writes tensors (any supported dtype, made contiguous on the CPU) to path; used by tests and benchmarks.
+absl::Status write_safetensors(const std::string& path, const TensorMap& tensors);
+
+}  // namespace gaps::sdxl

@@ -1,0 +1,98 @@
+#pragma once
+// diffusers UNet2DConditionModel as SDXL configures it: DownBlock2D / CrossAttnDownBlock2D,
+// UNetMidBlock2DCrossAttn, CrossAttnUpBlock2D / UpBlock2D, Transformer2DModel with BasicTransformerBlocks
+// (self-attention, cross-attention, GEGLU feed-forward), sinusoidal time embedding and the "text_time"
+// added conditioning (pooled text embedding + original size / crop / target size features).
+//
+// Extension points for the conditioning that comes later: ControlNet residuals enter through
+// UNetInputs (added to the skip connections and the mid block's output), and every attention layer can be
+// given an AttentionProcessor (IP-Adapter's decoupled cross-attention) or have its projections wrapped
+// (LoRA) through for_each_attention().
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include <nlohmann/json.hpp>
+#include "absl/status/statusor.h"
+#include "diffusion_worker/sdxl/layers.h"
+
+namespace gaps::sdxl {
+
+struct UNetConfig {
+  int64_t in_channels = 4, out_channels = 4, layers_per_block = 2, norm_num_groups = 32, cross_attention_dim = 2048;
+  std::vector<int64_t> block_out_channels, num_attention_heads, transformer_layers_per_block;
+  std::vector<int64_t> reverse_transformer_layers_per_block;  // per up block; reversed down list when absent
+  std::vector<std::string> down_block_types, up_block_types;
+  double norm_eps = 1e-5;
+  bool flip_sin_to_cos = true, use_linear_projection = true;
+  double freq_shift = 0;
+  std::string addition_embed_type;  // "text_time" or empty
+  int64_t addition_time_embed_dim = 256, projection_class_embeddings_input_dim = 0;
+  static absl::StatusOr<UNetConfig> from_json(const nlohmann::json& config);
+};
+
+struct UNetInputs {
+  at::Tensor sample;                 // B x C x h x w latents
+  at::Tensor timestep;               // scalar or B
+  at::Tensor encoder_hidden_states;  // B x T x cross_attention_dim
+  at::Tensor text_embeds;            // B x P pooled text embedding ("text_time")
+  at::Tensor time_ids;               // B x 6: original (h, w), crop (top, left), target (h, w)
+  // ControlNet: one residual per skip connection (conv_in, then each resnet/attention and downsampler
+  // output, in order) and one for the mid block; empty = none.
+  std::vector<at::Tensor> down_block_residuals;
+  at::Tensor mid_block_residual;
+};
+
+class UNet2DCondition {
+ public:
+  static absl::StatusOr<UNet2DCondition> load(const UNetConfig& config, TensorMap weights, at::TensorOptions options,
+                                              const std::string& source);
+  // Every tensor the config needs (name, shape), without loading anything.
+  static std::vector<TensorSpec> weight_specs(const UNetConfig& config);
+  // The predicted noise (or v), B x out_channels x h x w.
+  at::Tensor forward(const UNetInputs& inputs) const;
+
+  const UNetConfig& config() const { return config_; }
+  // Visits every transformer attention layer with its diffusers name (e.g.
+  // "down_blocks.1.attentions.0.transformer_blocks.0.attn2").
+  void for_each_attention(const std::function<void(const std::string&, Attention&)>& visit);
+
+ private:
+  struct TransformerBlock {
+    LayerNorm norm1, norm2, norm3;
+    Attention attn1, attn2;
+    Linear ff_in, ff_out;  // GEGLU projection (2 x inner) and output
+  };
+  struct Transformer2D {
+    std::string name;
+    GroupNorm norm;
+    Linear proj_in_linear, proj_out_linear;
+    Conv2d proj_in_conv, proj_out_conv;
+    std::vector<TransformerBlock> blocks;
+  };
+  struct Block {
+    std::vector<ResnetBlock> resnets;
+    std::vector<Transformer2D> attentions;  // empty, or one per resnet
+    std::optional<Downsample> down;
+    std::optional<Upsample> up;
+  };
+
+  static absl::StatusOr<UNet2DCondition> build(const UNetConfig& config, WeightLoader& w, const std::string& source);
+  Transformer2D load_transformer(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t heads,
+                                 int64_t layers) const;
+  at::Tensor transformer_forward(const Transformer2D& t, const at::Tensor& x, const at::Tensor& context) const;
+  at::Tensor block_forward(const TransformerBlock& b, const at::Tensor& x, const at::Tensor& context) const;
+  at::Tensor embedding(const UNetInputs& in, int64_t batch) const;
+
+  UNetConfig config_;
+  Conv2d conv_in_, conv_out_;
+  TimestepEmbedding time_embedding_, add_embedding_;
+  std::vector<Block> down_, up_;
+  ResnetBlock mid_resnet_in_, mid_resnet_out_;
+  Transformer2D mid_attention_;
+  GroupNorm norm_out_;
+};
+
+}  // namespace gaps::sdxl

@@ -1,0 +1,150 @@
+#include "diffusion_worker/sdxl_generator.h"
+
+#include <map>
+#include <tuple>
+#include <utility>
+
+#include <ATen/ATen.h>
+#include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
+#include "gs_trainer/status_macros.h"
+
+namespace gaps {
+namespace {
+
+absl::Status option_error(const std::string& key, const std::string& what) {
+  return absl::InvalidArgumentError(absl::StrCat("sdxl option '", key, "': ", what));
+}
+
+absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
+  if (name == "float32") return at::kFloat;
+  if (name == "float16") return at::kHalf;
+  if (name == "bfloat16") return at::kBFloat16;
+  return option_error("dtype", absl::StrCat("'", name, "' is not float32, float16 or bfloat16"));
+}
+
+}  // namespace
+
+absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
+  const nlohmann::json j = nlohmann::json::parse(json, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded() || !j.is_object()) {
+    return absl::InvalidArgumentError(absl::StrCat("sdxl options must be a JSON object with at least \"weights\", got: ", json));
+  }
+  SdxlOptions o;
+  for (auto it = j.begin(); it != j.end(); ++it) {
+    const std::string& key = it.key();
+    const nlohmann::json& v = it.value();
+    const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
+    const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
+                                                      {"device", &o.device},   {"prompt", &o.prompt},
+                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant}};
+    if (strings.count(key)) {
+      GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
+      *strings.at(key) = v.get<std::string>();
+    } else if (key == "steps" || key == "batch_size") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
+      (key == "steps" ? o.steps : o.batch_size) = v.get<int64_t>();
+    } else if (key == "cuda_graphs") {
+      GAPS_RETURN_IF_ERROR(need(v.is_boolean(), "true or false"));
+      o.cuda_graphs = v.get<bool>();
+    } else if (key == "guidance") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
+      o.guidance = v.get<double>();
+    } else {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, cuda_graphs"));
+    }
+  }
+  if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
+  GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
+  return o;
+}
+
+SdxlGenerator::SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline)
+    : options_(std::move(options)), pipeline_(std::move(pipeline)) {}
+
+absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlOptions& options) {
+  GAPS_ASSIGN_OR_RETURN(const at::ScalarType dtype, parse_dtype(options.dtype));
+  at::Device device(at::kCPU);
+  try {
+    device = at::Device(options.device);
+  } catch (const std::exception&) {
+    return option_error("device", absl::StrCat("'", options.device, "' is not a device (cpu, cuda, cuda:N)"));
+  }
+  if (device.is_cuda() && !at::hasCUDA()) return option_error("device", "CUDA requested but no CUDA device is available");
+  if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
+  if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
+  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant});
+  if (!pipeline.ok()) {
+    return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
+                                                               " is not a usable SDXL model: ", pipeline.status().message()));
+  }
+  return std::unique_ptr<SdxlGenerator>(new SdxlGenerator(options, *std::move(pipeline)));
+}
+
+absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
+  if (views.empty()) return absl::InvalidArgumentError("sdxl adapt: no ground-truth views");
+  for (size_t i = 0; i < views.size(); ++i) {
+    const at::Tensor& image = views[i].image;
+    if (!image.defined() || image.dim() != 3 || image.size(2) != 3) {
+      return absl::InvalidArgumentError(absl::StrCat("sdxl adapt: view ", i, " image is not H x W x 3"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vector<GenerationRequest>& requests) {
+  std::vector<at::Tensor> results(requests.size());
+  // Requests of one size and step count share a batch.
+  std::map<std::tuple<int64_t, int64_t, int64_t>, std::vector<size_t>> groups;
+  const int64_t f = pipeline_->latent_factor();
+  for (size_t i = 0; i < requests.size(); ++i) {
+    const at::Tensor& rgb = requests[i].render_rgb;
+    if (!rgb.defined() || rgb.dim() != 3 || rgb.size(2) != 3 || rgb.size(0) < 1 || rgb.size(1) < 1) {
+      return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " render_rgb is not H x W x 3"));
+    }
+    const double strength = requests[i].strength;
+    if (!(strength >= 0.0 && strength <= 1.0)) {
+      return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " strength ", strength, " outside [0, 1]"));
+    }
+    const auto run_steps = static_cast<int64_t>(options_.steps * strength);
+    if (run_steps < 1) {
+      results[i] = rgb.to(at::kFloat).clamp(0, 1).contiguous();
+      continue;
+    }
+    groups[{rgb.size(0), rgb.size(1), run_steps}].push_back(i);
+  }
+  for (const auto& [key, members] : groups) {
+    const auto [height, width, run_steps] = key;
+    const int64_t padded_h = (height + f - 1) / f * f, padded_w = (width + f - 1) / f * f;
+    for (size_t begin = 0; begin < members.size(); begin += options_.batch_size) {
+      const size_t end = std::min(members.size(), begin + static_cast<size_t>(options_.batch_size));
+      std::vector<at::Tensor> images;
+      std::vector<std::string> prompts;
+      std::vector<uint64_t> seeds;
+      for (size_t m = begin; m < end; ++m) {
+        const GenerationRequest& r = requests[members[m]];
+        at::Tensor chw = r.render_rgb.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0);
+        images.push_back(at::replication_pad2d(chw, {0, padded_w - width, 0, padded_h - height}));
+        prompts.push_back(r.prompt.empty() ? options_.prompt : r.prompt);
+        seeds.push_back(r.seed);
+      }
+      sdxl::Img2ImgParams params;
+      params.steps = options_.steps;
+      params.guidance_scale = options_.guidance;
+      // Every member runs int(steps * strength) = run_steps steps, so any member's strength serves.
+      params.strength = requests[members[begin]].strength;
+      GAPS_ASSIGN_OR_RETURN(at::Tensor out, pipeline_->img2img(at::cat(images), prompts, params, seeds));
+      for (size_t m = begin; m < end; ++m) {
+        results[members[m]] = out[static_cast<int64_t>(m - begin)]
+                                  .slice(1, 0, height)
+                                  .slice(2, 0, width)
+                                  .permute({1, 2, 0})
+                                  .contiguous();
+      }
+    }
+  }
+  return results;
+}
+
+}  // namespace gaps

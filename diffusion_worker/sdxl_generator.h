@@ -1,0 +1,50 @@
+#pragma once
+// The `sdxl` backend: pseudo-views by SDXL img2img of the render at each pose (diffusion_worker/sdxl),
+// with the request's prompt (or the configured default), strength sigma(v) and seed. Its ControlNet scale
+// and reference views are not used yet (the conditioning backends add them).
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "diffusion_worker/sdxl/pipeline.h"
+#include "gs_trainer/generator.h"
+
+namespace gaps {
+
+struct SdxlOptions {
+  std::string weights;            // diffusers SDXL folder (required)
+  int64_t steps = 30;             // steps of the full schedule; img2img runs int(steps * strength) of them
+  double guidance = 5.0;          // classifier-free guidance scale
+  std::string dtype = "float32";  // float32 | float16 | bfloat16 (half types need a CUDA device)
+  std::string device = "cpu";     // cpu | cuda | cuda:N
+  std::string prompt;             // used when a request has no prompt
+  std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m
+  int64_t batch_size = 4;         // requests of one size and strength denoised together
+  bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
+  std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
+};
+
+// JSON object with the keys above ("weights" required); unknown keys and bad values are errors.
+absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json);
+
+class SdxlGenerator final : public Generator {
+ public:
+  // Loads the whole model; an unusable folder is an error naming the problem.
+  static absl::StatusOr<std::unique_ptr<SdxlGenerator>> create(const SdxlOptions& options);
+
+  std::string name() const override { return "sdxl 1"; }
+  // Learns nothing yet (per-scene LoRA comes with the conditioning backends): checks the views only.
+  absl::Status adapt(const std::vector<ReferenceView>& views) override;
+  // Each render is padded at its bottom/right edge (replicated) to a multiple of the latent factor (8 for
+  // SDXL: 504 x 378 runs at 504 x 384), run through img2img at its strength and cropped back. A strength
+  // below one step of the schedule returns the render unchanged.
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
+
+ private:
+  SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline);
+  SdxlOptions options_;
+  std::unique_ptr<sdxl::SdxlPipeline> pipeline_;
+};
+
+}  // namespace gaps

@@ -1,0 +1,47 @@
+#pragma once
+// Shared by the SDXL parity tests: the tiny fixture folder (tests/fixtures/sdxl_tiny, made by
+// tests/scripts/make_sdxl_fixtures.py) and a closeness check scaled to the reference's magnitude.
+#include <initializer_list>
+#include <string>
+
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <gtest/gtest.h>
+#include "diffusion_worker/sdxl/safetensors.h"
+
+namespace gaps::test {
+
+// The tiny models gain nothing from intra-op threads, and on a loaded machine the thread pool's
+// contention dominates their run time.
+inline const bool kSdxlSingleThreaded = (at::set_num_threads(1), true);
+
+inline std::string sdxl_fixture_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_tiny"; }
+inline std::string sdxl_model_dir() { return sdxl_fixture_dir() + "/model"; }
+
+inline sdxl::TensorMap sdxl_reference(const std::string& name) {
+  auto tensors = sdxl::read_safetensors(sdxl_fixture_dir() + "/reference/" + name + ".safetensors");
+  EXPECT_TRUE(tensors.ok()) << tensors.status();
+  return tensors.ok() ? *tensors : sdxl::TensorMap{};
+}
+
+// Passes when text contains every part; the failure message shows the text.
+inline ::testing::AssertionResult contains_all(const std::string& text, std::initializer_list<std::string> parts) {
+  for (const auto& part : parts) {
+    if (text.find(part) == std::string::npos) {
+      return ::testing::AssertionFailure() << "'" << text << "' lacks '" << part << "'";
+    }
+  }
+  return ::testing::AssertionSuccess();
+}
+
+// max |actual - expected| <= tolerance * max(1, max |expected|).
+inline void expect_close(const at::Tensor& actual, const at::Tensor& expected, double tolerance, const std::string& what) {
+  ASSERT_TRUE(actual.defined()) << what;
+  ASSERT_EQ(actual.sizes(), expected.sizes()) << what;
+  const at::Tensor a = actual.to(at::kCPU, at::kDouble), e = expected.to(at::kCPU, at::kDouble);
+  const double scale = std::max(1.0, e.abs().max().item<double>());
+  const double diff = (a - e).abs().max().item<double>();
+  EXPECT_LE(diff, tolerance * scale) << what << ": max abs diff " << diff << " (reference scale " << scale << ")";
+}
+
+}  // namespace gaps::test
