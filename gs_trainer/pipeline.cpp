@@ -164,8 +164,15 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
     gaps.n_active = o.n_active > 0 ? o.n_active : (scene.cameras.size() > 100 ? kNActiveMip360 : kNActiveLlff);
     method.emplace(trainer, o.generator, references, gaps, o.variant, o.config.seed);
     method->set_inspection_dir(o.out_dir / "pseudo_views");
+    if (o.on_phase) method->set_phase_observer(o.on_phase);
     step = [&] { return method->step(); };
     log(absl::StrCat("method: ", variant_name(o.variant), " with generator ", o.generator->name()));
+  }
+  if (o.should_stop) {
+    step = [&trainer, &o, inner = std::move(step)]() -> absl::StatusOr<at::Tensor> {
+      if (o.should_stop()) return absl::CancelledError(absl::StrCat("stopped at iteration ", trainer.iteration()));
+      return inner ? inner() : trainer.step();
+    };
   }
   const auto start = std::chrono::steady_clock::now();
   const absl::Status trained = trainer.run(on_progress, 10, step);

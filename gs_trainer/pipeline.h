@@ -38,6 +38,10 @@ struct RunOptions {
   // more than 100 images (Mip-NeRF 360-like).
   int n_active = 0;
   Generator* generator = nullptr;
+  // Polled before every iteration; returning true stops the run with CANCELLED (the model so far is saved).
+  std::function<bool()> should_stop;
+  // Told about each diffusion phase (see GapsTraining::set_phase_observer).
+  GapsTraining::PhaseObserver on_phase;
 };
 
 struct RunResult {
