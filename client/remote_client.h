@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
 #include "gaps/v1/trainer.grpc.pb.h"
 #include "rpc/security.h"
@@ -36,6 +37,8 @@ class TrainerClient {
   absl::StatusOr<v1::JobStatus> get(const std::string& job_id);
   absl::StatusOr<std::vector<v1::JobStatus>> list();
   absl::StatusOr<v1::JobStatus> cancel(const std::string& job_id);
+  // A finished job's model rendered at `camera`: H x W x 3 in [0, 1].
+  absl::StatusOr<at::Tensor> render(const std::string& job_id, const v1::Camera& camera);
   // Writes the job's artifacts below `out_dir`; returns their relative paths.
   absl::StatusOr<std::vector<std::string>> fetch(const std::string& job_id, const std::filesystem::path& out_dir);
 
