@@ -74,6 +74,21 @@ class Process {
     waitpid(pid_, &status, 0);
     pid_ = -1;
   }
+  // Sends `signal` and waits up to `timeout` for the exit; returns the exit code (-1: killed or still running).
+  int stop(int signal, std::chrono::seconds timeout) {
+    if (pid_ <= 0) return -1;
+    ::kill(pid_, signal);
+    const auto end = std::chrono::steady_clock::now() + timeout;
+    while (std::chrono::steady_clock::now() < end) {
+      int status = 0;
+      if (waitpid(pid_, &status, WNOHANG) == pid_) {
+        pid_ = -1;
+        return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return -1;
+  }
   std::string log_text() const {
     std::ifstream f(log_);
     return std::string(std::istreambuf_iterator<char>(f), {});
@@ -185,9 +200,9 @@ TEST_F(Services, FernThreeViewsThroughTlsWithTokenEndToEnd) {
   client::TrainerClient client = connect("e2e-secret-token", ca);
   auto scene = client::prepare_scene(fern, 8);
   ASSERT_TRUE(scene.ok()) << scene.status();
-  v1::JobSpec s = spec("full", 300, {{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 3}});
+  v1::JobSpec s = spec("full", 300, {{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 2}});
   s.set_name("fern");
-  s.mutable_config()->set_random_points(4000);
+  s.mutable_config()->set_random_points(2500);
   auto job = client.submit(s, *scene);
   ASSERT_TRUE(job.ok()) << job.status();
   Seen seen;
@@ -302,6 +317,33 @@ TEST_F(Services, KilledTrainerRunsItsJobAgainAfterRestart) {
   EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
   EXPECT_EQ(final_status->resumes(), 1);
   EXPECT_EQ(final_status->iteration(), 150);
+}
+
+TEST_F(Services, SigtermStopsTheTrainerGracefullyAndTheJobRunsAgainOnRestart) {
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  std::string job_id;
+  int exit_code = -2;
+  {
+    client::TrainerClient client = connect();
+    auto job = client.submit(spec("vanilla", 120), synthetic_scene());
+    ASSERT_TRUE(job.ok()) << job.status();
+    job_id = *job;
+    auto interrupted = client.watch(job_id, [&](const v1::JobEvent& e) {
+      if (e.has_progress() && e.progress().iteration() >= 20 && exit_code == -2)
+        exit_code = trainer->stop(SIGTERM, std::chrono::seconds(30));
+    });
+    EXPECT_FALSE(interrupted.ok());
+  }
+  EXPECT_EQ(exit_code, 0) << trainer->log_text();
+  EXPECT_NE(trainer->log_text().find("running jobs resume"), std::string::npos) << trainer->log_text();
+  trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  auto final_status = connect().watch(job_id, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  EXPECT_EQ(final_status->resumes(), 1);
 }
 
 TEST_F(Services, CancelStopsARunningJob) {

@@ -15,6 +15,8 @@
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
 #include "gs_trainer/image_io.h"
+#include "gs_trainer/io_util.h"
+#include "gs_trainer/ply.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/codec.h"
 #include "rpc/config_codec.h"
@@ -387,6 +389,22 @@ TEST_F(UploadTest, CorruptUploadsAreInvalidArgumentsNamingTheProblem) {
   upload = good;
   upload.spec.mutable_config()->set_views(20);
   expect_invalid("views");
+}
+
+TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {
+  PointCloud points{at::rand({50, 3}), at::rand({50, 3})};
+  ASSERT_TRUE(write_point_cloud_ply(points, dir_ / "points.ply").ok());
+  upload.spec.set_has_points(true);
+  upload.spec.mutable_config()->set_init("points");
+  upload.points_ply = *read_file_bytes(dir_ / "points.ply");
+  ASSERT_TRUE(write().ok()) << write();
+  auto back = read_point_cloud_ply(dir_ / "scene" / "points.ply");
+  ASSERT_TRUE(back.ok());
+  EXPECT_TRUE(at::allclose(back->xyz, points.xyz));
+  upload.points_ply = "ply\nnot really";
+  const absl::Status broken = write_uploaded_scene(upload, dir_ / "scene2");
+  EXPECT_EQ(broken.code(), absl::StatusCode::kInvalidArgument) << broken;
+  EXPECT_NE(broken.message().find("uploaded point cloud"), std::string_view::npos) << broken;
 }
 
 }  // namespace
