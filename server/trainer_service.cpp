@@ -101,7 +101,8 @@ absl::StatusOr<std::unique_ptr<TrainerService>> TrainerService::create(TrainerSe
 fs::path TrainerService::job_dir(const std::string& job_id) const { return options_.data_dir / "jobs" / job_id; }
 
 absl::Status TrainerService::start() {
-  // Jobs another process left behind: running ones start over (counted as a resume), queued ones wait.
+  // Jobs another process left behind: running ones go on from their checkpoint (counted as a resume),
+  // queued ones wait.
   for (v1::JobState state : {v1::RUNNING, v1::QUEUED}) {
     GAPS_ASSIGN_OR_RETURN(std::vector<v1::JobStatus> jobs, store_->in_state(state));
     for (v1::JobStatus& job : jobs) {
@@ -110,8 +111,8 @@ absl::Status TrainerService::start() {
         job.set_state(v1::QUEUED);
         GAPS_RETURN_IF_ERROR(store_->update(job));
         v1::JobEvent e = event_for(job.job_id());
-        e.set_log(absl::StrCat("trainer restarted during the job: training runs again from iteration 0 (resume ",
-                               job.resumes(), ")"));
+        e.set_log(absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from "
+                               "the start without one (resume ", job.resumes(), ")"));
         publish(e);
       }
       enqueue(job.job_id());
@@ -224,6 +225,12 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
     generator = std::move(*made);
     o.generator = generator.get();
   }
+  o.checkpoint_dir = dir / "checkpoint";
+  o.on_checkpoint = [&](int iteration) {
+    v1::JobEvent e = event_for(job_id);
+    e.set_checkpoint_written(iteration);
+    publish(e);
+  };
   o.should_stop = [&] { return cancelled.load() || stop_training_.load(); };
   o.on_phase = [&](const std::string& what, const nlohmann::json& entry) {
     v1::JobEvent e = event_for(job_id);

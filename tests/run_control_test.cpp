@@ -1,11 +1,13 @@
 // Run control hooks used by the trainer service: a generator that cannot be reached skips diffusion
 // phases (reported to the phase observer) instead of failing the run, any other generator error still
-// fails it, and should_stop ends a run with CANCELLED while keeping the model.
+// fails it, should_stop ends a run with CANCELLED while keeping the model, and a stopped run resumes from
+// the checkpoint written at the start of its last diffusion phase.
 #include <fstream>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include "gs_trainer/io_util.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/test_util.h"
@@ -27,6 +29,20 @@ class FailingGenerator : public Generator {
 
  private:
   absl::Status error_;
+};
+
+// Returns the render it was given: always admitted.
+class EchoGenerator : public Generator {
+ public:
+  std::string name() const override { return "echo (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    ++calls;
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back(r.render_rgb);
+    return out;
+  }
+  int calls = 0;
 };
 
 struct RunControlTest : test::TempDirTest {
@@ -96,6 +112,56 @@ TEST_F(RunControlTest, ShouldStopCancelsAndKeepsTheModel) {
   EXPECT_LE(last_iteration, 25);
   EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "point_cloud.ply"));
   EXPECT_FALSE(std::filesystem::exists(dir_ / "out" / "metrics.json"));
+}
+
+TEST_F(RunControlTest, ARunStoppedAfterAPhaseResumesFromItsCheckpoint) {
+  EchoGenerator generator;
+  RunOptions o = options(&generator);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  std::vector<int> checkpoints;
+  o.on_checkpoint = [&](int iteration) { checkpoints.push_back(iteration); };
+  int polls = 0;
+  o.should_stop = [&] { return ++polls > 45; };
+  auto stopped = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
+  EXPECT_EQ(checkpoints, std::vector<int>{29});  // the start of phase 0, before iteration 30
+
+  o.should_stop = nullptr;
+  std::vector<std::string> log;
+  std::vector<int> reported;
+  auto resumed = run_pipeline(o, [&](const TrainProgress& p) { reported.push_back(p.iteration); },
+                              [&](const std::string& line) { log.push_back(line); });
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_NE(std::find(log.begin(), log.end(), "resumed from the checkpoint at iteration 29"), log.end());
+  ASSERT_FALSE(reported.empty());
+  EXPECT_EQ(reported.front(), 30);  // training went on from iteration 29
+  EXPECT_EQ(reported.back(), 70);
+  EXPECT_EQ(generator.calls, 1 + 2);  // phase 0 before the stop, then phases 0 (repeated) and 1
+  EXPECT_EQ(checkpoints, (std::vector<int>{29, 29, 59}));
+  std::ifstream f(dir_ / "out" / "phases.json");
+  const auto phases = nlohmann::json::parse(f);
+  ASSERT_EQ(phases.size(), 2u);
+  EXPECT_EQ(phases[0]["phase"], 0);
+  EXPECT_EQ(phases[1]["phase"], 1);
+}
+
+TEST_F(RunControlTest, ACheckpointRestoresTheModelAndIteration) {
+  EchoGenerator generator;
+  RunOptions o = options(&generator);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  o.config.iterations = 40;  // one phase, at 30
+  ASSERT_TRUE(run_pipeline(o, nullptr, [](const std::string&) {}).ok());
+  auto state = read_file_bytes(dir_ / "checkpoint" / "state.json");
+  ASSERT_TRUE(state.ok());
+  const auto j = nlohmann::json::parse(*state);
+  EXPECT_EQ(j["iteration"], 29);
+  EXPECT_EQ(j["method"]["log"].size(), 0u);  // saved before phase 0 ran
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "checkpoint" / "model_means.npy"));
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "checkpoint.partial"));
+  std::filesystem::remove(dir_ / "checkpoint" / "model_means.npy");
+  auto broken = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_FALSE(broken.ok());
+  EXPECT_NE(broken.status().message().find("model_means"), std::string_view::npos) << broken.status();
 }
 
 }  // namespace

@@ -292,31 +292,44 @@ TEST_F(Services, KilledWorkerSkipsTheRemainingPhasesAndTheJobFinishes) {
   EXPECT_TRUE(warned);
 }
 
-TEST_F(Services, KilledTrainerRunsItsJobAgainAfterRestart) {
+TEST_F(Services, KilledTrainerResumesItsJobFromTheCheckpointAfterRestart) {
   auto worker = start_worker();
   ASSERT_GT(worker_port, 0);
   auto trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
   std::string job_id;
+  int checkpoint = -1;
   {
     client::TrainerClient client = connect();
-    auto job = client.submit(spec("vanilla", 150), synthetic_scene());
+    auto job = client.submit(spec("full", 150, {{"warmup_iterations", 30}, {"phase_interval", 60}, {"n_active", 2}}),
+                             synthetic_scene());
     ASSERT_TRUE(job.ok()) << job.status();
     job_id = *job;
-    // Kill the trainer as soon as training is under way; the watch then ends without a final event.
+    // Kill the trainer once a checkpoint exists and training went past it; the watch then ends early.
     auto interrupted = client.watch(job_id, [&](const v1::JobEvent& e) {
-      if (e.has_progress() && e.progress().iteration() >= 20) trainer->kill(SIGKILL);
+      if (e.has_checkpoint_written()) checkpoint = e.checkpoint_written();
+      if (e.has_progress() && checkpoint >= 0 && e.progress().iteration() >= 50) trainer->kill(SIGKILL);
     });
     EXPECT_FALSE(interrupted.ok());
   }
+  ASSERT_EQ(checkpoint, 29);  // the start of phase 0, before iteration 30
   trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
   client::TrainerClient client = connect();
-  auto final_status = client.watch(job_id, [](const v1::JobEvent&) {});
+  Seen seen;
+  int first_progress_after_resume = -1;
+  bool resumed = false;
+  auto final_status = client.watch(job_id, [&](const v1::JobEvent& e) {
+    count(e, seen);
+    if (e.has_log() && e.log() == "resumed from the checkpoint at iteration 29") resumed = true;
+    if (resumed && e.has_progress() && first_progress_after_resume < 0) first_progress_after_resume = e.progress().iteration();
+  });
   ASSERT_TRUE(final_status.ok()) << final_status.status() << "\n" << trainer->log_text();
   EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
   EXPECT_EQ(final_status->resumes(), 1);
   EXPECT_EQ(final_status->iteration(), 150);
+  EXPECT_TRUE(resumed);
+  EXPECT_EQ(first_progress_after_resume, 30);  // not from iteration 0
 }
 
 TEST_F(Services, SigtermStopsTheTrainerGracefullyAndTheJobRunsAgainOnRestart) {
