@@ -1,6 +1,8 @@
 // gaps: the command line. Standalone subcommands run in this process:
 //   gaps train --scene DIR --views N --resolution R --iterations K --seed S --device cpu|cuda --out DIR
 //   gaps demo  [--out DIR] [--iterations K]
+// Remote subcommands talk to a gaps-trainer service (client/remote_commands.h):
+//   gaps submit SCENE --views N ... --trainer ADDR | watch JOB | list | cancel JOB | fetch JOB -o DIR
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
@@ -17,6 +19,7 @@
 #include "absl/flags/usage.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/remote_commands.h"
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/divergence.h"
 #include "gs_trainer/pipeline.h"
@@ -53,6 +56,8 @@ constexpr char kUsage[] =
     "  train   reconstruct a scene from N views and evaluate on the test views\n"
     "  init    only the initial point cloud of the training views (PLY + COLMAP text model)\n"
     "  demo    build a synthetic scene, reconstruct it from 3 views, print test PSNR\n"
+    "  submit SCENE   upload a scene to a gaps-trainer (--trainer ADDR) and print the job id\n"
+    "  watch JOB | list | cancel JOB | fetch JOB -o DIR   follow, list, stop or download remote jobs\n"
     "Flags accept dashes or underscores (--init-ply or --init_ply).";
 
 void print_progress(const gaps::TrainProgress& p) {
@@ -241,6 +246,8 @@ int main(int argc, char** argv) {
   const std::string command = positional.size() > 1 ? positional[1] : "";
   if (command == "train") return run_train();
   if (command == "init") return run_init();
+  if (gaps::client::is_remote_command(command))
+    return gaps::client::run_remote_command(command, std::vector<std::string>(positional.begin() + 2, positional.end()));
   if (command == "demo") {
     // The demo's own budget, unless the user chose one.
     if (!flag_given(storage, "--iterations")) absl::SetFlag(&FLAGS_iterations, 1500);

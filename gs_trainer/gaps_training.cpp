@@ -104,6 +104,21 @@ absl::Status GapsTraining::run_phase(int phase) {
                           {"drop_ratio", drop_ratio(t, T, model.size(), config_)},
                           {"beta", annealed_beta(t, T, config_)}};
   if (variant_ == Variant::kNoGaps && phase > 0) return absl::OkStatus();  // generated once, never refreshed
+  if (phase_observer_) phase_observer_("started", entry);
+  const absl::Status generated = run_phase_generation(phase, entry);
+  if (generated.code() != absl::StatusCode::kUnavailable) GAPS_RETURN_IF_ERROR(generated);
+  if (!generated.ok()) {
+    entry["skipped"] = true;
+    entry["skip_reason"] = std::string(generated.message());
+  }
+  log_.push_back(entry);
+  if (phase_observer_) phase_observer_(generated.ok() ? "finished" : "skipped", entry);
+  return absl::OkStatus();
+}
+
+absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry) {
+  const GaussianModel& model = trainer_.model();
+  const int t = trainer_.iteration(), T = trainer_.config().iterations;
 
   // The model's current renders at the GT poses: the references carry them (depth for warping).
   gt_renders_.clear();
@@ -137,9 +152,7 @@ absl::Status GapsTraining::run_phase(int phase) {
     }
     for (int k : select_for_phase(pool, scores, phase, config_)) chosen.push_back(pool[k]);
   }
-  GAPS_RETURN_IF_ERROR(generate_and_admit(chosen, variant_ != Variant::kNoGaps, entry));
-  log_.push_back(std::move(entry));
-  return absl::OkStatus();
+  return generate_and_admit(chosen, variant_ != Variant::kNoGaps, entry);
 }
 
 absl::Status GapsTraining::save_for_inspection(int phase, int id, bool admitted, const at::Tensor& image) const {

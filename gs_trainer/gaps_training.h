@@ -3,8 +3,10 @@
 // phase_interval iterations (GAPS selection, generation, admission), and between phases iterations that
 // train on an admitted pseudo-view with probability p_pseudo, all under density-adaptive DropGaussian.
 // Variants for the ablation: vanilla, full, no-gaps (8 pair-midpoint views generated once, no gate),
-// no-dropgaussian.
+// no-dropgaussian. A generator answering UNAVAILABLE (e.g. no remote worker reachable) skips the phase:
+// it is logged with "skipped" and training goes on with the pseudo-views admitted so far.
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <random>
 #include <string>
@@ -37,9 +39,15 @@ class GapsTraining {
   const std::map<int, PseudoView>& admitted() const { return admitted_; }
   // When set, every phase's generated images are written there as phase_PP/cand_III_{admitted,rejected}.png.
   void set_inspection_dir(const std::filesystem::path& dir) { inspection_dir_ = dir; }
+  // Called as phases start ("started", with phase and iteration), end ("finished", with the phase's log
+  // entry) or are skipped ("skipped", with a "skip_reason").
+  using PhaseObserver = std::function<void(const std::string& event, const nlohmann::json& entry)>;
+  void set_phase_observer(PhaseObserver observer) { phase_observer_ = std::move(observer); }
 
  private:
+  friend struct CheckpointAccess;  // gs_trainer/checkpoint.cpp saves and restores this state
   absl::Status run_phase(int phase);
+  absl::Status run_phase_generation(int phase, nlohmann::json& entry);
   absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);
   std::vector<Candidate> no_gaps_candidates() const;
   std::vector<ReferenceView> references_for(const Camera& pose) const;
@@ -61,6 +69,7 @@ class GapsTraining {
   std::filesystem::path inspection_dir_;
   std::vector<ReferenceView> gt_renders_;            // GT views with the model's renders, per phase
   nlohmann::json log_ = nlohmann::json::array();
+  PhaseObserver phase_observer_;
 };
 
 }  // namespace gaps

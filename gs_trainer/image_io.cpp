@@ -95,11 +95,11 @@ absl::StatusOr<std::pair<int, int>> read_image_size(const fs::path& path) {
   return std::make_pair(width, height);
 }
 
-absl::StatusOr<std::string> encode_png(const at::Tensor& image) {
+absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::string& what) {
   const bool shape_ok = image.dim() == 3 && (image.size(2) == 3 || image.size(2) == 1);
   if (!shape_ok)
     return absl::InvalidArgumentError(
-        absl::StrCat("PNG encoding needs an HxWx3 or HxWx1 image, got shape [", absl::StrJoin(image.sizes().vec(), ", "), "]"));
+        absl::StrCat(what, ": PNG encoding needs an HxWx3 or HxWx1 image, got shape [", absl::StrJoin(image.sizes().vec(), ", "), "]"));
   const at::Tensor bytes = image.detach()
                                .to(at::kCPU, at::kFloat)
                                .nan_to_num(0.0)
@@ -113,14 +113,18 @@ absl::StatusOr<std::string> encode_png(const at::Tensor& image) {
   std::string png;
   if (!stbi_write_png_to_func(append_bytes, &png, width, height, channels, bytes.data_ptr<uint8_t>(),
                               width * channels))
-    return absl::InternalError("PNG encoding failed");
+    return absl::InternalError(absl::StrCat(what, ": PNG encoding failed"));
   return png;
 }
 
 absl::Status write_png(const fs::path& path, const at::Tensor& image) {
-  auto png = encode_png(image);
-  if (!png.ok()) return absl::Status(png.status().code(), absl::StrCat(path.string(), ": ", png.status().message()));
+  absl::StatusOr<std::string> png = encode_png(image, path.string());
+  if (!png.ok()) return png.status();
   return write_file_bytes(path, *png);
+}
+
+absl::StatusOr<at::Tensor> decode_image(const std::string& bytes, const std::string& what) {
+  return decode(what, bytes);
 }
 
 at::Tensor resize_image(const at::Tensor& image, int width, int height) {

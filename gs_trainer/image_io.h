@@ -2,6 +2,7 @@
 // Image files <-> float tensors. Decoding/encoding uses stb (no OpenCV imgcodecs needed).
 // Images in memory are HxWx3 float32 CPU tensors with values in [0, 1].
 #include <filesystem>
+#include <string>
 
 #include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
@@ -14,8 +15,10 @@ absl::StatusOr<at::Tensor> read_image(const std::filesystem::path& path);
 absl::StatusOr<std::pair<int, int>> read_image_size(const std::filesystem::path& path);
 // 8-bit PNG; values are clamped to [0, 1]. Accepts HxWx3 or HxWx1 (grey).
 absl::Status write_png(const std::filesystem::path& path, const at::Tensor& image);
-// The bytes write_png would write.
-absl::StatusOr<std::string> encode_png(const at::Tensor& image);
+// In-memory counterparts of read_image and write_png (for images travelling over the network); `what`
+// names the image in errors.
+absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::string& what);
+absl::StatusOr<at::Tensor> decode_image(const std::string& bytes, const std::string& what);
 // Area-averaging resize (exact box filter for integer factors), as used to build images_N folders.
 at::Tensor resize_image(const at::Tensor& image, int width, int height);
 

@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "gs_trainer/divergence.h"
+#include "gs_trainer/checkpoint.h"
 #include "gs_trainer/image_io.h"
 #include "gs_trainer/initializer.h"
 #include "gs_trainer/lpips.h"
@@ -183,10 +184,32 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
     generator.emplace(o.generator);
     method.emplace(trainer, &*generator, references, gaps, o.variant, o.config.seed);
     method->set_inspection_dir(o.out_dir / "pseudo_views");
+    if (o.on_phase || !o.checkpoint_dir.empty())
+      method->set_phase_observer([&](const std::string& event, const nlohmann::json& entry) {
+        if (event == "started" && !o.checkpoint_dir.empty()) {
+          // The state before the phase: a resumed run repeats the phase, then goes on.
+          if (const absl::Status saved = save_checkpoint(o.checkpoint_dir, trainer, &*method); !saved.ok())
+            log(absl::StrCat("warning: checkpoint not written: ", saved.message()));
+          else if (o.on_checkpoint)
+            o.on_checkpoint(trainer.iteration());
+        }
+        if (o.on_phase) o.on_phase(event, entry);
+      });
     step = [&] { return method->step(); };
     log(absl::StrCat("method: ", variant_name(o.variant), " with generator ", o.generator->name()));
   }
   const Lpips* lpips_model = lpips ? &*lpips : nullptr;
+  if (!o.checkpoint_dir.empty()) {
+    const absl::StatusOr<int> resumed = load_checkpoint(o.checkpoint_dir, trainer, method ? &*method : nullptr);
+    if (resumed.ok()) log(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
+    else if (!absl::IsNotFound(resumed.status())) return resumed.status();
+  }
+  if (o.should_stop) {
+    step = [&trainer, &o, inner = std::move(step)]() -> absl::StatusOr<at::Tensor> {
+      if (o.should_stop()) return absl::CancelledError(absl::StrCat("stopped at iteration ", trainer.iteration()));
+      return inner ? inner() : trainer.step();
+    };
+  }
   const auto start = std::chrono::steady_clock::now();
   const auto seconds_since = [](std::chrono::steady_clock::time_point t) {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();

@@ -43,6 +43,14 @@ struct RunOptions {
   int eval_every = 0;
   // A self-contained report.html in out_dir (metrics, curve, renders next to ground truth, pseudo-views).
   bool html_report = true;
+  // Polled before every iteration; returning true stops the run with CANCELLED (the model so far is saved).
+  std::function<bool()> should_stop;
+  // Told about each diffusion phase (see GapsTraining::set_phase_observer).
+  GapsTraining::PhaseObserver on_phase;
+  // When set, the training state is saved there at the start of every diffusion phase (gs_trainer/checkpoint.h)
+  // and a run finding a checkpoint there resumes from it; `on_checkpoint` hears the saved iteration.
+  std::filesystem::path checkpoint_dir;
+  std::function<void(int iteration)> on_checkpoint;
 };
 
 struct RunResult {

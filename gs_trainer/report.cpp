@@ -46,7 +46,7 @@ absl::StatusOr<std::string> thumbnail_img(const at::Tensor& image, const std::st
                                           int width = kThumbnailWidth) {
   const int h = static_cast<int>(image.size(0)), w = static_cast<int>(image.size(1));
   const int tw = std::min(w, width), th = std::max(1, static_cast<int>(std::lround(double(h) * tw / w)));
-  GAPS_ASSIGN_OR_RETURN(const std::string png, encode_png(resize_image(image, tw, th)));
+  GAPS_ASSIGN_OR_RETURN(const std::string png, encode_png(resize_image(image, tw, th), alt));
   return absl::StrCat("<img alt=\"", escape(alt), "\" width=\"", tw, "\" height=\"", th,
                       "\" src=\"data:image/png;base64,", base64(png), "\">");
 }

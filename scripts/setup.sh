@@ -11,6 +11,7 @@ DEBIAN_PACKAGES=(
   build-essential cmake ninja-build ccache git python3 python3-venv
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
   libopencv-dev libeigen3-dev libstb-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
+  openssl  # the TLS end-to-end test makes its certificate with it
 )
 PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib)
 

@@ -1,0 +1,157 @@
+// The RPC path's cost: pseudo-view generation through a DiffusionWorker on loopback vs the same backend
+// in process (overhead per pseudo-view), and scene upload throughput into a Trainer service (SubmitJob
+// including the server's validation and writing). Services run in this process on 127.0.0.1, so the
+// figures hold serialization, HTTP/2 transfer and decoding, not network latency.
+//   rpc_bench [--scene DIR] [--resolution 8] [--batch 16] [--repeats 5] [--work_dir DIR]
+#include <algorithm>
+#include <chrono>
+#include <iostream>
+
+#include <ATen/ATen.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <nlohmann/json.hpp>
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "client/remote_client.h"
+#include "diffusion_worker/backend_registry.h"
+#include "diffusion_worker/service/worker_service.h"
+#include "gs_trainer/scene.h"
+#include "server/remote_generator.h"
+#include "server/trainer_service.h"
+
+ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
+ABSL_FLAG(int, resolution, 8, "downscale factor");
+ABSL_FLAG(int, batch, 16, "pseudo-views per Generate call (the paper's phase size on LLFF)");
+ABSL_FLAG(int, repeats, 5, "timed repetitions (the median is reported)");
+ABSL_FLAG(std::string, work_dir, "/tmp/gaps_rpc_bench", "folder for the trainer's data");
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v[v.size() / 2];
+}
+
+template <typename F>
+double median_seconds(int repeats, F&& f) {
+  std::vector<double> times;
+  for (int i = 0; i < repeats; ++i) {
+    const auto start = Clock::now();
+    f();
+    times.push_back(std::chrono::duration<double>(Clock::now() - start).count());
+  }
+  return median(times);
+}
+
+int fail(const absl::Status& st) {
+  std::cerr << "rpc_bench: " << st << "\n";
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::ParseCommandLine(argc, argv);
+  const int resolution = absl::GetFlag(FLAGS_resolution), batch = absl::GetFlag(FLAGS_batch);
+  const int repeats = absl::GetFlag(FLAGS_repeats);
+  gaps::SceneLoadOptions load;
+  load.resolution = resolution;
+  auto scene = gaps::load_scene(absl::GetFlag(FLAGS_scene), load);
+  if (!scene.ok()) return fail(scene.status());
+
+  // Requests as a phase makes them: 3 references with renders, poses between them. The render at a pose is
+  // its nearest photo, and depth a constant plane, which is what the backend's cost depends on (sizes).
+  std::vector<gaps::ReferenceView> refs;
+  for (int i : {1, 9, 17}) {
+    const gaps::Camera& c = scene->cameras[i];
+    auto image = gaps::load_camera_image(c);
+    if (!image.ok()) return fail(image.status());
+    refs.push_back({c, *image, at::full({c.height, c.width}, 4.0), at::ones({c.height, c.width})});
+  }
+  std::vector<gaps::GenerationRequest> requests;
+  for (int k = 0; k < batch; ++k) {
+    gaps::GenerationRequest q;
+    const auto& a = refs[k % 2].camera;
+    const auto& b = refs[k % 2 + 1].camera;
+    q.camera = a;
+    q.camera.t = a.t + (b.t - a.t) * ((k + 1.0) / (batch + 1.0));
+    q.render_rgb = refs[k % 2].image;
+    q.render_depth = refs[k % 2].render_depth;
+    q.render_alpha = refs[k % 2].render_alpha * 0.9;
+    q.coverage = 0.9;
+    q.strength = 0.4;
+    q.control_scale = 0.8;
+    q.references = refs;
+    q.seed = k;
+    requests.push_back(std::move(q));
+  }
+  auto local = gaps::make_generator("reproject", "");
+  auto hosted = gaps::make_generator("reproject", "");
+  if (!local.ok() || !hosted.ok()) return fail(local.status());
+  gaps::WorkerServiceOptions worker_options;
+  worker_options.backend = "reproject";
+  worker_options.max_batch = batch;
+  gaps::WorkerService worker(std::move(*hosted), worker_options);
+  grpc::EnableDefaultHealthCheckService(true);
+  int worker_port = 0;
+  grpc::ServerBuilder worker_builder;
+  worker_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &worker_port);
+  worker_builder.RegisterService(&worker);
+  auto worker_server = worker_builder.BuildAndStart();
+  gaps::WorkerPoolOptions pool;
+  pool.addresses = {"127.0.0.1:" + std::to_string(worker_port)};
+  auto remote = gaps::RemoteGenerator::create(pool);
+  if (!remote.ok()) return fail(remote.status());
+  (void)(*local)->adapt(refs);
+  (void)(*remote)->adapt(refs);
+  if (auto warm = (*remote)->generate(requests); !warm.ok()) return fail(warm.status());  // connects, adapts
+  const double in_process = median_seconds(repeats, [&] { (void)(*local)->generate(requests); });
+  const double over_rpc = median_seconds(repeats, [&] { (void)(*remote)->generate(requests); });
+  const auto& c0 = requests[0].camera;
+  std::cout << nlohmann::json{{"bench", "generation_round_trip"}, {"backend", "reproject"}, {"width", c0.width},
+                              {"height", c0.height}, {"batch", batch}, {"references", refs.size()},
+                              {"in_process_s", in_process}, {"rpc_s", over_rpc},
+                              {"overhead_per_view_ms", 1000.0 * (over_rpc - in_process) / batch},
+                              {"repeats", repeats}}
+                   .dump()
+            << std::endl;
+
+  // Upload throughput: the whole scene (every image, as the client sends it) into a trainer whose job
+  // threads are not started, so only SubmitJob is timed.
+  gaps::TrainerServiceOptions trainer_options;
+  trainer_options.data_dir = absl::GetFlag(FLAGS_work_dir);
+  auto trainer = gaps::TrainerService::create(trainer_options);
+  if (!trainer.ok()) return fail(trainer.status());
+  int trainer_port = 0;
+  grpc::ServerBuilder trainer_builder;
+  trainer_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &trainer_port);
+  trainer_builder.RegisterService(trainer->get());
+  auto trainer_server = trainer_builder.BuildAndStart();
+  auto client = gaps::client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {});
+  if (!client.ok()) return fail(client.status());
+  const auto prepare_start = Clock::now();
+  auto prepared = gaps::client::prepare_scene(absl::GetFlag(FLAGS_scene), resolution);
+  if (!prepared.ok()) return fail(prepared.status());
+  const double prepare_s = std::chrono::duration<double>(Clock::now() - prepare_start).count();
+  size_t bytes = 0;
+  for (const auto& image : prepared->images) bytes += image.size();
+  gaps::v1::JobSpec spec;
+  spec.set_name("upload bench");
+  spec.mutable_config()->set_views(3);
+  const double submit_s = median_seconds(repeats, [&] {
+    auto job = client->submit(spec, *prepared);
+    if (!job.ok()) std::cerr << job.status() << "\n";
+  });
+  std::cout << nlohmann::json{{"bench", "scene_upload"}, {"images", prepared->images.size()}, {"bytes", bytes},
+                              {"width", prepared->cameras[0].width()}, {"height", prepared->cameras[0].height()},
+                              {"client_prepare_s", prepare_s}, {"submit_s", submit_s},
+                              {"throughput_mb_per_s", bytes / 1e6 / submit_s}, {"repeats", repeats}}
+                   .dump()
+            << std::endl;
+  trainer_server->Shutdown(std::chrono::system_clock::now());
+  worker_server->Shutdown(std::chrono::system_clock::now());
+  return 0;
+}

@@ -1,0 +1,190 @@
+#include "client/remote_client.h"
+
+#include <fstream>
+#include <optional>
+
+#include "absl/strings/str_cat.h"
+#include "gs_trainer/image_io.h"
+#include "gs_trainer/io_util.h"
+#include "gs_trainer/scene.h"
+#include "gs_trainer/status_macros.h"
+#include "rpc/codec.h"
+
+namespace gaps::client {
+namespace {
+
+namespace fs = std::filesystem;
+
+// Sends a file as FileChunks (at least one, so empty files arrive too).
+bool send_file(grpc::ClientWriter<v1::SubmitJobRequest>& writer, v1::FileChunk::Kind kind, int index,
+               const std::string& bytes) {
+  size_t offset = 0;
+  do {
+    v1::SubmitJobRequest request;
+    v1::FileChunk* chunk = request.mutable_file();
+    chunk->set_kind(kind);
+    chunk->set_index(index);
+    const size_t n = std::min(rpc::kChunkBytes, bytes.size() - offset);
+    chunk->set_data(bytes.data() + offset, n);
+    offset += n;
+    chunk->set_last(offset == bytes.size());
+    if (!writer.Write(request)) return false;
+  } while (offset < bytes.size());
+  return true;
+}
+
+// Artifact paths come from the server: never let one escape the output folder.
+bool safe_relative(const std::string& path) {
+  const fs::path p(path);
+  if (p.empty() || p.is_absolute()) return false;
+  for (const auto& part : p)
+    if (part == "..") return false;
+  return true;
+}
+
+}  // namespace
+
+absl::StatusOr<PreparedScene> prepare_scene(const fs::path& scene_dir, int resolution) {
+  SceneLoadOptions load;
+  load.resolution = resolution;
+  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(scene_dir, load));
+  PreparedScene out;
+  for (const Camera& camera : scene.cameras) {
+    GAPS_ASSIGN_OR_RETURN(at::Tensor image, load_camera_image(camera));
+    GAPS_ASSIGN_OR_RETURN(std::string png, encode_png(image, camera.name));
+    Camera sent = camera;
+    sent.distortion.clear();  // load_camera_image undistorted the pixels
+    sent.name = fs::path(camera.name).stem().string() + ".png";
+    rpc::encode_camera(sent, &out.cameras.emplace_back());
+    out.images.push_back(std::move(png));
+  }
+  return out;
+}
+
+TrainerClient::TrainerClient(std::shared_ptr<grpc::Channel> channel, std::string token)
+    : channel_(std::move(channel)), stub_(v1::Trainer::NewStub(channel_)), token_(std::move(token)) {}
+
+absl::StatusOr<TrainerClient> TrainerClient::connect(const std::string& address, const rpc::ClientSecurity& security) {
+  GAPS_ASSIGN_OR_RETURN(std::shared_ptr<grpc::Channel> channel, rpc::make_channel(address, security));
+  return TrainerClient(std::move(channel), security.token);
+}
+
+void TrainerClient::prepare(grpc::ClientContext& context) const { rpc::attach_token(context, token_); }
+
+absl::StatusOr<std::string> TrainerClient::submit(v1::JobSpec spec, const PreparedScene& scene) {
+  spec.clear_cameras();
+  for (const auto& c : scene.cameras) *spec.add_cameras() = c;
+  spec.set_has_points(!scene.points_ply.empty());
+  grpc::ClientContext context;
+  prepare(context);
+  v1::SubmitJobResponse response;
+  std::unique_ptr<grpc::ClientWriter<v1::SubmitJobRequest>> writer(stub_->SubmitJob(&context, &response));
+  v1::SubmitJobRequest first;
+  *first.mutable_spec() = spec;
+  bool open = writer->Write(first);
+  for (size_t i = 0; open && i < scene.images.size(); ++i)
+    open = send_file(*writer, v1::FileChunk::IMAGE, static_cast<int>(i), scene.images[i]);
+  if (open && !scene.points_ply.empty()) open = send_file(*writer, v1::FileChunk::POINTS, 0, scene.points_ply);
+  if (open) writer->WritesDone();
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(writer->Finish(), "SubmitJob"));
+  return response.job_id();
+}
+
+absl::StatusOr<v1::JobStatus> TrainerClient::watch(const std::string& job_id,
+                                                   const std::function<void(const v1::JobEvent&)>& on_event,
+                                                   int64_t from_sequence) {
+  grpc::ClientContext context;
+  prepare(context);
+  v1::WatchJobRequest request;
+  request.set_job_id(job_id);
+  request.set_from_sequence(from_sequence);
+  std::unique_ptr<grpc::ClientReader<v1::JobEvent>> reader(stub_->WatchJob(&context, request));
+  v1::JobEvent event;
+  std::optional<v1::JobStatus> final_status;
+  while (reader->Read(&event)) {
+    on_event(event);
+    if (event.has_finished()) final_status = event.finished();
+    if (event.has_failed()) final_status = event.failed();
+    if (event.has_cancelled()) final_status = event.cancelled();
+  }
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(reader->Finish(), "WatchJob"));
+  if (!final_status) return absl::UnavailableError(absl::StrCat("event stream of ", job_id, " ended before the job did"));
+  return *final_status;
+}
+
+absl::StatusOr<v1::JobStatus> TrainerClient::get(const std::string& job_id) {
+  grpc::ClientContext context;
+  prepare(context);
+  v1::GetJobRequest request;
+  request.set_job_id(job_id);
+  v1::JobStatus status;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->GetJob(&context, request, &status), "GetJob"));
+  return status;
+}
+
+absl::StatusOr<std::vector<v1::JobStatus>> TrainerClient::list() {
+  grpc::ClientContext context;
+  prepare(context);
+  v1::ListJobsResponse response;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->ListJobs(&context, v1::ListJobsRequest(), &response), "ListJobs"));
+  return std::vector<v1::JobStatus>(response.jobs().begin(), response.jobs().end());
+}
+
+absl::StatusOr<v1::JobStatus> TrainerClient::cancel(const std::string& job_id) {
+  grpc::ClientContext context;
+  prepare(context);
+  v1::CancelJobRequest request;
+  request.set_job_id(job_id);
+  v1::JobStatus status;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->CancelJob(&context, request, &status), "CancelJob"));
+  return status;
+}
+
+absl::StatusOr<at::Tensor> TrainerClient::render(const std::string& job_id, const v1::Camera& camera) {
+  grpc::ClientContext context;
+  prepare(context);
+  v1::RenderViewRequest request;
+  request.set_job_id(job_id);
+  *request.mutable_camera() = camera;
+  v1::RenderViewResponse response;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->RenderView(&context, request, &response), "RenderView"));
+  return rpc::decode_tensor_shaped(response.image(), {camera.height(), camera.width(), 3}, "rendered view");
+}
+
+absl::StatusOr<std::vector<std::string>> TrainerClient::fetch(const std::string& job_id, const fs::path& out_dir) {
+  grpc::ClientContext context;
+  prepare(context);
+  v1::FetchArtifactsRequest request;
+  request.set_job_id(job_id);
+  std::unique_ptr<grpc::ClientReader<v1::ArtifactChunk>> reader(stub_->FetchArtifacts(&context, request));
+  std::vector<std::string> paths;
+  std::ofstream file;
+  std::string current;
+  v1::ArtifactChunk chunk;
+  absl::Status status;
+  while (status.ok() && reader->Read(&chunk)) {
+    if (chunk.path() != current) {
+      if (!safe_relative(chunk.path())) {
+        status = absl::DataLossError(absl::StrCat("server sent an unsafe artifact path '", chunk.path(), "'"));
+        break;
+      }
+      current = chunk.path();
+      const fs::path target = out_dir / current;
+      fs::create_directories(target.parent_path());
+      file = std::ofstream(target, std::ios::binary | std::ios::trunc);
+      if (!file) status = absl::PermissionDeniedError(absl::StrCat(target.string(), ": cannot write"));
+      paths.push_back(current);
+    }
+    file.write(chunk.data().data(), chunk.data().size());
+    if (chunk.last()) file.close();
+  }
+  if (!status.ok()) {
+    context.TryCancel();
+    reader->Finish();
+    return status;
+  }
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(reader->Finish(), "FetchArtifacts"));
+  return paths;
+}
+
+}  // namespace gaps::client

@@ -1,0 +1,54 @@
+#pragma once
+// Client side of the Trainer service: scene upload (a scene folder loaded as `gaps train` would load it,
+// images sent as PNG at the chosen resolution), event watching, job queries, cancellation and artifact
+// download. The `gaps submit|watch|list|cancel|fetch` commands and the service tests use it.
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/statusor.h"
+#include "gaps/v1/trainer.grpc.pb.h"
+#include "rpc/security.h"
+
+namespace gaps::client {
+
+// A scene ready to upload: cameras (at the upload resolution, undistorted) and their PNG images.
+struct PreparedScene {
+  std::vector<v1::Camera> cameras;
+  std::vector<std::string> images;
+  std::string points_ply;  // optional initial point cloud
+};
+
+// Loads a scene folder (LLFF, COLMAP or transforms.json) at downscale factor `resolution`.
+absl::StatusOr<PreparedScene> prepare_scene(const std::filesystem::path& scene_dir, int resolution);
+
+class TrainerClient {
+ public:
+  static absl::StatusOr<TrainerClient> connect(const std::string& address, const rpc::ClientSecurity& security);
+
+  // Uploads the scene with the spec (its cameras are replaced by the scene's); returns the job id.
+  absl::StatusOr<std::string> submit(v1::JobSpec spec, const PreparedScene& scene);
+  // Streams events to `on_event` until the job ends; returns its final status.
+  absl::StatusOr<v1::JobStatus> watch(const std::string& job_id, const std::function<void(const v1::JobEvent&)>& on_event,
+                                      int64_t from_sequence = 0);
+  absl::StatusOr<v1::JobStatus> get(const std::string& job_id);
+  absl::StatusOr<std::vector<v1::JobStatus>> list();
+  absl::StatusOr<v1::JobStatus> cancel(const std::string& job_id);
+  // A finished job's model rendered at `camera`: H x W x 3 in [0, 1].
+  absl::StatusOr<at::Tensor> render(const std::string& job_id, const v1::Camera& camera);
+  // Writes the job's artifacts below `out_dir`; returns their relative paths.
+  absl::StatusOr<std::vector<std::string>> fetch(const std::string& job_id, const std::filesystem::path& out_dir);
+
+ private:
+  TrainerClient(std::shared_ptr<grpc::Channel> channel, std::string token);
+  void prepare(grpc::ClientContext& context) const;
+
+  std::shared_ptr<grpc::Channel> channel_;
+  std::shared_ptr<v1::Trainer::Stub> stub_;
+  std::string token_;
+};
+
+}  // namespace gaps::client

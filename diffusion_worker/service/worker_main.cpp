@@ -1,0 +1,85 @@
+// gaps-worker: serves a pseudo-view generation backend over gRPC (gaps.v1.DiffusionWorker).
+//   gaps-worker --listen 127.0.0.1:50052 --backend reproject [--backend_options JSON] [--token_file F]
+//               [--tls_cert F --tls_key F] [--queue_capacity N] [--max_batch N]
+#include <csignal>
+#include <iostream>
+#include <thread>
+
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/flags/usage.h"
+#include "absl/strings/str_join.h"
+#include "diffusion_worker/backend_registry.h"
+#include "diffusion_worker/service/worker_service.h"
+#include "rpc/security.h"
+
+ABSL_FLAG(std::string, listen, "127.0.0.1:50052", "address to serve on (a bare port binds 127.0.0.1)");
+ABSL_FLAG(std::string, backend, "reproject", "generation backend");
+ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
+ABSL_FLAG(std::string, device, "cpu", "device the backend runs on");
+ABSL_FLAG(int, max_batch, 64, "most poses per Generate call");
+ABSL_FLAG(int, queue_capacity, 4, "calls that may wait behind the running one before RESOURCE_EXHAUSTED");
+ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
+ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
+ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
+ABSL_FLAG(std::string, tls_key, "", "PEM private key");
+
+namespace {
+
+std::atomic<bool> g_stop{false};
+void on_signal(int) { g_stop = true; }
+
+int fail(const std::string& message) {
+  std::cerr << "gaps-worker: " << message << "\n";
+  return 2;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::SetProgramUsageMessage("gaps-worker --listen ADDR --backend NAME [--device cpu]");
+  absl::ParseCommandLine(argc, argv);
+  const std::string backend = absl::GetFlag(FLAGS_backend);
+  const std::string device = absl::GetFlag(FLAGS_device);
+  // The registry's backends (reproject) compute on the CPU; a GPU device is accepted once a backend
+  // that uses one is registered, rather than being silently ignored now.
+  if (device != "cpu")
+    return fail("--device " + device + ": backend " + backend + " runs on the CPU only (use --device cpu)");
+  auto generator = gaps::make_generator(backend, absl::GetFlag(FLAGS_backend_options));
+  if (!generator.ok()) return fail(std::string(generator.status().message()));
+  auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
+  if (!token.ok()) return fail(std::string(token.status().message()));
+  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key)};
+  auto credentials = gaps::rpc::server_credentials(security);
+  if (!credentials.ok()) return fail(std::string(credentials.status().message()));
+
+  gaps::WorkerServiceOptions options;
+  options.backend = backend;
+  options.device = device;
+  options.max_batch = absl::GetFlag(FLAGS_max_batch);
+  options.queue_capacity = absl::GetFlag(FLAGS_queue_capacity);
+  options.max_request_bytes = absl::GetFlag(FLAGS_max_request_mb) << 20;
+  options.token = *token;
+  if (options.max_batch <= 0 || options.queue_capacity < 0) return fail("--max_batch must be positive, --queue_capacity >= 0");
+  gaps::WorkerService service(std::move(*generator), options);
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::ServerBuilder builder;
+  const std::string address = gaps::rpc::listen_address(absl::GetFlag(FLAGS_listen));
+  int port = 0;
+  builder.AddListeningPort(address, *credentials, &port);
+  builder.RegisterService(&service);
+  builder.SetMaxReceiveMessageSize(4 << 20);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (!server || port == 0) return fail("cannot listen on " + address);
+  std::signal(SIGTERM, on_signal);
+  std::signal(SIGINT, on_signal);
+  // The resolved port, so a caller that asked for port 0 learns which one it got.
+  std::cout << "gaps-worker: serving backend " << backend << " on port " << port << (security.tls_cert.empty() ? "" : " (TLS)")
+            << (security.token.empty() ? "" : " (token required)") << std::endl;
+  while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  return 0;
+}

@@ -1,0 +1,163 @@
+#include "diffusion_worker/service/worker_service.h"
+
+#include <algorithm>
+#include <chrono>
+
+#include <ATen/Context.h>
+#include "absl/strings/str_cat.h"
+#include "gs_trainer/status_macros.h"
+#include "rpc/codec.h"
+#include "rpc/generation_codec.h"
+#include "rpc/security.h"
+
+namespace gaps {
+
+// Holds the backend for one call; releasing it wakes the next waiting call.
+class WorkerService::BackendTurn {
+ public:
+  explicit BackendTurn(WorkerService& service) : service_(service) {}
+  ~BackendTurn() {
+    std::lock_guard<std::mutex> lock(service_.mutex_);
+    service_.backend_busy_ = false;
+    service_.backend_free_.notify_one();
+  }
+
+ private:
+  WorkerService& service_;
+};
+
+WorkerService::WorkerService(std::unique_ptr<Generator> generator, WorkerServiceOptions options)
+    : generator_(std::move(generator)), options_(std::move(options)) {}
+
+grpc::Status WorkerService::wait_for_backend(grpc::ServerContext* context, std::unique_ptr<BackendTurn>* turn) {
+  std::unique_lock<std::mutex> lock(mutex_);
+  if (backend_busy_ && waiting_ >= options_.queue_capacity)
+    return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                        absl::StrCat("worker queue full (", waiting_, " calls waiting, capacity ",
+                                     options_.queue_capacity, ")"));
+  ++waiting_;
+  const auto deadline = context->deadline();
+  while (backend_busy_) {
+    if (context->IsCancelled()) {
+      --waiting_;
+      return grpc::Status(grpc::StatusCode::CANCELLED, "call cancelled while queued");
+    }
+    // Wake periodically: cancellation has no notification here.
+    const auto until = std::min(deadline, std::chrono::system_clock::now() + std::chrono::milliseconds(100));
+    backend_free_.wait_until(lock, until);
+    if (backend_busy_ && std::chrono::system_clock::now() >= deadline) {
+      --waiting_;
+      return grpc::Status(grpc::StatusCode::DEADLINE_EXCEEDED, "deadline passed while queued for the backend");
+    }
+  }
+  --waiting_;
+  backend_busy_ = true;
+  *turn = std::make_unique<BackendTurn>(*this);
+  return grpc::Status::OK;
+}
+
+absl::Status WorkerService::ensure_adapted(const std::string& handle) {
+  if (handle.empty() || handle == adapted_handle_) return absl::OkStatus();
+  std::vector<ReferenceView> views;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    const auto it = scenes_.find(handle);
+    if (it == scenes_.end()) return absl::NotFoundError(absl::StrCat("unknown scene handle '", handle, "'"));
+    views = it->second;
+  }
+  GAPS_RETURN_IF_ERROR(generator_->adapt(views));
+  adapted_handle_ = handle;
+  return absl::OkStatus();
+}
+
+grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetInfoRequest*, v1::WorkerInfo* info) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  info->set_backend(options_.backend);
+  info->set_backend_version(generator_->name());
+  info->set_max_batch(options_.max_batch);
+  info->set_max_request_bytes(options_.max_request_bytes);
+  info->set_queue_capacity(options_.queue_capacity);
+  info->set_device(options_.device);
+  // The registry's backends are weight-free or report their weights through name(); none is loaded here.
+  info->set_weights_identity("");
+  for (const char* c : {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale",
+                        "prompt", "seed"})
+    info->add_supported_constraints(c);
+  return grpc::Status::OK;
+}
+
+grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
+                                       grpc::ServerReaderWriter<v1::AdaptSceneProgress, v1::Chunk>* stream) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  v1::AdaptSceneBatch batch;
+  if (auto st = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, options_.max_request_bytes, &batch);
+      !st.ok())
+    return rpc::to_grpc(st);
+  std::vector<ReferenceView> views;
+  for (int i = 0; i < batch.references_size(); ++i) {
+    auto view = rpc::decode_reference(batch.references(i), absl::StrCat("reference ", i));
+    if (!view.ok()) return rpc::to_grpc(view.status());
+    views.push_back(std::move(*view));
+  }
+  if (views.empty()) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "AdaptScene needs reference views");
+  std::unique_ptr<BackendTurn> turn;
+  if (auto st = wait_for_backend(context, &turn); !st.ok()) return st;
+  std::string handle;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    handle = absl::StrCat(batch.scene_id().empty() ? "scene" : batch.scene_id(), "#", next_handle_++);
+    scenes_[handle] = views;
+  }
+  v1::AdaptSceneProgress progress;
+  progress.set_message(absl::StrCat("adapting ", generator_->name(), " to ", views.size(), " views"));
+  stream->Write(progress);
+  if (auto st = ensure_adapted(handle); !st.ok()) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    scenes_.erase(handle);
+    return rpc::to_grpc(st);
+  }
+  progress.set_fraction(1.0);
+  progress.set_message("adapted");
+  progress.set_scene_handle(handle);
+  stream->Write(progress);
+  return grpc::Status::OK;
+}
+
+grpc::Status WorkerService::Generate(grpc::ServerContext* context, grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  v1::GenerateBatch batch;
+  if (auto st = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, options_.max_request_bytes, &batch);
+      !st.ok())
+    return rpc::to_grpc(st);
+  if (batch.poses_size() == 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "Generate needs at least one pose");
+  if (batch.poses_size() > options_.max_batch)
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                        absl::StrCat(batch.poses_size(), " poses exceed this worker's max batch of ", options_.max_batch));
+  auto requests = rpc::decode_generation_batch(batch);
+  if (!requests.ok()) return rpc::to_grpc(requests.status());
+  std::unique_ptr<BackendTurn> turn;
+  if (auto st = wait_for_backend(context, &turn); !st.ok()) return st;
+  if (auto st = ensure_adapted(batch.scene_handle()); !st.ok()) return rpc::to_grpc(st);
+  const auto start = std::chrono::steady_clock::now();
+  auto images = generator_->generate(*requests);
+  if (!images.ok()) return rpc::to_grpc(images.status());
+  turn.reset();
+  if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "caller gave up during generation");
+  v1::GenerateResult result;
+  result.set_backend_seconds(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+  for (const auto& image : *images) rpc::encode_raw(image, result.add_images());
+  if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))
+    return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
+  return grpc::Status::OK;
+}
+
+grpc::Status WorkerService::ReleaseScene(grpc::ServerContext* context, const v1::ReleaseSceneRequest* request,
+                                         v1::ReleaseSceneResponse*) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (scenes_.erase(request->scene_handle()) == 0)
+    return grpc::Status(grpc::StatusCode::NOT_FOUND, absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));
+  return grpc::Status::OK;
+}
+
+}  // namespace gaps

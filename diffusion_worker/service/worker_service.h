@@ -1,0 +1,60 @@
+#pragma once
+// The DiffusionWorker gRPC service: hosts one in-process generator backend (diffusion_worker/) for remote
+// trainers. Calls run one at a time on the backend; up to `queue_capacity` more wait, later ones are
+// answered RESOURCE_EXHAUSTED at once. A call whose deadline passes while it waits is answered
+// DEADLINE_EXCEEDED without running.
+#include <condition_variable>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "gaps/v1/diffusion_worker.grpc.pb.h"
+#include "gs_trainer/generator.h"
+
+namespace gaps {
+
+struct WorkerServiceOptions {
+  std::string backend;  // registry name, reported by GetInfo
+  std::string device = "cpu";
+  int max_batch = 64;                       // poses per Generate call
+  uint64_t max_request_bytes = 1ull << 30;  // serialized request size limit
+  int queue_capacity = 4;                   // calls that may wait behind the running one
+  std::string token;                        // required bearer token (empty: none)
+};
+
+class WorkerService final : public v1::DiffusionWorker::Service {
+ public:
+  WorkerService(std::unique_ptr<Generator> generator, WorkerServiceOptions options);
+
+  grpc::Status GetInfo(grpc::ServerContext* context, const v1::GetInfoRequest* request,
+                       v1::WorkerInfo* response) override;
+  grpc::Status AdaptScene(grpc::ServerContext* context,
+                          grpc::ServerReaderWriter<v1::AdaptSceneProgress, v1::Chunk>* stream) override;
+  grpc::Status Generate(grpc::ServerContext* context, grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) override;
+  grpc::Status ReleaseScene(grpc::ServerContext* context, const v1::ReleaseSceneRequest* request,
+                            v1::ReleaseSceneResponse* response) override;
+
+ private:
+  class BackendTurn;
+  // Admission to the backend: RESOURCE_EXHAUSTED when the queue is full, DEADLINE_EXCEEDED or CANCELLED
+  // when the call ends while waiting. On OK the caller holds the backend until `turn` is destroyed.
+  grpc::Status wait_for_backend(grpc::ServerContext* context, std::unique_ptr<BackendTurn>* turn);
+  // Makes the backend adapted to `handle` (re-adapting when another scene was adapted since); needs the turn.
+  absl::Status ensure_adapted(const std::string& handle);
+
+  std::unique_ptr<Generator> generator_;
+  WorkerServiceOptions options_;
+  std::mutex mutex_;
+  std::condition_variable backend_free_;
+  bool backend_busy_ = false;
+  int waiting_ = 0;
+  // Adapted scenes: their reference views, so the backend can be re-adapted when scenes alternate.
+  std::map<std::string, std::vector<ReferenceView>> scenes_;
+  std::string adapted_handle_;
+  uint64_t next_handle_ = 1;
+};
+
+}  // namespace gaps

@@ -1,0 +1,84 @@
+#pragma once
+// Conversions between the project's types and the gaps.v1 messages, chunked transfer of large messages,
+// and status mapping between absl and gRPC. Every decoder checks what it reads and names the offending
+// item in its error, because the data comes from another process.
+#include <string>
+
+#include <ATen/Tensor.h>
+#include <google/protobuf/message.h>
+#include <grpcpp/grpcpp.h>
+#include "absl/status/statusor.h"
+#include "gaps/v1/common.pb.h"
+#include "gs_trainer/camera.h"
+
+namespace gaps::rpc {
+
+// Bytes per Chunk / file chunk message: well under gRPC's default 4 MiB message cap.
+inline constexpr size_t kChunkBytes = 1 << 20;
+
+// Float tensor -> RAW_F32 (any shape).
+void encode_raw(const at::Tensor& tensor, v1::Tensor* out);
+// H x W x 3 (or x 1) image in [0, 1] -> 8-bit PNG.
+absl::Status encode_png(const at::Tensor& image, v1::Tensor* out);
+// Either encoding -> float32 CPU tensor. `what` names the tensor in errors. PNG images decode to H x W x 3.
+absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::string& what);
+// As decode_tensor, also requiring the given shape (-1: any size in that dimension).
+absl::StatusOr<at::Tensor> decode_tensor_shaped(const v1::Tensor& tensor, const std::vector<int64_t>& shape,
+                                                const std::string& what);
+
+void encode_camera(const Camera& camera, v1::Camera* out);
+// Checks sizes, finiteness and that the rotation is orthonormal with determinant +1.
+absl::StatusOr<Camera> decode_camera(const v1::Camera& camera, const std::string& what);
+
+grpc::Status to_grpc(const absl::Status& status);
+absl::Status from_grpc(const grpc::Status& status, const std::string& what);
+
+// Sends `message` serialized as consecutive Chunks through `write` (returns false when the stream broke).
+template <typename WriteFn>
+bool write_chunked(const google::protobuf::Message& message, WriteFn&& write) {
+  const std::string bytes = message.SerializeAsString();
+  size_t offset = 0;
+  do {
+    v1::Chunk chunk;
+    chunk.set_total_size(bytes.size());
+    const size_t n = std::min(kChunkBytes, bytes.size() - offset);
+    chunk.set_data(bytes.data() + offset, n);
+    offset += n;
+    if (!write(chunk)) return false;
+  } while (offset < bytes.size());
+  return true;
+}
+
+// Reads Chunks through `read` (returns false at the end of the stream) until `total_size` bytes arrived,
+// then parses them into `out`. Fails with RESOURCE_EXHAUSTED when the sender announces more than
+// `max_bytes`, INVALID_ARGUMENT when sizes disagree or the bytes do not parse.
+template <typename ReadFn>
+absl::Status read_chunked(ReadFn&& read, uint64_t max_bytes, google::protobuf::Message* out) {
+  std::string bytes;
+  uint64_t total = 0;
+  bool first = true;
+  v1::Chunk chunk;
+  while (read(&chunk)) {
+    if (first) {
+      total = chunk.total_size();
+      if (total > max_bytes)
+        return absl::ResourceExhaustedError(
+            "message of " + std::to_string(total) + " bytes exceeds the limit of " + std::to_string(max_bytes));
+      bytes.reserve(total);
+      first = false;
+    }
+    if (bytes.size() + chunk.data().size() > total)
+      return absl::InvalidArgumentError("chunks exceed the announced size of " + std::to_string(total) + " bytes");
+    bytes += chunk.data();
+    if (bytes.size() == total) break;
+  }
+  if (first) return absl::InvalidArgumentError("stream ended before any chunk");
+  if (bytes.size() != total)
+    return absl::InvalidArgumentError("stream ended after " + std::to_string(bytes.size()) + " of " +
+                                      std::to_string(total) + " bytes");
+  if (!out->ParseFromString(bytes))
+    return absl::InvalidArgumentError("chunks do not form a valid " + out->GetTypeName());
+  return absl::OkStatus();
+}
+
+}  // namespace gaps::rpc

@@ -1,0 +1,19 @@
+#pragma once
+// GenerationRequest / ReferenceView <-> gaps.v1 generation messages. Reference views shared by the poses
+// of a batch travel once (matched by camera name), each pose keeping its own nearest-first order.
+// Tensors travel as raw float32, so a remote backend sees exactly what an in-process one would.
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "gaps/v1/diffusion_worker.pb.h"
+#include "gs_trainer/generator.h"
+
+namespace gaps::rpc {
+
+void encode_reference(const ReferenceView& view, v1::ReferenceView* out);
+absl::StatusOr<ReferenceView> decode_reference(const v1::ReferenceView& view, const std::string& what);
+
+void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out);
+absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1::GenerateBatch& batch);
+
+}  // namespace gaps::rpc

@@ -1,0 +1,85 @@
+#include "rpc/security.h"
+
+#include <cstdlib>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/strip.h"
+#include "absl/strings/ascii.h"
+#include "gs_trainer/io_util.h"
+#include "gs_trainer/status_macros.h"
+
+namespace gaps::rpc {
+namespace {
+
+absl::StatusOr<std::string> read_pem(const std::string& path, const std::string& what) {
+  return read_file_bytes(path, what);
+}
+
+// Same duration whatever the first differing byte, so the token cannot be guessed byte by byte (its
+// length may leak; tokens should be long random strings).
+bool equal_constant_time(const std::string& a, const std::string& b) {
+  if (a.size() != b.size()) return false;
+  unsigned char diff = 0;
+  for (size_t i = 0; i < a.size(); ++i) diff |= static_cast<unsigned char>(a[i] ^ b[i]);
+  return diff == 0;
+}
+
+}  // namespace
+
+absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> server_credentials(const ServerSecurity& s) {
+  if (s.tls_cert.empty() != s.tls_key.empty())
+    return absl::InvalidArgumentError("TLS needs both a certificate and a private key");
+  if (s.tls_cert.empty()) return grpc::InsecureServerCredentials();
+  grpc::SslServerCredentialsOptions options;
+  grpc::SslServerCredentialsOptions::PemKeyCertPair pair;
+  GAPS_ASSIGN_OR_RETURN(pair.cert_chain, read_pem(s.tls_cert, "TLS certificate"));
+  GAPS_ASSIGN_OR_RETURN(pair.private_key, read_pem(s.tls_key, "TLS private key"));
+  options.pem_key_cert_pairs.push_back(std::move(pair));
+  return grpc::SslServerCredentials(options);
+}
+
+absl::StatusOr<std::shared_ptr<grpc::Channel>> make_channel(const std::string& address, const ClientSecurity& s) {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(16 << 20);
+  if (s.tls_ca.empty()) return grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
+  grpc::SslCredentialsOptions options;
+  GAPS_ASSIGN_OR_RETURN(options.pem_root_certs, read_pem(s.tls_ca, "TLS CA certificate"));
+  if (!s.tls_server_name.empty()) args.SetSslTargetNameOverride(s.tls_server_name);
+  return grpc::CreateCustomChannel(address, grpc::SslCredentials(options), args);
+}
+
+grpc::Status check_token(const grpc::ServerContext& context, const std::string& token) {
+  if (token.empty()) return grpc::Status::OK;
+  const auto& metadata = context.client_metadata();
+  const auto it = metadata.find("authorization");
+  if (it == metadata.end()) return grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "missing bearer token");
+  const std::string value(it->second.data(), it->second.size());
+  constexpr char kPrefix[] = "Bearer ";
+  if (value.rfind(kPrefix, 0) != 0 || !equal_constant_time(value.substr(sizeof(kPrefix) - 1), token))
+    return grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "invalid bearer token");
+  return grpc::Status::OK;
+}
+
+void attach_token(grpc::ClientContext& context, const std::string& token) {
+  if (!token.empty()) context.AddMetadata("authorization", "Bearer " + token);
+}
+
+absl::StatusOr<std::string> load_token(const std::string& file) {
+  if (!file.empty()) {
+    GAPS_ASSIGN_OR_RETURN(std::string text, read_file_bytes(file, "token file"));
+    const size_t newline = text.find('\n');
+    std::string token(absl::StripAsciiWhitespace(text.substr(0, newline)));
+    if (token.empty()) return absl::InvalidArgumentError(absl::StrCat(file, ": token file is empty"));
+    return token;
+  }
+  const char* env = std::getenv("GAPS_TOKEN");
+  return env ? std::string(env) : std::string();
+}
+
+std::string listen_address(const std::string& address) {
+  if (address.find(':') == std::string::npos) return absl::StrCat("127.0.0.1:", address);
+  if (address[0] == ':') return absl::StrCat("127.0.0.1", address);
+  return address;
+}
+
+}  // namespace gaps::rpc

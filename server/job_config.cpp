@@ -1,0 +1,42 @@
+#include "server/job_config.h"
+
+#include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
+#include "gs_trainer/status_macros.h"
+#include "rpc/config_codec.h"
+
+namespace gaps {
+
+absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool has_points,
+                                                  const std::filesystem::path& points_file) {
+  RunOptions o;
+  o.views = c.views();
+  o.resolution = 1;  // uploads arrive at the resolution to train at
+  const std::string init = c.init().empty() ? "mvs" : c.init();
+  if (init == "points") {
+    if (!has_points) return absl::InvalidArgumentError("config: init 'points' needs an uploaded point cloud");
+    o.init = "ply";
+    o.init_ply = points_file;
+  } else if (init == "mvs" || init == "sparse" || init == "random") {
+    o.init = init;
+  } else {
+    return absl::InvalidArgumentError(absl::StrCat("config: unknown init '", init, "' (mvs, sparse, random, points)"));
+  }
+  if (c.random_points() < 0) return absl::InvalidArgumentError("config: random_points must not be negative");
+  if (c.random_points() > 0) o.random_points = c.random_points();
+  GAPS_ASSIGN_OR_RETURN(o.variant, parse_variant(c.variant().empty() ? "full" : c.variant()));
+  try {
+    o.config = rpc::present_fields(c.training()).get<TrainConfig>();
+    o.gaps = rpc::present_fields(c.gaps()).get<GapsConfig>();
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat("config: ", e.what()));
+  }
+  if (o.config.iterations <= 0) return absl::InvalidArgumentError("config: iterations must be positive");
+  if (c.gaps().has_n_active()) {
+    if (c.gaps().n_active() <= 0) return absl::InvalidArgumentError("config: n_active must be positive");
+    o.n_active = c.gaps().n_active();
+  }
+  return o;
+}
+
+}  // namespace gaps

@@ -1,0 +1,195 @@
+#include "server/remote_generator.h"
+
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "grpc/health/v1/health.grpc.pb.h"
+#include "gs_trainer/status_macros.h"
+#include "rpc/codec.h"
+#include "rpc/generation_codec.h"
+
+namespace gaps {
+
+struct RemoteGenerator::Worker {
+  std::string address;
+  std::shared_ptr<grpc::Channel> channel;
+  std::unique_ptr<v1::DiffusionWorker::Stub> stub;
+  std::unique_ptr<grpc::health::v1::Health::Stub> health;
+  bool healthy = true;  // optimistic until a call fails
+  bool probed = false;  // a health check and GetInfo succeeded once
+  std::chrono::steady_clock::time_point failed_at;
+  std::string last_error;
+  std::string scene_handle;
+  uint64_t adapted_version = 0;  // views_version_ the handle belongs to
+};
+
+namespace {
+
+bool retryable(absl::StatusCode code) {
+  return code == absl::StatusCode::kUnavailable || code == absl::StatusCode::kDeadlineExceeded ||
+         code == absl::StatusCode::kResourceExhausted || code == absl::StatusCode::kAborted ||
+         code == absl::StatusCode::kCancelled;
+}
+
+}  // namespace
+
+RemoteGenerator::RemoteGenerator(WorkerPoolOptions options) : options_(std::move(options)) {}
+RemoteGenerator::~RemoteGenerator() = default;
+
+absl::StatusOr<std::unique_ptr<RemoteGenerator>> RemoteGenerator::create(WorkerPoolOptions options) {
+  if (options.addresses.empty()) return absl::InvalidArgumentError("the worker pool needs at least one address");
+  if (options.max_rounds < 1) return absl::InvalidArgumentError("max_rounds must be at least 1");
+  std::unique_ptr<RemoteGenerator> g(new RemoteGenerator(std::move(options)));
+  for (const auto& address : g->options_.addresses) {
+    auto w = std::make_unique<Worker>();
+    w->address = address;
+    GAPS_ASSIGN_OR_RETURN(w->channel, rpc::make_channel(address, g->options_.security));
+    w->stub = v1::DiffusionWorker::NewStub(w->channel);
+    w->health = grpc::health::v1::Health::NewStub(w->channel);
+    g->workers_.push_back(std::move(w));
+  }
+  return g;
+}
+
+std::string RemoteGenerator::name() const {
+  std::lock_guard<std::mutex> lock(name_mutex_);
+  return backend_version_.empty() ? "remote (no worker reached yet)" : "remote " + backend_version_;
+}
+
+void RemoteGenerator::mark_failed(Worker& w) {
+  w.healthy = false;
+  w.failed_at = std::chrono::steady_clock::now();
+  w.scene_handle.clear();  // a restarted worker forgot its scenes
+}
+
+absl::Status RemoteGenerator::probe(Worker& w) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.probe_timeout);
+  grpc::health::v1::HealthCheckRequest request;
+  grpc::health::v1::HealthCheckResponse response;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(w.health->Check(&context, request, &response), w.address + " health check"));
+  if (response.status() != grpc::health::v1::HealthCheckResponse::SERVING)
+    return absl::UnavailableError(absl::StrCat(w.address, " is not serving"));
+  // Learn the backend's identity (and check the token) before relying on the worker.
+  grpc::ClientContext info_context;
+  info_context.set_deadline(std::chrono::system_clock::now() + options_.probe_timeout);
+  rpc::attach_token(info_context, options_.security.token);
+  v1::WorkerInfo info;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(w.stub->GetInfo(&info_context, v1::GetInfoRequest(), &info), w.address + " GetInfo"));
+  std::lock_guard<std::mutex> lock(name_mutex_);
+  backend_version_ = info.backend_version();
+  return absl::OkStatus();
+}
+
+bool RemoteGenerator::usable(Worker& w) {
+  if (w.healthy && w.probed) return true;
+  if (!w.healthy && std::chrono::steady_clock::now() - w.failed_at < options_.failure_cooldown) return false;
+  const absl::Status st = probe(w);
+  if (!st.ok()) {
+    w.last_error = std::string(st.message());
+    mark_failed(w);
+    return false;
+  }
+  w.healthy = true;
+  w.probed = true;
+  return true;
+}
+
+absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views) {
+  views_ = views;
+  ++views_version_;
+  return absl::OkStatus();
+}
+
+absl::Status RemoteGenerator::adapt_on(Worker& w) {
+  if (views_.empty() || w.adapted_version == views_version_) return absl::OkStatus();
+  v1::AdaptSceneBatch batch;
+  batch.set_scene_id(options_.scene_id);
+  for (const auto& v : views_) rpc::encode_reference(v, batch.add_references());
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
+  rpc::attach_token(context, options_.security.token);
+  auto stream = w.stub->AdaptScene(&context);
+  rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
+  stream->WritesDone();
+  v1::AdaptSceneProgress progress;
+  std::string handle;
+  while (stream->Read(&progress))
+    if (!progress.scene_handle().empty()) handle = progress.scene_handle();
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " AdaptScene"));
+  if (handle.empty()) return absl::InternalError(absl::StrCat(w.address, " AdaptScene returned no scene handle"));
+  w.scene_handle = handle;
+  w.adapted_version = views_version_;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, const v1::GenerateBatch& batch,
+                                                                      size_t count) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
+  rpc::attach_token(context, options_.security.token);
+  auto stream = w.stub->Generate(&context);
+  v1::GenerateBatch with_handle;
+  const v1::GenerateBatch* to_send = &batch;
+  if (!w.scene_handle.empty()) {
+    with_handle = batch;
+    with_handle.set_scene_handle(w.scene_handle);
+    to_send = &with_handle;
+  }
+  rpc::write_chunked(*to_send, [&](const v1::Chunk& c) { return stream->Write(c); });
+  stream->WritesDone();
+  v1::GenerateResult result;
+  const absl::Status read = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " Generate"));
+  GAPS_RETURN_IF_ERROR(read);
+  if (static_cast<size_t>(result.images_size()) != count)
+    return absl::InternalError(absl::StrCat(w.address, " returned ", result.images_size(), " images for ", count, " poses"));
+  std::vector<at::Tensor> images;
+  for (int k = 0; k < result.images_size(); ++k) {
+    const auto& pose = batch.poses(k).camera();
+    GAPS_ASSIGN_OR_RETURN(at::Tensor image,
+                          rpc::decode_tensor_shaped(result.images(k), {pose.height(), pose.width(), 3},
+                                                    absl::StrCat(w.address, " image ", k)));
+    images.push_back(std::move(image));
+  }
+  return images;
+}
+
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vector<GenerationRequest>& requests) {
+  if (requests.empty()) return std::vector<at::Tensor>{};
+  v1::GenerateBatch batch;
+  rpc::encode_generation_batch(requests, &batch);
+  auto backoff = options_.backoff_initial;
+  for (int round = 0; round < options_.max_rounds; ++round) {
+    for (size_t k = 0; k < workers_.size(); ++k) {
+      Worker& w = *workers_[(next_ + k) % workers_.size()];
+      if (!usable(w)) continue;
+      absl::Status st = adapt_on(w);
+      if (st.ok()) {
+        auto images = generate_on(w, batch, requests.size());
+        if (images.ok()) {
+          next_ = (next_ + k + 1) % workers_.size();
+          return images;
+        }
+        st = images.status();
+      }
+      if (!retryable(st.code())) return st;  // the request itself is at fault: another worker won't help
+      w.last_error = std::string(st.message());
+      mark_failed(w);
+    }
+    if (round + 1 < options_.max_rounds) {
+      std::this_thread::sleep_for(backoff);
+      backoff = std::min(backoff * 2, options_.backoff_max);
+      // After a full failed pass, give every worker another chance at the next probe.
+      for (auto& w : workers_) w->failed_at = {};
+    }
+  }
+  std::vector<std::string> reasons;
+  for (const auto& w : workers_)
+    reasons.push_back(absl::StrCat(w->address, ": ", w->last_error.empty() ? "not reached" : w->last_error));
+  return absl::UnavailableError(absl::StrCat("no diffusion worker answered after ", options_.max_rounds,
+                                             " rounds (", absl::StrJoin(reasons, "; "), ")"));
+}
+
+}  // namespace gaps

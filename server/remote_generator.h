@@ -1,0 +1,62 @@
+#pragma once
+// A gaps::Generator that asks diffusion workers (gaps-worker) over gRPC. It spreads calls over a pool of
+// worker addresses, skips workers that failed recently until a health check passes again, retries with
+// exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
+// return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps_training.h).
+#include <chrono>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "gaps/v1/diffusion_worker.grpc.pb.h"
+#include "gaps/v1/diffusion_worker.pb.h"
+#include "gs_trainer/generator.h"
+#include "rpc/security.h"
+
+namespace gaps {
+
+struct WorkerPoolOptions {
+  std::vector<std::string> addresses;
+  rpc::ClientSecurity security;
+  std::chrono::milliseconds generate_timeout{300000};  // per Generate / AdaptScene call
+  std::chrono::milliseconds probe_timeout{2000};       // per health check
+  int max_rounds = 3;                                  // passes over the pool before giving up
+  std::chrono::milliseconds backoff_initial{200};      // wait after a failed pass, doubled each pass
+  std::chrono::milliseconds backoff_max{5000};
+  // A worker that failed is not called again before this long, unless a health check says it is back.
+  std::chrono::milliseconds failure_cooldown{10000};
+  std::string scene_id;  // passed to AdaptScene (e.g. the job id)
+};
+
+class RemoteGenerator final : public Generator {
+ public:
+  static absl::StatusOr<std::unique_ptr<RemoteGenerator>> create(WorkerPoolOptions options);
+  ~RemoteGenerator() override;
+
+  // "remote <backend version>" once a worker answered GetInfo, else "remote (no worker reached yet)".
+  std::string name() const override;
+  // Remembers the views; each worker is adapted on its first Generate call.
+  absl::Status adapt(const std::vector<ReferenceView>& views) override;
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
+
+ private:
+  struct Worker;
+  explicit RemoteGenerator(WorkerPoolOptions options);
+  // True when the worker may be called now (healthy, or its cooldown passed and a probe succeeded).
+  bool usable(Worker& worker);
+  absl::Status probe(Worker& worker);
+  absl::Status adapt_on(Worker& worker);
+  absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const v1::GenerateBatch& batch, size_t count);
+  void mark_failed(Worker& worker);
+
+  WorkerPoolOptions options_;
+  std::vector<std::unique_ptr<Worker>> workers_;
+  size_t next_ = 0;  // round-robin start
+  std::vector<ReferenceView> views_;
+  uint64_t views_version_ = 0;
+  mutable std::mutex name_mutex_;
+  std::string backend_version_;
+};
+
+}  // namespace gaps

@@ -1,0 +1,99 @@
+// gaps-trainer: the training service (gaps.v1.Trainer) with its job queue and SQLite job store.
+//   gaps-trainer --listen 127.0.0.1:50051 --workers 127.0.0.1:50052[,ADDR...] --data_dir DIR --device cpu|cuda:0
+//                [--concurrency N] [--token_file F] [--tls_cert F --tls_key F]
+//                [--worker_token_file F] [--worker_tls_ca F]
+// SIGTERM/SIGINT: running jobs stop at their next iteration and stay RUNNING in the store; the next
+// trainer started on the same data folder runs them again.
+#include <atomic>
+#include <csignal>
+#include <iostream>
+#include <thread>
+
+#include <ATen/Context.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include "absl/flags/flag.h"
+#include "absl/flags/parse.h"
+#include "absl/flags/usage.h"
+#include "absl/strings/str_split.h"
+#include "rpc/security.h"
+#include "server/trainer_service.h"
+
+ABSL_FLAG(std::string, listen, "127.0.0.1:50051", "address to serve on (a bare port binds 127.0.0.1)");
+ABSL_FLAG(std::string, workers, "", "comma-separated diffusion worker addresses (needed by the method variants)");
+ABSL_FLAG(std::string, data_dir, "gaps-trainer-data", "folder of the job database, uploaded scenes and outputs");
+ABSL_FLAG(std::string, device, "cpu", "training device (cpu, cuda, cuda:N)");
+ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
+ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
+ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
+ABSL_FLAG(std::string, tls_key, "", "PEM private key");
+ABSL_FLAG(std::string, worker_token_file, "", "token sent to the workers (default: the trainer's own token)");
+ABSL_FLAG(std::string, worker_tls_ca, "", "CA certificate of the workers' TLS (default: plaintext)");
+ABSL_FLAG(std::string, worker_tls_server_name, "", "name the workers' certificates are checked against");
+ABSL_FLAG(int, worker_timeout_s, 300, "deadline of each generation call");
+ABSL_FLAG(int, worker_rounds, 3, "passes over the worker pool (with backoff) before a phase is skipped");
+ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
+
+namespace {
+
+std::atomic<bool> g_stop{false};
+void on_signal(int) { g_stop = true; }
+
+int fail(const std::string& message) {
+  std::cerr << "gaps-trainer: " << message << "\n";
+  return 2;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  absl::SetProgramUsageMessage("gaps-trainer --listen ADDR --workers ADDR[,ADDR...] --data_dir DIR --device DEV");
+  absl::ParseCommandLine(argc, argv);
+  const std::string device = absl::GetFlag(FLAGS_device);
+  if (at::Device(device).is_cuda() && !at::hasCUDA()) return fail("--device " + device + ": no CUDA device available");
+  auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
+  if (!token.ok()) return fail(std::string(token.status().message()));
+  std::string worker_token = *token;
+  if (!absl::GetFlag(FLAGS_worker_token_file).empty()) {
+    auto t = gaps::rpc::load_token(absl::GetFlag(FLAGS_worker_token_file));
+    if (!t.ok()) return fail(std::string(t.status().message()));
+    worker_token = *t;
+  }
+  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key)};
+  auto credentials = gaps::rpc::server_credentials(security);
+  if (!credentials.ok()) return fail(std::string(credentials.status().message()));
+
+  gaps::TrainerServiceOptions options;
+  options.data_dir = absl::GetFlag(FLAGS_data_dir);
+  options.device = device;
+  options.concurrency = absl::GetFlag(FLAGS_concurrency);
+  options.token = *token;
+  options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
+  for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
+    options.workers.addresses.emplace_back(a);
+  options.workers.security = {worker_token, absl::GetFlag(FLAGS_worker_tls_ca), absl::GetFlag(FLAGS_worker_tls_server_name)};
+  options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));
+  options.workers.max_rounds = absl::GetFlag(FLAGS_worker_rounds);
+  auto service = gaps::TrainerService::create(options);
+  if (!service.ok()) return fail(std::string(service.status().message()));
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::ServerBuilder builder;
+  const std::string address = gaps::rpc::listen_address(absl::GetFlag(FLAGS_listen));
+  int port = 0;
+  builder.AddListeningPort(address, *credentials, &port);
+  builder.RegisterService(service->get());
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  if (!server || port == 0) return fail("cannot listen on " + address);
+  if (auto st = (*service)->start(); !st.ok()) return fail(std::string(st.message()));
+  std::signal(SIGTERM, on_signal);
+  std::signal(SIGINT, on_signal);
+  std::cout << "gaps-trainer: serving on port " << port << " (device " << device << ", "
+            << options.workers.addresses.size() << " worker address(es))" << (security.tls_cert.empty() ? "" : " (TLS)")
+            << (security.token.empty() ? "" : " (token required)") << std::endl;
+  while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  std::cout << "gaps-trainer: stopping; running jobs resume when a trainer starts on " << options.data_dir << std::endl;
+  (*service)->shutdown();
+  server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  return 0;
+}

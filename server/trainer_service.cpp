@@ -1,0 +1,444 @@
+#include "server/trainer_service.h"
+
+#include <algorithm>
+#include <chrono>
+#include <fstream>
+#include <iostream>
+#include <random>
+
+#include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
+#include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "gs_trainer/gaussians.h"
+#include "gs_trainer/io_util.h"
+#include "gs_trainer/pipeline.h"
+#include "gs_trainer/render.h"
+#include "gs_trainer/status_macros.h"
+#include "rpc/codec.h"
+#include "rpc/security.h"
+#include "server/job_config.h"
+#include "server/scene_upload.h"
+
+namespace gaps {
+namespace {
+
+namespace fs = std::filesystem;
+
+double now_seconds() {
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+}
+
+std::string new_job_id() {
+  static std::mt19937_64 rng(std::random_device{}());
+  static std::mutex mutex;
+  std::lock_guard<std::mutex> lock(mutex);
+  return absl::StrFormat("job-%012x", rng() & 0xffffffffffffULL);
+}
+
+bool terminal(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
+
+v1::JobEvent event_for(const std::string& job_id) {
+  v1::JobEvent e;
+  e.set_job_id(job_id);
+  e.set_time(now_seconds());
+  return e;
+}
+
+v1::PhaseEvent phase_event(const nlohmann::json& entry) {
+  v1::PhaseEvent p;
+  p.set_phase(entry.value("phase", -1));
+  p.set_iteration(entry.value("iteration", 0));
+  if (entry.contains("selection")) p.set_selected(static_cast<int>(entry["selection"].size()));
+  p.set_admitted(entry.value("admitted", 0));
+  p.set_skipped(entry.value("skipped", false));
+  p.set_skip_reason(entry.value("skip_reason", std::string()));
+  p.set_details_json(entry.dump());
+  return p;
+}
+
+std::vector<JobStore::Artifact> list_artifacts(const fs::path& out_dir) {
+  std::vector<JobStore::Artifact> out;
+  std::error_code ec;
+  for (auto it = fs::recursive_directory_iterator(out_dir, ec); !ec && it != fs::recursive_directory_iterator();
+       it.increment(ec)) {
+    if (!it->is_regular_file()) continue;
+    out.push_back({fs::relative(it->path(), out_dir).generic_string(), static_cast<int64_t>(it->file_size())});
+  }
+  std::sort(out.begin(), out.end(), [](const auto& a, const auto& b) { return a.path < b.path; });
+  return out;
+}
+
+// std::filesystem::remove_all is interposed by libtorch.so's own copy and crashes; one entry at a time.
+void remove_tree(const fs::path& dir) {
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec)) return;
+  for (const auto& entry : fs::directory_iterator(dir, ec)) {
+    if (entry.is_directory(ec)) remove_tree(entry.path());
+    fs::remove(entry.path(), ec);
+  }
+  fs::remove(dir, ec);
+}
+
+}  // namespace
+
+TrainerService::TrainerService(TrainerServiceOptions options, std::unique_ptr<JobStore> store)
+    : options_(std::move(options)), store_(std::move(store)) {}
+
+TrainerService::~TrainerService() { shutdown(); }
+
+absl::StatusOr<std::unique_ptr<TrainerService>> TrainerService::create(TrainerServiceOptions options) {
+  if (options.data_dir.empty()) return absl::InvalidArgumentError("the trainer needs a data folder");
+  if (options.concurrency < 1) return absl::InvalidArgumentError("concurrency must be at least 1");
+  std::error_code ec;
+  fs::create_directories(options.data_dir / "jobs", ec);
+  if (ec) return absl::PermissionDeniedError(absl::StrCat(options.data_dir.string(), ": ", ec.message()));
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<JobStore> store, JobStore::open(options.data_dir / "jobs.db"));
+  return std::unique_ptr<TrainerService>(new TrainerService(std::move(options), std::move(store)));
+}
+
+fs::path TrainerService::job_dir(const std::string& job_id) const { return options_.data_dir / "jobs" / job_id; }
+
+absl::Status TrainerService::start() {
+  // Jobs another process left behind: running ones go on from their checkpoint (counted as a resume),
+  // queued ones wait.
+  for (v1::JobState state : {v1::RUNNING, v1::QUEUED}) {
+    GAPS_ASSIGN_OR_RETURN(std::vector<v1::JobStatus> jobs, store_->in_state(state));
+    for (v1::JobStatus& job : jobs) {
+      if (state == v1::RUNNING) {
+        job.set_resumes(job.resumes() + 1);
+        job.set_state(v1::QUEUED);
+        GAPS_RETURN_IF_ERROR(store_->update(job));
+        v1::JobEvent e = event_for(job.job_id());
+        e.set_log(absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from "
+                               "the start without one (resume ", job.resumes(), ")"));
+        publish(e);
+      }
+      enqueue(job.job_id());
+    }
+  }
+  for (int i = 0; i < options_.concurrency; ++i) threads_.emplace_back([this] { job_loop(); });
+  return absl::OkStatus();
+}
+
+void TrainerService::shutdown() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (stopping_) return;
+    stopping_ = true;
+  }
+  stop_training_ = true;
+  queue_changed_.notify_all();
+  events_changed_.notify_all();
+  for (auto& t : threads_) t.join();
+  threads_.clear();
+}
+
+void TrainerService::enqueue(const std::string& job_id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  cancel_flags_[job_id] = std::make_shared<std::atomic<bool>>(false);
+  queue_.push_back(job_id);
+  queue_changed_.notify_one();
+}
+
+void TrainerService::publish(v1::JobEvent event) {
+  const absl::StatusOr<int64_t> seq = store_->append_event(event);
+  if (!seq.ok()) std::cerr << "gaps-trainer: cannot record an event of " << event.job_id() << ": " << seq.status() << "\n";
+  events_changed_.notify_all();
+}
+
+void TrainerService::job_loop() {
+  while (true) {
+    std::string job_id;
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      queue_changed_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      if (stopping_) return;
+      job_id = queue_.front();
+      queue_.pop_front();
+    }
+    run_job(job_id);
+  }
+}
+
+void TrainerService::run_job(const std::string& job_id) {
+  std::shared_ptr<std::atomic<bool>> cancelled;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    cancelled = cancel_flags_[job_id];
+  }
+  absl::StatusOr<v1::JobStatus> status = store_->get(job_id);
+  if (!status.ok() || terminal(status->state())) return;  // cancelled while queued
+  status->set_state(v1::RUNNING);
+  status->set_started_at(now_seconds());
+  (void)store_->update(*status);
+  v1::JobEvent started = event_for(job_id);
+  started.set_state_changed(v1::RUNNING);
+  publish(started);
+
+  v1::JobStatus final_status = train(*status, *cancelled);
+  if (!terminal(final_status.state())) {  // interrupted by shutdown: stays RUNNING for the next process
+    (void)store_->update(final_status);
+    return;
+  }
+  final_status.set_finished_at(now_seconds());
+  const auto artifacts = list_artifacts(job_dir(job_id) / "out");
+  for (const auto& a : artifacts) final_status.add_artifacts(a.path);
+  (void)store_->set_artifacts(job_id, artifacts);
+  (void)store_->update(final_status);
+  v1::JobEvent done = event_for(job_id);
+  if (final_status.state() == v1::SUCCEEDED) *done.mutable_finished() = final_status;
+  else if (final_status.state() == v1::CANCELLED) *done.mutable_cancelled() = final_status;
+  else *done.mutable_failed() = final_status;
+  publish(done);
+  std::lock_guard<std::mutex> lock(mutex_);
+  cancel_flags_.erase(job_id);
+}
+
+v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool>& cancelled) {
+  const std::string job_id = status.job_id();
+  const fs::path dir = job_dir(job_id);
+  const auto fail = [&](const absl::Status& error) {
+    status.set_state(v1::FAILED);
+    status.set_error(std::string(error.message()));
+    return status;
+  };
+  absl::StatusOr<v1::JobSpec> spec = store_->spec(job_id);
+  if (!spec.ok()) return fail(spec.status());
+  absl::StatusOr<RunOptions> options = run_options_from_proto(spec->config(), spec->has_points(), dir / "scene" / "points.ply");
+  if (!options.ok()) return fail(options.status());
+  RunOptions& o = *options;
+  o.scene_dir = dir / "scene";
+  o.out_dir = dir / "out";
+  o.config.device = options_.device;
+  o.init_cache_dir = options_.data_dir / "init_cache";
+  std::unique_ptr<RemoteGenerator> generator;
+  if (o.variant != Variant::kVanilla) {
+    if (options_.workers.addresses.empty())
+      return fail(absl::FailedPreconditionError(absl::StrCat("variant ", variant_name(o.variant),
+                                                             " needs diffusion workers (start the trainer with --workers)")));
+    WorkerPoolOptions pool = options_.workers;
+    pool.scene_id = job_id;
+    absl::StatusOr<std::unique_ptr<RemoteGenerator>> made = RemoteGenerator::create(pool);
+    if (!made.ok()) return fail(made.status());
+    generator = std::move(*made);
+    o.generator = generator.get();
+  }
+  o.checkpoint_dir = dir / "checkpoint";
+  o.on_checkpoint = [&](int iteration) {
+    v1::JobEvent e = event_for(job_id);
+    e.set_checkpoint_written(iteration);
+    publish(e);
+  };
+  o.should_stop = [&] { return cancelled.load() || stop_training_.load(); };
+  o.on_phase = [&](const std::string& what, const nlohmann::json& entry) {
+    v1::JobEvent e = event_for(job_id);
+    if (what == "started") *e.mutable_phase_started() = phase_event(entry);
+    else *e.mutable_phase_finished() = phase_event(entry);
+    publish(e);
+    if (what == "skipped") {
+      v1::JobEvent warning = event_for(job_id);
+      warning.set_log(absl::StrCat("warning: diffusion phase ", entry.value("phase", -1),
+                                   " skipped, training continues: ", entry.value("skip_reason", std::string())));
+      publish(warning);
+    }
+  };
+  const auto on_progress = [&](const TrainProgress& p) {
+    v1::JobEvent e = event_for(job_id);
+    v1::Progress* q = e.mutable_progress();
+    q->set_iteration(p.iteration);
+    q->set_iterations(p.iterations);
+    q->set_loss(p.loss);
+    q->set_num_gaussians(p.num_gaussians);
+    q->set_iterations_per_second(p.iterations_per_second);
+    q->set_elapsed_seconds(p.elapsed_seconds);
+    publish(e);
+    status.set_iteration(p.iteration);
+    status.set_iterations(p.iterations);
+    status.set_num_gaussians(p.num_gaussians);
+    (void)store_->update(status);
+  };
+  const auto log = [&](const std::string& line) {
+    v1::JobEvent e = event_for(job_id);
+    e.set_log(line);
+    publish(e);
+  };
+  absl::StatusOr<RunResult> result = run_pipeline(o, on_progress, log);
+  if (result.ok()) {
+    status.set_state(v1::SUCCEEDED);
+    status.set_psnr(result->metrics.psnr);
+    status.set_ssim(result->metrics.ssim);
+    status.set_num_gaussians(result->num_gaussians);
+    return status;
+  }
+  if (result.status().code() == absl::StatusCode::kCancelled) {
+    if (cancelled) {
+      status.set_state(v1::CANCELLED);
+      status.set_error(absl::StrCat("cancelled: ", result.status().message()));
+    } else {
+      status.set_state(v1::RUNNING);  // shutdown: left for the next process
+    }
+    return status;
+  }
+  return fail(result.status());
+}
+
+grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::ServerReader<v1::SubmitJobRequest>* reader,
+                                       v1::SubmitJobResponse* response) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  v1::SubmitJobRequest part;
+  if (!reader->Read(&part) || !part.has_spec())
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "SubmitJob's first message must carry the JobSpec");
+  SceneUpload upload;
+  upload.spec = part.spec();
+  UploadAssembler assembler(&upload, options_.max_upload_bytes);
+  while (reader->Read(&part)) {
+    if (!part.has_file()) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only file chunks may follow the JobSpec");
+    if (auto st = assembler.add(part.file()); !st.ok()) return rpc::to_grpc(st);
+  }
+  if (auto st = assembler.finish(); !st.ok()) return rpc::to_grpc(st);
+  const std::string job_id = new_job_id();
+  const fs::path dir = job_dir(job_id);
+  if (auto st = write_uploaded_scene(upload, dir / "scene"); !st.ok()) {
+    remove_tree(dir);
+    return rpc::to_grpc(st);
+  }
+  v1::JobStatus status;
+  status.set_job_id(job_id);
+  status.set_name(upload.spec.name());
+  status.set_state(v1::QUEUED);
+  status.set_submitted_at(now_seconds());
+  absl::StatusOr<RunOptions> o = run_options_from_proto(upload.spec.config(), upload.spec.has_points(), "");
+  status.set_iterations(o.ok() ? o->config.iterations : 0);
+  v1::JobSpec stored = upload.spec;  // images live in the scene folder, not in the database
+  if (auto st = store_->insert(status, stored); !st.ok()) return rpc::to_grpc(st);
+  v1::JobEvent queued = event_for(job_id);
+  queued.set_state_changed(v1::QUEUED);
+  publish(queued);
+  enqueue(job_id);
+  response->set_job_id(job_id);
+  return grpc::Status::OK;
+}
+
+grpc::Status TrainerService::WatchJob(grpc::ServerContext* context, const v1::WatchJobRequest* request,
+                                      grpc::ServerWriter<v1::JobEvent>* writer) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  if (auto job = store_->get(request->job_id()); !job.ok()) return rpc::to_grpc(job.status());
+  int64_t next = std::max<int64_t>(0, request->from_sequence());
+  while (!context->IsCancelled()) {
+    absl::StatusOr<std::vector<v1::JobEvent>> events = store_->events(request->job_id(), next);
+    if (!events.ok()) return rpc::to_grpc(events.status());
+    for (const auto& e : *events) {
+      if (!writer->Write(e)) return grpc::Status(grpc::StatusCode::CANCELLED, "watcher went away");
+      next = e.sequence() + 1;
+      if (e.has_finished() || e.has_failed() || e.has_cancelled()) return grpc::Status::OK;
+    }
+    std::unique_lock<std::mutex> lock(mutex_);
+    if (stopping_) return grpc::Status(grpc::StatusCode::UNAVAILABLE, "trainer shutting down");
+    events_changed_.wait_for(lock, std::chrono::milliseconds(250));
+  }
+  return grpc::Status(grpc::StatusCode::CANCELLED, "watcher went away");
+}
+
+grpc::Status TrainerService::GetJob(grpc::ServerContext* context, const v1::GetJobRequest* request,
+                                    v1::JobStatus* response) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
+  if (!job.ok()) return rpc::to_grpc(job.status());
+  *response = *job;
+  return grpc::Status::OK;
+}
+
+grpc::Status TrainerService::ListJobs(grpc::ServerContext* context, const v1::ListJobsRequest*,
+                                      v1::ListJobsResponse* response) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  absl::StatusOr<std::vector<v1::JobStatus>> jobs = store_->list();
+  if (!jobs.ok()) return rpc::to_grpc(jobs.status());
+  for (auto& j : *jobs) *response->add_jobs() = std::move(j);
+  return grpc::Status::OK;
+}
+
+grpc::Status TrainerService::CancelJob(grpc::ServerContext* context, const v1::CancelJobRequest* request,
+                                       v1::JobStatus* response) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
+  if (!job.ok()) return rpc::to_grpc(job.status());
+  if (terminal(job->state()))
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("job ", request->job_id(), " already ended (", v1::JobState_Name(job->state()), ")"));
+  bool queued = false;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (auto it = cancel_flags_.find(request->job_id()); it != cancel_flags_.end()) *it->second = true;
+    const auto pos = std::find(queue_.begin(), queue_.end(), request->job_id());
+    if (pos != queue_.end()) {
+      queue_.erase(pos);
+      cancel_flags_.erase(request->job_id());
+      queued = true;
+    }
+  }
+  if (queued) {  // never started: it ends here; a running job ends in its own thread at the next iteration
+    job->set_state(v1::CANCELLED);
+    job->set_error("cancelled before it started");
+    job->set_finished_at(now_seconds());
+    if (auto st = store_->update(*job); !st.ok()) return rpc::to_grpc(st);
+    v1::JobEvent e = event_for(job->job_id());
+    *e.mutable_cancelled() = *job;
+    publish(e);
+  }
+  *response = *job;
+  return grpc::Status::OK;
+}
+
+grpc::Status TrainerService::FetchArtifacts(grpc::ServerContext* context, const v1::FetchArtifactsRequest* request,
+                                            grpc::ServerWriter<v1::ArtifactChunk>* writer) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
+  if (!job.ok()) return rpc::to_grpc(job.status());
+  if (!terminal(job->state()))
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("job ", request->job_id(), " is ", v1::JobState_Name(job->state()),
+                                     "; artifacts are served once it ends"));
+  absl::StatusOr<std::vector<JobStore::Artifact>> artifacts = store_->artifacts(request->job_id());
+  if (!artifacts.ok()) return rpc::to_grpc(artifacts.status());
+  const fs::path out = job_dir(request->job_id()) / "out";
+  for (const auto& a : *artifacts) {
+    std::ifstream file(out / a.path, std::ios::binary);
+    if (!file) return grpc::Status(grpc::StatusCode::DATA_LOSS, absl::StrCat("artifact ", a.path, " is missing on disk"));
+    std::string buffer(rpc::kChunkBytes, '\0');
+    do {
+      file.read(buffer.data(), buffer.size());
+      v1::ArtifactChunk chunk;
+      chunk.set_path(a.path);
+      chunk.set_data(buffer.data(), file.gcount());
+      chunk.set_last(file.eof());
+      if (!writer->Write(chunk)) return grpc::Status(grpc::StatusCode::CANCELLED, "reader went away");
+    } while (!file.eof());
+  }
+  return grpc::Status::OK;
+}
+
+grpc::Status TrainerService::RenderView(grpc::ServerContext* context, const v1::RenderViewRequest* request,
+                                        v1::RenderViewResponse* response) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
+  if (!job.ok()) return rpc::to_grpc(job.status());
+  if (job->state() != v1::SUCCEEDED)
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, absl::StrCat("job ", request->job_id(), " has no finished model"));
+  absl::StatusOr<Camera> camera = rpc::decode_camera(request->camera(), "camera");
+  if (!camera.ok()) return rpc::to_grpc(camera.status());
+  absl::StatusOr<GaussianModel> model = load_gaussians_ply(job_dir(request->job_id()) / "out" / "point_cloud.ply");
+  if (!model.ok()) return rpc::to_grpc(model.status());
+  at::AutoGradMode no_grad(false);
+  const GaussianModel on_device = model->to(at::Device(options_.device));
+  absl::StatusOr<v1::JobSpec> spec = store_->spec(request->job_id());
+  if (!spec.ok()) return rpc::to_grpc(spec.status());
+  RenderOptions render_options;
+  const double background = spec->config().training().has_background() ? spec->config().training().background() : 0.0;
+  render_options.background = at::full({3}, background, on_device.means.options());
+  const at::Tensor rgb = render(on_device, *camera, render_options).rgb.clamp(0, 1).cpu();
+  return rpc::to_grpc(rpc::encode_png(rgb, response->mutable_image()));
+}
+
+}  // namespace gaps

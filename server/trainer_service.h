@@ -1,0 +1,80 @@
+#pragma once
+// The Trainer gRPC service: validates and stores uploaded scenes, runs training jobs from a queue with a
+// configurable number of concurrent jobs, records everything in the SQLite job store (so a restarted
+// trainer knows its jobs, replays their events and re-runs the ones that were running) and serves events,
+// artifacts and renders. Jobs of the method variants get pseudo-views from a pool of diffusion workers
+// (server/remote_generator.h); a phase no worker answers is skipped and reported, never fatal.
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "gaps/v1/trainer.grpc.pb.h"
+#include "server/job_store.h"
+#include "server/remote_generator.h"
+
+namespace gaps {
+
+struct TrainerServiceOptions {
+  std::filesystem::path data_dir;  // jobs.db, jobs/<id>/{scene,out}, the initialiser cache
+  std::string device = "cpu";      // training device of every job
+  int concurrency = 1;             // jobs trained at once
+  WorkerPoolOptions workers;       // diffusion workers (addresses may be empty: vanilla jobs only)
+  std::string token;               // required bearer token (empty: none)
+  uint64_t max_upload_bytes = uint64_t{8} << 30;
+};
+
+class TrainerService final : public v1::Trainer::Service {
+ public:
+  static absl::StatusOr<std::unique_ptr<TrainerService>> create(TrainerServiceOptions options);
+  ~TrainerService() override;
+
+  // Starts the job threads; jobs left RUNNING or QUEUED by a previous process are queued again.
+  absl::Status start();
+  // Stops taking jobs, interrupts running ones without marking them finished (they run again after a
+  // restart) and joins the threads.
+  void shutdown();
+
+  grpc::Status SubmitJob(grpc::ServerContext* context, grpc::ServerReader<v1::SubmitJobRequest>* reader,
+                         v1::SubmitJobResponse* response) override;
+  grpc::Status WatchJob(grpc::ServerContext* context, const v1::WatchJobRequest* request,
+                        grpc::ServerWriter<v1::JobEvent>* writer) override;
+  grpc::Status GetJob(grpc::ServerContext* context, const v1::GetJobRequest* request, v1::JobStatus* response) override;
+  grpc::Status ListJobs(grpc::ServerContext* context, const v1::ListJobsRequest* request,
+                        v1::ListJobsResponse* response) override;
+  grpc::Status CancelJob(grpc::ServerContext* context, const v1::CancelJobRequest* request,
+                         v1::JobStatus* response) override;
+  grpc::Status FetchArtifacts(grpc::ServerContext* context, const v1::FetchArtifactsRequest* request,
+                              grpc::ServerWriter<v1::ArtifactChunk>* writer) override;
+  grpc::Status RenderView(grpc::ServerContext* context, const v1::RenderViewRequest* request,
+                          v1::RenderViewResponse* response) override;
+
+ private:
+  TrainerService(TrainerServiceOptions options, std::unique_ptr<JobStore> store);
+  std::filesystem::path job_dir(const std::string& job_id) const;
+  void job_loop();
+  void run_job(const std::string& job_id);
+  // Runs the pipeline for a job; returns its final status (or the status to keep when shutting down).
+  v1::JobStatus train(v1::JobStatus status, const std::atomic<bool>& cancelled);
+  void publish(v1::JobEvent event);
+  void enqueue(const std::string& job_id);
+
+  TrainerServiceOptions options_;
+  std::unique_ptr<JobStore> store_;
+  std::mutex mutex_;
+  std::condition_variable queue_changed_;
+  std::condition_variable events_changed_;
+  std::deque<std::string> queue_;
+  std::map<std::string, std::shared_ptr<std::atomic<bool>>> cancel_flags_;  // queued and running jobs
+  bool stopping_ = false;
+  std::atomic<bool> stop_training_{false};
+  std::vector<std::thread> threads_;
+};
+
+}  // namespace gaps

@@ -1,0 +1,168 @@
+// Run control hooks used by the trainer service: a generator that cannot be reached skips diffusion
+// phases (reported to the phase observer) instead of failing the run, any other generator error still
+// fails it, should_stop ends a run with CANCELLED while keeping the model, and a stopped run resumes from
+// the checkpoint written at the start of its last diffusion phase.
+#include <fstream>
+
+#include <ATen/ATen.h>
+#include <gtest/gtest.h>
+
+#include "gs_trainer/io_util.h"
+#include "gs_trainer/pipeline.h"
+#include "gs_trainer/synthetic.h"
+#include "tests/test_util.h"
+
+namespace gaps {
+namespace {
+
+// Fails every call with the given status; counts the calls.
+class FailingGenerator : public Generator {
+ public:
+  explicit FailingGenerator(absl::Status error) : error_(std::move(error)) {}
+  std::string name() const override { return "failing (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>&) override {
+    ++calls;
+    return error_;
+  }
+  int calls = 0;
+
+ private:
+  absl::Status error_;
+};
+
+// Returns the render it was given: always admitted.
+class EchoGenerator : public Generator {
+ public:
+  std::string name() const override { return "echo (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    ++calls;
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back(r.render_rgb);
+    return out;
+  }
+  int calls = 0;
+};
+
+struct RunControlTest : test::TempDirTest {
+  RunOptions options(Generator* generator) {
+    RunOptions o;
+    o.scene_dir = dir_ / "scene";
+    o.out_dir = dir_ / "out";
+    o.views = 3;
+    o.resolution = 1;
+    o.init = "random";
+    o.random_points = 1000;
+    o.config.iterations = 70;
+    o.variant = generator ? Variant::kFull : Variant::kVanilla;
+    o.generator = generator;
+    o.gaps.warmup_iterations = 30;
+    o.gaps.phase_interval = 30;
+    o.n_active = 2;
+    o.save_renders = false;
+    return o;
+  }
+  void SetUp() override {
+    test::TempDirTest::SetUp();
+    SyntheticSceneOptions s;
+    s.width = 48;
+    s.height = 36;
+    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", s).ok());
+  }
+};
+
+TEST_F(RunControlTest, UnreachableGeneratorSkipsPhasesAndTrainingCompletes) {
+  FailingGenerator generator(absl::UnavailableError("no diffusion worker answered"));
+  RunOptions o = options(&generator);
+  std::vector<std::pair<std::string, nlohmann::json>> seen;
+  o.on_phase = [&](const std::string& what, const nlohmann::json& entry) { seen.emplace_back(what, entry); };
+  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(generator.calls, 2);  // phases at iterations 30 and 60
+  ASSERT_EQ(seen.size(), 4u);
+  for (int phase = 0; phase < 2; ++phase) {
+    EXPECT_EQ(seen[2 * phase].first, "started");
+    EXPECT_EQ(seen[2 * phase + 1].first, "skipped");
+    EXPECT_EQ(seen[2 * phase + 1].second["phase"], phase);
+    EXPECT_NE(seen[2 * phase + 1].second["skip_reason"].get<std::string>().find("no diffusion worker"), std::string::npos);
+  }
+  std::ifstream f(dir_ / "out" / "phases.json");
+  const auto phases = nlohmann::json::parse(f);
+  ASSERT_EQ(phases.size(), 2u);
+  for (const auto& p : phases) EXPECT_TRUE(p["skipped"].get<bool>());
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "metrics.json"));
+}
+
+TEST_F(RunControlTest, OtherGeneratorErrorsStillFailTheRun) {
+  FailingGenerator generator(absl::InternalError("backend crashed"));
+  auto r = run_pipeline(options(&generator), nullptr, [](const std::string&) {});
+  ASSERT_FALSE(r.ok());
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kInternal);
+}
+
+TEST_F(RunControlTest, ShouldStopCancelsAndKeepsTheModel) {
+  RunOptions o = options(nullptr);
+  int polls = 0;
+  o.should_stop = [&] { return ++polls > 25; };
+  int last_iteration = 0;
+  auto r = run_pipeline(o, [&](const TrainProgress& p) { last_iteration = p.iteration; }, [](const std::string&) {});
+  ASSERT_FALSE(r.ok());
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_LE(last_iteration, 25);
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "point_cloud.ply"));
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "out" / "metrics.json"));
+}
+
+TEST_F(RunControlTest, ARunStoppedAfterAPhaseResumesFromItsCheckpoint) {
+  EchoGenerator generator;
+  RunOptions o = options(&generator);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  std::vector<int> checkpoints;
+  o.on_checkpoint = [&](int iteration) { checkpoints.push_back(iteration); };
+  int polls = 0;
+  o.should_stop = [&] { return ++polls > 45; };
+  auto stopped = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
+  EXPECT_EQ(checkpoints, std::vector<int>{29});  // the start of phase 0, before iteration 30
+
+  o.should_stop = nullptr;
+  std::vector<std::string> log;
+  std::vector<int> reported;
+  auto resumed = run_pipeline(o, [&](const TrainProgress& p) { reported.push_back(p.iteration); },
+                              [&](const std::string& line) { log.push_back(line); });
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_NE(std::find(log.begin(), log.end(), "resumed from the checkpoint at iteration 29"), log.end());
+  ASSERT_FALSE(reported.empty());
+  EXPECT_EQ(reported.front(), 30);  // training went on from iteration 29
+  EXPECT_EQ(reported.back(), 70);
+  EXPECT_EQ(generator.calls, 1 + 2);  // phase 0 before the stop, then phases 0 (repeated) and 1
+  EXPECT_EQ(checkpoints, (std::vector<int>{29, 29, 59}));
+  std::ifstream f(dir_ / "out" / "phases.json");
+  const auto phases = nlohmann::json::parse(f);
+  ASSERT_EQ(phases.size(), 2u);
+  EXPECT_EQ(phases[0]["phase"], 0);
+  EXPECT_EQ(phases[1]["phase"], 1);
+}
+
+TEST_F(RunControlTest, ACheckpointRestoresTheModelAndIteration) {
+  EchoGenerator generator;
+  RunOptions o = options(&generator);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  o.config.iterations = 40;  // one phase, at 30
+  ASSERT_TRUE(run_pipeline(o, nullptr, [](const std::string&) {}).ok());
+  auto state = read_file_bytes(dir_ / "checkpoint" / "state.json");
+  ASSERT_TRUE(state.ok());
+  const auto j = nlohmann::json::parse(*state);
+  EXPECT_EQ(j["iteration"], 29);
+  EXPECT_EQ(j["method"]["log"].size(), 0u);  // saved before phase 0 ran
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "checkpoint" / "model_means.npy"));
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "checkpoint.partial"));
+  std::filesystem::remove(dir_ / "checkpoint" / "model_means.npy");
+  auto broken = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_FALSE(broken.ok());
+  EXPECT_NE(broken.status().message().find("model_means"), std::string_view::npos) << broken.status();
+}
+
+}  // namespace
+}  // namespace gaps

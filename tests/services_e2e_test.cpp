@@ -1,0 +1,440 @@
+// The client-server system with real processes on loopback: gaps-worker and gaps-trainer are started on
+// free ports, scenes are submitted through the client library, events watched to the end and artifacts
+// fetched and checked. Faults: corrupt uploads, wrong tokens, a worker killed mid-job, a trainer killed
+// mid-job and restarted, cancellation.
+#include <fcntl.h>
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <regex>
+#include <thread>
+
+#include <ATen/ATen.h>
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+
+#include "client/remote_client.h"
+#include "gs_trainer/gaussians.h"
+#include "gs_trainer/image_io.h"
+#include "gs_trainer/synthetic.h"
+#include "rpc/config_codec.h"
+#include "tests/test_util.h"
+
+extern char** environ;
+
+namespace gaps {
+namespace {
+
+namespace fs = std::filesystem;
+
+// A child process whose output goes to a log file; killed (SIGKILL) when destroyed if still running.
+class Process {
+ public:
+  Process(const std::vector<std::string>& argv, const fs::path& log) : log_(log) {
+    posix_spawn_file_actions_t actions;
+    posix_spawn_file_actions_init(&actions);
+    posix_spawn_file_actions_addopen(&actions, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    posix_spawn_file_actions_adddup2(&actions, 1, 2);
+    std::vector<char*> args;
+    for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
+    args.push_back(nullptr);
+    if (posix_spawn(&pid_, args[0], &actions, nullptr, args.data(), environ) != 0) pid_ = -1;
+    posix_spawn_file_actions_destroy(&actions);
+  }
+  ~Process() { kill(SIGKILL); }
+  Process(const Process&) = delete;
+
+  // The port the service printed ("... port N"), or -1 when it exited or did not say within the timeout.
+  int wait_for_port(std::chrono::seconds timeout = std::chrono::seconds(60)) {
+    const auto end = std::chrono::steady_clock::now() + timeout;
+    const std::regex pattern("port ([0-9]+)");
+    while (std::chrono::steady_clock::now() < end && running()) {
+      std::smatch m;
+      const std::string text = log_text();
+      if (std::regex_search(text, m, pattern)) return std::stoi(m[1]);
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return -1;
+  }
+  bool running() {
+    if (pid_ <= 0) return false;
+    int status = 0;
+    if (waitpid(pid_, &status, WNOHANG) == pid_) pid_ = -1;
+    return pid_ > 0;
+  }
+  void kill(int signal) {
+    if (pid_ <= 0) return;
+    ::kill(pid_, signal);
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    pid_ = -1;
+  }
+  // Sends `signal` and waits up to `timeout` for the exit; returns the exit code (-1: killed or still running).
+  int stop(int signal, std::chrono::seconds timeout) {
+    if (pid_ <= 0) return -1;
+    ::kill(pid_, signal);
+    const auto end = std::chrono::steady_clock::now() + timeout;
+    while (std::chrono::steady_clock::now() < end) {
+      int status = 0;
+      if (waitpid(pid_, &status, WNOHANG) == pid_) {
+        pid_ = -1;
+        return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    return -1;
+  }
+  std::string log_text() const {
+    std::ifstream f(log_);
+    return std::string(std::istreambuf_iterator<char>(f), {});
+  }
+
+ private:
+  pid_t pid_ = -1;
+  fs::path log_;
+};
+
+struct Services : test::TempDirTest {
+  void SetUp() override {
+    test::TempDirTest::SetUp();
+    std::ofstream(dir_ / "token") << "e2e-secret-token\n";
+    std::ofstream(dir_ / "wrong_token") << "not-the-token\n";
+  }
+
+  std::unique_ptr<Process> start_worker() {
+    auto p = std::make_unique<Process>(std::vector<std::string>{GAPS_WORKER_BIN, "--listen", "127.0.0.1:0", "--backend",
+                                                                "reproject", "--token_file", (dir_ / "token").string()},
+                                       dir_ / "worker.log");
+    worker_port = p->wait_for_port();
+    return p;
+  }
+
+  std::unique_ptr<Process> start_trainer(const std::vector<std::string>& extra = {}) {
+    std::vector<std::string> argv = {GAPS_TRAINER_BIN, "--listen", "127.0.0.1:0", "--data_dir", (dir_ / "data").string(),
+                                     "--device", "cpu", "--token_file", (dir_ / "token").string(),
+                                     "--workers", "127.0.0.1:" + std::to_string(worker_port), "--worker_rounds", "2"};
+    argv.insert(argv.end(), extra.begin(), extra.end());
+    auto p = std::make_unique<Process>(argv, dir_ / ("trainer" + std::to_string(trainer_starts++) + ".log"));
+    trainer_port = p->wait_for_port();
+    return p;
+  }
+
+  client::TrainerClient connect(const std::string& token = "e2e-secret-token", const std::string& ca = "") {
+    auto c = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {token, ca, ca.empty() ? "" : "localhost"});
+    EXPECT_TRUE(c.ok());
+    return std::move(*c);
+  }
+
+  // A small synthetic scene for quick jobs.
+  client::PreparedScene synthetic_scene() {
+    SyntheticSceneOptions s;
+    s.images = 9;
+    s.width = 64;
+    s.height = 48;
+    EXPECT_TRUE(write_synthetic_scene(dir_ / "synthetic", s).ok());
+    auto scene = client::prepare_scene(dir_ / "synthetic", 1);
+    EXPECT_TRUE(scene.ok()) << scene.status();
+    return *scene;
+  }
+
+  static v1::JobSpec spec(const std::string& variant, int iterations, nlohmann::json gaps = nlohmann::json::object()) {
+    v1::JobSpec s;
+    s.set_name("test");
+    s.mutable_config()->set_views(3);
+    s.mutable_config()->set_init("random");
+    s.mutable_config()->set_random_points(1500);
+    s.mutable_config()->set_variant(variant);
+    s.mutable_config()->mutable_training()->set_iterations(iterations);
+    EXPECT_TRUE(rpc::set_fields(gaps, s.mutable_config()->mutable_gaps()).ok());
+    return s;
+  }
+
+  int worker_port = -1;
+  int trainer_port = -1;
+  int trainer_starts = 0;
+};
+
+struct Seen {
+  int progress = 0, phases_started = 0, phases_done = 0, phases_skipped = 0;
+  std::vector<std::string> logs;
+};
+
+void count(const v1::JobEvent& e, Seen& seen) {
+  seen.progress += e.has_progress();
+  seen.phases_started += e.has_phase_started();
+  if (e.has_phase_finished()) (e.phase_finished().skipped() ? seen.phases_skipped : seen.phases_done) += 1;
+  if (e.has_log()) seen.logs.push_back(e.log());
+}
+
+nlohmann::json read_json(const fs::path& p) {
+  std::ifstream f(p);
+  return nlohmann::json::parse(f);
+}
+
+bool have_openssl() { return std::system("openssl version > /dev/null 2>&1") == 0; }
+
+TEST_F(Services, FernThreeViewsThroughTlsWithTokenEndToEnd) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
+  if (!have_openssl()) GTEST_SKIP() << "openssl not found: no test certificate can be made";
+  const std::string make_cert = "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=localhost "
+                                "-addext subjectAltName=DNS:localhost -keyout " + (dir_ / "key.pem").string() +
+                                " -out " + (dir_ / "cert.pem").string() + " > /dev/null 2>&1";
+  ASSERT_EQ(std::system(make_cert.c_str()), 0);
+  auto worker = start_worker();
+  ASSERT_GT(worker_port, 0) << worker->log_text();
+  auto trainer = start_trainer({"--tls_cert", (dir_ / "cert.pem").string(), "--tls_key", (dir_ / "key.pem").string()});
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  const std::string ca = (dir_ / "cert.pem").string();
+
+  // Plaintext and wrong tokens are refused.
+  EXPECT_FALSE(connect("e2e-secret-token", "").list().ok());
+  const auto refused = connect("not-the-token", ca).list();
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnauthenticated) << refused.status();
+
+  client::TrainerClient client = connect("e2e-secret-token", ca);
+  auto scene = client::prepare_scene(fern, 8);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  v1::JobSpec s = spec("full", 300, {{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 2}});
+  s.set_name("fern");
+  s.mutable_config()->set_random_points(2500);
+  auto job = client.submit(s, *scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  Seen seen;
+  auto final_status = client.watch(*job, [&](const v1::JobEvent& e) { count(e, seen); });
+  ASSERT_TRUE(final_status.ok()) << final_status.status() << "\n" << trainer->log_text();
+  ASSERT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  EXPECT_EQ(seen.phases_started, 2);  // iterations 100 and 200
+  EXPECT_EQ(seen.phases_done, 2);
+  EXPECT_EQ(seen.phases_skipped, 0);
+  EXPECT_GE(seen.progress, 30);
+  EXPECT_EQ(final_status->iteration(), 300);
+
+  auto files = client.fetch(*job, dir_ / "fetched");
+  ASSERT_TRUE(files.ok()) << files.status();
+  auto model = load_gaussians_ply(dir_ / "fetched" / "point_cloud.ply");
+  ASSERT_TRUE(model.ok()) << model.status();
+  EXPECT_EQ(model->size(), final_status->num_gaussians());
+  const auto metrics = read_json(dir_ / "fetched" / "metrics.json");
+  EXPECT_GT(metrics["psnr"].get<double>(), 12.0);
+  EXPECT_NEAR(metrics["psnr"].get<double>(), final_status->psnr(), 1e-9);
+  EXPECT_EQ(metrics["variant"], "full");
+  EXPECT_EQ(metrics["iterations"], 300);
+  EXPECT_EQ(metrics["generator"].get<std::string>().rfind("remote reproject", 0), 0u) << metrics["generator"];
+  EXPECT_EQ(read_json(dir_ / "fetched" / "phases.json").size(), 2u);
+  EXPECT_TRUE(fs::exists(dir_ / "fetched" / "renders"));
+}
+
+TEST_F(Services, CorruptUploadsAndWrongTokensAreRefusedAndOtherJobsUntouched) {
+  auto worker = start_worker();
+  ASSERT_GT(worker_port, 0) << worker->log_text();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  client::TrainerClient client = connect();
+  const client::PreparedScene good = synthetic_scene();
+  auto kept = client.submit(spec("vanilla", 60), good);
+  ASSERT_TRUE(kept.ok()) << kept.status();
+
+  const auto expect_invalid = [&](const client::PreparedScene& scene, const std::string& needle) {
+    auto r = client.submit(spec("vanilla", 60), scene);
+    ASSERT_FALSE(r.ok());
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument) << r.status();
+    EXPECT_NE(r.status().message().find(needle), std::string_view::npos) << r.status();
+  };
+  client::PreparedScene bad = good;
+  bad.images[2] = "\x89PNG garbage";
+  expect_invalid(bad, "image 2");
+  bad = good;
+  bad.cameras.pop_back();
+  expect_invalid(bad, "camera count mismatch");
+  bad = good;
+  bad.cameras[5].set_translation(0, std::nan(""));
+  expect_invalid(bad, "camera 5");
+
+  const auto refused = connect("not-the-token").submit(spec("vanilla", 60), good);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kUnauthenticated) << refused.status();
+
+  auto jobs = client.list();
+  ASSERT_TRUE(jobs.ok());
+  ASSERT_EQ(jobs->size(), 1u);  // none of the refused uploads became a job
+  auto final_status = client.watch(*kept, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+}
+
+TEST_F(Services, KilledWorkerSkipsTheRemainingPhasesAndTheJobFinishes) {
+  auto worker = start_worker();
+  ASSERT_GT(worker_port, 0) << worker->log_text();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  client::TrainerClient client = connect();
+  auto job = client.submit(spec("full", 120, {{"warmup_iterations", 30}, {"phase_interval", 40}, {"n_active", 2}}),
+                           synthetic_scene());
+  ASSERT_TRUE(job.ok()) << job.status();
+  Seen seen;
+  auto final_status = client.watch(*job, [&](const v1::JobEvent& e) {
+    count(e, seen);
+    if (e.has_phase_finished() && e.phase_finished().phase() == 0) worker->kill(SIGKILL);
+  });
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  EXPECT_EQ(seen.phases_started, 3);  // iterations 30, 70, 110
+  EXPECT_EQ(seen.phases_done, 1);
+  EXPECT_EQ(seen.phases_skipped, 2);
+  const bool warned = std::any_of(seen.logs.begin(), seen.logs.end(), [](const std::string& l) {
+    return l.find("skipped, training continues") != std::string::npos;
+  });
+  EXPECT_TRUE(warned);
+}
+
+TEST_F(Services, KilledTrainerResumesItsJobFromTheCheckpointAfterRestart) {
+  auto worker = start_worker();
+  ASSERT_GT(worker_port, 0);
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  std::string job_id;
+  int checkpoint = -1;
+  {
+    client::TrainerClient client = connect();
+    auto job = client.submit(spec("full", 150, {{"warmup_iterations", 30}, {"phase_interval", 60}, {"n_active", 2}}),
+                             synthetic_scene());
+    ASSERT_TRUE(job.ok()) << job.status();
+    job_id = *job;
+    // Kill the trainer once a checkpoint exists and training went past it; the watch then ends early.
+    auto interrupted = client.watch(job_id, [&](const v1::JobEvent& e) {
+      if (e.has_checkpoint_written()) checkpoint = e.checkpoint_written();
+      if (e.has_progress() && checkpoint >= 0 && e.progress().iteration() >= 50) trainer->kill(SIGKILL);
+    });
+    EXPECT_FALSE(interrupted.ok());
+  }
+  ASSERT_EQ(checkpoint, 29);  // the start of phase 0, before iteration 30
+  trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  client::TrainerClient client = connect();
+  Seen seen;
+  int first_progress_after_resume = -1;
+  bool resumed = false;
+  auto final_status = client.watch(job_id, [&](const v1::JobEvent& e) {
+    count(e, seen);
+    if (e.has_log() && e.log() == "resumed from the checkpoint at iteration 29") resumed = true;
+    if (resumed && e.has_progress() && first_progress_after_resume < 0) first_progress_after_resume = e.progress().iteration();
+  });
+  ASSERT_TRUE(final_status.ok()) << final_status.status() << "\n" << trainer->log_text();
+  EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  EXPECT_EQ(final_status->resumes(), 1);
+  EXPECT_EQ(final_status->iteration(), 150);
+  EXPECT_TRUE(resumed);
+  EXPECT_EQ(first_progress_after_resume, 30);  // not from iteration 0
+}
+
+TEST_F(Services, SigtermStopsTheTrainerGracefullyAndTheJobRunsAgainOnRestart) {
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  std::string job_id;
+  int exit_code = -2;
+  {
+    client::TrainerClient client = connect();
+    auto job = client.submit(spec("vanilla", 120), synthetic_scene());
+    ASSERT_TRUE(job.ok()) << job.status();
+    job_id = *job;
+    auto interrupted = client.watch(job_id, [&](const v1::JobEvent& e) {
+      if (e.has_progress() && e.progress().iteration() >= 20 && exit_code == -2)
+        exit_code = trainer->stop(SIGTERM, std::chrono::seconds(30));
+    });
+    EXPECT_FALSE(interrupted.ok());
+  }
+  EXPECT_EQ(exit_code, 0) << trainer->log_text();
+  EXPECT_NE(trainer->log_text().find("running jobs resume"), std::string::npos) << trainer->log_text();
+  trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  auto final_status = connect().watch(job_id, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  EXPECT_EQ(final_status->resumes(), 1);
+}
+
+TEST_F(Services, CancelStopsARunningJob) {
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  client::TrainerClient client = connect();
+  auto job = client.submit(spec("vanilla", 1000000), synthetic_scene());
+  ASSERT_TRUE(job.ok()) << job.status();
+  bool cancel_sent = false;
+  auto final_status = client.watch(*job, [&](const v1::JobEvent& e) {
+    if (e.has_progress() && !cancel_sent) {
+      cancel_sent = true;
+      EXPECT_TRUE(client.cancel(*job).ok());
+    }
+  });
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_EQ(final_status->state(), v1::CANCELLED);
+  EXPECT_LT(final_status->iteration(), 1000000);
+  // Artifacts of a cancelled job: the model so far, no metrics.
+  auto files = client.fetch(*job, dir_ / "fetched");
+  ASSERT_TRUE(files.ok()) << files.status();
+  EXPECT_TRUE(fs::exists(dir_ / "fetched" / "point_cloud.ply"));
+  EXPECT_FALSE(fs::exists(dir_ / "fetched" / "metrics.json"));
+}
+
+// Runs a command line, returning its exit code and output.
+std::pair<int, std::string> run_command(const std::string& command) {
+  std::string output;
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
+  if (pipe == nullptr) return {-1, ""};
+  char buffer[4096];
+  while (size_t n = fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
+  const int status = pclose(pipe);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
+}
+
+TEST_F(Services, CommandLineSubmitWatchListFetch) {
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  synthetic_scene();
+  const std::string common = " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " +
+                             (dir_ / "token").string();
+  const std::string gaps = GAPS_CLI_BIN;
+  auto [code, out] = run_command(gaps + " submit " + (dir_ / "synthetic").string() +
+                                 " --views 3 --resolution 1 --iterations 40 --init random --random-points 500" + common);
+  ASSERT_EQ(code, 0) << out;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(out, m, std::regex("job-[0-9a-f]+"))) << out;
+  const std::string job = m[0];
+  std::tie(code, out) = run_command(gaps + " watch " + job + " --quiet" + common);
+  EXPECT_EQ(code, 0) << out;
+  EXPECT_NE(out.find("SUCCEEDED"), std::string::npos) << out;
+  std::tie(code, out) = run_command(gaps + " list" + common);
+  EXPECT_EQ(code, 0) << out;
+  EXPECT_NE(out.find(job), std::string::npos) << out;
+  std::tie(code, out) = run_command(gaps + " fetch " + job + " -o " + (dir_ / "cli_out").string() + common);
+  EXPECT_EQ(code, 0) << out;
+  EXPECT_TRUE(fs::exists(dir_ / "cli_out" / "metrics.json")) << out;
+  EXPECT_TRUE(fs::exists(dir_ / "cli_out" / "point_cloud.ply")) << out;
+  // RenderView at a test pose reproduces the job's own render of that view (renders/ of the artifacts).
+  client::TrainerClient client = connect();
+  const client::PreparedScene scene = synthetic_scene();
+  auto rendered = client.render(job, scene.cameras[0]);
+  ASSERT_TRUE(rendered.ok()) << rendered.status();
+  auto saved = read_image(dir_ / "cli_out" / "renders" / scene.cameras[0].name());
+  ASSERT_TRUE(saved.ok()) << saved.status();
+  EXPECT_LE((*rendered - *saved).abs().max().item<float>(), 1.0f / 255 + 1e-6);
+  EXPECT_GT(rendered->std().item<float>(), 0.01f);  // not a blank image
+  v1::Camera bad = scene.cameras[0];
+  bad.set_fx(-1);
+  EXPECT_EQ(client.render(job, bad).status().code(), absl::StatusCode::kInvalidArgument);
+  std::tie(code, out) = run_command(gaps + " list --trainer 127.0.0.1:" + std::to_string(trainer_port) +
+                                    " --token-file " + (dir_ / "wrong_token").string());
+  EXPECT_NE(code, 0);
+  EXPECT_NE(out.find("invalid bearer token"), std::string::npos) << out;
+}
+
+}  // namespace
+}  // namespace gaps

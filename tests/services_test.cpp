@@ -1,0 +1,411 @@
+// The client-server building blocks in one process: message codecs and chunking, the worker service
+// (remote generation equals in-process generation, bounded queue, deadlines, tokens), the worker pool's
+// give-up path, the SQLite job store across reopening, and upload validation.
+#include <condition_variable>
+#include <fstream>
+#include <thread>
+
+#include <ATen/ATen.h>
+#include <Eigen/Geometry>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <gtest/gtest.h>
+
+#include "client/remote_client.h"
+#include "diffusion_worker/backend_registry.h"
+#include "diffusion_worker/service/worker_service.h"
+#include "gs_trainer/image_io.h"
+#include "gs_trainer/io_util.h"
+#include "gs_trainer/ply.h"
+#include "gs_trainer/synthetic.h"
+#include "rpc/codec.h"
+#include "rpc/config_codec.h"
+#include "rpc/generation_codec.h"
+#include "server/job_config.h"
+#include "server/job_store.h"
+#include "server/remote_generator.h"
+#include "server/scene_upload.h"
+#include "tests/test_util.h"
+
+namespace gaps {
+namespace {
+
+Camera test_camera(double x, int width = 24, int height = 18) {
+  Camera c;
+  c.name = "cam" + std::to_string(static_cast<int>(x * 10)) + ".png";
+  c.width = width;
+  c.height = height;
+  c.fx = c.fy = 20;
+  c.cx = width / 2.0;
+  c.cy = height / 2.0;
+  c.t = Eigen::Vector3d(-x, 0, 0);
+  return c;
+}
+
+ReferenceView test_reference(double x, uint64_t seed) {
+  at::manual_seed(seed);
+  const Camera c = test_camera(x);
+  return {c, at::rand({c.height, c.width, 3}), at::full({c.height, c.width}, 2.0), at::ones({c.height, c.width})};
+}
+
+std::vector<GenerationRequest> test_requests() {
+  std::vector<ReferenceView> refs = {test_reference(0.0, 1), test_reference(0.5, 2)};
+  std::vector<GenerationRequest> out;
+  for (double x : {0.2, 0.3}) {
+    GenerationRequest q;
+    q.camera = test_camera(x);
+    at::manual_seed(static_cast<uint64_t>(x * 100));
+    q.render_rgb = at::rand({18, 24, 3});
+    q.render_depth = at::full({18, 24}, 2.0);
+    q.render_alpha = at::rand({18, 24});
+    q.coverage = 0.6;
+    q.strength = 0.5;
+    q.control_scale = 0.8;
+    q.references = x < 0.25 ? refs : std::vector<ReferenceView>{refs[1], refs[0]};
+    q.seed = 7;
+    out.push_back(q);
+  }
+  return out;
+}
+
+TEST(Codec, TensorsAndCamerasRoundTrip) {
+  const at::Tensor t = at::rand({5, 4, 3});
+  v1::Tensor raw;
+  rpc::encode_raw(t, &raw);
+  auto back = rpc::decode_tensor_shaped(raw, {5, 4, 3}, "t");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(at::equal(*back, t));
+  v1::Tensor png;
+  ASSERT_TRUE(rpc::encode_png(t, &png).ok());
+  auto decoded = rpc::decode_tensor(png, "png");
+  ASSERT_TRUE(decoded.ok());
+  EXPECT_LE((*decoded - t).abs().max().item<float>(), 0.5f / 255 + 1e-6);
+  raw.mutable_shape()->Set(0, 6);
+  EXPECT_EQ(rpc::decode_tensor(raw, "t").status().code(), absl::StatusCode::kInvalidArgument);
+
+  Camera c = test_camera(0.3);
+  c.R = Eigen::AngleAxisd(0.4, Eigen::Vector3d(0, 1, 0)).toRotationMatrix();
+  v1::Camera pc;
+  rpc::encode_camera(c, &pc);
+  auto cb = rpc::decode_camera(pc, "c");
+  ASSERT_TRUE(cb.ok());
+  EXPECT_TRUE(cb->R.isApprox(c.R));
+  EXPECT_TRUE(cb->t.isApprox(c.t));
+  pc.set_translation(1, std::nan(""));
+  const auto nan = rpc::decode_camera(pc, "camera 3");
+  EXPECT_EQ(nan.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(nan.status().message().find("camera 3"), std::string_view::npos);
+  EXPECT_NE(nan.status().message().find("not finite"), std::string_view::npos);
+}
+
+TEST(Codec, ChunkedMessagesReassembleAndRespectTheLimit) {
+  v1::GenerateBatch batch;
+  rpc::encode_generation_batch(test_requests(), &batch);
+  EXPECT_EQ(batch.references_size(), 2);  // shared by both poses, sent once
+  std::vector<v1::Chunk> chunks;
+  ASSERT_TRUE(rpc::write_chunked(batch, [&](const v1::Chunk& c) {
+    chunks.push_back(c);
+    return true;
+  }));
+  size_t i = 0;
+  const auto read = [&](v1::Chunk* c) {
+    if (i == chunks.size()) return false;
+    *c = chunks[i++];
+    return true;
+  };
+  v1::GenerateBatch back;
+  ASSERT_TRUE(rpc::read_chunked(read, 1 << 30, &back).ok());
+  auto requests = rpc::decode_generation_batch(back);
+  ASSERT_TRUE(requests.ok()) << requests.status();
+  ASSERT_EQ(requests->size(), 2u);
+  EXPECT_EQ((*requests)[1].references[0].camera.name, test_requests()[1].references[0].camera.name);
+  EXPECT_TRUE(at::equal((*requests)[0].render_rgb, test_requests()[0].render_rgb));
+  i = 0;
+  EXPECT_EQ(rpc::read_chunked(read, 100, &back).code(), absl::StatusCode::kResourceExhausted);
+}
+
+TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
+  v1::TrainConfig config;
+  ASSERT_TRUE(rpc::set_fields({{"iterations", 123}, {"lambda_dssim", 0.3}}, config.mutable_training()).ok());
+  ASSERT_TRUE(rpc::set_fields({{"warmup_iterations", 40}, {"tier_alpha_min", {0.0, -0.1}}, {"tier_alpha_max", {1.0, 1.1}}},
+                              config.mutable_gaps())
+                  .ok());
+  EXPECT_EQ(rpc::set_fields({{"no_such_option", 1}}, config.mutable_training()).code(), absl::StatusCode::kInvalidArgument);
+  config.set_views(3);
+  auto o = run_options_from_proto(config, false, "");
+  ASSERT_TRUE(o.ok()) << o.status();
+  EXPECT_EQ(o->config.iterations, 123);
+  EXPECT_DOUBLE_EQ(o->config.lambda_dssim, 0.3);
+  EXPECT_DOUBLE_EQ(o->config.feature_lr, TrainConfig().feature_lr);
+  EXPECT_EQ(o->gaps.warmup_iterations, 40);
+  EXPECT_EQ(o->gaps.phase_interval, GapsConfig().phase_interval);
+  EXPECT_EQ(o->variant, Variant::kFull);
+  config.set_init("points");
+  EXPECT_EQ(run_options_from_proto(config, false, "").status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// Blocks in generate() until released, so tests can fill the worker's queue.
+class GatedGenerator : public Generator {
+ public:
+  std::string name() const override { return "gated (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    std::unique_lock<std::mutex> lock(mutex);
+    ++entered;
+    changed.notify_all();
+    changed.wait(lock, [&] { return open; });
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back(r.render_rgb);
+    return out;
+  }
+  void release() {
+    std::lock_guard<std::mutex> lock(mutex);
+    open = true;
+    changed.notify_all();
+  }
+  void wait_entered(int n) {
+    std::unique_lock<std::mutex> lock(mutex);
+    changed.wait(lock, [&] { return entered >= n; });
+  }
+  std::mutex mutex;
+  std::condition_variable changed;
+  bool open = false;
+  int entered = 0;
+};
+
+struct RunningWorker {
+  RunningWorker(std::unique_ptr<Generator> generator, WorkerServiceOptions options)
+      : service(std::move(generator), options) {
+    grpc::EnableDefaultHealthCheckService(true);
+    grpc::ServerBuilder builder;
+    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+    builder.RegisterService(&service);
+    server = builder.BuildAndStart();
+  }
+  ~RunningWorker() { server->Shutdown(std::chrono::system_clock::now()); }
+  std::string address() const { return "127.0.0.1:" + std::to_string(port); }
+  WorkerService service;
+  int port = 0;
+  std::unique_ptr<grpc::Server> server;
+};
+
+absl::StatusOr<std::unique_ptr<RemoteGenerator>> pool(const std::vector<std::string>& addresses,
+                                                      const std::string& token = "") {
+  WorkerPoolOptions o;
+  o.addresses = addresses;
+  o.security.token = token;
+  o.probe_timeout = std::chrono::milliseconds(500);
+  o.generate_timeout = std::chrono::milliseconds(20000);
+  o.max_rounds = 2;
+  o.backoff_initial = std::chrono::milliseconds(20);
+  return RemoteGenerator::create(o);
+}
+
+TEST(WorkerService, RemoteGenerationEqualsInProcess) {
+  auto local = make_generator("reproject", "");
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(local.ok() && hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  RunningWorker worker(std::move(*hosted), options);
+  ASSERT_GT(worker.port, 0);
+  auto remote = pool({worker.address()});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references).ok());
+  auto got = (*remote)->generate(requests);
+  ASSERT_TRUE(got.ok()) << got.status();
+  auto want = (*local)->generate(requests);
+  ASSERT_TRUE(want.ok()) << want.status();
+  ASSERT_EQ(got->size(), want->size());
+  for (size_t k = 0; k < got->size(); ++k) EXPECT_TRUE(at::equal((*got)[k], (*want)[k])) << "pose " << k;
+  EXPECT_EQ((*remote)->name(), "remote " + (*local)->name());
+}
+
+TEST(WorkerService, FullQueueIsResourceExhaustedAndQueuedCallsHonourDeadlines) {
+  auto gated = std::make_unique<GatedGenerator>();
+  GatedGenerator* gate = gated.get();
+  WorkerServiceOptions options;
+  options.backend = "gated";
+  options.queue_capacity = 1;
+  RunningWorker worker(std::move(gated), options);
+  auto channel = grpc::CreateChannel(worker.address(), grpc::InsecureChannelCredentials());
+  auto stub = v1::DiffusionWorker::NewStub(channel);
+  v1::GenerateBatch batch;
+  rpc::encode_generation_batch(test_requests(), &batch);
+  const auto call = [&](std::chrono::milliseconds timeout) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + timeout);
+    auto stream = stub->Generate(&context);
+    rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
+    stream->WritesDone();
+    v1::GenerateResult result;
+    (void)rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, 1 << 30, &result);
+    return stream->Finish();
+  };
+  std::thread running([&] { EXPECT_TRUE(call(std::chrono::seconds(30)).ok()); });
+  gate->wait_entered(1);
+  // Waits in the queue (capacity 1) past its deadline.
+  grpc::Status queued_status;
+  std::thread queued([&] { queued_status = call(std::chrono::milliseconds(1500)); });
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  const grpc::Status overflow = call(std::chrono::seconds(10));  // backend busy, queue full
+  EXPECT_EQ(overflow.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << overflow.error_message();
+  queued.join();
+  EXPECT_EQ(queued_status.error_code(), grpc::StatusCode::DEADLINE_EXCEEDED) << queued_status.error_message();
+  gate->release();
+  running.join();
+}
+
+TEST(WorkerService, WrongTokenIsUnauthenticated) {
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  options.token = "correct-token";
+  RunningWorker worker(std::move(*hosted), options);
+  auto stub = v1::DiffusionWorker::NewStub(grpc::CreateChannel(worker.address(), grpc::InsecureChannelCredentials()));
+  for (const std::string token : {"", "wrong-token"}) {
+    grpc::ClientContext context;
+    rpc::attach_token(context, token);
+    v1::WorkerInfo info;
+    EXPECT_EQ(stub->GetInfo(&context, v1::GetInfoRequest(), &info).error_code(), grpc::StatusCode::UNAUTHENTICATED);
+  }
+  grpc::ClientContext context;
+  rpc::attach_token(context, "correct-token");
+  v1::WorkerInfo info;
+  ASSERT_TRUE(stub->GetInfo(&context, v1::GetInfoRequest(), &info).ok());
+  EXPECT_EQ(info.backend(), "reproject");
+  // The pool with the right token generates; with a wrong one it reports the refusal, not a skip.
+  auto good = pool({worker.address()}, "correct-token");
+  ASSERT_TRUE(good.ok());
+  EXPECT_TRUE((*good)->generate(test_requests()).ok());
+}
+
+TEST(WorkerPool, NoReachableWorkerIsUnavailableNamingEachAddress) {
+  auto remote = pool({"127.0.0.1:1", "127.0.0.1:2"});
+  ASSERT_TRUE(remote.ok());
+  const auto result = (*remote)->generate(test_requests());
+  ASSERT_FALSE(result.ok());
+  EXPECT_EQ(result.status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_NE(result.status().message().find("127.0.0.1:1"), std::string_view::npos);
+  EXPECT_NE(result.status().message().find("127.0.0.1:2"), std::string_view::npos);
+}
+
+using JobStoreTest = test::TempDirTest;
+
+TEST_F(JobStoreTest, JobsEventsAndArtifactsSurviveReopening) {
+  {
+    auto store = JobStore::open(dir_ / "jobs.db");
+    ASSERT_TRUE(store.ok()) << store.status();
+    v1::JobStatus status;
+    status.set_job_id("job-1");
+    status.set_state(v1::QUEUED);
+    v1::JobSpec spec;
+    spec.set_name("fern");
+    spec.mutable_config()->set_views(3);
+    ASSERT_TRUE((*store)->insert(status, spec).ok());
+    EXPECT_FALSE((*store)->insert(status, spec).ok());  // ids are unique
+    status.set_state(v1::RUNNING);
+    status.set_iteration(40);
+    ASSERT_TRUE((*store)->update(status).ok());
+    for (int i = 0; i < 3; ++i) {
+      v1::JobEvent e;
+      e.set_job_id("job-1");
+      e.mutable_progress()->set_iteration(i * 10);
+      auto seq = (*store)->append_event(e);
+      ASSERT_TRUE(seq.ok());
+      EXPECT_EQ(*seq, i);
+    }
+    ASSERT_TRUE((*store)->set_artifacts("job-1", {{"metrics.json", 10}, {"point_cloud.ply", 2000}}).ok());
+  }
+  auto store = JobStore::open(dir_ / "jobs.db");
+  ASSERT_TRUE(store.ok());
+  auto status = (*store)->get("job-1");
+  ASSERT_TRUE(status.ok());
+  EXPECT_EQ(status->state(), v1::RUNNING);
+  EXPECT_EQ(status->iteration(), 40);
+  EXPECT_EQ((*store)->spec("job-1")->config().views(), 3);
+  EXPECT_EQ((*store)->in_state(v1::RUNNING)->size(), 1u);
+  EXPECT_EQ((*store)->in_state(v1::QUEUED)->size(), 0u);
+  auto events = (*store)->events("job-1", 1);
+  ASSERT_TRUE(events.ok());
+  ASSERT_EQ(events->size(), 2u);
+  EXPECT_EQ((*events)[1].progress().iteration(), 20);
+  EXPECT_EQ((*store)->artifacts("job-1")->size(), 2u);
+  EXPECT_EQ((*store)->get("job-2").status().code(), absl::StatusCode::kNotFound);
+}
+
+struct UploadTest : test::TempDirTest {
+  void SetUp() override {
+    test::TempDirTest::SetUp();
+    SyntheticSceneOptions s;
+    s.images = 9;
+    s.width = 32;
+    s.height = 24;
+    ASSERT_TRUE(write_synthetic_scene(dir_ / "source", s).ok());
+    auto scene = client::prepare_scene(dir_ / "source", 1);
+    ASSERT_TRUE(scene.ok()) << scene.status();
+    upload.spec.mutable_config()->set_views(3);
+    for (const auto& c : scene->cameras) *upload.spec.add_cameras() = c;
+    upload.images = scene->images;
+  }
+  absl::Status write() { return write_uploaded_scene(upload, dir_ / "scene"); }
+  SceneUpload upload;
+};
+
+TEST_F(UploadTest, AValidUploadLoadsAsTheSameScene) {
+  ASSERT_TRUE(write().ok()) << write();
+  auto original = load_scene(dir_ / "source");
+  auto uploaded = load_scene(dir_ / "scene");
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  ASSERT_EQ(uploaded->cameras.size(), original->cameras.size());
+  for (size_t i = 0; i < original->cameras.size(); ++i) {
+    const Camera &a = original->cameras[i], &b = uploaded->cameras[i];
+    EXPECT_TRUE(a.R.isApprox(b.R, 1e-9)) << i;
+    EXPECT_TRUE(a.t.isApprox(b.t, 1e-9)) << i;
+    EXPECT_NEAR(a.fx, b.fx, 1e-9);
+    EXPECT_EQ(a.width, b.width);
+    auto ia = load_camera_image(a), ib = load_camera_image(b);
+    EXPECT_LE((*ia - *ib).abs().max().item<float>(), 0.5f / 255 + 1e-6);
+  }
+}
+
+TEST_F(UploadTest, CorruptUploadsAreInvalidArgumentsNamingTheProblem) {
+  const auto expect_invalid = [&](const std::string& needle) {
+    const absl::Status st = write();
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
+    EXPECT_NE(st.message().find(needle), std::string_view::npos) << st;
+  };
+  const SceneUpload good = upload;
+  upload.images[4] = "definitely not an image";
+  expect_invalid("image 4");
+  upload = good;
+  upload.images.pop_back();
+  expect_invalid("camera count mismatch");
+  upload = good;
+  upload.spec.mutable_cameras(2)->set_rotation(4, std::nan(""));
+  expect_invalid("camera 2");
+  upload = good;
+  upload.spec.mutable_config()->set_views(20);
+  expect_invalid("views");
+}
+
+TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {
+  PointCloud points{at::rand({50, 3}), at::rand({50, 3})};
+  ASSERT_TRUE(write_point_cloud_ply(points, dir_ / "points.ply").ok());
+  upload.spec.set_has_points(true);
+  upload.spec.mutable_config()->set_init("points");
+  upload.points_ply = *read_file_bytes(dir_ / "points.ply");
+  ASSERT_TRUE(write().ok()) << write();
+  auto back = read_point_cloud_ply(dir_ / "scene" / "points.ply");
+  ASSERT_TRUE(back.ok());
+  EXPECT_TRUE(at::allclose(back->xyz, points.xyz));
+  upload.points_ply = "ply\nnot really";
+  const absl::Status broken = write_uploaded_scene(upload, dir_ / "scene2");
+  EXPECT_EQ(broken.code(), absl::StatusCode::kInvalidArgument) << broken;
+  EXPECT_NE(broken.message().find("uploaded point cloud"), std::string_view::npos) << broken;
+}
+
+}  // namespace
+}  // namespace gaps
