@@ -4,6 +4,8 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 GAPS_CACHE=${GAPS_CACHE:-$HOME/.cache/gaps}
 export CCACHE_DIR=${CCACHE_DIR:-$GAPS_CACHE/ccache}
+# Paths under the checkout are hashed relative to it, so every clone shares the cache.
+export CCACHE_BASEDIR=${CCACHE_BASEDIR:-$root}
 build=${GAPS_BUILD_DIR:-$root/build}
 jobs=${GAPS_JOBS:-$(nproc)}
 if [ ! -f "$build/build.ninja" ] || [ $# -gt 0 ]; then
