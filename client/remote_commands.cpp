@@ -33,6 +33,8 @@ ABSL_FLAG(std::string, trainer, "127.0.0.1:50051", "address of the gaps-trainer 
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token (default: $GAPS_TOKEN)");
 ABSL_FLAG(std::string, tls_ca, "", "CA certificate of the trainer's TLS (default: plaintext)");
 ABSL_FLAG(std::string, tls_server_name, "", "name the trainer's certificate is checked against");
+ABSL_FLAG(std::string, tls_client_cert, "", "client certificate (PEM), for a trainer that requires one (mutual TLS)");
+ABSL_FLAG(std::string, tls_client_key, "", "private key of --tls_client_cert");
 ABSL_FLAG(std::string, name, "", "job name (default: the scene folder's name)");
 ABSL_FLAG(bool, watch, false, "submit: keep watching the job until it ends");
 ABSL_FLAG(std::string, o, "", "fetch: output folder (same as --out)");
@@ -43,7 +45,8 @@ namespace {
 absl::StatusOr<TrainerClient> connect() {
   GAPS_ASSIGN_OR_RETURN(std::string token, rpc::load_token(absl::GetFlag(FLAGS_token_file)));
   return TrainerClient::connect(absl::GetFlag(FLAGS_trainer),
-                                {token, absl::GetFlag(FLAGS_tls_ca), absl::GetFlag(FLAGS_tls_server_name)});
+                                {token, absl::GetFlag(FLAGS_tls_ca), absl::GetFlag(FLAGS_tls_server_name),
+                                 absl::GetFlag(FLAGS_tls_client_cert), absl::GetFlag(FLAGS_tls_client_key)});
 }
 
 absl::Status read_options(const std::string& path, google::protobuf::Message* message) {

@@ -29,8 +29,14 @@ bool equal_constant_time(const std::string& a, const std::string& b) {
 absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> server_credentials(const ServerSecurity& s) {
   if (s.tls_cert.empty() != s.tls_key.empty())
     return absl::InvalidArgumentError("TLS needs both a certificate and a private key");
+  if (s.tls_cert.empty() && !s.tls_client_ca.empty())
+    return absl::InvalidArgumentError("a client CA (mutual TLS) needs the server's own TLS certificate and key");
   if (s.tls_cert.empty()) return grpc::InsecureServerCredentials();
   grpc::SslServerCredentialsOptions options;
+  if (!s.tls_client_ca.empty()) {
+    GAPS_ASSIGN_OR_RETURN(options.pem_root_certs, read_pem(s.tls_client_ca, "TLS client CA certificate"));
+    options.client_certificate_request = GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY;
+  }
   grpc::SslServerCredentialsOptions::PemKeyCertPair pair;
   GAPS_ASSIGN_OR_RETURN(pair.cert_chain, read_pem(s.tls_cert, "TLS certificate"));
   GAPS_ASSIGN_OR_RETURN(pair.private_key, read_pem(s.tls_key, "TLS private key"));
@@ -41,9 +47,17 @@ absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> server_credentials(cons
 absl::StatusOr<std::shared_ptr<grpc::Channel>> make_channel(const std::string& address, const ClientSecurity& s) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(16 << 20);
+  if (s.tls_cert.empty() != s.tls_key.empty())
+    return absl::InvalidArgumentError("a client TLS certificate needs its private key, and the other way round");
+  if (s.tls_ca.empty() && !s.tls_cert.empty())
+    return absl::InvalidArgumentError("a client TLS certificate needs the server's CA certificate (TLS)");
   if (s.tls_ca.empty()) return grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
   grpc::SslCredentialsOptions options;
   GAPS_ASSIGN_OR_RETURN(options.pem_root_certs, read_pem(s.tls_ca, "TLS CA certificate"));
+  if (!s.tls_cert.empty()) {
+    GAPS_ASSIGN_OR_RETURN(options.pem_cert_chain, read_pem(s.tls_cert, "TLS client certificate"));
+    GAPS_ASSIGN_OR_RETURN(options.pem_private_key, read_pem(s.tls_key, "TLS client private key"));
+  }
   if (!s.tls_server_name.empty()) args.SetSslTargetNameOverride(s.tls_server_name);
   return grpc::CreateCustomChannel(address, grpc::SslCredentials(options), args);
 }

@@ -14,6 +14,9 @@ struct ServerSecurity {
   std::string token;     // required bearer token ("authorization: Bearer <token>"); empty: none
   std::string tls_cert;  // PEM certificate chain file; with tls_key enables TLS
   std::string tls_key;   // PEM private key file
+  // PEM file of the CA that signs client certificates; when set (with TLS), a client must present a
+  // certificate it signed (mutual TLS), else the handshake fails.
+  std::string tls_client_ca;
 };
 
 struct ClientSecurity {
@@ -21,6 +24,9 @@ struct ClientSecurity {
   std::string tls_ca;  // PEM file of the CA that signed the server's certificate; enables TLS
   // Name the certificate is checked against when it differs from the address' host (e.g. "localhost").
   std::string tls_server_name;
+  // This client's certificate chain and private key (PEM files), for servers that require one.
+  std::string tls_cert;
+  std::string tls_key;
 };
 
 absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> server_credentials(const ServerSecurity& security);

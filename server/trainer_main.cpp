@@ -1,7 +1,7 @@
 // gaps-trainer: the training service (gaps.v1.Trainer) with its job queue and SQLite job store.
 //   gaps-trainer --listen 127.0.0.1:50051 --workers 127.0.0.1:50052[,ADDR...] --data_dir DIR --device cpu|cuda:0
-//                [--concurrency N] [--token_file F] [--tls_cert F --tls_key F]
-//                [--worker_token_file F] [--worker_tls_ca F]
+//                [--concurrency N] [--token_file F] [--tls_cert F --tls_key F [--tls_client_ca F]]
+//                [--worker_token_file F] [--worker_tls_ca F [--worker_tls_cert F --worker_tls_key F]]
 // SIGTERM/SIGINT: running jobs stop at their next iteration and stay RUNNING in the store; the next
 // trainer started on the same data folder runs them again.
 #include <atomic>
@@ -27,9 +27,12 @@ ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
 ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
+ABSL_FLAG(std::string, tls_client_ca, "", "CA certificate that must have signed every client's certificate (mutual TLS)");
 ABSL_FLAG(std::string, worker_token_file, "", "token sent to the workers (default: the trainer's own token)");
 ABSL_FLAG(std::string, worker_tls_ca, "", "CA certificate of the workers' TLS (default: plaintext)");
 ABSL_FLAG(std::string, worker_tls_server_name, "", "name the workers' certificates are checked against");
+ABSL_FLAG(std::string, worker_tls_cert, "", "this trainer's client certificate, for workers that require one");
+ABSL_FLAG(std::string, worker_tls_key, "", "private key of --worker_tls_cert");
 ABSL_FLAG(int, worker_timeout_s, 300, "deadline of each generation call");
 ABSL_FLAG(int, worker_rounds, 3, "passes over the worker pool (with backoff) before a phase is skipped");
 ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
@@ -59,7 +62,8 @@ int main(int argc, char** argv) {
     if (!t.ok()) return fail(std::string(t.status().message()));
     worker_token = *t;
   }
-  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key)};
+  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
+                                     absl::GetFlag(FLAGS_tls_client_ca)};
   auto credentials = gaps::rpc::server_credentials(security);
   if (!credentials.ok()) return fail(std::string(credentials.status().message()));
 
@@ -71,7 +75,8 @@ int main(int argc, char** argv) {
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
     options.workers.addresses.emplace_back(a);
-  options.workers.security = {worker_token, absl::GetFlag(FLAGS_worker_tls_ca), absl::GetFlag(FLAGS_worker_tls_server_name)};
+  options.workers.security = {worker_token, absl::GetFlag(FLAGS_worker_tls_ca), absl::GetFlag(FLAGS_worker_tls_server_name),
+                              absl::GetFlag(FLAGS_worker_tls_cert), absl::GetFlag(FLAGS_worker_tls_key)};
   options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));
   options.workers.max_rounds = absl::GetFlag(FLAGS_worker_rounds);
   auto service = gaps::TrainerService::create(options);

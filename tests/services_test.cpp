@@ -21,6 +21,7 @@
 #include "rpc/codec.h"
 #include "rpc/config_codec.h"
 #include "rpc/generation_codec.h"
+#include "rpc/security.h"
 #include "server/job_config.h"
 #include "server/job_store.h"
 #include "server/remote_generator.h"
@@ -174,11 +175,12 @@ class GatedGenerator : public Generator {
 };
 
 struct RunningWorker {
-  RunningWorker(std::unique_ptr<Generator> generator, WorkerServiceOptions options)
+  RunningWorker(std::unique_ptr<Generator> generator, WorkerServiceOptions options,
+                std::shared_ptr<grpc::ServerCredentials> credentials = grpc::InsecureServerCredentials())
       : service(std::move(generator), options) {
     grpc::EnableDefaultHealthCheckService(true);
     grpc::ServerBuilder builder;
-    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+    builder.AddListeningPort("127.0.0.1:0", credentials, &port);
     builder.RegisterService(&service);
     server = builder.BuildAndStart();
   }
@@ -280,6 +282,58 @@ TEST(WorkerService, WrongTokenIsUnauthenticated) {
   auto good = pool({worker.address()}, "correct-token");
   ASSERT_TRUE(good.ok());
   EXPECT_TRUE((*good)->generate(test_requests()).ok());
+}
+
+// Mutual TLS: a CA signs the server's and one client's certificate; a client without a certificate, or with
+// one the CA did not sign, never gets through the handshake.
+using MutualTls = test::TempDirTest;
+
+TEST_F(MutualTls, OnlyClientsWithACertificateSignedByTheClientCaGetIn) {
+  if (std::system("openssl version > /dev/null 2>&1") != 0) GTEST_SKIP() << "openssl not found: no test certificates";
+  const std::string d = dir_.string() + "/";
+  const std::string quiet = " > /dev/null 2>&1";
+  auto run = [&](const std::string& command) { return std::system((command + quiet).c_str()) == 0; };
+  auto sign = [&](const std::string& name, const std::string& ext) {
+    return run("openssl req -newkey rsa:2048 -nodes -subj /CN=" + name + " -keyout " + d + name + ".key -out " + d +
+               name + ".csr") &&
+           run("printf '" + ext + "' > " + d + name + ".ext") &&
+           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d + "ca.key -CAcreateserial -days 1 -out " +
+               d + name + ".pem -extfile " + d + name + ".ext");
+  };
+  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d + "ca.key -out " + d +
+                  "ca.pem"));
+  ASSERT_TRUE(sign("localhost", "subjectAltName=DNS:localhost\\nextendedKeyUsage=serverAuth"));
+  ASSERT_TRUE(sign("client", "extendedKeyUsage=clientAuth"));
+  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " + d +
+                  "rogue.pem"));
+
+  auto credentials = rpc::server_credentials({"", d + "localhost.pem", d + "localhost.key", d + "ca.pem"});
+  ASSERT_TRUE(credentials.ok()) << credentials.status();
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  RunningWorker worker(std::move(*hosted), options, *credentials);
+  ASSERT_GT(worker.port, 0);
+  auto get_info = [&](const rpc::ClientSecurity& security) {
+    auto channel = rpc::make_channel(worker.address(), security);
+    EXPECT_TRUE(channel.ok()) << channel.status();
+    auto stub = v1::DiffusionWorker::NewStub(*channel);
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+    v1::WorkerInfo info;
+    return stub->GetInfo(&context, v1::GetInfoRequest(), &info);
+  };
+  EXPECT_TRUE(get_info({"", d + "ca.pem", "localhost", d + "client.pem", d + "client.key"}).ok());
+  EXPECT_FALSE(get_info({"", d + "ca.pem", "localhost"}).ok()) << "no client certificate";
+  EXPECT_FALSE(get_info({"", d + "ca.pem", "localhost", d + "rogue.pem", d + "rogue.key"}).ok()) << "unsigned certificate";
+  EXPECT_FALSE(get_info({}).ok()) << "plaintext";
+  // Half-given settings are errors that say what is missing.
+  EXPECT_EQ(rpc::server_credentials({"", "", "", d + "ca.pem"}).status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(rpc::make_channel(worker.address(), {"", d + "ca.pem", "", d + "client.pem", ""}).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(rpc::make_channel(worker.address(), {"", "", "", d + "client.pem", d + "client.key"}).status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 TEST(WorkerPool, NoReachableWorkerIsUnavailableNamingEachAddress) {

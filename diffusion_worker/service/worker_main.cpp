@@ -1,6 +1,6 @@
 // gaps-worker: serves a pseudo-view generation backend over gRPC (gaps.v1.DiffusionWorker).
 //   gaps-worker --listen 127.0.0.1:50052 --backend reproject [--backend_options JSON] [--token_file F]
-//               [--tls_cert F --tls_key F] [--queue_capacity N] [--max_batch N]
+//               [--tls_cert F --tls_key F [--tls_client_ca F]] [--queue_capacity N] [--max_batch N]
 #include <csignal>
 #include <iostream>
 #include <thread>
@@ -25,6 +25,7 @@ ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
 ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
+ABSL_FLAG(std::string, tls_client_ca, "", "CA certificate that must have signed every client's certificate (mutual TLS)");
 
 namespace {
 
@@ -51,7 +52,8 @@ int main(int argc, char** argv) {
   if (!generator.ok()) return fail(std::string(generator.status().message()));
   auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
   if (!token.ok()) return fail(std::string(token.status().message()));
-  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key)};
+  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
+                                     absl::GetFlag(FLAGS_tls_client_ca)};
   auto credentials = gaps::rpc::server_credentials(security);
   if (!credentials.ok()) return fail(std::string(credentials.status().message()));
 
