@@ -234,6 +234,13 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
     return loss;
   };
   const absl::Status trained = trainer.run(on_progress, 10, monitored);
+  // A stopped run (cancelled, or its service shutting down) leaves its state for a later resume.
+  if (absl::IsCancelled(trained) && !o.checkpoint_dir.empty()) {
+    if (const absl::Status saved = save_checkpoint(o.checkpoint_dir, trainer, method ? &*method : nullptr); !saved.ok())
+      log(absl::StrCat("warning: checkpoint not written: ", saved.message()));
+    else if (o.on_checkpoint)
+      o.on_checkpoint(trainer.iteration());
+  }
   if (method) GAPS_RETURN_IF_ERROR(write_json(o.out_dir / "phases.json", method->phase_log()));
   result.train_seconds = seconds_since(start) - eval_seconds;
   result.num_gaussians = trainer.model().size();

@@ -47,8 +47,9 @@ struct RunOptions {
   std::function<bool()> should_stop;
   // Told about each diffusion phase (see GapsTraining::set_phase_observer).
   GapsTraining::PhaseObserver on_phase;
-  // When set, the training state is saved there at the start of every diffusion phase (gs_trainer/checkpoint.h)
-  // and a run finding a checkpoint there resumes from it; `on_checkpoint` hears the saved iteration.
+  // When set, the training state is saved there at the start of every diffusion phase and when the run is
+  // stopped through `should_stop` (gs_trainer/checkpoint.h), and a run finding a checkpoint there resumes
+  // from it; `on_checkpoint` hears the saved iteration.
   std::filesystem::path checkpoint_dir;
   std::function<void(int iteration)> on_checkpoint;
 };

@@ -2,8 +2,8 @@
 //   gaps-trainer --listen 127.0.0.1:50051 --workers 127.0.0.1:50052[,ADDR...] --data_dir DIR --device cpu|cuda:0
 //                [--concurrency N] [--token_file F] [--tls_cert F --tls_key F [--tls_client_ca F]]
 //                [--worker_token_file F] [--worker_tls_ca F [--worker_tls_cert F --worker_tls_key F]]
-// SIGTERM/SIGINT: running jobs stop at their next iteration and stay RUNNING in the store; the next
-// trainer started on the same data folder runs them again.
+// SIGTERM/SIGINT: running jobs stop at their next iteration, write a checkpoint and stay RUNNING in the
+// store; the next trainer started on the same data folder resumes them from it.
 #include <atomic>
 #include <csignal>
 #include <iostream>

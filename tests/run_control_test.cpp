@@ -114,7 +114,8 @@ TEST_F(RunControlTest, ShouldStopCancelsAndKeepsTheModel) {
   EXPECT_FALSE(std::filesystem::exists(dir_ / "out" / "metrics.json"));
 }
 
-TEST_F(RunControlTest, ARunStoppedAfterAPhaseResumesFromItsCheckpoint) {
+// A stop checkpoints where the run is (a crash leaves only the phase checkpoints: see services_e2e_test).
+TEST_F(RunControlTest, AStoppedRunResumesFromWhereItStopped) {
   EchoGenerator generator;
   RunOptions o = options(&generator);
   o.checkpoint_dir = dir_ / "checkpoint";
@@ -124,7 +125,8 @@ TEST_F(RunControlTest, ARunStoppedAfterAPhaseResumesFromItsCheckpoint) {
   o.should_stop = [&] { return ++polls > 45; };
   auto stopped = run_pipeline(o, nullptr, [](const std::string&) {});
   ASSERT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
-  EXPECT_EQ(checkpoints, std::vector<int>{29});  // the start of phase 0, before iteration 30
+  // The start of phase 0 (before iteration 30), then the stop after iteration 45.
+  EXPECT_EQ(checkpoints, (std::vector<int>{29, 45}));
 
   o.should_stop = nullptr;
   std::vector<std::string> log;
@@ -132,12 +134,12 @@ TEST_F(RunControlTest, ARunStoppedAfterAPhaseResumesFromItsCheckpoint) {
   auto resumed = run_pipeline(o, [&](const TrainProgress& p) { reported.push_back(p.iteration); },
                               [&](const std::string& line) { log.push_back(line); });
   ASSERT_TRUE(resumed.ok()) << resumed.status();
-  EXPECT_NE(std::find(log.begin(), log.end(), "resumed from the checkpoint at iteration 29"), log.end());
+  EXPECT_NE(std::find(log.begin(), log.end(), "resumed from the checkpoint at iteration 45"), log.end());
   ASSERT_FALSE(reported.empty());
-  EXPECT_EQ(reported.front(), 30);  // training went on from iteration 29
+  EXPECT_EQ(reported.front(), 50);  // training went on from iteration 45
   EXPECT_EQ(reported.back(), 70);
-  EXPECT_EQ(generator.calls, 1 + 2);  // phase 0 before the stop, then phases 0 (repeated) and 1
-  EXPECT_EQ(checkpoints, (std::vector<int>{29, 29, 59}));
+  EXPECT_EQ(generator.calls, 1 + 1);  // phase 0 before the stop, phase 1 after the resume
+  EXPECT_EQ(checkpoints, (std::vector<int>{29, 45, 59}));
   std::ifstream f(dir_ / "out" / "phases.json");
   const auto phases = nlohmann::json::parse(f);
   ASSERT_EQ(phases.size(), 2u);

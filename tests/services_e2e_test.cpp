@@ -353,10 +353,19 @@ TEST_F(Services, SigtermStopsTheTrainerGracefullyAndTheJobRunsAgainOnRestart) {
   EXPECT_NE(trainer->log_text().find("running jobs resume"), std::string::npos) << trainer->log_text();
   trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
-  auto final_status = connect().watch(job_id, [](const v1::JobEvent&) {});
+  // The stop wrote a checkpoint (a vanilla job has no phase checkpoints), and the job went on from it.
+  int resumed_at = -1, first_progress_after_resume = -1;
+  auto final_status = connect().watch(job_id, [&](const v1::JobEvent& e) {
+    if (e.has_log() && e.log().rfind("resumed from the checkpoint at iteration ", 0) == 0)
+      resumed_at = std::stoi(e.log().substr(e.log().rfind(' ') + 1));
+    if (resumed_at >= 0 && e.has_progress() && first_progress_after_resume < 0)
+      first_progress_after_resume = e.progress().iteration();
+  });
   ASSERT_TRUE(final_status.ok()) << final_status.status();
   EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
   EXPECT_EQ(final_status->resumes(), 1);
+  EXPECT_GE(resumed_at, 20);
+  EXPECT_GT(first_progress_after_resume, resumed_at);
 }
 
 TEST_F(Services, CancelStopsARunningJob) {
