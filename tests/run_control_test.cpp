@@ -1,7 +1,7 @@
 // Run control hooks used by the trainer service: a generator that cannot be reached skips diffusion
 // phases (reported to the phase observer) instead of failing the run, any other generator error still
-// fails it, should_stop ends a run with CANCELLED while keeping the model, and a stopped run resumes from
-// the checkpoint written at the start of its last diffusion phase.
+// fails it, should_stop ends a run with CANCELLED while keeping the model and checkpointing it, and a
+// stopped run resumes from that checkpoint.
 #include <fstream>
 
 #include <ATen/ATen.h>
