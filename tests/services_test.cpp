@@ -278,6 +278,9 @@ TEST(WorkerService, WrongTokenIsUnauthenticated) {
   v1::WorkerInfo info;
   ASSERT_TRUE(stub->GetInfo(&context, v1::GetInfoRequest(), &info).ok());
   EXPECT_EQ(info.backend(), "reproject");
+  EXPECT_EQ(info.device(), "cpu");
+  EXPECT_GT(info.device_memory_total(), 0u);  // the host's physical memory
+  EXPECT_LE(info.device_memory_free(), info.device_memory_total());
   // The pool with the right token generates; with a wrong one it reports the refusal, not a skip.
   auto good = pool({worker.address()}, "correct-token");
   ASSERT_TRUE(good.ok());

@@ -5,6 +5,7 @@
 #include <iostream>
 #include <thread>
 
+#include <nlohmann/json.hpp>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include "absl/flags/flag.h"
@@ -37,6 +38,23 @@ int fail(const std::string& message) {
   return 2;
 }
 
+// --device reaches the backend as its "device" option (the sdxl backend takes one); a backend without
+// that option, such as reproject, then refuses it by name instead of silently computing elsewhere.
+std::string options_with_device(const std::string& options_json, const std::string& device, std::string* error) {
+  if (device == "cpu") return options_json;
+  nlohmann::json options = options_json.empty() ? nlohmann::json::object() : nlohmann::json::parse(options_json, nullptr, false);
+  if (!options.is_object()) {
+    *error = "--backend_options is not a JSON object";
+    return "";
+  }
+  if (options.contains("device") && options["device"] != device) {
+    *error = "--device " + device + " contradicts --backend_options' device " + options["device"].dump();
+    return "";
+  }
+  options["device"] = device;
+  return options.dump();
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -44,12 +62,12 @@ int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
   const std::string backend = absl::GetFlag(FLAGS_backend);
   const std::string device = absl::GetFlag(FLAGS_device);
-  // The registry's backends (reproject) compute on the CPU; a GPU device is accepted once a backend
-  // that uses one is registered, rather than being silently ignored now.
-  if (device != "cpu")
-    return fail("--device " + device + ": backend " + backend + " runs on the CPU only (use --device cpu)");
-  auto generator = gaps::make_generator(backend, absl::GetFlag(FLAGS_backend_options));
-  if (!generator.ok()) return fail(std::string(generator.status().message()));
+  std::string error;
+  const std::string backend_options = options_with_device(absl::GetFlag(FLAGS_backend_options), device, &error);
+  if (!error.empty()) return fail(error);
+  auto generator = gaps::make_generator(backend, backend_options);
+  if (!generator.ok())
+    return fail((device == "cpu" ? "" : "--device " + device + ": ") + std::string(generator.status().message()));
   auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
   if (!token.ok()) return fail(std::string(token.status().message()));
   gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),

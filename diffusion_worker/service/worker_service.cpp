@@ -1,5 +1,7 @@
 #include "diffusion_worker/service/worker_service.h"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <chrono>
 
@@ -10,7 +12,43 @@
 #include "rpc/generation_codec.h"
 #include "rpc/security.h"
 
+#if defined(GAPS_CUDA_KERNELS)
+#include <cuda_runtime_api.h>
+#endif
+
 namespace gaps {
+namespace {
+
+struct DeviceMemory {
+  uint64_t total = 0, free = 0;  // bytes; 0 when not known
+};
+
+// Physical memory for the CPU, the CUDA runtime's figures for "cuda" / "cuda:N".
+DeviceMemory device_memory(const std::string& device) {
+  DeviceMemory m;
+  if (device == "cpu") {
+    const long page = sysconf(_SC_PAGE_SIZE), pages = sysconf(_SC_PHYS_PAGES), available = sysconf(_SC_AVPHYS_PAGES);
+    if (page > 0 && pages > 0) m.total = static_cast<uint64_t>(page) * static_cast<uint64_t>(pages);
+    if (page > 0 && available > 0) m.free = static_cast<uint64_t>(page) * static_cast<uint64_t>(available);
+    return m;
+  }
+#if defined(GAPS_CUDA_KERNELS)
+  if (device.rfind("cuda", 0) == 0) {
+    const int index = device.size() > 5 ? std::atoi(device.c_str() + 5) : 0;
+    int previous = 0;
+    size_t free_bytes = 0, total_bytes = 0;
+    if (cudaGetDevice(&previous) == cudaSuccess && cudaSetDevice(index) == cudaSuccess &&
+        cudaMemGetInfo(&free_bytes, &total_bytes) == cudaSuccess) {
+      m.total = total_bytes;
+      m.free = free_bytes;
+    }
+    cudaSetDevice(previous);
+  }
+#endif
+  return m;
+}
+
+}  // namespace
 
 // Holds the backend for one call; releasing it wakes the next waiting call.
 class WorkerService::BackendTurn {
@@ -78,6 +116,9 @@ grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetI
   info->set_max_request_bytes(options_.max_request_bytes);
   info->set_queue_capacity(options_.queue_capacity);
   info->set_device(options_.device);
+  const DeviceMemory memory = device_memory(options_.device);
+  info->set_device_memory_total(memory.total);
+  info->set_device_memory_free(memory.free);
   // The registry's backends are weight-free or report their weights through name(); none is loaded here.
   info->set_weights_identity("");
   for (const char* c : {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale",
