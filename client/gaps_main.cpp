@@ -30,6 +30,7 @@ ABSL_FLAG(std::string, scene, "", "scene folder (LLFF poses_bounds.npy, COLMAP s
 ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
 ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
 ABSL_FLAG(int, iterations, 10000, "training iterations");
+ABSL_FLAG(int64_t, max_gaussians, -1, "Gaussian budget: densification grows the model up to this many, preferring the largest gradients (0: unlimited; default: the --config file's max_gaussians, else unlimited)");
 ABSL_FLAG(uint64_t, seed, 0, "random seed");
 ABSL_FLAG(std::string, device, "", "cpu or cuda (default: cuda when available)");
 ABSL_FLAG(std::string, out, "", "output folder (PLY, renders, metrics.json)");
@@ -127,6 +128,7 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
   if (o.eval_every < 0) return absl::InvalidArgumentError("--eval-every must be 0 or positive");
   o.config.iterations = absl::GetFlag(FLAGS_iterations);
   o.config.seed = absl::GetFlag(FLAGS_seed);
+  if (absl::GetFlag(FLAGS_max_gaussians) >= 0) o.config.max_gaussians = absl::GetFlag(FLAGS_max_gaussians);
   const std::string device = absl::GetFlag(FLAGS_device);
   o.config.device = !device.empty() ? device : (at::hasCUDA() ? "cuda" : "cpu");
   if (o.config.iterations <= 0) return absl::InvalidArgumentError("--iterations must be positive");

@@ -41,6 +41,17 @@ GaussianModel split_copies(GaussianModel& model, const at::Tensor& idx, int samp
   return child;
 }
 
+// The `room` candidates with the largest gradients (ties: lower index first). Each candidate adds one
+// Gaussian (a clone, or a split's net one), so growth then ends exactly at the budget.
+at::Tensor within_budget(const at::Tensor& candidates, const at::Tensor& grads, int64_t room) {
+  const at::Tensor idx = candidates.nonzero().squeeze(1);
+  if (idx.size(0) <= room) return candidates;
+  const at::Tensor order = std::get<1>(grads.index_select(0, idx).sort(/*stable=*/true, /*dim=*/0, /*descending=*/true));
+  at::Tensor kept = at::zeros_like(candidates);
+  kept.index_fill_(0, idx.index_select(0, order.narrow(0, 0, room)), true);
+  return kept;
+}
+
 }  // namespace
 
 void DensityControl::ensure_size(int64_t n, const at::TensorOptions& opts) {
@@ -71,7 +82,8 @@ int64_t DensityControl::densify_and_prune(GaussianModel& model, GaussianAdam& ad
   at::Tensor radii = max_radii_;
   if (may_grow) {
     at::manual_seed(seed);
-    const at::Tensor high = grads >= config_.densify_grad_threshold;
+    at::Tensor high = grads >= config_.densify_grad_threshold;
+    if (config_.max_gaussians > 0) high = within_budget(high, grads, config_.max_gaussians - model.size());
     const at::Tensor max_scale = std::get<0>(at::exp(model.log_scales.detach()).max(1));
     const at::Tensor clone_idx = (high & (max_scale <= size_limit)).nonzero().squeeze(1);
     const at::Tensor split_idx = (high & (max_scale > size_limit)).nonzero().squeeze(1);

@@ -40,7 +40,9 @@ struct TrainConfig {
   double percent_dense = 0.01;
   double min_opacity = 0.005;
   int max_screen_size = 20;  // prune screen-space radii above this after the first opacity reset
-  int64_t max_gaussians = 0;  // 0 = unlimited; otherwise densification stops growing beyond this
+  // 0 = unlimited; otherwise densification grows the model up to this many Gaussians and no further,
+  // preferring the candidates with the largest gradients when not all fit.
+  int64_t max_gaussians = 0;
 
   // Background colour composited behind the Gaussians (0 = black, 1 = white).
   double background = 0.0;

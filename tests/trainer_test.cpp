@@ -159,6 +159,22 @@ TEST_F(DensifyFixture, GrowthStopsAtTheGaussianBudget) {
   EXPECT_EQ(density.densify_and_prune(model, adam, 600, 0), 3);  // prune only, no growth
 }
 
+// With room for one more Gaussian, the candidate with the larger gradient (the small one, cloned) grows and
+// the other (the large one) is not split.
+TEST_F(DensifyFixture, GrowthStopsExactlyAtTheBudgetPreferringLargerGradients) {
+  config.max_gaussians = 5;
+  GaussianAdam adam(model, {0.1, 0.1, 0.1, 0.1, 0.1, 0.1}, 1e-15);
+  DensityControl density(config, 1.0);
+  const auto g = at::tensor({3e-5f, 0.f, 2e-5f, 0.f, 2e-7f, 0.f, 0.f, 0.f}).view({4, 2});
+  density.accumulate(g, at::Tensor(), at::full({4}, 3, at::kInt), 100, 100);
+  const auto means_before = model.means.detach().clone();
+  // 4 + 1 clone = 5 (the budget), then the transparent one is pruned.
+  EXPECT_EQ(density.densify_and_prune(model, adam, 600, 0), 4);
+  at::AutoGradMode no_grad(false);
+  EXPECT_EQ(((model.means - means_before[0]).norm(2, {1}) < 1e-6).sum().item<int64_t>(), 2);  // cloned
+  EXPECT_EQ((at::abs(at::exp(model.log_scales).amax(1) - 0.5) < 1e-5).sum().item<int64_t>(), 1);  // not split
+}
+
 TEST(TrainConfig, JsonRoundTripAndUnknownKeys) {
   TrainConfig c;
   c.iterations = 1234;
