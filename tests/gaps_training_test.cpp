@@ -7,6 +7,7 @@
 #include "gs_trainer/gaps_training.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -40,28 +41,10 @@ class EchoGenerator : public Generator {
 };
 
 struct GapsTrainingTest : test::TempDirTest {
-  RunOptions options(Variant variant, Generator* generator) {
-    RunOptions o;
-    o.scene_dir = dir_ / "scene";
-    o.out_dir = dir_ / "out";
-    o.views = 3;
-    o.resolution = 1;
-    o.init = "random";
-    o.random_points = 2000;
-    o.config.iterations = 90;
-    o.variant = variant;
-    o.generator = generator;
-    o.gaps.warmup_iterations = 30;
-    o.gaps.phase_interval = 30;
-    o.n_active = 4;
-    return o;
-  }
+  RunOptions options(Variant variant, Generator* generator) { return test::short_run(dir_, variant, generator); }
   void SetUp() override {
     test::TempDirTest::SetUp();
-    SyntheticSceneOptions s;
-    s.width = 64;
-    s.height = 48;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", s).ok());
+    test::write_small_scene(dir_);
   }
 };
 

@@ -10,6 +10,7 @@
 #include "gs_trainer/io_util.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -47,28 +48,16 @@ class EchoGenerator : public Generator {
 
 struct RunControlTest : test::TempDirTest {
   RunOptions options(Generator* generator) {
-    RunOptions o;
-    o.scene_dir = dir_ / "scene";
-    o.out_dir = dir_ / "out";
-    o.views = 3;
-    o.resolution = 1;
-    o.init = "random";
+    RunOptions o = test::short_run(dir_, generator ? Variant::kFull : Variant::kVanilla, generator);
     o.random_points = 1000;
     o.config.iterations = 70;
-    o.variant = generator ? Variant::kFull : Variant::kVanilla;
-    o.generator = generator;
-    o.gaps.warmup_iterations = 30;
-    o.gaps.phase_interval = 30;
     o.n_active = 2;
     o.save_renders = false;
     return o;
   }
   void SetUp() override {
     test::TempDirTest::SetUp();
-    SyntheticSceneOptions s;
-    s.width = 48;
-    s.height = 36;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", s).ok());
+    test::write_small_scene(dir_, 48, 36);
   }
 };
 

@@ -15,6 +15,7 @@
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/report.h"
 #include "gs_trainer/synthetic.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -98,23 +99,14 @@ class HalfGarbageGenerator : public Generator {
 
 struct RunMonitoring : test::TempDirTest {
   RunOptions options() {
-    RunOptions o;
-    o.scene_dir = dir_ / "scene";
-    o.out_dir = dir_ / "out";
-    o.views = 3;
-    o.resolution = 1;
-    o.init = "random";
-    o.random_points = 2000;
+    RunOptions o = test::short_run(dir_);
     o.config.iterations = 60;
     o.eval_every = 20;
     return o;
   }
   void SetUp() override {
     test::TempDirTest::SetUp();
-    SyntheticSceneOptions s;
-    s.width = 64;
-    s.height = 48;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", s).ok());
+    test::write_small_scene(dir_);
   }
 };
 
@@ -175,10 +167,7 @@ TEST_F(RunMonitoring, ReportShowsAdmittedAndRejectedPseudoViewsAndGeneratorTime)
   o.config.iterations = 90;
   o.eval_every = 0;
   o.variant = Variant::kFull;
-  o.generator = &generator;
-  o.gaps.warmup_iterations = 30;
-  o.gaps.phase_interval = 30;
-  o.n_active = 4;
+  o.generator = &generator;  // phases at 30 and 60 (test::short_run)
   // The paper's residual threshold (0.7) admits uniform noise (mean residual about 1/3 against a render);
   // a stricter one makes the decisions of this generator known: echoes in, noise out.
   o.gaps.admit_max_residual = 0.2;

@@ -11,6 +11,7 @@
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -38,28 +39,12 @@ class NoiseGenerator : public Generator {
 struct Stability : test::TempDirTest {
   // A short method schedule: phases every 30 iterations after a 30-iteration warmup.
   RunOptions synthetic_options(Variant variant, Generator* generator) {
-    RunOptions o;
-    o.scene_dir = dir_ / "scene";
-    o.out_dir = dir_ / "out";
+    RunOptions o = test::short_run(dir_, variant, generator);
     o.views = 2;
-    o.resolution = 1;
-    o.init = "random";
-    o.random_points = 2000;
-    o.config.iterations = 90;
-    o.variant = variant;
-    o.generator = generator;
-    o.gaps.warmup_iterations = 30;
-    o.gaps.phase_interval = 30;
-    o.n_active = 4;
     o.html_report = false;
     return o;
   }
-  void write_scene() {
-    SyntheticSceneOptions s;
-    s.width = 64;
-    s.height = 48;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", s).ok());
-  }
+  void write_scene() { test::write_small_scene(dir_); }
   std::unique_ptr<Generator> reproject() {
     auto g = make_generator("reproject", "");
     EXPECT_TRUE(g.ok()) << g.status();
