@@ -18,16 +18,6 @@ namespace {
 
 constexpr int kVersion = 1;
 
-// std::filesystem::remove_all is interposed by libtorch.so's own copy and crashes; one entry at a time.
-void remove_tree(const fs::path& dir) {
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const auto& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
 json camera_json(const Camera& c) {
   json j = {{"name", c.name}, {"width", c.width}, {"height", c.height}, {"fx", c.fx}, {"fy", c.fy}, {"cx", c.cx},

@@ -1,6 +1,7 @@
 #include "gs_trainer/io_util.h"
 
 #include <fstream>
+#include <system_error>
 #include <iterator>
 
 #include "absl/strings/str_cat.h"
@@ -25,6 +26,16 @@ absl::Status write_file_bytes(const std::filesystem::path& path, absl::string_vi
   out.close();
   if (!out) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be written"));
   return absl::OkStatus();
+}
+
+void remove_tree(const std::filesystem::path& dir) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec)) return;
+  for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
+    if (entry.is_directory(ec)) remove_tree(entry.path());
+    std::filesystem::remove(entry.path(), ec);
+  }
+  std::filesystem::remove(dir, ec);
 }
 
 }  // namespace gaps

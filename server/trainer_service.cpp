@@ -70,16 +70,6 @@ std::vector<JobStore::Artifact> list_artifacts(const fs::path& out_dir) {
   return out;
 }
 
-// std::filesystem::remove_all is interposed by libtorch.so's own copy and crashes; one entry at a time.
-void remove_tree(const fs::path& dir) {
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const auto& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
 }  // namespace
 

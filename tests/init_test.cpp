@@ -16,22 +16,13 @@
 #include "gs_trainer/colmap.h"
 #include "gs_trainer/init_dense.h"
 #include "gs_trainer/init_sparse.h"
+#include "gs_trainer/io_util.h"
 
 namespace gaps {
 namespace {
 
 namespace fs = std::filesystem;
 
-void remove_tree(const fs::path& dir) {
-  // std::filesystem::remove_all crashes when libtorch.so interposes it; remove entry by entry.
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) return;
-  for (const fs::directory_entry& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    fs::remove(entry.path(), ec);
-  }
-  fs::remove(dir, ec);
-}
 
 // OpenCV-convention camera at `centre` looking at `target` (world y points down, like the image's).
 Camera look_at(const std::string& name, const Eigen::Vector3d& centre, const Eigen::Vector3d& target, int width,

@@ -6,20 +6,12 @@
 #include <system_error>
 
 #include <gtest/gtest.h>
+#include "gs_trainer/io_util.h"
 
 namespace gaps::test {
 
-// std::filesystem::remove_all crashes when libtorch.so (which exports its own copy) interposes it, so
-// folders are removed one entry at a time.
-inline void remove_tree(const std::filesystem::path& dir) {
-  std::error_code ec;
-  if (!std::filesystem::is_directory(dir, ec)) return;
-  for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
-    if (entry.is_directory(ec)) remove_tree(entry.path());
-    std::filesystem::remove(entry.path(), ec);
-  }
-  std::filesystem::remove(dir, ec);
-}
+// Never std::filesystem::remove_all in binaries linking LibTorch (see gs_trainer/io_util.h).
+using ::gaps::remove_tree;
 
 // A fresh folder per test (named after the suite and test), removed afterwards.
 class TempDirTest : public ::testing::Test {
