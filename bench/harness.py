@@ -253,19 +253,19 @@ def main(argv=None):
         with log_lock:
             print(f"[{time.strftime('%H:%M:%S')}] {message}", flush=True)
 
-    todo = []
+    pending = []
     for cell in cells:
         metrics = read_metrics(args.out, cell)
         if metrics is None:
-            todo.append(cell)
+            pending.append(cell)
         elif not results.has(cell["cell"]):  # finished before its row was written
             extra_path = Path(args.out) / cell["cell"] / "harness.json"
             extra = json.loads(extra_path.read_text()) if extra_path.exists() else {}
             results.append(row_from_metrics(config, cell, metrics, extra.get("commit", commit),
                                             extra.get("device", "unknown"), extra.get("wall_seconds")))
-    log(f"{config['name']}: {len(cells)} cells, {len(cells) - len(todo)} finished, {len(todo)} to run")
+    log(f"{config['name']}: {len(cells)} cells, {len(cells) - len(pending)} finished, {len(pending)} to run")
     if args.dry_run:
-        for cell in todo:
+        for cell in pending:
             print(" ".join(command(config, cell, args.gaps, args.data, args.out, args.flag)))
         return 0
     gpus = None
@@ -274,9 +274,9 @@ def main(argv=None):
         for slot in range(args.jobs):  # the slots of the jobs, spread round-robin over the devices
             gpus.put(gpu_ids[slot % len(gpu_ids)])
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log), todo))
+        outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log), pending))
     failed = outcomes.count(False)
-    log(f"{config['name']}: {len(todo) - failed} cells run, {failed} failed; rows in {results.jsonl}")
+    log(f"{config['name']}: {len(pending) - failed} cells run, {failed} failed; rows in {results.jsonl}")
     return 1 if failed else 0
 
 

@@ -262,13 +262,20 @@ GAPS_HD TileRect tile_rect(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacit
           clamp_tile(ceil((mx + ex) / ts), tiles_x), clamp_tile(ceil((my + ey) / ts), tiles_y)};
 }
 
+// The exponent of a projected Gaussian at a pixel centre, and the offsets (dx, dy) = mean - pixel. One
+// expression for every caller, so the CPU and CUDA paths round it alike.
+template <typename T>
+GAPS_HD T gaussian_power(const Vec2<T>& mean2d, const Sym2<T>& conic, T px, T py, T& dx, T& dy) {
+  dx = mean2d.x - px;
+  dy = mean2d.y - py;
+  return -T(0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+}
+
 // Opacity-weighted Gaussian value at a pixel centre; returns false when the Gaussian is skipped there.
 template <typename T>
 GAPS_HD bool eval_alpha(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
                         T& gauss, T& dx, T& dy) {
-  dx = mean2d.x - px;
-  dy = mean2d.y - py;
-  const T power = -T(0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  const T power = gaussian_power(mean2d, conic, px, py, dx, dy);
   if (power > 0) return false;
   gauss = exp(power);
   const T a = opacity * gauss;
@@ -339,14 +346,12 @@ namespace gaps::raster {
 // thresholds, where it decides whether a whole contribution (>= 1/255) exists or whether the 0.99 clamp
 // (and its zero gradient) applies. So this keeps the fast float exp and re-evaluates exp in double only
 // when alpha lands within a few ulp of a threshold (rare: a thin ring of each footprint). `power` is
-// written exactly as in eval_alpha; the kernels are compiled without FMA contraction (--fmad=false) so it
+// gaussian_power, as in eval_alpha; the kernels are compiled without FMA contraction (--fmad=false) so it
 // rounds like the CPU's. Same contract and outputs as eval_alpha.
 template <typename T>
 GAPS_HD bool eval_alpha_host_rounding(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
                                       T& gauss, T& dx, T& dy) {
-  dx = mean2d.x - px;
-  dy = mean2d.y - py;
-  const T power = -T(0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  const T power = gaussian_power(mean2d, conic, px, py, dx, dy);
   if (power > 0) return false;
   gauss = exp(power);
   T a = opacity * gauss;
