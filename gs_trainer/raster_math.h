@@ -263,11 +263,19 @@ GAPS_HD TileRect tile_rect(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacit
 }
 
 // The exponent of a projected Gaussian at a pixel centre, and the offsets (dx, dy) = mean - pixel. One
-// expression for every caller, so the CPU and CUDA paths round it alike.
+// expression for every caller, so the CPU and CUDA paths round it alike: on the device every float
+// operation is an explicitly rounded intrinsic, which nvcc never fuses into an FMA, so the alpha decisions
+// taken from it match the CPU's even in kernels compiled with FMA contraction (the backward pass).
 template <typename T>
 GAPS_HD T gaussian_power(const Vec2<T>& mean2d, const Sym2<T>& conic, T px, T py, T& dx, T& dy) {
   dx = mean2d.x - px;
   dy = mean2d.y - py;
+#ifdef __CUDA_ARCH__
+  if constexpr (sizeof(T) == sizeof(float)) {
+    const float quad = __fadd_rn(__fmul_rn(__fmul_rn(conic.a, dx), dx), __fmul_rn(__fmul_rn(conic.c, dy), dy));
+    return __fsub_rn(__fmul_rn(-0.5f, quad), __fmul_rn(__fmul_rn(conic.b, dx), dy));
+  }
+#endif
   return -T(0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
 }
 

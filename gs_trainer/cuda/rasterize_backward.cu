@@ -2,10 +2,15 @@
 // per pixel, walking the tile's list back to front in shared-memory batches. Each thread undoes its
 // pixel's compositing (T grows back by 1 / (1 - alpha), `behind` holds the features composited behind)
 // with the operations of rasterize_backward_cpu.cpp. The 32 pixels of a warp then sum their gradients for
-// the current Gaussian with shuffles, and one lane adds the sums to the per-Gaussian gradients with
-// atomics: 32 times fewer atomics than per-pixel ones. Float atomics make the last bits of a gradient
-// depend on the order warps finish (relative ~1e-7); a deterministic order would need per-(tile,
-// Gaussian) partial sums plus a second sort, far from cheap at millions of intersections.
+// the current Gaussian and add the sums to the per-Gaussian gradients with atomics: 32 times fewer atomics
+// than per-pixel ones. The sum is a reduce-scatter (warp_reduce_scatter): with 12 values per lane, 16
+// shuffles instead of 12 butterflies of 5, and the sums end up in different lanes, so one warp-wide
+// atomic instruction stores all of them instead of lane 0 issuing 12 in a row.
+// Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
+// deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
+// millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
+// sums in another order than the CPU's anyway, and the alpha decisions it must share with the forward
+// pass come from gaussian_power, which is written with unfused intrinsics.
 #include <type_traits>
 
 #include <ATen/core/Tensor.h>
@@ -33,9 +38,38 @@ template <typename F> void dispatch_channels(int channels, F&& f) {
     f(std::integral_constant<int, 16>{});
 }
 
-__device__ float warp_sum(float v) {
-  for (int offset = 16; offset > 0; offset /= 2) v += __shfl_down_sync(kFullMask, v, offset);
-  return v;
+// Sums v[i] over the 32 lanes of a warp for every i < P (P a power of two, at most 32) and leaves the sum
+// of slot i in lanes i * 32 / P ... (i + 1) * 32 / P - 1. At each butterfly step a lane keeps half of its
+// remaining slots, receives its partner's partial sums of those and sends the other half: P - 1 shuffles
+// while slots remain to split, then one per step for the last.
+template <int P> __device__ float warp_reduce_scatter(float (&v)[P], int lane) {
+  static_assert(P >= 1 && P <= 32 && (P & (P - 1)) == 0, "P must be a power of two up to 32");
+  int n = P;
+#pragma unroll
+  for (int offset = 16; offset > 0; offset /= 2) {
+    if (n > 1) {
+      const int half = n / 2;
+      const bool upper = lane & offset;
+#pragma unroll
+      for (int i = 0; i < half; ++i) {
+        const float send = upper ? v[i] : v[i + half];
+        const float keep = upper ? v[i + half] : v[i];
+        v[i] = keep + __shfl_xor_sync(kFullMask, send, offset);
+      }
+      n = half;
+    } else {
+      v[0] += __shfl_xor_sync(kFullMask, v[0], offset);
+    }
+  }
+  return v[0];
+}
+
+// The gradient slots of one Gaussian, in the order warp_reduce_scatter leaves them across the lanes.
+enum Slot { kMeanX, kMeanY, kConicA, kConicB, kConicC, kOpacity, kAbsX, kAbsY, kFeatures };
+
+template <int CMAX> constexpr int slot_count() {
+  constexpr int used = kFeatures + CMAX;
+  return used <= 16 ? 16 : 32;
 }
 
 // The largest n_contrib of the block: entries past it were walked by no pixel of the tile.
@@ -67,6 +101,16 @@ struct BackwardArgs {
   float* __restrict__ g_features;            // N x C
   float* __restrict__ g_means2d_abs;         // N x 2
 };
+
+// Where the sum of a gradient slot goes; nullptr for padding slots past the channels.
+__device__ float* slot_target(const BackwardArgs& a, int64_t g, int slot) {
+  if (slot < kConicA) return a.g_means2d + 2 * g + (slot - kMeanX);
+  if (slot < kOpacity) return a.g_conics + 3 * g + (slot - kConicA);
+  if (slot == kOpacity) return a.g_opacities + g;
+  if (slot < kFeatures) return a.g_means2d_abs + 2 * g + (slot - kAbsX);
+  if (slot - kFeatures < a.channels) return a.g_features + g * a.channels + (slot - kFeatures);
+  return nullptr;
+}
 
 template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
   const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
@@ -121,42 +165,43 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
       const bool valid = entry < contrib && raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j],
                                                                               cx, cy, alpha, gauss, dx, dy);
       if (!__any_sync(kFullMask, valid)) continue;
-      raster::Vec2<float> g_mean{0.f, 0.f};
-      raster::Sym2<float> g_conic{0.f, 0.f, 0.f};
-      float g_opacity = 0.f;
-      float g_feat[CMAX];
-      for (int ch = 0; ch < CMAX; ++ch) g_feat[ch] = 0.f;
+      constexpr int P = slot_count<CMAX>();
+      float slots[P];
+#pragma unroll
+      for (int i = 0; i < P; ++i) slots[i] = 0.f;
       if (valid) {
-        T /= (1 - alpha);  // transmittance in front of this Gaussian
+        const float inv_one_minus_alpha = 1.f / (1.f - alpha);
+        T *= inv_one_minus_alpha;  // transmittance in front of this Gaussian
         const float t = T;
         const float* f = s_feat + j * CMAX;
         float g_alpha = 0.f;
+#pragma unroll
         for (int ch = 0; ch < CMAX; ++ch) {
           behind[ch] = last_alpha * last_feat[ch] + (1 - last_alpha) * behind[ch];
           last_feat[ch] = f[ch];
-          g_feat[ch] = alpha * t * g_out[ch];
+          slots[kFeatures + ch] = alpha * t * g_out[ch];
           g_alpha += (f[ch] - behind[ch]) * t * g_out[ch];
         }
         last_alpha = alpha;
-        g_alpha += g_out_alpha * final_T / (1 - alpha);  // alpha_out = 1 - prod(1 - alpha_j)
+        g_alpha += g_out_alpha * final_T * inv_one_minus_alpha;  // alpha_out = 1 - prod(1 - alpha_j)
+        raster::Vec2<float> g_mean;
+        raster::Sym2<float> g_conic;
+        float g_opacity;
         raster::eval_alpha_vjp(s_conic[j], s_opacity[j], gauss, dx, dy, g_alpha, g_mean, g_conic, g_opacity);
+        slots[kMeanX] = g_mean.x;
+        slots[kMeanY] = g_mean.y;
+        slots[kConicA] = g_conic.a;
+        slots[kConicB] = g_conic.b;
+        slots[kConicC] = g_conic.c;
+        slots[kOpacity] = g_opacity;
+        slots[kAbsX] = fabsf(g_mean.x);
+        slots[kAbsY] = fabsf(g_mean.y);
       }
-      const float sums[8] = {warp_sum(g_mean.x),  warp_sum(g_mean.y),  warp_sum(g_conic.a),
-                             warp_sum(g_conic.b), warp_sum(g_conic.c), warp_sum(g_opacity),
-                             warp_sum(fabsf(g_mean.x)), warp_sum(fabsf(g_mean.y))};
-      for (int ch = 0; ch < CMAX; ++ch) g_feat[ch] = ch < a.channels ? warp_sum(g_feat[ch]) : 0.f;
-      if (lane == 0) {
-        const int64_t g = s_id[j];
-        atomicAdd(a.g_means2d + 2 * g, sums[0]);
-        atomicAdd(a.g_means2d + 2 * g + 1, sums[1]);
-        atomicAdd(a.g_conics + 3 * g, sums[2]);
-        atomicAdd(a.g_conics + 3 * g + 1, sums[3]);
-        atomicAdd(a.g_conics + 3 * g + 2, sums[4]);
-        atomicAdd(a.g_opacities + g, sums[5]);
-        atomicAdd(a.g_means2d_abs + 2 * g, sums[6]);
-        atomicAdd(a.g_means2d_abs + 2 * g + 1, sums[7]);
-        for (int ch = 0; ch < CMAX; ++ch)
-          if (ch < a.channels) atomicAdd(a.g_features + g * a.channels + ch, g_feat[ch]);
+      const float sum = warp_reduce_scatter<P>(slots, lane);
+      constexpr int lanes_per_slot = 32 / P;
+      if (lane % lanes_per_slot == 0) {
+        float* target = slot_target(a, s_id[j], lane / lanes_per_slot);
+        if (target != nullptr) atomicAdd(target, sum);
       }
     }
   }
