@@ -83,10 +83,11 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, con
 RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                     const at::Tensor& opacities, const at::Tensor& features, int width,
                                     int height);
+// `absolute_grads` = false leaves RasterGrads::means2d_abs undefined and saves its sums.
 RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                     const at::Tensor& opacities, const at::Tensor& features,
                                     const RasterOutput& forward, const at::Tensor& g_features,
-                                    const at::Tensor& g_alpha);
+                                    const at::Tensor& g_alpha, bool absolute_grads = true);
 #endif
 
 }  // namespace gaps::backend

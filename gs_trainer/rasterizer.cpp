@@ -147,7 +147,8 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
     backend::RasterGrads g;
     if (s[0].is_cuda()) {
 #if defined(GAPS_CUDA_KERNELS)
-      g = backend::rasterize_backward_cuda(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha);
+      g = backend::rasterize_backward_cuda(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha,
+                                           ctx->saved_data.count("abs_sink") > 0);
 #else
       no_cuda_backend();
 #endif

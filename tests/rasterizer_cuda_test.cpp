@@ -137,12 +137,13 @@ struct SceneResult {
 };
 
 // Loss = <R1, features> + <R2, alpha> with fixed random weights.
+// Without the sink (with_sink = false) the |mean2d| sums are not asked for and not returned.
 SceneResult render_with_grads(const RandomScene& scene, const at::Device& device, at::ScalarType dtype,
-                              const at::Tensor& r1, const at::Tensor& r2) {
+                              const at::Tensor& r1, const at::Tensor& r2, bool with_sink = true) {
   RandomScene s = to(scene, device, dtype);
   for (auto* t : {&s.means, &s.quats, &s.scales, &s.opacities, &s.features}) t->requires_grad_(true);
   const int64_t n = s.means.size(0);
-  at::Tensor sink = at::zeros({n, 2}, s.means.options());
+  at::Tensor sink = with_sink ? at::zeros({n, 2}, s.means.options()) : at::Tensor();
   auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
   auto out = rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width,
                                  s.K.height, sink);
@@ -151,7 +152,8 @@ SceneResult render_with_grads(const RandomScene& scene, const at::Device& device
   SceneResult r{host(out.features), host(out.alpha), {}};
   r.grads = {{"means", host(s.means.grad())},         {"quats", host(s.quats.grad())},
              {"scales", host(s.scales.grad())},       {"opacities", host(s.opacities.grad())},
-             {"features", host(s.features.grad())},   {"means2d_abs (sink)", host(sink)}};
+             {"features", host(s.features.grad())}};
+  if (with_sink) r.grads.push_back({"means2d_abs (sink)", host(sink)});
   return r;
 }
 
@@ -249,6 +251,29 @@ TEST(RasterizerCuda, SmallSceneMatchesCpu) {
 TEST(RasterizerCuda, WideSceneMatchesCpu) {
   REQUIRE_CUDA();
   compare_scene("wide 2000 @ 160x120", kWide);
+}
+
+// The CUDA backward skips the warp sums of a channel whose output gradient is zero at all 32 pixels of a
+// warp (depth in photometric training) and the |mean2d| sums when no sink asks for them. Here channel 3
+// gets no gradient at all and channel 0 none in the left half of the image, so some warps skip it and
+// others do not; every gradient must still match the CPU's.
+TEST(RasterizerCuda, ChannelsWithoutGradientAndNoSinkMatchCpu) {
+  REQUIRE_CUDA();
+  const SceneSpec spec = kWide;
+  const RandomScene scene = make_scene(spec);
+  at::manual_seed(spec.seed + 2);
+  at::Tensor r1 = at::randn({spec.height, spec.width, spec.channels}, at::kDouble);
+  r1.select(2, 3).zero_();
+  r1.select(2, 0).narrow(1, 0, spec.width / 2).zero_();
+  const auto r2 = at::randn({spec.height, spec.width}, at::kDouble);
+  const SceneResult cpu = render_with_grads(scene, at::kCPU, at::kFloat, r1, r2, /*with_sink=*/false);
+  const SceneResult gpu = render_with_grads(scene, kCuda, at::kFloat, r1, r2, /*with_sink=*/false);
+  ASSERT_EQ(cpu.grads.size(), gpu.grads.size());
+  for (size_t i = 0; i < cpu.grads.size(); ++i)
+    expect_grad_close("zero-gradient channels d/" + cpu.grads[i].first, gpu.grads[i].second, cpu.grads[i].second);
+  const at::Tensor g_feat = gpu.grads[4].second;
+  EXPECT_EQ(g_feat.select(1, 3).abs().max().item<double>(), 0.0) << "channel 3 had no output gradient";
+  EXPECT_GT(g_feat.select(1, 0).abs().max().item<double>(), 0.0) << "channel 0 had some";
 }
 
 // More channels than the 4 that render() composites take the kernels' 16-channel variant.

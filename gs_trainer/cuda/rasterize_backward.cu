@@ -2,10 +2,12 @@
 // per pixel, walking the tile's list back to front in shared-memory batches. Each thread undoes its
 // pixel's compositing (T grows back by 1 / (1 - alpha), `behind` holds the features composited behind)
 // with the operations of rasterize_backward_cpu.cpp. The 32 pixels of a warp then sum their gradients for
-// the current Gaussian and add the sums to the per-Gaussian gradients with atomics: 32 times fewer atomics
-// than per-pixel ones. The sum is a reduce-scatter (warp_reduce_scatter): with 12 values per lane, 16
-// shuffles instead of 12 butterflies of 5, and the sums end up in different lanes, so one warp-wide
-// atomic instruction stores all of them instead of lane 0 issuing 12 in a row.
+// the current Gaussian with shuffles, and one lane adds the sums to the per-Gaussian gradients with
+// atomics: 32 times fewer atomics than per-pixel ones. The warp sums are most of the kernel's work, so a
+// warp skips the sums it knows to be zero: feature channels whose output gradient is zero at all of its
+// pixels (depth, in plain photometric training) and the absolute 2D-mean gradient when nobody asked for it.
+// (Measured on an H200: spreading the sums over the lanes with a reduce-scatter, so that one warp-wide
+// atomic stores them all, was 40% slower than this; bench/results/rasterizer_backward_modes_gpu_*.)
 // Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
 // deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
 // millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
@@ -38,39 +40,14 @@ template <typename F> void dispatch_channels(int channels, F&& f) {
     f(std::integral_constant<int, 16>{});
 }
 
-// Sums v[i] over the 32 lanes of a warp for every i < P (P a power of two, at most 32) and leaves the sum
-// of slot i in lanes i * 32 / P ... (i + 1) * 32 / P - 1. At each butterfly step a lane keeps half of its
-// remaining slots, receives its partner's partial sums of those and sends the other half: P - 1 shuffles
-// while slots remain to split, then one per step for the last.
-template <int P> __device__ float warp_reduce_scatter(float (&v)[P], int lane) {
-  static_assert(P >= 1 && P <= 32 && (P & (P - 1)) == 0, "P must be a power of two up to 32");
-  int n = P;
-#pragma unroll
-  for (int offset = 16; offset > 0; offset /= 2) {
-    if (n > 1) {
-      const int half = n / 2;
-      const bool upper = lane & offset;
-#pragma unroll
-      for (int i = 0; i < half; ++i) {
-        const float send = upper ? v[i] : v[i + half];
-        const float keep = upper ? v[i + half] : v[i];
-        v[i] = keep + __shfl_xor_sync(kFullMask, send, offset);
-      }
-      n = half;
-    } else {
-      v[0] += __shfl_xor_sync(kFullMask, v[0], offset);
-    }
-  }
-  return v[0];
+__device__ float warp_sum(float v) {
+  for (int offset = 16; offset > 0; offset /= 2) v += __shfl_xor_sync(kFullMask, v, offset);
+  return v;
 }
 
-// The gradient slots of one Gaussian, in the order warp_reduce_scatter leaves them across the lanes.
+// The gradient slots of one Gaussian.
 enum Slot { kMeanX, kMeanY, kConicA, kConicB, kConicC, kOpacity, kAbsX, kAbsY, kFeatures };
 
-template <int CMAX> constexpr int slot_count() {
-  constexpr int used = kFeatures + CMAX;
-  return used <= 16 ? 16 : 32;
-}
 
 // The largest n_contrib of the block: entries past it were walked by no pixel of the tile.
 __device__ int block_max(int v, int* s_warp) {
@@ -135,6 +112,12 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
   for (int ch = 0; ch < CMAX; ++ch)
     g_out[ch] = inside && ch < a.channels ? a.g_out_features[pix * a.channels + ch] : 0.f;
   const float g_out_alpha = inside ? a.g_out_alpha[pix] : 0.f;
+  // The slots this warp sums (warp-uniform): a channel's gradient is exactly zero where its output
+  // gradient is zero at all 32 pixels.
+  unsigned needed = (1u << kAbsX) - 1;
+  if (a.g_means2d_abs != nullptr) needed |= (1u << kAbsX) | (1u << kAbsY);
+  for (int ch = 0; ch < CMAX; ++ch)
+    if (__any_sync(kFullMask, g_out[ch] != 0.f)) needed |= 1u << (kFeatures + ch);
 
   float T = final_T;
   float last_alpha = 0.f;
@@ -165,10 +148,10 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
       const bool valid = entry < contrib && raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j],
                                                                               cx, cy, alpha, gauss, dx, dy);
       if (!__any_sync(kFullMask, valid)) continue;
-      constexpr int P = slot_count<CMAX>();
-      float slots[P];
+      constexpr int kSlots = kFeatures + CMAX;
+      float slots[kSlots];
 #pragma unroll
-      for (int i = 0; i < P; ++i) slots[i] = 0.f;
+      for (int i = 0; i < kSlots; ++i) slots[i] = 0.f;
       if (valid) {
         const float inv_one_minus_alpha = 1.f / (1.f - alpha);
         T *= inv_one_minus_alpha;  // transmittance in front of this Gaussian
@@ -197,11 +180,16 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
         slots[kAbsX] = fabsf(g_mean.x);
         slots[kAbsY] = fabsf(g_mean.y);
       }
-      const float sum = warp_reduce_scatter<P>(slots, lane);
-      constexpr int lanes_per_slot = 32 / P;
-      if (lane % lanes_per_slot == 0) {
-        float* target = slot_target(a, s_id[j], lane / lanes_per_slot);
-        if (target != nullptr) atomicAdd(target, sum);
+#pragma unroll
+      for (int i = 0; i < kSlots; ++i)
+        if (needed & (1u << i)) slots[i] = warp_sum(slots[i]);
+      if (lane == 0) {
+        const int64_t g = s_id[j];
+#pragma unroll
+        for (int i = 0; i < kSlots; ++i) {
+          float* target = slot_target(a, g, i);
+          if ((needed & (1u << i)) && target != nullptr) atomicAdd(target, slots[i]);
+        }
       }
     }
   }
@@ -212,7 +200,7 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
 RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& means2d_in, const at::Tensor& conics_in,
                                     const at::Tensor& opacities_in, const at::Tensor& features_in,
                                     const RasterOutput& fwd, const at::Tensor& g_features_in,
-                                    const at::Tensor& g_alpha_in) {
+                                    const at::Tensor& g_alpha_in, bool absolute_grads) {
   for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in, &g_features_in, &g_alpha_in})
     TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
                 "the CUDA rasterizer computes in float32 only, got a ", t->scalar_type(), " tensor on ",
@@ -233,7 +221,7 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
   grads.conics = at::zeros({n, 3}, opts);
   grads.opacities = at::zeros({n}, opts);
   grads.features = at::zeros({n, channels}, opts);
-  grads.means2d_abs = at::zeros({n, 2}, opts);
+  if (absolute_grads) grads.means2d_abs = at::zeros({n, 2}, opts);
   if (n == 0) return grads;
 
   const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
@@ -255,7 +243,7 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
                           grads.conics.data_ptr<float>(),
                           grads.opacities.data_ptr<float>(),
                           grads.features.data_ptr<float>(),
-                          grads.means2d_abs.data_ptr<float>()};
+                          absolute_grads ? grads.means2d_abs.data_ptr<float>() : nullptr};
   dispatch_channels(channels, [&](auto cmax) {
     rasterize_backward_kernel<decltype(cmax)::value>
         <<<dim3(tiles_x, tiles_y), dim3(kTile, kTile), 0, at::cuda::getCurrentCUDAStream()>>>(args);
