@@ -253,10 +253,8 @@ TEST(RasterizerCuda, WideSceneMatchesCpu) {
   compare_scene("wide 2000 @ 160x120", kWide);
 }
 
-// The CUDA backward skips the warp sums of a channel whose output gradient is zero at all 32 pixels of a
-// warp (depth in photometric training) and the |mean2d| sums when no sink asks for them. Here channel 3
-// gets no gradient at all and channel 0 none in the left half of the image, so some warps skip it and
-// others do not; every gradient must still match the CPU's.
+// Without a sink the CUDA backward runs its variant that never sums |mean2d|; here channel 3 also gets no
+// output gradient and channel 0 none in the left half of the image. Every gradient must match the CPU's.
 TEST(RasterizerCuda, ChannelsWithoutGradientAndNoSinkMatchCpu) {
   REQUIRE_CUDA();
   const SceneSpec spec = kWide;

@@ -3,11 +3,13 @@
 // pixel's compositing (T grows back by 1 / (1 - alpha), `behind` holds the features composited behind)
 // with the operations of rasterize_backward_cpu.cpp. The 32 pixels of a warp then sum their gradients for
 // the current Gaussian with shuffles, and one lane adds the sums to the per-Gaussian gradients with
-// atomics: 32 times fewer atomics than per-pixel ones. The warp sums are most of the kernel's work, so a
-// warp skips the sums it knows to be zero: feature channels whose output gradient is zero at all of its
-// pixels (depth, in plain photometric training) and the absolute 2D-mean gradient when nobody asked for it.
-// (Measured on an H200: spreading the sums over the lanes with a reduce-scatter, so that one warp-wide
-// atomic stores them all, was 40% slower than this; bench/results/rasterizer_backward_modes_gpu_*.)
+// atomics: 32 times fewer atomics than per-pixel ones. The |mean2d| sums are compiled in only where a
+// caller asks for them (absolute-gradient densification). Measured on an H200 (bench/results/
+// rasterizer_backward_variants_gpu_2026-11-22.txt), each of these was slower than this plain form:
+// a reduce-scatter that leaves each sum in its own lane so that one warp-wide atomic stores them all
+// (+40%), the same butterflies with the atomics spread over the lanes (+5%), skipping per warp the sums of
+// channels without output gradient (more registers, lower occupancy: +20% at 1M Gaussians), and forcing
+// 5 or 6 resident blocks per multiprocessor by launch bounds (no gain).
 // Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
 // deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
 // millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
@@ -89,7 +91,8 @@ __device__ float* slot_target(const BackwardArgs& a, int64_t g, int slot) {
   return nullptr;
 }
 
-template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
+// ABS: also sum the absolute 2D-mean gradients (only absolute-gradient densification asks for them).
+template <int CMAX, bool ABS> __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
   const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
   const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
   const int thread = threadIdx.y * kTile + threadIdx.x;
@@ -112,13 +115,6 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
   for (int ch = 0; ch < CMAX; ++ch)
     g_out[ch] = inside && ch < a.channels ? a.g_out_features[pix * a.channels + ch] : 0.f;
   const float g_out_alpha = inside ? a.g_out_alpha[pix] : 0.f;
-  // The slots this warp sums (warp-uniform): a channel's gradient is exactly zero where its output
-  // gradient is zero at all 32 pixels.
-  unsigned needed = (1u << kAbsX) - 1;
-  if (a.g_means2d_abs != nullptr) needed |= (1u << kAbsX) | (1u << kAbsY);
-  for (int ch = 0; ch < CMAX; ++ch)
-    if (__any_sync(kFullMask, g_out[ch] != 0.f)) needed |= 1u << (kFeatures + ch);
-
   float T = final_T;
   float last_alpha = 0.f;
   float behind[CMAX], last_feat[CMAX];
@@ -182,13 +178,13 @@ template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_backward
       }
 #pragma unroll
       for (int i = 0; i < kSlots; ++i)
-        if (needed & (1u << i)) slots[i] = warp_sum(slots[i]);
+        if (ABS || (i != kAbsX && i != kAbsY)) slots[i] = warp_sum(slots[i]);
       if (lane == 0) {
         const int64_t g = s_id[j];
 #pragma unroll
         for (int i = 0; i < kSlots; ++i) {
           float* target = slot_target(a, g, i);
-          if ((needed & (1u << i)) && target != nullptr) atomicAdd(target, slots[i]);
+          if ((ABS || (i != kAbsX && i != kAbsY)) && target != nullptr) atomicAdd(target, slots[i]);
         }
       }
     }
@@ -245,8 +241,12 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
                           grads.features.data_ptr<float>(),
                           absolute_grads ? grads.means2d_abs.data_ptr<float>() : nullptr};
   dispatch_channels(channels, [&](auto cmax) {
-    rasterize_backward_kernel<decltype(cmax)::value>
-        <<<dim3(tiles_x, tiles_y), dim3(kTile, kTile), 0, at::cuda::getCurrentCUDAStream()>>>(args);
+    const dim3 grid(tiles_x, tiles_y), block(kTile, kTile);
+    const auto stream = at::cuda::getCurrentCUDAStream();
+    if (absolute_grads)
+      rasterize_backward_kernel<decltype(cmax)::value, true><<<grid, block, 0, stream>>>(args);
+    else
+      rasterize_backward_kernel<decltype(cmax)::value, false><<<grid, block, 0, stream>>>(args);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return grads;
