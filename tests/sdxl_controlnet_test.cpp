@@ -5,6 +5,7 @@
 // tolerance as the other sdxl suites: max abs diff <= 1e-4 x max(1, max |reference|). Also: loading errors
 // name the tensor, the depth conditioning image of a render by hand-computed values, the sdxl backend
 // with a ControlNet, and (CUDA only, skipped otherwise) float16 and CUDA-graph replay with residuals.
+#include <filesystem>
 #include <fstream>
 
 #include <ATen/ATen.h>
@@ -18,6 +19,7 @@
 #include "diffusion_worker/sdxl/pipeline.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "tests/sdxl_test_util.h"
+#include "tests/test_util.h"
 
 namespace gaps {
 namespace {
@@ -174,6 +176,31 @@ TEST(ControlNetPipelineTest, RejectsControlItCannotUse) {
   options.controlnet = test::sdxl_model_dir() + "/unet";
   auto wrong = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), options);
   EXPECT_TRUE(contains_all(std::string(wrong.status().message()), {"controlnet", "not a ControlNetModel"}));
+}
+
+class ControlNetComponentTest : public test::TempDirTest {};
+
+// A saved StableDiffusionXLControlNet*Pipeline lists its ControlNet in model_index.json: loaded without
+// the controlnet option, and refused by name when it is not a ControlNetModel.
+TEST_F(ControlNetComponentTest, LoadsTheControlNetComponentOfAPipelineFolder) {
+  const auto model = dir_ / "model";
+  std::filesystem::copy(test::sdxl_model_dir(), model, std::filesystem::copy_options::recursive);
+  std::filesystem::copy(controlnet_dir(), model / "controlnet", std::filesystem::copy_options::recursive);
+  std::ifstream index_in(test::sdxl_model_dir() + "/model_index.json");
+  nlohmann::json index = nlohmann::json::parse(index_in);
+  index["controlnet"] = {"diffusers", "ControlNetModel"};
+  std::ofstream(model / "model_index.json") << index.dump();
+  auto pipeline = sdxl::SdxlPipeline::load(model.string(), sdxl::PipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  ASSERT_NE((*pipeline)->controlnet(), nullptr);
+  const TensorMap ref = controlnet_reference("controlnet");
+  expect_close((*pipeline)->controlnet()->forward(unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale")).mid,
+               ref.at("mid"), kTolerance, "mid residual of the folder's ControlNet");
+
+  index["controlnet"] = {"diffusers", "ControlNetXSAdapter"};
+  std::ofstream(model / "model_index.json") << index.dump();
+  auto refused = sdxl::SdxlPipeline::load(model.string(), sdxl::PipelineOptions{});
+  EXPECT_TRUE(contains_all(std::string(refused.status().message()), {"controlnet", "ControlNetXSAdapter"}));
 }
 
 class ControlNetLoadingTest : public ::testing::Test {
