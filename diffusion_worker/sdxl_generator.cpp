@@ -1,6 +1,8 @@
 #include "diffusion_worker/sdxl_generator.h"
 
+#include <cmath>
 #include <map>
+#include <optional>
 #include <tuple>
 #include <utility>
 
@@ -37,10 +39,17 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
     const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
                                                       {"device", &o.device},   {"prompt", &o.prompt},
-                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant}};
+                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant},
+                                                      {"controlnet", &o.controlnet}};
     if (strings.count(key)) {
       GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
       *strings.at(key) = v.get<std::string>();
+    } else if (key == "control_min_alpha" || key == "control_max_relative_variance") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
+      (key == "control_min_alpha" ? o.depth_control.min_alpha : o.depth_control.max_relative_variance) = v.get<double>();
+    } else if (key == "control_variance_window") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1 && v.get<int64_t>() % 2 == 1, "an odd integer >= 1"));
+      o.depth_control.variance_window = v.get<int64_t>();
     } else if (key == "steps" || key == "batch_size") {
       GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
       (key == "steps" ? o.steps : o.batch_size) = v.get<int64_t>();
@@ -52,10 +61,12 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
       o.guidance = v.get<double>();
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
-          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, cuda_graphs"));
+          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
+          "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
+  if (!(o.depth_control.min_alpha > 0)) return option_error("control_min_alpha", "must be > 0");
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
@@ -74,13 +85,16 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (device.is_cuda() && !at::hasCUDA()) return option_error("device", "CUDA requested but no CUDA device is available");
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
-  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant});
+  auto pipeline = sdxl::SdxlPipeline::load(
+      options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant, options.controlnet});
   if (!pipeline.ok()) {
     return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
                                                                " is not a usable SDXL model: ", pipeline.status().message()));
   }
   return std::unique_ptr<SdxlGenerator>(new SdxlGenerator(options, *std::move(pipeline)));
 }
+
+std::string SdxlGenerator::name() const { return pipeline_->controlnet() ? "sdxl 1 controlnet" : "sdxl 1"; }
 
 absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
   if (views.empty()) return absl::InvalidArgumentError("sdxl adapt: no ground-truth views");
@@ -103,6 +117,18 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
     if (!rgb.defined() || rgb.dim() != 3 || rgb.size(2) != 3 || rgb.size(0) < 1 || rgb.size(1) < 1) {
       return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " render_rgb is not H x W x 3"));
     }
+    if (pipeline_->controlnet()) {
+      const at::Tensor& depth = requests[i].render_depth;
+      const at::Tensor& alpha = requests[i].render_alpha;
+      const auto hw = rgb.sizes().slice(0, 2);
+      if (!depth.defined() || !alpha.defined() || depth.sizes() != hw || alpha.sizes() != hw) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("sdxl generate: request ", i, " needs render_depth and render_alpha of the render's size (ControlNet)"));
+      }
+      if (!std::isfinite(requests[i].control_scale)) {
+        return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " control_scale is not finite"));
+      }
+    }
     const double strength = requests[i].strength;
     if (!(strength >= 0.0 && strength <= 1.0)) {
       return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " strength ", strength, " outside [0, 1]"));
@@ -119,13 +145,20 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
     const int64_t padded_h = (height + f - 1) / f * f, padded_w = (width + f - 1) / f * f;
     for (size_t begin = 0; begin < members.size(); begin += options_.batch_size) {
       const size_t end = std::min(members.size(), begin + static_cast<size_t>(options_.batch_size));
-      std::vector<at::Tensor> images;
+      std::vector<at::Tensor> images, controls;
       std::vector<std::string> prompts;
       std::vector<uint64_t> seeds;
+      std::vector<double> scales;
       for (size_t m = begin; m < end; ++m) {
         const GenerationRequest& r = requests[members[m]];
         at::Tensor chw = r.render_rgb.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0);
-        images.push_back(at::replication_pad2d(chw, {0, padded_w - width, 0, padded_h - height}));
+        const std::vector<int64_t> pad{0, padded_w - width, 0, padded_h - height};
+        images.push_back(at::replication_pad2d(chw, pad));
+        if (pipeline_->controlnet()) {
+          GAPS_ASSIGN_OR_RETURN(DepthControl control, depth_control_image(r.render_depth, r.render_alpha, options_.depth_control));
+          controls.push_back(at::replication_pad2d(control.image.unsqueeze(0), pad));
+          scales.push_back(r.control_scale);
+        }
         prompts.push_back(r.prompt.empty() ? options_.prompt : r.prompt);
         seeds.push_back(r.seed);
       }
@@ -134,7 +167,9 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       params.guidance_scale = options_.guidance;
       // Every member runs int(steps * strength) = run_steps steps, so any member's strength serves.
       params.strength = requests[members[begin]].strength;
-      GAPS_ASSIGN_OR_RETURN(at::Tensor out, pipeline_->img2img(at::cat(images), prompts, params, seeds));
+      std::optional<sdxl::ControlInput> control;
+      if (pipeline_->controlnet()) control = sdxl::ControlInput{at::cat(controls), scales};
+      GAPS_ASSIGN_OR_RETURN(at::Tensor out, pipeline_->img2img(at::cat(images), prompts, params, seeds, control));
       for (size_t m = begin; m < end; ++m) {
         results[members[m]] = out[static_cast<int64_t>(m - begin)]
                                   .slice(1, 0, height)

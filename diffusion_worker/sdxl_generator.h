@@ -1,12 +1,14 @@
 #pragma once
 // The `sdxl` backend: pseudo-views by SDXL img2img of the render at each pose (diffusion_worker/sdxl),
-// with the request's prompt (or the configured default), strength sigma(v) and seed. Its ControlNet scale
-// and reference views are not used yet (the conditioning backends add them).
+// with the request's prompt (or the configured default), strength sigma(v) and seed; with a ControlNet,
+// conditioned on the render's depth (depth_control.h) at the request's scale s_cn(v). Reference views
+// are not used yet (IP-Adapter and LoRA come with the other conditioning backends).
 #include <memory>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "diffusion_worker/depth_control.h"
 #include "diffusion_worker/sdxl/pipeline.h"
 #include "gs_trainer/generator.h"
 
@@ -23,6 +25,10 @@ struct SdxlOptions {
   int64_t batch_size = 4;         // requests of one size and strength denoised together
   bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
   std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
+  // Depth ControlNet: a diffusers ControlNetModel folder ("" = the SDXL folder's "controlnet" component
+  // if it lists one, else none) and the reliability mask of its depth image.
+  std::string controlnet;
+  DepthControlOptions depth_control;  // keys control_min_alpha, control_variance_window, control_max_relative_variance
 };
 
 // JSON object with the keys above ("weights" required); unknown keys and bad values are errors.
@@ -33,12 +39,14 @@ class SdxlGenerator final : public Generator {
   // Loads the whole model; an unusable folder is an error naming the problem.
   static absl::StatusOr<std::unique_ptr<SdxlGenerator>> create(const SdxlOptions& options);
 
-  std::string name() const override { return "sdxl 1"; }
+  // "sdxl 1", or "sdxl 1 controlnet" when a ControlNet conditions the images.
+  std::string name() const override;
   // Learns nothing yet (per-scene LoRA comes with the conditioning backends): checks the views only.
   absl::Status adapt(const std::vector<ReferenceView>& views) override;
   // Each render is padded at its bottom/right edge (replicated) to a multiple of the latent factor (8 for
   // SDXL: 504 x 378 runs at 504 x 384), run through img2img at its strength and cropped back. A strength
-  // below one step of the schedule returns the render unchanged.
+  // below one step of the schedule returns the render unchanged. With a ControlNet, each request's
+  // render_depth / render_alpha give its control image (padded alike) and control_scale its scale.
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
 
  private:

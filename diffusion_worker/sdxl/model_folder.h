@@ -33,6 +33,10 @@ class ModelFolder {
   nlohmann::json index_;
 };
 
+// All tensors of the *.safetensors files in dir (see ModelFolder::read_weights), for a component kept
+// outside a pipeline folder (e.g. a ControlNet).
+absl::StatusOr<TensorMap> read_weights_in(const std::string& dir, const std::string& variant = "");
+
 // Reads a JSON file; errors name the file.
 absl::StatusOr<nlohmann::json> read_json_file(const std::string& path);
 

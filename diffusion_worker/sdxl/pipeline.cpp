@@ -1,5 +1,7 @@
 #include "diffusion_worker/sdxl/pipeline.h"
 
+#include <algorithm>
+#include <cmath>
 #include <map>
 #include <optional>
 #include <utility>
@@ -37,6 +39,7 @@ struct UNetGraphs {
   at::Tensor run(const UNet2DCondition& unet, const UNetInputs& in) {
     std::vector<int64_t> key = in.sample.sizes().vec();
     for (int64_t d : in.encoder_hidden_states.sizes()) key.push_back(d);
+    key.push_back(static_cast<int64_t>(in.down_block_residuals.size()));  // with or without ControlNet
     auto it = entries.find(key);
     if (it == entries.end()) {
       auto entry = std::make_unique<Entry>();
@@ -45,6 +48,8 @@ struct UNetGraphs {
                             &entry->inputs.text_embeds, &entry->inputs.time_ids}) {
         *t = t->clone();
       }
+      for (at::Tensor& r : entry->inputs.down_block_residuals) r = r.clone();
+      if (in.mid_block_residual.defined()) entry->inputs.mid_block_residual = in.mid_block_residual.clone();
       const c10::cuda::CUDAStream stream = c10::cuda::getStreamFromPool();
       const c10::cuda::CUDAStream caller = c10::cuda::getCurrentCUDAStream();
       at::cuda::CUDAEvent inputs_ready;
@@ -70,6 +75,8 @@ struct UNetGraphs {
     e.inputs.encoder_hidden_states.copy_(in.encoder_hidden_states);
     e.inputs.text_embeds.copy_(in.text_embeds);
     e.inputs.time_ids.copy_(in.time_ids);
+    for (size_t i = 0; i < in.down_block_residuals.size(); ++i) e.inputs.down_block_residuals[i].copy_(in.down_block_residuals[i]);
+    if (in.mid_block_residual.defined()) e.inputs.mid_block_residual.copy_(in.mid_block_residual);
     e.graph.replay();
     return e.output.clone();
   }
@@ -177,7 +184,47 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     GAPS_RETURN_IF_ERROR(in_component("vae", vae.status()));
     p->vae_ = *std::move(vae);
   }
+  GAPS_RETURN_IF_ERROR(in_component("controlnet", p->load_controlnet(folder)));
   return p;
+}
+
+absl::Status SdxlPipeline::load_controlnet(const ModelFolder& folder) {
+  std::string dir = options_.controlnet;
+  if (dir.empty() && folder.index().contains("controlnet")) {
+    GAPS_RETURN_IF_ERROR(expect_class(folder, "controlnet", "ControlNetModel"));
+    dir = folder.component_dir("controlnet");
+  }
+  if (dir.empty()) return absl::OkStatus();
+  GAPS_ASSIGN_OR_RETURN(ControlNet net, ControlNet::load_folder(dir, at::TensorOptions().dtype(options_.dtype).device(options_.device),
+                                                                options_.variant));
+  if (absl::Status fits = net.check_compatible(unet_->config()); !fits.ok()) {
+    return absl::Status(fits.code(), absl::StrCat(dir, ": ", fits.message()));
+  }
+  if (net.config().downscale() != latent_factor()) {
+    return absl::InvalidArgumentError(absl::StrCat(dir, ": the ControlNet's conditioning embedding downscales by ",
+                                                   net.config().downscale(), ", the VAE by ", latent_factor()));
+  }
+  controlnet_ = std::move(net);
+  return absl::OkStatus();
+}
+
+absl::Status SdxlPipeline::check_control(const ControlInput& control, const at::Tensor& images) const {
+  if (!controlnet_) return absl::FailedPreconditionError("img2img: a control image was given but no ControlNet is loaded");
+  const int64_t channels = controlnet_->config().conditioning_channels;
+  const at::Tensor& c = control.image;
+  if (!c.defined() || c.dim() != 4 || c.size(0) != images.size(0) || c.size(1) != channels ||
+      c.size(2) != images.size(2) || c.size(3) != images.size(3)) {
+    return absl::InvalidArgumentError(absl::StrCat("img2img: the control image must be B x ", channels,
+                                                   " x H x W like the images (", images.size(0), " x 3 x ",
+                                                   images.size(2), " x ", images.size(3), ")"));
+  }
+  if (control.scales.size() != 1 && static_cast<int64_t>(control.scales.size()) != images.size(0)) {
+    return absl::InvalidArgumentError("img2img: give one conditioning scale, or one per image");
+  }
+  for (double s : control.scales) {
+    if (!std::isfinite(s)) return absl::InvalidArgumentError("img2img: conditioning scales must be finite");
+  }
+  return absl::OkStatus();
 }
 
 absl::Status SdxlPipeline::set_cuda_graphs(bool on) {
@@ -231,7 +278,8 @@ std::pair<at::Tensor, at::Tensor> draw_latent_and_noise(at::IntArrayRef shape, c
 }  // namespace
 
 absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const std::vector<std::string>& prompts,
-                                                 const Img2ImgParams& params, const std::vector<uint64_t>& seeds) {
+                                                 const Img2ImgParams& params, const std::vector<uint64_t>& seeds,
+                                                 const std::optional<ControlInput>& control) {
   if (images.dim() != 4 || images.size(1) != 3) return absl::InvalidArgumentError("img2img: images must be B x 3 x H x W");
   const int64_t batch = images.size(0), height = images.size(2), width = images.size(3), f = latent_factor();
   if (height % f != 0 || width % f != 0) {
@@ -243,6 +291,7 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
   if (seeds.size() != 1 && static_cast<int64_t>(seeds.size()) != batch) {
     return absl::InvalidArgumentError("img2img: give one seed, or one per image");
   }
+  if (control) GAPS_RETURN_IF_ERROR(check_control(*control, images));
   if (!(params.strength > 0 && params.strength <= 1) || params.steps < 1) {
     return absl::InvalidArgumentError("img2img: strength must be in (0, 1] and steps >= 1");
   }
@@ -269,7 +318,7 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
     const int64_t start = params.steps - run_steps;
     at::Tensor latents = scheduler->add_noise((mean + std * latent_draw) * scaling, noise, start);
     latents = denoise(*scheduler, latents.to(options_.device, options_.dtype), start, all_prompts, height, width,
-                      params.guidance_scale);
+                      params.guidance_scale, control);
     const at::Tensor decoded = vae_->decode((latents / scaling).to(vae_->dtype()));
     result = (decoded.to(at::kCPU, at::kFloat) / 2 + 0.5).clamp(0, 1);
   }
@@ -278,7 +327,7 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
 
 at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64_t start,
                                  const std::vector<std::string>& prompts, int64_t height, int64_t width,
-                                 double guidance_scale) {
+                                 double guidance_scale, const std::optional<ControlInput>& control) {
   const bool cfg = guidance_scale > 1.0;
   const PromptEmbeddings cond = encode_prompts(prompts);
   UNetInputs in;
@@ -298,10 +347,26 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
                     .expand({in.encoder_hidden_states.size(0), 6})
                     .contiguous()
                     .to(options_.device);
+  // The ControlNet runs on the UNet's batch (both guidance halves); all-zero scales add nothing, so skip it.
+  at::Tensor control_image, control_scale;
+  if (control && std::any_of(control->scales.begin(), control->scales.end(), [](double s) { return s != 0.0; })) {
+    const int64_t batch = latents.size(0);
+    control_image = control->image.to(options_.device, options_.dtype);
+    control_scale = at::tensor(control->scales, at::kDouble).expand({batch}).contiguous();
+    if (cfg) {
+      control_image = at::cat({control_image, control_image});
+      control_scale = at::cat({control_scale, control_scale});
+    }
+  }
   const auto steps = static_cast<int64_t>(scheduler.timesteps().size());
   for (int64_t i = start; i < steps; ++i) {
     in.sample = scheduler.scale_model_input(cfg ? at::cat({latents, latents}) : latents, i);
     in.timestep = at::scalar_tensor(scheduler.timesteps()[i], at::TensorOptions().device(options_.device));
+    if (control_image.defined()) {
+      ControlNetResiduals residuals = controlnet_->forward(in, control_image, control_scale);
+      in.down_block_residuals = std::move(residuals.down);
+      in.mid_block_residual = residuals.mid;
+    }
     at::Tensor prediction = run_unet(in);
     if (cfg) prediction = classifier_free_guidance(prediction, guidance_scale);
     latents = scheduler.step(prediction, i, latents);

@@ -3,7 +3,10 @@
 // hidden states concatenated, pooled projection of the second), zero negative conditioning for
 // classifier-free guidance (force_zeros_for_empty_prompt), VAE encoding of the input sampled from the
 // latent distribution, noising to the strength's start step, denoising with text_time conditioning
-// (original size = target size = the image's, crop (0, 0)), VAE decoding.
+// (original size = target size = the image's, crop (0, 0)), VAE decoding. With a ControlNet and a control
+// image, as StableDiffusionXLControlNetImg2ImgPipeline without guess mode: the ControlNet sees the same
+// batch as the UNet (both guidance halves, the control image repeated for each) and its residuals, times
+// the conditioning scale, are added at every step (control_guidance_start 0, end 1).
 #include <memory>
 #include <optional>
 #include <string>
@@ -13,6 +16,8 @@
 #include "absl/status/statusor.h"
 #include "diffusion_worker/sdxl/clip_text_encoder.h"
 #include "diffusion_worker/sdxl/clip_tokenizer.h"
+#include "diffusion_worker/sdxl/controlnet.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/schedulers.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "diffusion_worker/sdxl/vae.h"
@@ -30,6 +35,9 @@ struct PipelineOptions {
   // Weight files to read: "" = *.safetensors without a variant tag; "fp16" = *.fp16.safetensors (the
   // half-precision copies model repositories ship beside the full ones).
   std::string variant;
+  // A diffusers ControlNetModel folder (config.json + weights, read with the same variant); "" = the
+  // SDXL folder's "controlnet" component when model_index.json lists one, else no ControlNet.
+  std::string controlnet;
 };
 
 struct UNetGraphs;  // the captured graphs (CUDA builds only)
@@ -38,6 +46,12 @@ struct Img2ImgParams {
   double strength = 0.5;        // fraction of the schedule re-run: steps from int(steps * strength) back
   int64_t steps = 30;           // steps of the full schedule
   double guidance_scale = 5.0;  // classifier-free guidance when > 1
+};
+
+// The ControlNet input of one img2img call.
+struct ControlInput {
+  at::Tensor image;            // B x C x H x W (C = the ControlNet's conditioning channels), the images' size
+  std::vector<double> scales;  // conditioning scale, one for all images or one per image
 };
 
 struct PromptEmbeddings {
@@ -57,8 +71,10 @@ class SdxlPipeline {
   // for all). seeds: one seed for the whole batch (diffusers' single generator: latent draws for the
   // batch, then noise for the batch) or one per image (diffusers' generator list). Returns B x 3 x H x W
   // in [0, 1], float32 on the CPU.
+  // control: the ControlNet's image and scale (an error when no ControlNet is loaded).
   absl::StatusOr<at::Tensor> img2img(const at::Tensor& images, const std::vector<std::string>& prompts,
-                                     const Img2ImgParams& params, const std::vector<uint64_t>& seeds);
+                                     const Img2ImgParams& params, const std::vector<uint64_t>& seeds,
+                                     const std::optional<ControlInput>& control = std::nullopt);
 
   // Switches UNet graph capture and replay on or off (see PipelineOptions::cuda_graphs).
   absl::Status set_cuda_graphs(bool on);
@@ -66,6 +82,7 @@ class SdxlPipeline {
   const UNet2DCondition& unet() const { return *unet_; }
   UNet2DCondition& unet() { return *unet_; }
   const AutoencoderKL& vae() const { return *vae_; }
+  const ControlNet* controlnet() const { return controlnet_ ? &*controlnet_ : nullptr; }
   int64_t latent_factor() const { return vae_->scale_factor(); }
 
  private:
@@ -76,12 +93,15 @@ class SdxlPipeline {
   std::optional<ClipTextEncoder> text_encoder_, text_encoder_2_;
   std::optional<UNet2DCondition> unet_;
   std::optional<AutoencoderKL> vae_;
+  std::optional<ControlNet> controlnet_;
   std::shared_ptr<UNetGraphs> graphs_;  // set while graph replay is on
 
   at::Tensor run_unet(const UNetInputs& in);
+  absl::Status load_controlnet(const ModelFolder& folder);
+  absl::Status check_control(const ControlInput& control, const at::Tensor& images) const;
   // Steps start.. of the scheduler from noised latents, with classifier-free guidance when > 1.
   at::Tensor denoise(Scheduler& scheduler, at::Tensor latents, int64_t start, const std::vector<std::string>& prompts,
-                     int64_t height, int64_t width, double guidance_scale);
+                     int64_t height, int64_t width, double guidance_scale, const std::optional<ControlInput>& control);
 };
 
 }  // namespace gaps::sdxl

@@ -28,7 +28,7 @@ bool has_cross_attention(const std::string& block_type) { return block_type.rfin
 
 }  // namespace
 
-absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j) {
+absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool with_up_blocks) {
   UNetConfig c;
   GAPS_ASSIGN_OR_RETURN(c.in_channels, config_value<int64_t>(j, "in_channels", 4));
   GAPS_ASSIGN_OR_RETURN(c.out_channels, config_value<int64_t>(j, "out_channels", 4));
@@ -50,7 +50,8 @@ absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j) {
   GAPS_ASSIGN_OR_RETURN(c.projection_class_embeddings_input_dim,
                         config_value<int64_t>(j, "projection_class_embeddings_input_dim", 0));
   const size_t n = c.block_out_channels.size();
-  if (n == 0 || c.down_block_types.size() != n || c.up_block_types.size() != n) {
+  if (!with_up_blocks) c.up_block_types.clear();
+  if (n == 0 || c.down_block_types.size() != n || (with_up_blocks && c.up_block_types.size() != n)) {
     return absl::InvalidArgumentError("UNet config: block_out_channels, down_block_types and up_block_types disagree");
   }
   for (const auto& t : c.down_block_types) {
@@ -123,13 +124,19 @@ absl::StatusOr<UNet2DCondition> UNet2DCondition::load(const UNetConfig& c, Tenso
   return u;
 }
 
+absl::StatusOr<UNet2DCondition> UNet2DCondition::load_input_half(const UNetConfig& c, WeightLoader& w,
+                                                                 const std::string& source) {
+  return build(c, w, source, /*with_up_blocks=*/false);
+}
+
 std::vector<TensorSpec> UNet2DCondition::weight_specs(const UNetConfig& c) {
   WeightLoader w("", {}, at::TensorOptions().device(at::kMeta));
   (void)build(c, w, "");
   return w.requested();
 }
 
-absl::StatusOr<UNet2DCondition> UNet2DCondition::build(const UNetConfig& c, WeightLoader& w, const std::string& source) {
+absl::StatusOr<UNet2DCondition> UNet2DCondition::build(const UNetConfig& c, WeightLoader& w, const std::string& source,
+                                                       bool with_up_blocks) {
   UNet2DCondition u;
   u.config_ = c;
   const auto& ch = c.block_out_channels;
@@ -163,6 +170,7 @@ absl::StatusOr<UNet2DCondition> UNet2DCondition::build(const UNetConfig& c, Weig
   u.mid_attention_ = u.load_transformer(w, "mid_block.attentions.0", ch.back(), c.num_attention_heads.back(),
                                         c.transformer_layers_per_block.back());
   u.mid_resnet_out_ = ResnetBlock::load(w, "mid_block.resnets.1", ch.back(), ch.back(), temb, g, c.norm_eps);
+  if (!with_up_blocks) return u;
   int64_t prev = ch.back();
   for (int64_t i = 0; i < n; ++i) {
     const int64_t out = ch[n - 1 - i], skip_in = ch[std::max<int64_t>(n - 2 - i, 0)];
@@ -225,35 +233,44 @@ at::Tensor UNet2DCondition::embedding(const UNetInputs& in, int64_t batch) const
   return emb;
 }
 
-at::Tensor UNet2DCondition::forward(const UNetInputs& in) const {
-  const int64_t batch = in.sample.size(0);
-  const at::Tensor emb = embedding(in, batch);
+UNetEncoding UNet2DCondition::encode(const UNetInputs& in, const at::Tensor& conv_in_addition) const {
+  UNetEncoding out;
+  out.emb = embedding(in, in.sample.size(0));
   const at::Tensor& context = in.encoder_hidden_states;
   at::Tensor h = conv_in_(in.sample);
-  std::vector<at::Tensor> skips{h};
+  if (conv_in_addition.defined()) h = h + conv_in_addition;
+  out.skips.push_back(h);
   for (const Block& b : down_) {
     for (size_t r = 0; r < b.resnets.size(); ++r) {
-      h = b.resnets[r](h, emb);
+      h = b.resnets[r](h, out.emb);
       if (!b.attentions.empty()) h = transformer_forward(b.attentions[r], h, context);
-      skips.push_back(h);
+      out.skips.push_back(h);
     }
     if (b.down) {
       h = (*b.down)(h);
-      skips.push_back(h);
+      out.skips.push_back(h);
     }
   }
+  out.mid = mid_resnet_out_(transformer_forward(mid_attention_, mid_resnet_in_(h, out.emb), context), out.emb);
+  return out;
+}
+
+at::Tensor UNet2DCondition::forward(const UNetInputs& in) const {
+  TORCH_CHECK(!up_.empty(), "UNet: forward() on a model loaded as its input half only");
+  UNetEncoding enc = encode(in);
+  std::vector<at::Tensor>& skips = enc.skips;
   if (!in.down_block_residuals.empty()) {
     TORCH_CHECK(in.down_block_residuals.size() == skips.size(), "UNet: ", in.down_block_residuals.size(),
                 " down-block residuals given for ", skips.size(), " skip connections");
     for (size_t i = 0; i < skips.size(); ++i) skips[i] = skips[i] + in.down_block_residuals[i];
   }
-  h = mid_resnet_out_(transformer_forward(mid_attention_, mid_resnet_in_(h, emb), context), emb);
+  at::Tensor h = enc.mid;
   if (in.mid_block_residual.defined()) h = h + in.mid_block_residual;
   for (const Block& b : up_) {
     for (size_t r = 0; r < b.resnets.size(); ++r) {
-      h = b.resnets[r](at::cat({h, skips.back()}, 1), emb);
+      h = b.resnets[r](at::cat({h, skips.back()}, 1), enc.emb);
       skips.pop_back();
-      if (!b.attentions.empty()) h = transformer_forward(b.attentions[r], h, context);
+      if (!b.attentions.empty()) h = transformer_forward(b.attentions[r], h, in.encoder_hidden_states);
     }
     // Upsample to the next skip's size, which also covers latents not divisible by 2^blocks.
     if (b.up) h = (*b.up)(h, {skips.back().size(2), skips.back().size(3)});

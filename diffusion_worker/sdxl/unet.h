@@ -30,7 +30,8 @@ struct UNetConfig {
   double freq_shift = 0;
   std::string addition_embed_type;  // "text_time" or empty
   int64_t addition_time_embed_dim = 256, projection_class_embeddings_input_dim = 0;
-  static absl::StatusOr<UNetConfig> from_json(const nlohmann::json& config);
+  // with_up_blocks = false reads the input half only (a ControlNet's config has no up blocks).
+  static absl::StatusOr<UNetConfig> from_json(const nlohmann::json& config, bool with_up_blocks = true);
 };
 
 struct UNetInputs {
@@ -45,14 +46,29 @@ struct UNetInputs {
   at::Tensor mid_block_residual;
 };
 
+// The UNet's input half: embedding, conv_in, down blocks and mid block (what a ControlNet copies).
+struct UNetEncoding {
+  at::Tensor emb;                 // time embedding plus the added (text_time) embedding
+  std::vector<at::Tensor> skips;  // the skip connections, in UNetInputs::down_block_residuals order
+  at::Tensor mid;                 // the mid block's output
+};
+
 class UNet2DCondition {
  public:
   static absl::StatusOr<UNet2DCondition> load(const UNetConfig& config, TensorMap weights, at::TensorOptions options,
                                               const std::string& source);
   // Every tensor the config needs (name, shape), without loading anything.
   static std::vector<TensorSpec> weight_specs(const UNetConfig& config);
+  // Only the input half (encode() works, forward() does not), its tensors taken from w under the UNet's
+  // names; the caller runs w.finish(). A ControlNet stores this half under the same names.
+  static absl::StatusOr<UNet2DCondition> load_input_half(const UNetConfig& config, WeightLoader& w,
+                                                         const std::string& source);
   // The predicted noise (or v), B x out_channels x h x w.
   at::Tensor forward(const UNetInputs& inputs) const;
+  // The input half on inputs' sample, timestep, context and added conditioning (residuals unused);
+  // conv_in_addition (when defined) is added to conv_in's output before the down blocks (ControlNet's
+  // conditioning embedding).
+  UNetEncoding encode(const UNetInputs& inputs, const at::Tensor& conv_in_addition = {}) const;
 
   const UNetConfig& config() const { return config_; }
   // Visits every transformer attention layer with its diffusers name (e.g.
@@ -79,7 +95,8 @@ class UNet2DCondition {
     std::optional<Upsample> up;
   };
 
-  static absl::StatusOr<UNet2DCondition> build(const UNetConfig& config, WeightLoader& w, const std::string& source);
+  static absl::StatusOr<UNet2DCondition> build(const UNetConfig& config, WeightLoader& w, const std::string& source,
+                                               bool with_up_blocks = true);
   Transformer2D load_transformer(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t heads,
                                  int64_t layers) const;
   at::Tensor transformer_forward(const Transformer2D& t, const at::Tensor& x, const at::Tensor& context) const;
