@@ -24,14 +24,17 @@ class ModelFolder {
   absl::StatusOr<std::string> component_class(const std::string& component) const;
   // component/config.json (or another file name in the component's folder) as JSON.
   absl::StatusOr<nlohmann::json> read_json(const std::string& component, const std::string& file = "config.json") const;
-  // All tensors of the component's weights: every *.safetensors in its folder (a sharded checkpoint
-  // is the union of its shards); with variant "fp16" the *.fp16.safetensors files instead.
+  // All tensors of the component's weights (read_folder_weights of its folder).
   absl::StatusOr<TensorMap> read_weights(const std::string& component, const std::string& variant = "") const;
 
  private:
   std::string root_;
   nlohmann::json index_;
 };
+
+// Every *.safetensors in dir (a sharded checkpoint is the union of its shards; a tensor in two files is an
+// error); with variant "fp16" the *.fp16.safetensors files instead.
+absl::StatusOr<TensorMap> read_folder_weights(const std::string& dir, const std::string& variant = "");
 
 // Reads a JSON file; errors name the file.
 absl::StatusOr<nlohmann::json> read_json_file(const std::string& path);
