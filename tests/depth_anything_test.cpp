@@ -112,6 +112,7 @@ TEST(DepthAnythingConfigTest, RefusesUnsupportedOptionsByName) {
   refused([](auto& c) { c["backbone_config"]["hidden_act"] = "relu"; }, "hidden_act 'relu'");
   refused([](auto& c) { c["backbone_config"]["model_type"] = "dinov2_with_registers"; }, "dinov2_with_registers");
   refused([](auto& c) { c["backbone_config"]["reshape_hidden_states"] = true; }, "reshape_hidden_states");
+  refused([](auto& c) { c["backbone_config"]["num_channels"] = 4; }, "num_channels 4");
   refused([](auto& c) { c["backbone_config"]["image_size"] = {56, 70}; }, "image_size");
   refused([](auto& c) { c["backbone_config"]["out_indices"] = {3, 2, 4, 1}; }, "out_indices");
   refused([](auto& c) { c["depth_estimation_type"] = "ordinal"; }, "depth_estimation_type 'ordinal'");

@@ -78,6 +78,10 @@ absl::StatusOr<DepthAnythingConfig> DepthAnythingConfig::from_json(const nlohman
     return absl::InvalidArgumentError("Depth-Anything config: backbone_config is not a JSON object");
   }
   GAPS_ASSIGN_OR_RETURN(c.backbone, Dinov2Config::from_json(has_backbone ? j["backbone_config"] : default_backbone_config()));
+  if (c.backbone.num_channels != 3) {
+    return absl::UnimplementedError(absl::StrCat("Depth-Anything config: backbone_config.num_channels ",
+                                                 c.backbone.num_channels, " is not supported (RGB input)"));
+  }
   if (c.backbone.reshape_hidden_states) {
     return absl::UnimplementedError(
         "Depth-Anything config: backbone_config.reshape_hidden_states true is not supported (the neck takes tokens)");

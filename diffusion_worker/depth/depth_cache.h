@@ -25,7 +25,8 @@ class DepthCache {
   // The H x W depth of (scene, view): from memory, else from the folder, else compute() (whose result is
   // kept in memory and written to the folder). A stored map of another size than height x width is stale
   // (the view's image changed size) and is recomputed. scene and view become file names: non-empty,
-  // letters, digits, '.', '-', '_' only, and not "." or "..".
+  // letters, digits, '.', '-', '_' only, and not "." or "..". The returned tensor is the cached one
+  // (CPU float32): read it, do not modify it in place.
   absl::StatusOr<at::Tensor> get_or_compute(const std::string& scene, const std::string& view, int64_t height,
                                             int64_t width, const Compute& compute);
 
