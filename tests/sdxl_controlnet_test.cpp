@@ -212,7 +212,7 @@ class ControlNetLoadingTest : public ::testing::Test {
     auto config = sdxl::ControlNetConfig::from_json(json_);
     ASSERT_TRUE(config.ok()) << config.status();
     config_ = *config;
-    auto weights = sdxl::read_weights_in(controlnet_dir());
+    auto weights = sdxl::read_folder_weights(controlnet_dir());
     ASSERT_TRUE(weights.ok());
     weights_ = *weights;
   }

@@ -76,7 +76,7 @@ absl::StatusOr<ControlNet> ControlNet::load_folder(const std::string& dir, at::T
   }
   auto config = ControlNetConfig::from_json(json);
   if (!config.ok()) return absl::Status(config.status().code(), absl::StrCat(dir, ": ", config.status().message()));
-  GAPS_ASSIGN_OR_RETURN(TensorMap weights, read_weights_in(dir, variant));
+  GAPS_ASSIGN_OR_RETURN(TensorMap weights, read_folder_weights(dir, variant));
   return load(*config, std::move(weights), options, dir);
 }
 

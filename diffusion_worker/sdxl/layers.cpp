@@ -16,10 +16,10 @@ Linear Linear::load(WeightLoader& w, const std::string& prefix, int64_t in, int6
 at::Tensor Linear::operator()(const at::Tensor& x) const { return at::linear(x, weight, bias); }
 
 Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel,
-                    int64_t stride, int64_t padding) {
+                    int64_t stride, int64_t padding, bool with_bias) {
   Conv2d c;
   c.weight = w.take(join_name(prefix, "weight"), {out, in, kernel, kernel});
-  c.bias = w.take(join_name(prefix, "bias"), {out});
+  if (with_bias) c.bias = w.take(join_name(prefix, "bias"), {out});
   c.stride = stride;
   c.padding = padding < 0 ? kernel / 2 : padding;
   return c;

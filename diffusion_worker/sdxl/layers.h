@@ -17,10 +17,10 @@ struct Linear {
 };
 
 struct Conv2d {
-  at::Tensor weight, bias;
+  at::Tensor weight, bias;  // bias undefined when the layer has none
   int64_t stride = 1, padding = 0;
   static Conv2d load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel,
-                     int64_t stride = 1, int64_t padding = -1 /* kernel / 2 */);
+                     int64_t stride = 1, int64_t padding = -1 /* kernel / 2 */, bool with_bias = true);
   at::Tensor operator()(const at::Tensor& x) const;
 };
 

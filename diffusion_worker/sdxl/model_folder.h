@@ -24,8 +24,7 @@ class ModelFolder {
   absl::StatusOr<std::string> component_class(const std::string& component) const;
   // component/config.json (or another file name in the component's folder) as JSON.
   absl::StatusOr<nlohmann::json> read_json(const std::string& component, const std::string& file = "config.json") const;
-  // All tensors of the component's weights: every *.safetensors in its folder (a sharded checkpoint
-  // is the union of its shards); with variant "fp16" the *.fp16.safetensors files instead.
+  // All tensors of the component's weights (read_folder_weights of its folder).
   absl::StatusOr<TensorMap> read_weights(const std::string& component, const std::string& variant = "") const;
 
  private:
@@ -33,9 +32,9 @@ class ModelFolder {
   nlohmann::json index_;
 };
 
-// All tensors of the *.safetensors files in dir (see ModelFolder::read_weights), for a component kept
-// outside a pipeline folder (e.g. a ControlNet).
-absl::StatusOr<TensorMap> read_weights_in(const std::string& dir, const std::string& variant = "");
+// Every *.safetensors in dir (a sharded checkpoint is the union of its shards; a tensor in two files is an
+// error); with variant "fp16" the *.fp16.safetensors files instead.
+absl::StatusOr<TensorMap> read_folder_weights(const std::string& dir, const std::string& variant = "");
 
 // Reads a JSON file; errors name the file.
 absl::StatusOr<nlohmann::json> read_json_file(const std::string& path);
