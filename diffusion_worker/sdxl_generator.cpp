@@ -37,7 +37,8 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
     const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
                                                       {"device", &o.device},   {"prompt", &o.prompt},
-                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant}};
+                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant},
+                                                      {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder}};
     if (strings.count(key)) {
       GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
       *strings.at(key) = v.get<std::string>();
@@ -47,15 +48,19 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     } else if (key == "cuda_graphs") {
       GAPS_RETURN_IF_ERROR(need(v.is_boolean(), "true or false"));
       o.cuda_graphs = v.get<bool>();
-    } else if (key == "guidance") {
+    } else if (key == "guidance" || key == "ip_adapter_scale") {
       GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
-      o.guidance = v.get<double>();
+      (key == "guidance" ? o.guidance : o.ip_adapter_scale) = v.get<double>();
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
-          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, cuda_graphs"));
+          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, cuda_graphs, ip_adapter, image_encoder, ip_adapter_scale"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
+  if (o.ip_adapter.empty() != o.image_encoder.empty()) {
+    return option_error(o.ip_adapter.empty() ? "image_encoder" : "ip_adapter",
+                        "an IP-Adapter needs both ip_adapter (weights) and image_encoder (CLIP image encoder folder)");
+  }
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
@@ -74,7 +79,8 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (device.is_cuda() && !at::hasCUDA()) return option_error("device", "CUDA requested but no CUDA device is available");
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
-  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant});
+  auto pipeline = sdxl::SdxlPipeline::load(options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant,
+                                                                                     options.ip_adapter, options.image_encoder});
   if (!pipeline.ok()) {
     return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
                                                                " is not a usable SDXL model: ", pipeline.status().message()));
@@ -122,16 +128,21 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       std::vector<at::Tensor> images;
       std::vector<std::string> prompts;
       std::vector<uint64_t> seeds;
+      std::vector<at::Tensor> references;
       for (size_t m = begin; m < end; ++m) {
         const GenerationRequest& r = requests[members[m]];
         at::Tensor chw = r.render_rgb.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0);
         images.push_back(at::replication_pad2d(chw, {0, padded_w - width, 0, padded_h - height}));
         prompts.push_back(r.prompt.empty() ? options_.prompt : r.prompt);
         seeds.push_back(r.seed);
+        // IP-Adapter: the nearest ground-truth view is the image prompt (none for a request without one).
+        if (!options_.ip_adapter.empty()) references.push_back(r.references.empty() ? at::Tensor() : r.references[0].image);
       }
       sdxl::Img2ImgParams params;
       params.steps = options_.steps;
       params.guidance_scale = options_.guidance;
+      params.reference_images = std::move(references);
+      params.ip_adapter_scales = {options_.ip_adapter_scale};
       // Every member runs int(steps * strength) = run_steps steps, so any member's strength serves.
       params.strength = requests[members[begin]].strength;
       GAPS_ASSIGN_OR_RETURN(at::Tensor out, pipeline_->img2img(at::cat(images), prompts, params, seeds));

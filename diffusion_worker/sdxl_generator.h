@@ -1,7 +1,8 @@
 #pragma once
 // The `sdxl` backend: pseudo-views by SDXL img2img of the render at each pose (diffusion_worker/sdxl),
-// with the request's prompt (or the configured default), strength sigma(v) and seed. Its ControlNet scale
-// and reference views are not used yet (the conditioning backends add them).
+// with the request's prompt (or the configured default), strength sigma(v) and seed; with an IP-Adapter
+// configured, the request's nearest reference view is the image prompt. Its ControlNet scale is not used
+// yet.
 #include <memory>
 #include <string>
 #include <vector>
@@ -23,6 +24,9 @@ struct SdxlOptions {
   int64_t batch_size = 4;         // requests of one size and strength denoised together
   bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
   std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
+  std::string ip_adapter;         // IP-Adapter weight file (diffusers single-file layout); "" = none
+  std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
+  double ip_adapter_scale = 0.5;  // lambda_ip, the scale of the image prompt's attention
 };
 
 // JSON object with the keys above ("weights" required); unknown keys and bad values are errors.

@@ -53,7 +53,10 @@ absl::StatusOr<nlohmann::json> ModelFolder::read_json(const std::string& compone
 }
 
 absl::StatusOr<TensorMap> ModelFolder::read_weights(const std::string& component, const std::string& variant) const {
-  const std::string dir = component_dir(component);
+  return read_folder_weights(component_dir(component), variant);
+}
+
+absl::StatusOr<TensorMap> read_folder_weights(const std::string& dir, const std::string& variant) {
   std::vector<std::string> files;
   std::error_code ec;
   for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {

@@ -33,6 +33,10 @@ class ModelFolder {
   nlohmann::json index_;
 };
 
+// All tensors of the *.safetensors files in dir (as ModelFolder::read_weights, for folders outside a
+// diffusers model, e.g. a transformers image encoder).
+absl::StatusOr<TensorMap> read_folder_weights(const std::string& dir, const std::string& variant = "");
+
 // Reads a JSON file; errors name the file.
 absl::StatusOr<nlohmann::json> read_json_file(const std::string& path);
 

@@ -13,6 +13,8 @@
 #include "absl/status/statusor.h"
 #include "diffusion_worker/sdxl/clip_text_encoder.h"
 #include "diffusion_worker/sdxl/clip_tokenizer.h"
+#include "diffusion_worker/sdxl/clip_vision_encoder.h"
+#include "diffusion_worker/sdxl/ip_adapter.h"
 #include "diffusion_worker/sdxl/schedulers.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "diffusion_worker/sdxl/vae.h"
@@ -30,6 +32,10 @@ struct PipelineOptions {
   // Weight files to read: "" = *.safetensors without a variant tag; "fp16" = *.fp16.safetensors (the
   // half-precision copies model repositories ship beside the full ones).
   std::string variant;
+  // IP-Adapter: its weight file (diffusers' single-file layout, e.g. ip-adapter_sdxl_vit-h.safetensors)
+  // and the transformers folder of its CLIP image encoder (config.json, model.safetensors); both or
+  // neither. With them, img2img takes reference images (Img2ImgParams::reference_images).
+  std::string ip_adapter, image_encoder;
 };
 
 struct UNetGraphs;  // the captured graphs (CUDA builds only)
@@ -38,6 +44,13 @@ struct Img2ImgParams {
   double strength = 0.5;        // fraction of the schedule re-run: steps from int(steps * strength) back
   int64_t steps = 30;           // steps of the full schedule
   double guidance_scale = 5.0;  // classifier-free guidance when > 1
+  // IP-Adapter image prompts (pipelines loaded with one): per image a reference image H x W x 3 in [0, 1]
+  // (an undefined tensor: none for that image), or empty for none at all; and the image attention's
+  // scale, one for all images or one per image (0.5: the paper's lambda_ip). Images without a reference
+  // get scale 0, which is plain img2img. The negative prompt of guidance is the projection of a zero
+  // image embedding, as in diffusers.
+  std::vector<at::Tensor> reference_images;
+  std::vector<double> ip_adapter_scales = {0.5};
 };
 
 struct PromptEmbeddings {
@@ -66,6 +79,9 @@ class SdxlPipeline {
   const UNet2DCondition& unet() const { return *unet_; }
   UNet2DCondition& unet() { return *unet_; }
   const AutoencoderKL& vae() const { return *vae_; }
+  // The IP-Adapter and its image encoder; null without PipelineOptions::ip_adapter.
+  const IpAdapter* ip_adapter() const { return ip_adapter_.get(); }
+  const ClipVisionEncoder* image_encoder() const { return image_encoder_ ? &*image_encoder_ : nullptr; }
   int64_t latent_factor() const { return vae_->scale_factor(); }
 
  private:
@@ -77,6 +93,13 @@ class SdxlPipeline {
   std::optional<UNet2DCondition> unet_;
   std::optional<AutoencoderKL> vae_;
   std::shared_ptr<UNetGraphs> graphs_;  // set while graph replay is on
+  std::optional<ClipVisionEncoder> image_encoder_;
+  std::unique_ptr<IpAdapter> ip_adapter_;
+
+  absl::Status load_ip_adapter(at::TensorOptions model_options);
+  // Encodes and projects the reference images and hands them to the UNet's decoupled cross-attention
+  // (negative prompts first when guidance doubles the batch).
+  absl::Status set_image_prompts(const Img2ImgParams& params, int64_t batch);
 
   at::Tensor run_unet(const UNetInputs& in);
   // Steps start.. of the scheduler from noised latents, with classifier-free guidance when > 1.
