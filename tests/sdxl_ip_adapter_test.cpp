@@ -2,8 +2,10 @@
 // by tests/scripts/make_ip_adapter_fixtures.py for the UNet of tests/fixtures/sdxl_tiny): CLIP image
 // preprocessing and CLIPVisionModelWithProjection, the image projection (and of zeros, the negative
 // prompt), one UNet forward with decoupled cross-attention at scale 0.5 (a different reference per image),
-// and img2img of two images with one reference image (2 of 4 Euler steps, guidance 5, seed 1234). fp32 on the CPU; tolerance: max abs diff <= 1e-4
-// x max(1, max |reference|), as the other SDXL parity suites.
+// and img2img of two images with one reference image (2 of 4 Euler steps, guidance 5, seed 1234). fp32
+// on the CPU; tolerance: max abs diff <= 1e-4 x max(1, max |reference|), as the other SDXL parity suites.
+// Also the errors (missing tensors, layer counts, inconsistent options) and the `sdxl` backend's use of
+// the nearest reference view.
 #include <fstream>
 
 #include <ATen/ATen.h>
@@ -192,6 +194,40 @@ TEST(IpAdapterPipelineTest, Img2ImgWithReferenceImagesMatchesDiffusers) {
   ASSERT_TRUE(plain.ok());
   test::expect_close(*without, *plain, 1e-6, "img2img without reference images");
   EXPECT_GT((*without - *out).abs().max().item<double>(), 1e-3);
+}
+
+TEST(IpAdapterPipelineTest, RunsOnTheGpuInHalfPrecisionAndReplaysCudaGraphsWithNewPrompts) {
+  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
+  PipelineOptions options = ip_options();
+  options.dtype = at::kHalf;
+  options.device = at::Device(at::kCUDA);
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const TensorMap ref = ip_reference("img2img");
+  const TensorMap images = ip_reference("encoder");
+  const std::vector<std::string> prompts{"a photo of a fern in a garden", "a bonsai tree"};
+  Img2ImgParams params;
+  params.steps = 4;
+  params.reference_images = {images.at("image_0"), images.at("image_0")};
+  auto eager = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+  ASSERT_TRUE(eager.ok()) << eager.status();
+  // float16 follows the float32 reference within its rounding (as the plain pipeline's GPU test).
+  expect_close(*eager, ref.at("out"), 5e-2, "half-precision img2img with IP-Adapter");
+  params.reference_images = {images.at("image_1"), at::Tensor()};
+  auto eager_other = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+  ASSERT_TRUE(eager_other.ok()) << eager_other.status();
+  // Captured graphs read the image prompt's buffers: a replay with other references gives their result.
+  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+  for (int run = 0; run < 2; ++run) {
+    params.reference_images = {images.at("image_0"), images.at("image_0")};
+    auto graphed = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+    ASSERT_TRUE(graphed.ok()) << graphed.status();
+    expect_close(*graphed, *eager, 1e-3, "graphed img2img with IP-Adapter");
+    params.reference_images = {images.at("image_1"), at::Tensor()};
+    auto graphed_other = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+    ASSERT_TRUE(graphed_other.ok()) << graphed_other.status();
+    expect_close(*graphed_other, *eager_other, 1e-3, "graphed img2img with other references");
+  }
 }
 
 TEST(IpAdapterPipelineTest, RejectsInconsistentOptionsAndRequests) {

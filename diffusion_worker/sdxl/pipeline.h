@@ -3,7 +3,9 @@
 // hidden states concatenated, pooled projection of the second), zero negative conditioning for
 // classifier-free guidance (force_zeros_for_empty_prompt), VAE encoding of the input sampled from the
 // latent distribution, noising to the strength's start step, denoising with text_time conditioning
-// (original size = target size = the image's, crop (0, 0)), VAE decoding.
+// (original size = target size = the image's, crop (0, 0)), VAE decoding. Optionally with IP-Adapter
+// image prompts (ip_adapter.h): one reference image per image, encoded by CLIP and attended to by every
+// cross-attention layer.
 #include <memory>
 #include <optional>
 #include <string>
