@@ -40,7 +40,8 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
                                                       {"device", &o.device},   {"prompt", &o.prompt},
                                                       {"scheduler", &o.scheduler}, {"variant", &o.variant},
-                                                      {"controlnet", &o.controlnet}};
+                                                      {"controlnet", &o.controlnet},
+                                                      {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder}};
     if (strings.count(key)) {
       GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
       *strings.at(key) = v.get<std::string>();
@@ -56,17 +57,22 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     } else if (key == "cuda_graphs") {
       GAPS_RETURN_IF_ERROR(need(v.is_boolean(), "true or false"));
       o.cuda_graphs = v.get<bool>();
-    } else if (key == "guidance") {
+    } else if (key == "guidance" || key == "ip_adapter_scale") {
       GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
-      o.guidance = v.get<double>();
+      (key == "guidance" ? o.guidance : o.ip_adapter_scale) = v.get<double>();
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
-          "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance"));
+          "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
+          "image_encoder, ip_adapter_scale"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
   if (!(o.depth_control.min_alpha > 0)) return option_error("control_min_alpha", "must be > 0");
+  if (o.ip_adapter.empty() != o.image_encoder.empty()) {
+    return option_error(o.ip_adapter.empty() ? "image_encoder" : "ip_adapter",
+                        "an IP-Adapter needs both ip_adapter (weights) and image_encoder (CLIP image encoder folder)");
+  }
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
@@ -86,7 +92,8 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
   auto pipeline = sdxl::SdxlPipeline::load(
-      options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant, options.controlnet});
+      options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant,
+                                             options.controlnet, options.ip_adapter, options.image_encoder});
   if (!pipeline.ok()) {
     return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
                                                                " is not a usable SDXL model: ", pipeline.status().message()));
@@ -149,6 +156,7 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       std::vector<std::string> prompts;
       std::vector<uint64_t> seeds;
       std::vector<double> scales;
+      std::vector<at::Tensor> references;
       for (size_t m = begin; m < end; ++m) {
         const GenerationRequest& r = requests[members[m]];
         at::Tensor chw = r.render_rgb.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0);
@@ -161,10 +169,14 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
         }
         prompts.push_back(r.prompt.empty() ? options_.prompt : r.prompt);
         seeds.push_back(r.seed);
+        // IP-Adapter: the nearest ground-truth view is the image prompt (none for a request without one).
+        if (!options_.ip_adapter.empty()) references.push_back(r.references.empty() ? at::Tensor() : r.references[0].image);
       }
       sdxl::Img2ImgParams params;
       params.steps = options_.steps;
       params.guidance_scale = options_.guidance;
+      params.reference_images = std::move(references);
+      params.ip_adapter_scales = {options_.ip_adapter_scale};
       // Every member runs int(steps * strength) = run_steps steps, so any member's strength serves.
       params.strength = requests[members[begin]].strength;
       std::optional<sdxl::ControlInput> control;

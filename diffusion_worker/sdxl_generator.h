@@ -1,8 +1,8 @@
 #pragma once
 // The `sdxl` backend: pseudo-views by SDXL img2img of the render at each pose (diffusion_worker/sdxl),
 // with the request's prompt (or the configured default), strength sigma(v) and seed; with a ControlNet,
-// conditioned on the render's depth (depth_control.h) at the request's scale s_cn(v). Reference views
-// are not used yet (IP-Adapter and LoRA come with the other conditioning backends).
+// conditioned on the render's depth (depth_control.h) at the request's scale s_cn(v); with an IP-Adapter,
+// the request's nearest reference view is the image prompt. LoRA comes with the other conditioning backends.
 #include <memory>
 #include <string>
 #include <vector>
@@ -29,6 +29,9 @@ struct SdxlOptions {
   // if it lists one, else none) and the reliability mask of its depth image.
   std::string controlnet;
   DepthControlOptions depth_control;  // keys control_min_alpha, control_variance_window, control_max_relative_variance
+  std::string ip_adapter;         // IP-Adapter weight file (diffusers single-file layout); "" = none
+  std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
+  double ip_adapter_scale = 0.5;  // lambda_ip, the scale of the image prompt's attention
 };
 
 // JSON object with the keys above ("weights" required); unknown keys and bad values are errors.

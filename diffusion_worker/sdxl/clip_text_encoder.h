@@ -7,15 +7,13 @@
 #include <ATen/Tensor.h>
 #include <nlohmann/json.hpp>
 #include "absl/status/statusor.h"
+#include "diffusion_worker/sdxl/clip_encoder.h"
 #include "diffusion_worker/sdxl/layers.h"
 
 namespace gaps::sdxl {
 
-struct ClipTextConfig {
-  int64_t vocab_size = 49408, hidden_size = 768, intermediate_size = 3072, num_hidden_layers = 12,
-          num_attention_heads = 12, max_position_embeddings = 77, projection_dim = 0, eos_token_id = 2;
-  std::string hidden_act = "quick_gelu";
-  double layer_norm_eps = 1e-5;
+struct ClipTextConfig : ClipEncoderConfig {
+  int64_t vocab_size = 49408, max_position_embeddings = 77, projection_dim = 0, eos_token_id = 2;
   static absl::StatusOr<ClipTextConfig> from_json(const nlohmann::json& config);
 };
 
@@ -38,18 +36,12 @@ class ClipTextEncoder {
   const ClipTextConfig& config() const { return config_; }
 
  private:
-  struct Layer {
-    LayerNorm layer_norm1, layer_norm2;
-    Linear q_proj, k_proj, v_proj, out_proj, fc1, fc2;
-  };
   static absl::StatusOr<ClipTextEncoder> build(const ClipTextConfig& config, bool with_projection, WeightLoader& w,
                                                const std::string& source);
-  at::Tensor layer_forward(const Layer& layer, const at::Tensor& x) const;
-  at::Tensor activation(const at::Tensor& x) const;
 
   ClipTextConfig config_;
   at::Tensor token_embedding, position_embedding;
-  std::vector<Layer> layers_;
+  ClipEncoder encoder_;
   LayerNorm final_layer_norm_;
   bool with_projection_ = false;
   Linear text_projection_;

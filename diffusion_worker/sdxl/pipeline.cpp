@@ -185,6 +185,7 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     p->vae_ = *std::move(vae);
   }
   GAPS_RETURN_IF_ERROR(in_component("controlnet", p->load_controlnet(folder)));
+  GAPS_RETURN_IF_ERROR(p->load_ip_adapter(model_options));
   return p;
 }
 
@@ -224,6 +225,66 @@ absl::Status SdxlPipeline::check_control(const ControlInput& control, const at::
   for (double s : control.scales) {
     if (!std::isfinite(s)) return absl::InvalidArgumentError("img2img: conditioning scales must be finite");
   }
+  return absl::OkStatus();
+}
+
+absl::Status SdxlPipeline::load_ip_adapter(at::TensorOptions model_options) {
+  if (options_.ip_adapter.empty() != options_.image_encoder.empty()) {
+    return absl::InvalidArgumentError("SDXL pipeline: an IP-Adapter needs both its weight file and its image encoder");
+  }
+  if (options_.ip_adapter.empty()) return absl::OkStatus();
+  auto encoder = ClipVisionEncoder::load_folder(options_.image_encoder, model_options);
+  GAPS_RETURN_IF_ERROR(in_component("image_encoder", encoder.status()));
+  auto adapter = IpAdapter::load(options_.ip_adapter, *unet_, model_options);
+  GAPS_RETURN_IF_ERROR(in_component("ip_adapter", adapter.status()));
+  if ((*adapter)->image_embed_dim() != encoder->config().projection_dim) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        options_.ip_adapter, " projects image embeddings of size ", (*adapter)->image_embed_dim(), ", the image encoder ",
+        options_.image_encoder, " makes ", encoder->config().projection_dim));
+  }
+  image_encoder_ = *std::move(encoder);
+  ip_adapter_ = *std::move(adapter);
+  return absl::OkStatus();
+}
+
+absl::Status SdxlPipeline::set_image_prompts(const Img2ImgParams& params, int64_t batch) {
+  const auto& refs = params.reference_images;
+  const bool any = std::any_of(refs.begin(), refs.end(), [](const at::Tensor& r) { return r.defined(); });
+  if (!ip_adapter_) {
+    if (any) return absl::FailedPreconditionError("img2img: reference images need a pipeline loaded with an IP-Adapter");
+    return absl::OkStatus();
+  }
+  const auto& scales = params.ip_adapter_scales;
+  if (!refs.empty() && static_cast<int64_t>(refs.size()) != batch) {
+    return absl::InvalidArgumentError("img2img: give one reference image per image (undefined for none), or none");
+  }
+  if (scales.size() != 1 && static_cast<int64_t>(scales.size()) != batch) {
+    return absl::InvalidArgumentError("img2img: give one IP-Adapter scale, or one per image");
+  }
+  c10::InferenceMode inference;
+  const at::TensorOptions model_options = at::TensorOptions().dtype(options_.dtype).device(options_.device);
+  at::Tensor embeds = at::zeros({batch, ip_adapter_->image_embed_dim()}, model_options);
+  std::vector<float> image_scales(batch, 0.0f);
+  std::vector<at::Tensor> images;
+  std::vector<int64_t> with_reference;
+  for (int64_t i = 0; i < static_cast<int64_t>(refs.size()); ++i) {
+    if (!refs[i].defined()) continue;
+    images.push_back(refs[i]);
+    with_reference.push_back(i);
+    image_scales[i] = static_cast<float>(scales.size() == 1 ? scales[0] : scales[i]);
+  }
+  if (!images.empty()) {
+    auto encoded = image_encoder_->embed(images);
+    if (!encoded.ok()) return absl::InvalidArgumentError(absl::StrCat("img2img reference image: ", encoded.status().message()));
+    embeds.index_copy_(0, at::tensor(with_reference, at::kLong).to(options_.device), encoded->to(model_options));
+  }
+  at::Tensor tokens = ip_adapter_->project(embeds);
+  at::Tensor scale = at::tensor(image_scales).to(model_options);
+  if (params.guidance_scale > 1.0) {  // the batch of denoise(): negatives first
+    tokens = at::cat({ip_adapter_->project(at::zeros_like(embeds)), tokens});
+    scale = at::cat({scale, scale});
+  }
+  ip_adapter_->set_image_prompt(tokens, scale);
   return absl::OkStatus();
 }
 
@@ -303,6 +364,7 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
   }
   GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
   scheduler->set_timesteps(params.steps);
+  GAPS_RETURN_IF_ERROR(set_image_prompts(params, batch));
   at::Tensor result;
   {
     // No autograd bookkeeping; the result is cloned outside, so callers get an ordinary tensor.

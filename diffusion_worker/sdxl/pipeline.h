@@ -7,6 +7,8 @@
 // image, as StableDiffusionXLControlNetImg2ImgPipeline without guess mode: the ControlNet sees the same
 // batch as the UNet (both guidance halves, the control image repeated for each) and its residuals, times
 // the conditioning scale, are added at every step (control_guidance_start 0, end 1).
+// Optionally with IP-Adapter image prompts (ip_adapter.h): one reference image per image, encoded by CLIP
+// and attended to by every cross-attention layer.
 #include <memory>
 #include <optional>
 #include <string>
@@ -18,6 +20,8 @@
 #include "diffusion_worker/sdxl/clip_tokenizer.h"
 #include "diffusion_worker/sdxl/controlnet.h"
 #include "diffusion_worker/sdxl/model_folder.h"
+#include "diffusion_worker/sdxl/clip_vision_encoder.h"
+#include "diffusion_worker/sdxl/ip_adapter.h"
 #include "diffusion_worker/sdxl/schedulers.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "diffusion_worker/sdxl/vae.h"
@@ -38,6 +42,10 @@ struct PipelineOptions {
   // A diffusers ControlNetModel folder (config.json + weights, read with the same variant); "" = the
   // SDXL folder's "controlnet" component when model_index.json lists one, else no ControlNet.
   std::string controlnet;
+  // IP-Adapter: its weight file (diffusers' single-file layout, e.g. ip-adapter_sdxl_vit-h.safetensors)
+  // and the transformers folder of its CLIP image encoder (config.json, model.safetensors); both or
+  // neither. With them, img2img takes reference images (Img2ImgParams::reference_images).
+  std::string ip_adapter, image_encoder;
 };
 
 struct UNetGraphs;  // the captured graphs (CUDA builds only)
@@ -46,6 +54,13 @@ struct Img2ImgParams {
   double strength = 0.5;        // fraction of the schedule re-run: steps from int(steps * strength) back
   int64_t steps = 30;           // steps of the full schedule
   double guidance_scale = 5.0;  // classifier-free guidance when > 1
+  // IP-Adapter image prompts (pipelines loaded with one): per image a reference image H x W x 3 in [0, 1]
+  // (an undefined tensor: none for that image), or empty for none at all; and the image attention's
+  // scale, one for all images or one per image (0.5: the paper's lambda_ip). Images without a reference
+  // get scale 0, which is plain img2img. The negative prompt of guidance is the projection of a zero
+  // image embedding, as in diffusers.
+  std::vector<at::Tensor> reference_images;
+  std::vector<double> ip_adapter_scales = {0.5};
 };
 
 // The ControlNet input of one img2img call.
@@ -83,6 +98,9 @@ class SdxlPipeline {
   UNet2DCondition& unet() { return *unet_; }
   const AutoencoderKL& vae() const { return *vae_; }
   const ControlNet* controlnet() const { return controlnet_ ? &*controlnet_ : nullptr; }
+  // The IP-Adapter and its image encoder; null without PipelineOptions::ip_adapter.
+  const IpAdapter* ip_adapter() const { return ip_adapter_.get(); }
+  const ClipVisionEncoder* image_encoder() const { return image_encoder_ ? &*image_encoder_ : nullptr; }
   int64_t latent_factor() const { return vae_->scale_factor(); }
 
  private:
@@ -95,6 +113,13 @@ class SdxlPipeline {
   std::optional<AutoencoderKL> vae_;
   std::optional<ControlNet> controlnet_;
   std::shared_ptr<UNetGraphs> graphs_;  // set while graph replay is on
+  std::optional<ClipVisionEncoder> image_encoder_;
+  std::unique_ptr<IpAdapter> ip_adapter_;
+
+  absl::Status load_ip_adapter(at::TensorOptions model_options);
+  // Encodes and projects the reference images and hands them to the UNet's decoupled cross-attention
+  // (negative prompts first when guidance doubles the batch).
+  absl::Status set_image_prompts(const Img2ImgParams& params, int64_t batch);
 
   at::Tensor run_unet(const UNetInputs& in);
   absl::Status load_controlnet(const ModelFolder& folder);
