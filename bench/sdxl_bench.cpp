@@ -221,6 +221,8 @@ int main(int argc, char** argv) {
   const at::ScalarType dtype = dtype_name == "float16" ? at::kHalf : at::kBFloat16;
 
   c10::InferenceMode inference;
+  // The caching allocator's statistics exist only once CUDA has allocated through it.
+  at::empty({1}, at::TensorOptions().device(at::kCUDA));
   nlohmann::json common;
   common["bench"] = "sdxl";
   common["impl"] = "gaps-libtorch";
