@@ -99,7 +99,9 @@ int64_t DensityControl::densify_and_prune(GaussianModel& model, GaussianAdam& ad
     radii = radii.index({keep});
   }
   at::Tensor prune = model.opacities().detach() < config_.min_opacity;
-  if (iteration > config_.opacity_reset_interval) {
+  // 3DGS prunes screen- and world-space giants once the first opacity reset has passed; without resets
+  // (opacity_reset_interval 0) never, as in the measured configuration.
+  if (config_.opacity_reset_interval > 0 && iteration > config_.opacity_reset_interval) {
     const at::Tensor max_scale = std::get<0>(at::exp(model.log_scales.detach()).max(1));
     prune = prune | (radii > config_.max_screen_size) | (max_scale > 0.1 * extent_);
   }

@@ -93,7 +93,8 @@ void Trainer::maintain_density(const RenderOutput* gt_render, const RenderOption
                           camera->height);
     if (gt_render && iteration_ > config_.densify_from_iter && iteration_ % config_.densification_interval == 0)
       density_.densify_and_prune(model_, adam_, iteration_, config_.seed + iteration_);
-    if (iteration_ % config_.opacity_reset_interval == 0) DensityControl::reset_opacity(model_, adam_);
+    if (config_.opacity_reset_interval > 0 && iteration_ % config_.opacity_reset_interval == 0)
+      DensityControl::reset_opacity(model_, adam_);
   }
   if (model_.size() > 0 && model_.means.grad().defined()) adam_.step();
   adam_.zero_grad();

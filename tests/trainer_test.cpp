@@ -7,8 +7,10 @@
 #include <nlohmann/json.hpp>
 
 #include "gs_trainer/adam.h"
+#include "gs_trainer/camera.h"
 #include "gs_trainer/densify.h"
 #include "gs_trainer/train_config.h"
+#include "gs_trainer/trainer.h"
 
 namespace gaps {
 namespace {
@@ -144,6 +146,14 @@ TEST_F(DensifyFixture, LargeScreenFootprintsArePrunedOnlyAfterTheFirstReset) {
   EXPECT_EQ(density.densify_and_prune(model, adam, 3100, 0), 2);  // now the 50-pixel one too
 }
 
+TEST_F(DensifyFixture, LargeScreenFootprintsAreKeptWithoutOpacityResets) {
+  config.opacity_reset_interval = 0;
+  GaussianAdam adam(model, {0.1, 0.1, 0.1, 0.1, 0.1, 0.1}, 1e-15);
+  DensityControl density(config, 1.0);
+  density.accumulate(at::zeros({4, 2}), at::Tensor(), at::tensor({5, 50, 5, 5}, at::kInt), 100, 100);
+  EXPECT_EQ(density.densify_and_prune(model, adam, 3100, 0), 3);  // only the transparent one
+}
+
 TEST_F(DensifyFixture, OpacityResetCapsAtOnePercent) {
   GaussianAdam adam(model, {0.1, 0.1, 0.1, 0.1, 0.1, 0.1}, 1e-15);
   DensityControl::reset_opacity(model, adam);
@@ -173,6 +183,37 @@ TEST_F(DensifyFixture, GrowthStopsExactlyAtTheBudgetPreferringLargerGradients) {
   at::AutoGradMode no_grad(false);
   EXPECT_EQ(((model.means - means_before[0]).norm(2, {1}) < 1e-6).sum().item<int64_t>(), 2);  // cloned
   EXPECT_EQ((at::abs(at::exp(model.log_scales).amax(1) - 0.5) < 1e-5).sum().item<int64_t>(), 1);  // not split
+}
+
+// The trainer's schedule: with opacity_reset_interval N every N-th iteration of the densification window
+// caps the opacities at 1%; the default (0) never resets them.
+double max_opacity_after(int iterations, int reset_interval) {
+  GaussianModel model = tiny_model(8);
+  model.means.select(1, 2).add_(2.0);  // in front of the camera
+  model.opacity_logits.fill_(std::log(0.5 / 0.5));
+  Camera camera;
+  camera.width = 16;
+  camera.height = 12;
+  camera.fx = camera.fy = 20;
+  camera.cx = 8;
+  camera.cy = 6;
+  TrainConfig config;
+  config.iterations = 100;
+  config.densify_from_iter = 1000;  // no densification: only the reset schedule acts
+  config.densify_until_fraction = 1.0;
+  config.opacity_reset_interval = reset_interval;
+  Trainer trainer(model, {TrainingView{camera, at::full({12, 16, 3}, 0.5f)}}, config);
+  for (int i = 0; i < iterations; ++i) trainer.step();
+  at::AutoGradMode no_grad(false);
+  return trainer.model().opacities().max().item<double>();
+}
+
+TEST(TrainerSchedule, OpacityResetOnlyWhenAskedFor) {
+  EXPECT_EQ(TrainConfig{}.opacity_reset_interval, 0);
+  EXPECT_GT(max_opacity_after(10, 0), 0.3);
+  EXPECT_GT(max_opacity_after(9, 10), 0.3);
+  // Reset at iteration 10, then one Adam step of at most lr = 0.05 in logit space.
+  EXPECT_LT(max_opacity_after(10, 10), 0.0106);
 }
 
 TEST(TrainConfig, JsonRoundTripAndUnknownKeys) {
