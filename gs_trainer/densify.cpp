@@ -113,6 +113,16 @@ int64_t DensityControl::densify_and_prune(GaussianModel& model, GaussianAdam& ad
   return model.size();
 }
 
+int64_t DensityControl::prune_low_contribution(GaussianModel& model, GaussianAdam& adam,
+                                               const at::Tensor& contribution) {
+  TORCH_CHECK(contribution.dim() == 1 && contribution.size(0) == model.size(),
+              "one contribution per Gaussian expected, got ", contribution.sizes(), " for ", model.size());
+  adam.keep_rows(contribution.to(model.means.device()) >= config_.prune_min_contribution);
+  grad_accum_ = at::Tensor();
+  ensure_size(model.size(), model.means.options());
+  return model.size();
+}
+
 void DensityControl::reset_opacity(GaussianModel& model, GaussianAdam& adam) {
   at::AutoGradMode no_grad(false);
   const double cap = std::log(0.01 / 0.99);

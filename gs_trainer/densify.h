@@ -19,6 +19,9 @@ class DensityControl {
   // Clone small / split large high-gradient Gaussians, then prune; resets the statistics.
   // Returns the number of Gaussians after the operation.
   int64_t densify_and_prune(GaussianModel& model, GaussianAdam& adam, int iteration, uint64_t seed);
+  // Removes the Gaussians whose `contribution` (N values, e.g. blending weights summed over the training
+  // views) is below config.prune_min_contribution; resets the statistics. Returns the number left.
+  int64_t prune_low_contribution(GaussianModel& model, GaussianAdam& adam, const at::Tensor& contribution);
   // Clamps every opacity to at most 0.01 and clears its Adam moments.
   static void reset_opacity(GaussianModel& model, GaussianAdam& adam);
 

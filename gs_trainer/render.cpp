@@ -1,6 +1,7 @@
 #include "gs_trainer/render.h"
 
 #include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
 
 #include "gs_trainer/rasterizer.h"
 
@@ -38,6 +39,19 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
   out.means2d = proj.means2d;
   out.radii = proj.radii;
   return out;
+}
+
+at::Tensor blending_weights(const GaussianModel& model, const Camera& camera) {
+  const auto opts = model.means.options();
+  const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
+  at::AutoGradMode grad_mode(true);
+  const auto proj = project_gaussians(model.means.detach(), model.quats.detach(), model.scales().detach(),
+                                      upload(camera.viewmat(), opts), K);
+  at::Tensor probe = at::zeros({model.size(), 1}, opts).requires_grad_(true);
+  const auto raster = rasterize_gaussians(proj.means2d, proj.conics, model.opacities().detach(), probe, proj.depths,
+                                          proj.radii, camera.width, camera.height);
+  raster.features.sum().backward();
+  return probe.grad().view({model.size()});
 }
 
 }  // namespace gaps

@@ -24,4 +24,10 @@ struct RenderOutput {
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options = {});
 
+// Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth
+// of the image it makes. Read off the rasterizer's backward pass (the image is linear in the features, with
+// the blending weights as coefficients), so both backends give it without a kernel of their own. N values,
+// no gradient.
+at::Tensor blending_weights(const GaussianModel& model, const Camera& camera);
+
 }  // namespace gaps

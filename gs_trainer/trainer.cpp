@@ -96,8 +96,15 @@ void Trainer::maintain_density(const RenderOutput* gt_render, const RenderOption
     if (config_.opacity_reset_interval > 0 && iteration_ % config_.opacity_reset_interval == 0)
       DensityControl::reset_opacity(model_, adam_);
   }
+  if (iteration_ == config_.densify_until_iter() && config_.prune_min_contribution > 0) prune_low_contribution();
   if (model_.size() > 0 && model_.means.grad().defined()) adam_.step();
   adam_.zero_grad();
+}
+
+void Trainer::prune_low_contribution() {
+  at::Tensor contribution = at::zeros({model_.size()}, model_.means.options());
+  for (const TrainingView& view : views_) contribution += blending_weights(model_, view.camera);
+  density_.prune_low_contribution(model_, adam_, contribution);
 }
 
 absl::Status Trainer::run(const std::function<void(const TrainProgress&)>& on_progress, int report_every,

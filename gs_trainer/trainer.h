@@ -65,6 +65,8 @@ class Trainer {
   void maintain_density(const RenderOutput* gt_render, const RenderOptions& options, const Camera* camera);
 
   TrainConfig config_;
+  // At the end of densification: drops the Gaussians below config.prune_min_contribution (densify.h).
+  void prune_low_contribution();
   std::vector<TrainingView> views_;
   GaussianModel model_;
   double extent_;

@@ -6,6 +6,7 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
+#include "gs_trainer/rasterizer.h"
 #include "gs_trainer/render.h"
 
 namespace gaps {
@@ -68,6 +69,26 @@ TEST(Render, BackgroundFillsWhatAlphaLeaves) {
   white.background = at::ones({3}, at::kDouble);
   const auto a = render(m, c), b = render(m, c, white);
   EXPECT_TRUE(at::allclose(b.rgb - a.rgb, (1 - a.alpha).unsqueeze(2).expand({30, 40, 3}), 1e-12, 1e-12));
+}
+
+// Each Gaussian's blending weights summed over the image, read off the backward pass, against the
+// forward pass with one one-hot feature channel per Gaussian (channel k composites w_k at every pixel).
+TEST(Render, BlendingWeightsEqualTheOneHotImagesSums) {
+  const int n = 12;
+  auto m = random_model(n, 5);
+  m.means.select(1, 2).add_(-1.0);  // closer: overlapping footprints, occlusion matters
+  const auto c = test_camera(40, 30);
+  const at::Tensor weights = blending_weights(m, c);
+  const raster::Intrinsics K{c.fx, c.fy, c.cx, c.cy, c.width, c.height};
+  const auto proj = project_gaussians(m.means, m.quats, m.scales(), c.viewmat().to(at::kDouble), K);
+  const auto one_hot = rasterize_gaussians(proj.means2d, proj.conics, m.opacities(), at::eye(n, at::kDouble),
+                                           proj.depths, proj.radii, c.width, c.height);
+  const at::Tensor expected = one_hot.features.sum(at::IntArrayRef{0, 1});
+  ASSERT_EQ(weights.sizes(), expected.sizes());
+  EXPECT_GT(expected.max().item<double>(), 10.0) << "the scene should cover part of the image";
+  EXPECT_GT((expected < 1e-9).sum().item<int64_t>() + (expected > 1.0).sum().item<int64_t>(), n / 2);
+  EXPECT_TRUE(at::allclose(weights, expected, 1e-9, 1e-9)) << weights << expected;
+  EXPECT_FALSE(m.means.grad().defined()) << "the model must not receive gradients";
 }
 
 class RenderGradient : public ::testing::TestWithParam<int> {};

@@ -9,6 +9,7 @@
 #include "gs_trainer/adam.h"
 #include "gs_trainer/camera.h"
 #include "gs_trainer/densify.h"
+#include "gs_trainer/render.h"
 #include "gs_trainer/train_config.h"
 #include "gs_trainer/trainer.h"
 
@@ -185,24 +186,40 @@ TEST_F(DensifyFixture, GrowthStopsExactlyAtTheBudgetPreferringLargerGradients) {
   EXPECT_EQ((at::abs(at::exp(model.log_scales).amax(1) - 0.5) < 1e-5).sum().item<int64_t>(), 1);  // not split
 }
 
-// The trainer's schedule: with opacity_reset_interval N every N-th iteration of the densification window
-// caps the opacities at 1%; the default (0) never resets them.
-double max_opacity_after(int iterations, int reset_interval) {
-  GaussianModel model = tiny_model(8);
-  model.means.select(1, 2).add_(2.0);  // in front of the camera
-  model.opacity_logits.fill_(std::log(0.5 / 0.5));
+// A 16 x 12 view of 8 small Gaussians in front of it (and `extra` more far outside it), for schedule tests.
+struct ScheduleScene {
+  GaussianModel model;
   Camera camera;
-  camera.width = 16;
-  camera.height = 12;
-  camera.fx = camera.fy = 20;
-  camera.cx = 8;
-  camera.cy = 6;
+  explicit ScheduleScene(int outside = 0) {
+    model = tiny_model(8 + outside);
+    model.means.select(1, 2).add_(2.0);  // in front of the camera
+    for (int i = 0; i < outside; ++i) model.means[8 + i][0] = 100.0 + i;
+    model.opacity_logits.fill_(0.0);  // opacity 0.5
+    camera.width = 16;
+    camera.height = 12;
+    camera.fx = camera.fy = 20;
+    camera.cx = 8;
+    camera.cy = 6;
+  }
+  Trainer trainer(const TrainConfig& config) const {
+    return Trainer(model, {TrainingView{camera, at::full({12, 16, 3}, 0.5f)}}, config);
+  }
+};
+
+TrainConfig schedule_config() {
   TrainConfig config;
   config.iterations = 100;
-  config.densify_from_iter = 1000;  // no densification: only the reset schedule acts
+  config.densify_from_iter = 1000;  // no densification: only the schedule under test acts
   config.densify_until_fraction = 1.0;
+  return config;
+}
+
+// With opacity_reset_interval N every N-th iteration of the densification window caps the opacities at 1%;
+// the default (0) never resets them.
+double max_opacity_after(int iterations, int reset_interval) {
+  TrainConfig config = schedule_config();
   config.opacity_reset_interval = reset_interval;
-  Trainer trainer(model, {TrainingView{camera, at::full({12, 16, 3}, 0.5f)}}, config);
+  Trainer trainer = ScheduleScene().trainer(config);
   for (int i = 0; i < iterations; ++i) trainer.step();
   at::AutoGradMode no_grad(false);
   return trainer.model().opacities().max().item<double>();
@@ -214,6 +231,30 @@ TEST(TrainerSchedule, OpacityResetOnlyWhenAskedFor) {
   EXPECT_GT(max_opacity_after(9, 10), 0.3);
   // Reset at iteration 10, then one Adam step of at most lr = 0.05 in logit space.
   EXPECT_LT(max_opacity_after(10, 10), 0.0106);
+}
+
+// prune_min_contribution: at the end of densification the Gaussians below the threshold of blending weight
+// over the training views go (here the two far outside the view, and any in-view one too faint); the rest
+// stay, each at least at the threshold. 0 keeps every Gaussian.
+TEST(TrainerSchedule, LowContributionGaussiansArePrunedAtTheEndOfDensification) {
+  const ScheduleScene scene(/*outside=*/2);
+  TrainConfig config = schedule_config();
+  config.densify_until_fraction = 0.05;  // densification ends at iteration 5
+  Trainer keep_all = scene.trainer(config);
+  for (int i = 0; i < 5; ++i) keep_all.step();
+  EXPECT_EQ(keep_all.model().size(), 10);
+
+  config.prune_min_contribution = 0.05;
+  Trainer trainer = scene.trainer(config);
+  for (int i = 0; i < 4; ++i) trainer.step();
+  EXPECT_EQ(trainer.model().size(), 10);
+  trainer.step();
+  const int64_t left = trainer.model().size();
+  EXPECT_LE(left, 8);
+  EXPECT_GE(left, 1);
+  at::AutoGradMode no_grad(false);
+  EXPECT_LT(trainer.model().means.select(1, 0).max().item<double>(), 50.0) << "the outside ones are gone";
+  EXPECT_GE(blending_weights(trainer.model(), scene.camera).min().item<double>(), 0.05);
 }
 
 TEST(TrainConfig, JsonRoundTripAndUnknownKeys) {
