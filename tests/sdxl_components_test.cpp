@@ -106,13 +106,7 @@ TEST(UNet2DConditionTest, MatchesDiffusersWithTextTimeConditioning) {
   auto unet = UNet2DCondition::load(*config, *f.read_weights("unet"), at::TensorOptions(), "unet");
   ASSERT_TRUE(unet.ok()) << unet.status();
   const TensorMap ref = test::sdxl_reference("unet");
-  UNetInputs in;
-  in.sample = ref.at("sample");
-  in.timestep = ref.at("timestep");
-  in.encoder_hidden_states = ref.at("encoder_hidden_states");
-  in.text_embeds = ref.at("text_embeds");
-  in.time_ids = ref.at("time_ids");
-  expect_close(unet->forward(in), ref.at("out"), kTolerance, "UNet output");
+  expect_close(unet->forward(test::recorded_unet_inputs(ref)), ref.at("out"), kTolerance, "UNet output");
 }
 
 TEST(WeightSpecsTest, ListExactlyTheCheckpointsTensors) {

@@ -39,30 +39,20 @@ TensorMap controlnet_reference(const std::string& name) {
   return tensors.ok() ? *tensors : TensorMap{};
 }
 
-sdxl::UNetInputs unet_inputs(const TensorMap& ref) {
-  sdxl::UNetInputs in;
-  in.sample = ref.at("sample");
-  in.timestep = ref.at("timestep");
-  in.encoder_hidden_states = ref.at("encoder_hidden_states");
-  in.text_embeds = ref.at("text_embeds");
-  in.time_ids = ref.at("time_ids");
-  return in;
-}
-
 TEST(ControlNetTest, ResidualsMatchDiffusers) {
   auto net = sdxl::ControlNet::load_folder(controlnet_dir(), at::TensorOptions().dtype(at::kFloat));
   ASSERT_TRUE(net.ok()) << net.status();
   EXPECT_EQ(net->config().downscale(), 2);
   const TensorMap ref = controlnet_reference("controlnet");
   const sdxl::ControlNetResiduals out =
-      net->forward(unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale"));
+      net->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale"));
   ASSERT_EQ(out.down.size(), 6u);
   for (size_t i = 0; i < out.down.size(); ++i) {
     expect_close(out.down[i], ref.at("down_" + std::to_string(i)), kTolerance, "down residual " + std::to_string(i));
   }
   expect_close(out.mid, ref.at("mid"), kTolerance, "mid residual");
   // The scale multiplies every residual (per batch entry): scale 0 gives zeros.
-  const sdxl::ControlNetResiduals off = net->forward(unet_inputs(ref), ref.at("controlnet_cond"), at::zeros({2}));
+  const sdxl::ControlNetResiduals off = net->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), at::zeros({2}));
   EXPECT_EQ(off.mid.abs().max().item<double>(), 0.0);
 }
 
@@ -73,13 +63,13 @@ TEST(ControlNetTest, UNetWithResidualsMatchesDiffusers) {
                                           *folder->read_weights("unet"), at::TensorOptions(), "unet");
   ASSERT_TRUE(unet.ok()) << unet.status();
   const TensorMap ref = controlnet_reference("controlnet");
-  sdxl::UNetInputs in = unet_inputs(ref);
+  sdxl::UNetInputs in = test::recorded_unet_inputs(ref);
   for (int i = 0; i < 6; ++i) in.down_block_residuals.push_back(ref.at("down_" + std::to_string(i)));
   in.mid_block_residual = ref.at("mid");
   const at::Tensor expected = controlnet_reference("unet_controlled").at("out");
   expect_close(unet->forward(in), expected, kTolerance, "UNet with ControlNet residuals");
   // The residuals matter: without them the output is another one.
-  EXPECT_GT((unet->forward(unet_inputs(ref)) - expected).abs().max().item<double>(), 1e-2);
+  EXPECT_GT((unet->forward(test::recorded_unet_inputs(ref)) - expected).abs().max().item<double>(), 1e-2);
 }
 
 struct ControlledRun {
@@ -194,7 +184,7 @@ TEST_F(ControlNetComponentTest, LoadsTheControlNetComponentOfAPipelineFolder) {
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   ASSERT_NE((*pipeline)->controlnet(), nullptr);
   const TensorMap ref = controlnet_reference("controlnet");
-  expect_close((*pipeline)->controlnet()->forward(unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale")).mid,
+  expect_close((*pipeline)->controlnet()->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale")).mid,
                ref.at("mid"), kTolerance, "mid residual of the folder's ControlNet");
 
   index["controlnet"] = {"diffusers", "ControlNetXSAdapter"};

@@ -46,16 +46,6 @@ UNet2DCondition tiny_unet() {
   return *std::move(unet);
 }
 
-UNetInputs unet_inputs(const TensorMap& ref) {
-  UNetInputs in;
-  in.sample = ref.at("sample");
-  in.timestep = ref.at("timestep");
-  in.encoder_hidden_states = ref.at("encoder_hidden_states");
-  in.text_embeds = ref.at("text_embeds");
-  in.time_ids = ref.at("time_ids");
-  return in;
-}
-
 TEST(ClipVisionEncoderTest, MatchesCLIPImageProcessorAndCLIPVisionModelWithProjection) {
   auto encoder = ClipVisionEncoder::load_folder(image_encoder_dir(), at::TensorOptions());
   ASSERT_TRUE(encoder.ok()) << encoder.status();
@@ -98,7 +88,7 @@ TEST(IpAdapterTest, ProjectsImageEmbeddingsAsDiffusers) {
 TEST(IpAdapterTest, UNetWithDecoupledCrossAttentionMatchesDiffusers) {
   UNet2DCondition unet = tiny_unet();
   const TensorMap ref = ip_reference("unet");
-  const UNetInputs in = unet_inputs(ref);
+  const UNetInputs in = test::recorded_unet_inputs(ref);
   const at::Tensor plain = unet.forward(in);
   auto adapter = IpAdapter::load(ip_weights(), unet, at::TensorOptions());
   ASSERT_TRUE(adapter.ok()) << adapter.status();
@@ -117,7 +107,7 @@ TEST(IpAdapterTest, UNetWithDecoupledCrossAttentionMatchesDiffusers) {
 TEST(IpAdapterTest, MissingTensorIsNamedAndTheUNetIsLeftAlone) {
   UNet2DCondition unet = tiny_unet();
   const TensorMap ref = ip_reference("unet");
-  const at::Tensor plain = unet.forward(unet_inputs(ref));
+  const at::Tensor plain = unet.forward(test::recorded_unet_inputs(ref));
   auto weights = read_safetensors(ip_weights());
   ASSERT_TRUE(weights.ok());
   TensorMap missing = *weights;
@@ -129,7 +119,7 @@ TEST(IpAdapterTest, MissingTensorIsNamedAndTheUNetIsLeftAlone) {
   EXPECT_TRUE(contains_all(std::string(adapter.status().message()),
                            {"ip.safetensors", "missing", "image_proj.norm.bias", "ip_adapter.5.to_v_ip.weight",
                             "unexpected", "ip_adapter.5.to_q_ip.weight"}));
-  EXPECT_TRUE(at::equal(unet.forward(unet_inputs(ref)), plain));
+  EXPECT_TRUE(at::equal(unet.forward(test::recorded_unet_inputs(ref)), plain));
 }
 
 TEST(IpAdapterTest, LayerCountMismatchIsNamed) {

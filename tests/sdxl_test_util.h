@@ -8,6 +8,7 @@
 #include <ATen/Parallel.h>
 #include <gtest/gtest.h>
 #include "diffusion_worker/sdxl/safetensors.h"
+#include "diffusion_worker/sdxl/unet.h"
 
 namespace gaps::test {
 
@@ -42,6 +43,17 @@ inline void expect_close(const at::Tensor& actual, const at::Tensor& expected, d
   const double scale = std::max(1.0, e.abs().max().item<double>());
   const double diff = (a - e).abs().max().item<double>();
   EXPECT_LE(diff, tolerance * scale) << what << ": max abs diff " << diff << " (reference scale " << scale << ")";
+}
+
+// The UNet inputs a fixture script recorded (sample, timestep, text states, pooled embeds, time ids).
+inline sdxl::UNetInputs recorded_unet_inputs(const sdxl::TensorMap& ref) {
+  sdxl::UNetInputs in;
+  in.sample = ref.at("sample");
+  in.timestep = ref.at("timestep");
+  in.encoder_hidden_states = ref.at("encoder_hidden_states");
+  in.text_embeds = ref.at("text_embeds");
+  in.time_ids = ref.at("time_ids");
+  return in;
 }
 
 }  // namespace gaps::test

@@ -4,6 +4,7 @@
 // garbage must not cost accuracy against vanilla.
 #include <cmath>
 #include <fstream>
+#include <optional>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -53,6 +54,44 @@ struct Stability : test::TempDirTest {
   }
 };
 
+// Fern at -r 8 from 4,000 random points, 120 iterations; nullopt (and a skip) without the data.
+std::optional<RunOptions> short_fern_run(int views) {
+  const std::filesystem::path fern = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!std::filesystem::exists(fern)) return std::nullopt;
+  RunOptions o;
+  o.scene_dir = fern;
+  o.views = views;
+  o.resolution = 8;
+  o.init = "random";
+  o.random_points = 4000;
+  o.config.iterations = 120;
+  o.html_report = false;
+  o.save_renders = false;
+  return o;
+}
+
+// Switches a short_fern_run to the method: phases at iterations 40 and 80, 4 pseudo-views each.
+void use_method(RunOptions& o, Generator* generator) {
+  o.variant = Variant::kFull;
+  o.generator = generator;
+  o.gaps.warmup_iterations = 40;
+  o.gaps.phase_interval = 40;
+  o.n_active = 4;
+}
+
+struct PhaseCounts {
+  int generated = 0, admitted = 0;
+};
+
+PhaseCounts count_pseudo_views(const std::filesystem::path& out_dir) {
+  PhaseCounts c;
+  for (const auto& phase : read_json(out_dir / "phases.json")) {
+    c.generated += static_cast<int>(phase["selection"].size());
+    c.admitted += phase["admitted"].get<int>();
+  }
+  return c;
+}
+
 void expect_finished_and_finite(const absl::StatusOr<RunResult>& r, const std::filesystem::path& out) {
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_TRUE(std::isfinite(r->metrics.psnr));
@@ -94,42 +133,25 @@ TEST_F(Stability, TwoNearlyIdenticalViewsWithTheMethod) {
 // Fern, 3 views, a short schedule with two phases of noise. Vanilla and the method start from the same
 // random points and seed; the method may not lose more than a small margin to vanilla.
 TEST_F(Stability, GarbageGeneratorOnFernCostsNoAccuracy) {
-  const std::filesystem::path fern = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
-  if (!std::filesystem::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
-  RunOptions o;
-  o.scene_dir = fern;
-  o.views = 3;
-  o.resolution = 8;
-  o.init = "random";
-  o.random_points = 4000;
-  o.config.iterations = 120;
-  o.html_report = false;
-  o.save_renders = false;
-  o.out_dir = dir_ / "vanilla";
-  const auto vanilla = run_pipeline(o, nullptr, quiet);
+  std::optional<RunOptions> o = short_fern_run(3);
+  if (!o) GTEST_SKIP() << "benchmark data not found under " << GAPS_DATA_DIR;
+  o->out_dir = dir_ / "vanilla";
+  const auto vanilla = run_pipeline(*o, nullptr, quiet);
   ASSERT_TRUE(vanilla.ok()) << vanilla.status();
 
   NoiseGenerator noise;
-  o.out_dir = dir_ / "noise";
-  o.variant = Variant::kFull;
-  o.generator = &noise;
-  o.gaps.warmup_iterations = 40;
-  o.gaps.phase_interval = 40;
-  o.n_active = 4;
-  const auto method = run_pipeline(o, nullptr, quiet);
+  o->out_dir = dir_ / "noise";
+  use_method(*o, &noise);
+  const auto method = run_pipeline(*o, nullptr, quiet);
   ASSERT_TRUE(method.ok()) << method.status();
-  int admitted = 0, generated = 0;
-  for (const auto& phase : read_json(o.out_dir / "phases.json")) {
-    generated += static_cast<int>(phase["selection"].size());
-    admitted += phase["admitted"].get<int>();
-  }
-  EXPECT_EQ(generated, 8);  // 2 phases x 4 views
-  RecordProperty("noise_views_admitted", admitted);
+  const PhaseCounts views = count_pseudo_views(o->out_dir);
+  EXPECT_EQ(views.generated, 8);  // 2 phases x 4 views
+  RecordProperty("noise_views_admitted", views.admitted);
   RecordProperty("psnr_vanilla", std::to_string(vanilla->metrics.psnr));
   RecordProperty("psnr_noise", std::to_string(method->metrics.psnr));
-  std::cout << "noise views admitted " << admitted << " of " << generated << "; PSNR vanilla "
+  std::cout << "noise views admitted " << views.admitted << " of " << views.generated << "; PSNR vanilla "
             << vanilla->metrics.psnr << ", with noise " << method->metrics.psnr << "\n";
-  EXPECT_EQ(admitted, 0) << "the admission gate let uniform noise through";
+  EXPECT_EQ(views.admitted, 0) << "the admission gate let uniform noise through";
   EXPECT_GE(method->metrics.psnr, vanilla->metrics.psnr - 0.3);
 }
 
@@ -139,41 +161,24 @@ TEST_F(Stability, GarbageGeneratorOnFernCostsNoAccuracy) {
 // same start and seed as vanilla, must finish finite, generate at every phase, and not fall below vanilla
 // by more than the seed noise of so short a run.
 TEST_F(Stability, WideBaselinePairOnFern) {
-  const std::filesystem::path fern = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
-  if (!std::filesystem::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
-  RunOptions o;
-  o.scene_dir = fern;
-  o.views = 2;
-  o.resolution = 8;
-  o.init = "random";
-  o.random_points = 4000;
-  o.config.iterations = 120;
-  o.html_report = false;
-  o.save_renders = false;
-  o.out_dir = dir_ / "vanilla";
-  const auto vanilla = run_pipeline(o, nullptr, quiet);
-  expect_finished_and_finite(vanilla, o.out_dir);
+  std::optional<RunOptions> o = short_fern_run(2);
+  if (!o) GTEST_SKIP() << "benchmark data not found under " << GAPS_DATA_DIR;
+  o->out_dir = dir_ / "vanilla";
+  const auto vanilla = run_pipeline(*o, nullptr, quiet);
+  expect_finished_and_finite(vanilla, o->out_dir);
 
   auto generator = reproject();
   ASSERT_TRUE(generator);
-  o.out_dir = dir_ / "full";
-  o.variant = Variant::kFull;
-  o.generator = generator.get();
-  o.gaps.warmup_iterations = 40;
-  o.gaps.phase_interval = 40;
-  o.n_active = 4;
-  const auto method = run_pipeline(o, nullptr, quiet);
-  expect_finished_and_finite(method, o.out_dir);
-  int admitted = 0, generated = 0;
-  for (const auto& phase : read_json(o.out_dir / "phases.json")) {
-    generated += static_cast<int>(phase["selection"].size());
-    admitted += phase["admitted"].get<int>();
-  }
-  std::cout << "wide pair: " << admitted << " of " << generated << " pseudo-views admitted; PSNR vanilla "
+  o->out_dir = dir_ / "full";
+  use_method(*o, generator.get());
+  const auto method = run_pipeline(*o, nullptr, quiet);
+  expect_finished_and_finite(method, o->out_dir);
+  const PhaseCounts views = count_pseudo_views(o->out_dir);
+  std::cout << "wide pair: " << views.admitted << " of " << views.generated << " pseudo-views admitted; PSNR vanilla "
             << vanilla->metrics.psnr << ", method " << method->metrics.psnr << "\n";
   RecordProperty("psnr_vanilla", std::to_string(vanilla->metrics.psnr));
   RecordProperty("psnr_method", std::to_string(method->metrics.psnr));
-  EXPECT_EQ(generated, 8);  // 2 phases x 4 views
+  EXPECT_EQ(views.generated, 8);  // 2 phases x 4 views
   EXPECT_GE(method->metrics.psnr, vanilla->metrics.psnr - 0.3);
 }
 
