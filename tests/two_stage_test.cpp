@@ -1,0 +1,133 @@
+// The paper's two-stage generation (eq. two_stage, diffusion_worker/sdxl/two_stage.h): the uncovered mask
+// (depth < tau_d), its fraction, the 15 x 15 dilation, the 2% threshold and the composite, against
+// hand-computed values; the inpainting itself runs on the tiny SD2 inpainting fixture.
+#include <limits>
+
+#include <ATen/ATen.h>
+#include <ATen/CPUGeneratorImpl.h>
+#include <gtest/gtest.h>
+
+#include "diffusion_worker/sdxl/inpaint_pipeline.h"
+#include "diffusion_worker/sdxl/two_stage.h"
+#include "tests/sdxl_test_util.h"
+
+namespace gaps::sdxl {
+namespace {
+
+std::string inpaint_model_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sd2_inpaint_tiny/model"; }
+
+TEST(TwoStageTest, UncoveredWhereDepthIsBelowTheThreshold) {
+  const at::Tensor depth = at::tensor({0.0f, 0.5f, 2.0f, 1.0f, 0.99f, 3.0f}).view({1, 2, 3});
+  const at::Tensor expected = at::tensor({1.0f, 1.0f, 0.0f, 0.0f, 1.0f, 0.0f}).view({1, 1, 2, 3});
+  EXPECT_TRUE(at::equal(uncovered_mask(depth, 1.0), expected));
+  EXPECT_TRUE(at::equal(uncovered_mask(depth.unsqueeze(1), 1.0), expected));  // B x 1 x H x W as well
+  EXPECT_EQ(uncovered_fractions(expected), (std::vector<double>{0.5}));
+}
+
+TEST(TwoStageTest, DilatesWithASquareKernelClippedAtTheBorder) {
+  at::Tensor mask = at::zeros({1, 1, 20, 20});
+  mask[0][0][2][17] = 1;
+  at::Tensor expected = at::zeros({1, 1, 20, 20});
+  expected.slice(2, 0, 10).slice(3, 10, 20).fill_(1);  // rows 2 - 7 .. 2 + 7, columns 17 - 7 .. 17 + 7, clipped
+  EXPECT_TRUE(at::equal(dilate_mask(mask, 15), expected));
+  at::Tensor small = at::zeros({1, 1, 5, 5});
+  small[0][0][2][2] = 1;
+  at::Tensor block = at::zeros({1, 1, 5, 5});
+  block.slice(2, 1, 4).slice(3, 1, 4).fill_(1);
+  EXPECT_TRUE(at::equal(dilate_mask(small, 3), block));
+  EXPECT_TRUE(at::equal(dilate_mask(small, 1), small));
+  EXPECT_THROW(dilate_mask(small, 4), c10::Error);
+}
+
+TEST(TwoStageTest, CompositesPerEquationTwoStage) {
+  const at::Tensor stage1 = at::full({1, 3, 1, 3}, 0.2f), stage2 = at::full({1, 3, 1, 3}, 0.9f);
+  const at::Tensor mask = at::tensor({1.0f, 0.0f, 0.25f}).view({1, 1, 1, 3});
+  const at::Tensor out = composite_two_stage(stage1, stage2, mask);
+  const at::Tensor expected = at::tensor({0.9f, 0.2f, 0.25f * 0.9f + 0.75f * 0.2f}).view({1, 1, 1, 3}).expand({1, 3, 1, 3});
+  EXPECT_TRUE(at::allclose(out, expected, 0, 1e-7));
+}
+
+class TwoStageGenerateTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto pipeline = InpaintPipeline::load(inpaint_model_dir(), InpaintPipelineOptions{});
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    pipeline_ = *std::move(pipeline);
+    options_.depth_threshold = 0.5;
+    options_.inpaint.steps = 2;
+    options_.inpaint.guidance_scale = 5.0;
+  }
+  InpaintPipelineSource source() {
+    return [this]() -> absl::StatusOr<InpaintPipeline*> {
+      ++calls_;
+      return pipeline_.get();
+    };
+  }
+  std::unique_ptr<InpaintPipeline> pipeline_;
+  TwoStageOptions options_;
+  int calls_ = 0;
+};
+
+// 50 x 50 views: 2% is 50 pixels. View 0 has exactly 50 uncovered (kept), view 1 has 51 (inpainted).
+TEST_F(TwoStageGenerateTest, InpaintsOnlyViewsAboveTwoPercentAndKeepsCoveredPixels) {
+  at::Generator g = at::make_generator<at::CPUGeneratorImpl>(5);
+  const at::Tensor stage1 = at::rand({2, 3, 50, 50}, g);
+  at::Tensor depth = at::full({2, 50, 50}, 2.0f);
+  depth[0].slice(0, 5, 10).slice(1, 0, 10).fill_(0);   // 5 x 10 = 50 pixels
+  depth[1].slice(0, 10, 17).slice(1, 20, 27).fill_(0);  // 7 x 7 = 49 pixels
+  depth[1][30][40] = 0.49f;
+  depth[1][45][3] = 0.1f;
+  auto result = two_stage_generate(stage1, depth, {"a fern"}, {3, 4}, options_, source());
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(calls_, 1);
+  EXPECT_EQ(result->uncovered, (std::vector<double>{50.0 / 2500, 51.0 / 2500}));
+  EXPECT_EQ(result->inpainted, (std::vector<bool>{false, true}));
+  EXPECT_TRUE(at::equal(result->images[0], stage1[0]));
+  // View 1: the inpainting of its dilated mask inside, the stage-1 image outside.
+  const at::Tensor mask = dilate_mask(uncovered_mask(depth.slice(0, 1, 2), 0.5), 15);
+  // The 7 x 7 block grown to 21 x 21 (rows 3-23, columns 13-33); (30, 40) to 15 x 15 (rows 23-37, columns
+  // 33-47), sharing pixel (23, 33) with it; (45, 3) to rows 38-49 x columns 0-10 at the border.
+  EXPECT_EQ(mask.sum().item<double>(), 21 * 21 + 15 * 15 - 1 + 12 * 11);
+  auto stage2 = pipeline_->inpaint(stage1.slice(0, 1, 2), mask, {"a fern"}, options_.inpaint, {4});
+  ASSERT_TRUE(stage2.ok()) << stage2.status();
+  const at::Tensor inside = mask[0][0] > 0.5;
+  const at::Tensor out = result->images[1];
+  EXPECT_TRUE(at::equal(out.masked_select(inside.expand({3, 50, 50})), (*stage2)[0].masked_select(inside.expand({3, 50, 50}))));
+  EXPECT_TRUE(at::equal(out.masked_select(~inside.expand({3, 50, 50})), stage1[1].masked_select(~inside.expand({3, 50, 50}))));
+  EXPECT_GT((out - stage1[1]).abs().max().item<double>(), 1e-3);  // the inpainting changed something
+}
+
+TEST_F(TwoStageGenerateTest, SkipsTheInpaintingModelWhenNoViewNeedsIt) {
+  const at::Tensor stage1 = at::rand({1, 3, 50, 50});
+  const auto failing = []() -> absl::StatusOr<InpaintPipeline*> { return absl::InternalError("must not load"); };
+  auto result = two_stage_generate(stage1, at::ones({1, 1, 50, 50}), {"x"}, {1}, options_, failing);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_TRUE(at::equal(result->images, stage1));
+  // A view that needs it surfaces the loading error.
+  auto needs = two_stage_generate(stage1, at::zeros({1, 1, 50, 50}), {"x"}, {1}, options_, failing);
+  ASSERT_FALSE(needs.ok());
+  EXPECT_EQ(needs.status().message(), "must not load");
+}
+
+TEST_F(TwoStageGenerateTest, RejectsBadInputs) {
+  const at::Tensor stage1 = at::rand({1, 3, 8, 8});
+  const auto message = [&](const at::Tensor& s, const at::Tensor& d, const std::vector<uint64_t>& seeds,
+                           const TwoStageOptions& o) {
+    auto r = two_stage_generate(s, d, {"x"}, seeds, o, source());
+    EXPECT_FALSE(r.ok());
+    return r.ok() ? std::string() : std::string(r.status().message());
+  };
+  EXPECT_TRUE(test::contains_all(message(stage1, at::zeros({1, 8, 7}), {1}, options_), {"depth"}));
+  EXPECT_TRUE(test::contains_all(message(at::rand({1, 8, 8}), at::zeros({1, 8, 8}), {1}, options_), {"stage-1"}));
+  EXPECT_TRUE(test::contains_all(message(stage1, at::zeros({1, 8, 8}), {1, 2}, options_), {"seed"}));
+  TwoStageOptions o = options_;
+  o.depth_threshold = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_TRUE(test::contains_all(message(stage1, at::zeros({1, 8, 8}), {1}, o), {"depth_threshold"}));
+  o = options_;
+  o.dilation_kernel = 14;
+  EXPECT_TRUE(test::contains_all(message(stage1, at::zeros({1, 8, 8}), {1}, o), {"dilation_kernel"}));
+  EXPECT_EQ(calls_, 0);
+}
+
+}  // namespace
+}  // namespace gaps::sdxl
