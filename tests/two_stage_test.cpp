@@ -1,12 +1,14 @@
 // The paper's two-stage generation (eq. two_stage, diffusion_worker/sdxl/two_stage.h): the uncovered mask
 // (depth < tau_d), its fraction, the 15 x 15 dilation, the 2% threshold and the composite, against
-// hand-computed values; the inpainting itself runs on the tiny SD2 inpainting fixture.
+// hand-computed values; the inpainting itself runs on the tiny SD2 inpainting fixture, and through the
+// `sdxl` backend's options (inpaint, inpaint_depth_threshold) on the tiny SDXL and SD2 models.
 #include <limits>
 
 #include <ATen/ATen.h>
 #include <ATen/CPUGeneratorImpl.h>
 #include <gtest/gtest.h>
 
+#include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
 #include "diffusion_worker/sdxl/two_stage.h"
 #include "tests/sdxl_test_util.h"
@@ -127,6 +129,90 @@ TEST_F(TwoStageGenerateTest, RejectsBadInputs) {
   o.dilation_kernel = 14;
   EXPECT_TRUE(test::contains_all(message(stage1, at::zeros({1, 8, 8}), {1}, o), {"dilation_kernel"}));
   EXPECT_EQ(calls_, 0);
+}
+
+
+// The `sdxl` backend with two-stage inpainting.
+std::string backend_options(const std::string& inpaint_extra) {
+  return "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"" + inpaint_extra + "}";
+}
+
+GenerationRequest request_with_depth(const at::Tensor& depth, uint64_t seed) {
+  GenerationRequest r;
+  at::Generator g = at::make_generator<at::CPUGeneratorImpl>(seed);
+  r.render_rgb = at::rand({depth.size(0), depth.size(1), 3}, g);
+  r.render_depth = depth;
+  r.render_alpha = at::ones_like(depth);
+  r.strength = 0.5;
+  r.seed = seed;
+  return r;
+}
+
+TEST(TwoStageBackendTest, OptionsNeedTheDepthThreshold) {
+  auto missing = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() + "\""));
+  ASSERT_FALSE(missing.ok());
+  EXPECT_TRUE(test::contains_all(std::string(missing.status().message()), {"inpaint_depth_threshold", "required"}));
+  auto bad = make_generator("sdxl", backend_options(", \"inpaint_steps\": 0"));
+  ASSERT_FALSE(bad.ok());
+  EXPECT_TRUE(test::contains_all(std::string(bad.status().message()), {"inpaint_steps"}));
+  auto unknown = make_generator("sdxl", backend_options(", \"inpaint_kernel\": 3"));
+  ASSERT_FALSE(unknown.ok());
+  EXPECT_TRUE(test::contains_all(std::string(unknown.status().message()), {"unknown", "inpaint_depth_threshold"}));
+}
+
+TEST(TwoStageBackendTest, InpaintsTheUncoveredPixelsOfTheImg2ImgResult) {
+  auto plain = make_generator("sdxl", backend_options(""));
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  auto two_stage = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
+                                                          "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2"));
+  ASSERT_TRUE(two_stage.ok()) << two_stage.status();
+  // 23 x 20 (padded to 24 x 20 for both models), 16 of 460 pixels uncovered.
+  at::Tensor depth = at::ones({23, 20});
+  depth.slice(0, 2, 6).slice(1, 2, 6).fill_(0);
+  const GenerationRequest r = request_with_depth(depth, 11);
+  auto stage1 = (*plain)->generate({r});
+  auto out = (*two_stage)->generate({r});
+  ASSERT_TRUE(stage1.ok()) << stage1.status();
+  ASSERT_TRUE(out.ok()) << out.status();
+  ASSERT_EQ((*out)[0].sizes(), r.render_rgb.sizes());
+  // The same as two_stage_generate on the stage-1 image with the same prompt and seed.
+  auto pipeline = InpaintPipeline::load(inpaint_model_dir(), InpaintPipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  TwoStageOptions options;
+  options.depth_threshold = 0.5;
+  options.inpaint.steps = 2;
+  auto direct = two_stage_generate((*stage1)[0].permute({2, 0, 1}).unsqueeze(0), depth.unsqueeze(0), {"a fern"}, {11},
+                                   options, [&]() -> absl::StatusOr<InpaintPipeline*> { return pipeline->get(); });
+  ASSERT_TRUE(direct.ok()) << direct.status();
+  ASSERT_EQ(direct->inpainted, (std::vector<bool>{true}));
+  test::expect_close((*out)[0], direct->images[0].permute({1, 2, 0}), 1e-5, "backend vs two_stage_generate");
+  // Inside the dilated mask (rows and columns 0-12) the inpainting changed the image; outside it is kept.
+  const at::Tensor inside = (*out)[0].slice(0, 0, 13).slice(1, 0, 13), before = (*stage1)[0].slice(0, 0, 13).slice(1, 0, 13);
+  EXPECT_GT((inside - before).abs().max().item<double>(), 1e-3);
+  EXPECT_TRUE(at::equal((*out)[0].slice(0, 13), (*stage1)[0].slice(0, 13)));
+  EXPECT_TRUE(at::equal((*out)[0].slice(1, 13), (*stage1)[0].slice(1, 13)));
+}
+
+TEST(TwoStageBackendTest, LoadsTheInpaintingModelOnlyWhenAViewNeedsIt) {
+  auto generator = make_generator("sdxl", backend_options(", \"inpaint\": \"/nonexistent/sd2-inpainting\", "
+                                                          "\"inpaint_depth_threshold\": 0.5"));
+  ASSERT_TRUE(generator.ok()) << generator.status();
+  auto plain = make_generator("sdxl", backend_options(""));
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  const GenerationRequest covered = request_with_depth(at::ones({12, 8}), 3);
+  auto kept = (*generator)->generate({covered});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  auto reference = (*plain)->generate({covered});
+  ASSERT_TRUE(reference.ok());
+  EXPECT_TRUE(at::equal((*kept)[0], (*reference)[0]));
+  auto uncovered = (*generator)->generate({request_with_depth(at::zeros({12, 8}), 3)});
+  ASSERT_FALSE(uncovered.ok());
+  EXPECT_TRUE(test::contains_all(std::string(uncovered.status().message()), {"/nonexistent/sd2-inpainting", "inpainting"}));
+  GenerationRequest no_depth = covered;
+  no_depth.render_depth = at::Tensor();
+  auto refused = (*generator)->generate({no_depth});
+  ASSERT_FALSE(refused.ok());
+  EXPECT_TRUE(test::contains_all(std::string(refused.status().message()), {"render_depth"}));
 }
 
 }  // namespace

@@ -87,7 +87,14 @@ absl::StatusOr<TwoStageResult> two_stage_generate(const at::Tensor& stage1, cons
   const at::Tensor index = at::tensor(views, at::kLong);
   const at::Tensor masks = dilate_mask(uncovered.index_select(0, index), options.dilation_kernel);
   const at::Tensor selected = result.images.index_select(0, index);
-  GAPS_ASSIGN_OR_RETURN(at::Tensor stage2, inpainter->inpaint(selected, masks, view_prompts, options.inpaint, view_seeds));
+  // The inpainting model needs sizes divisible by its latent factor: pad at the bottom/right edge
+  // (replicated) and crop its output back; the fraction and the composite use the view's own pixels.
+  const int64_t f = inpainter->latent_factor(), h = selected.size(2), w = selected.size(3);
+  const std::vector<int64_t> pad{0, (w + f - 1) / f * f - w, 0, (h + f - 1) / f * f - h};
+  GAPS_ASSIGN_OR_RETURN(at::Tensor stage2, inpainter->inpaint(at::replication_pad2d(selected, pad),
+                                                              at::replication_pad2d(masks, pad), view_prompts,
+                                                              options.inpaint, view_seeds));
+  stage2 = stage2.slice(2, 0, h).slice(3, 0, w);
   result.images.index_copy_(0, index, composite_two_stage(selected, stage2, masks));
   return result;
 }

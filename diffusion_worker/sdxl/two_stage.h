@@ -44,7 +44,8 @@ using InpaintPipelineSource = std::function<absl::StatusOr<InpaintPipeline*>()>;
 // stage1: B x 3 x H x W in [0, 1]; depth: the renders' depth (B x 1 x H x W or B x H x W, 0 where nothing
 // was rendered); prompts: one for all or one per view; seeds: one per view. Views at or below the
 // uncovered fraction keep their stage-1 image; the others are inpainted together (each with its seed)
-// under their dilated masks and composited.
+// under their dilated masks (padded, replicated, to the inpainting model's latent factor and cropped back)
+// and composited.
 absl::StatusOr<TwoStageResult> two_stage_generate(const at::Tensor& stage1, const at::Tensor& depth,
                                                   const std::vector<std::string>& prompts,
                                                   const std::vector<uint64_t>& seeds, const TwoStageOptions& options,
