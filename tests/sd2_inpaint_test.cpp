@@ -5,6 +5,7 @@
 // guidance 5 and a CPU generator seeded 1234: 2 DDIM steps, 2 Euler steps (strength 1), 3 of 4 DDIM steps
 // (strength 0.75), and one generator per image. Tolerance: max abs diff <= 1e-4 of the reference's scale.
 #include <fstream>
+#include <map>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -42,6 +43,41 @@ TEST(Sd2InpaintTest, ReadsSd2UNetConfig) {
   EXPECT_TRUE(config->use_linear_projection);
   EXPECT_TRUE(config->addition_embed_type.empty());
   EXPECT_EQ(config->cross_attention_dim, 32);
+}
+
+// The UNet options of stabilityai/stable-diffusion-2-inpainting at full size: the tensors it asks for.
+TEST(Sd2InpaintTest, Sd2InpaintingUNetConfigAtFullSize) {
+  const nlohmann::json j = {
+      {"_class_name", "UNet2DConditionModel"}, {"act_fn", "silu"}, {"attention_head_dim", {5, 10, 20, 20}},
+      {"block_out_channels", {320, 640, 1280, 1280}}, {"center_input_sample", false}, {"cross_attention_dim", 1024},
+      {"down_block_types", {"CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"}},
+      {"downsample_padding", 1}, {"dual_cross_attention", false}, {"flip_sin_to_cos", true}, {"freq_shift", 0},
+      {"in_channels", 9}, {"layers_per_block", 2}, {"mid_block_scale_factor", 1}, {"norm_eps", 1e-05},
+      {"norm_num_groups", 32}, {"out_channels", 4}, {"sample_size", 64},
+      {"up_block_types", {"UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"}},
+      {"use_linear_projection", true}};
+  auto config = UNetConfig::from_json(j);
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_EQ(config->num_attention_heads, (std::vector<int64_t>{5, 10, 20, 20}));  // 64 channels per head
+  std::map<std::string, std::vector<int64_t>> shapes;
+  int64_t parameters = 0;
+  for (const TensorSpec& spec : UNet2DCondition::weight_specs(*config)) {
+    shapes[spec.name] = spec.shape;
+    int64_t n = 1;
+    for (int64_t d : spec.shape) n *= d;
+    parameters += n;
+  }
+  // diffusers 0.42.1's UNet2DConditionModel with this config has 686 tensors, 865,925,124 parameters.
+  EXPECT_EQ(shapes.size(), 686u);
+  EXPECT_EQ(parameters, 865925124);
+  EXPECT_EQ(shapes.at("conv_in.weight"), (std::vector<int64_t>{320, 9, 3, 3}));
+  EXPECT_EQ(shapes.at("down_blocks.0.attentions.0.proj_in.weight"), (std::vector<int64_t>{320, 320}));
+  EXPECT_EQ(shapes.at("down_blocks.0.attentions.0.transformer_blocks.0.attn2.to_k.weight"),
+            (std::vector<int64_t>{320, 1024}));
+  EXPECT_EQ(shapes.at("up_blocks.3.attentions.2.transformer_blocks.0.attn2.to_v.weight"),
+            (std::vector<int64_t>{320, 1024}));
+  EXPECT_EQ(shapes.count("add_embedding.linear_1.weight"), 0u);
+  EXPECT_EQ(shapes.count("down_blocks.3.attentions.0.proj_in.weight"), 0u);  // DownBlock2D: no attention
 }
 
 TEST(Sd2InpaintTest, RejectsUnsupportedUNetOptionsByName) {
