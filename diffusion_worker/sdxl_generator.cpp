@@ -39,6 +39,16 @@ std::optional<absl::Status> parse_inpaint_option(const std::string& key, const n
     o.inpaint_steps = v.get<int64_t>();
     return absl::OkStatus();
   }
+  if (key == "inpaint_dilation") {
+    if (!v.is_number_integer() || v.get<int64_t>() < 1 || v.get<int64_t>() % 2 == 0) return need(false, "an odd integer >= 1");
+    o.inpaint_dilation = v.get<int64_t>();
+    return absl::OkStatus();
+  }
+  if (key == "inpaint_uncovered_fraction") {
+    if (!v.is_number() || !(v.get<double>() >= 0 && v.get<double>() < 1)) return need(false, "a number in [0, 1)");
+    o.inpaint_uncovered_fraction = v.get<double>();
+    return absl::OkStatus();
+  }
   if (key == "inpaint_depth_threshold" || key == "inpaint_guidance") {
     if (!v.is_number() || !std::isfinite(v.get<double>()) || v.get<double>() < 0) return need(false, "a number >= 0");
     (key == "inpaint_guidance" ? o.inpaint_guidance : o.inpaint_depth_threshold) = v.get<double>();
@@ -89,7 +99,8 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
           "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
           "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
           "image_encoder, ip_adapter_scale, "
-          "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance"));
+          "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, inpaint_uncovered_fraction, "
+          "inpaint_dilation"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
@@ -248,6 +259,8 @@ absl::Status SdxlGenerator::inpaint_uncovered(const std::vector<GenerationReques
                                               std::vector<at::Tensor>& results) {
   sdxl::TwoStageOptions two_stage;
   two_stage.depth_threshold = options_.inpaint_depth_threshold;
+  two_stage.min_uncovered_fraction = options_.inpaint_uncovered_fraction;
+  two_stage.dilation_kernel = options_.inpaint_dilation;
   two_stage.inpaint.steps = options_.inpaint_steps;
   two_stage.inpaint.guidance_scale = options_.inpaint_guidance;
   for (size_t i = 0; i < requests.size(); ++i) {

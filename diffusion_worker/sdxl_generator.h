@@ -42,6 +42,8 @@ struct SdxlOptions {
   std::string inpaint_scheduler;  // "" = the folder's; euler | ddim | dpmpp2m (SD2's PNDM is not implemented)
   int64_t inpaint_steps = 30;     // the second stage runs from pure noise (strength 1)
   double inpaint_guidance = 7.5;
+  double inpaint_uncovered_fraction = 0.02;  // inpaint views with more uncovered pixels than this
+  int64_t inpaint_dilation = 15;             // side of the square dilation kernel (odd)
 };
 
 // JSON object with the keys above ("weights" required); unknown keys and bad values are errors.

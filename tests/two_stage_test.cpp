@@ -155,6 +155,12 @@ TEST(TwoStageBackendTest, OptionsNeedTheDepthThreshold) {
   auto bad = make_generator("sdxl", backend_options(", \"inpaint_steps\": 0"));
   ASSERT_FALSE(bad.ok());
   EXPECT_TRUE(test::contains_all(std::string(bad.status().message()), {"inpaint_steps"}));
+  auto even = make_generator("sdxl", backend_options(", \"inpaint_dilation\": 14"));
+  ASSERT_FALSE(even.ok());
+  EXPECT_TRUE(test::contains_all(std::string(even.status().message()), {"inpaint_dilation", "odd"}));
+  auto fraction = make_generator("sdxl", backend_options(", \"inpaint_uncovered_fraction\": 1.5"));
+  ASSERT_FALSE(fraction.ok());
+  EXPECT_TRUE(test::contains_all(std::string(fraction.status().message()), {"inpaint_uncovered_fraction"}));
   auto unknown = make_generator("sdxl", backend_options(", \"inpaint_kernel\": 3"));
   ASSERT_FALSE(unknown.ok());
   EXPECT_TRUE(test::contains_all(std::string(unknown.status().message()), {"unknown", "inpaint_depth_threshold"}));
@@ -164,7 +170,8 @@ TEST(TwoStageBackendTest, InpaintsTheUncoveredPixelsOfTheImg2ImgResult) {
   auto plain = make_generator("sdxl", backend_options(""));
   ASSERT_TRUE(plain.ok()) << plain.status();
   auto two_stage = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
-                                                          "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2"));
+                                                          "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2, "
+                                                          "\"inpaint_dilation\": 15, \"inpaint_uncovered_fraction\": 0.02"));
   ASSERT_TRUE(two_stage.ok()) << two_stage.status();
   // 23 x 20 (padded to 24 x 20 for both models), 16 of 460 pixels uncovered.
   at::Tensor depth = at::ones({23, 20});
