@@ -9,6 +9,7 @@
 #include <ATen/ATen.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "diffusion_worker/sdxl/two_stage.h"
 #include "gs_trainer/status_macros.h"
 
 namespace gaps {
@@ -23,6 +24,37 @@ absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
   if (name == "float16") return at::kHalf;
   if (name == "bfloat16") return at::kBFloat16;
   return option_error("dtype", absl::StrCat("'", name, "' is not float32, float16 or bfloat16"));
+}
+
+// The two-stage keys; nullopt for a key that is not one of them.
+std::optional<absl::Status> parse_inpaint_option(const std::string& key, const nlohmann::json& v, SdxlOptions& o) {
+  const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
+  if (key == "inpaint" || key == "inpaint_scheduler") {
+    if (!v.is_string()) return need(false, "a string");
+    (key == "inpaint" ? o.inpaint : o.inpaint_scheduler) = v.get<std::string>();
+    return absl::OkStatus();
+  }
+  if (key == "inpaint_steps") {
+    if (!v.is_number_integer() || v.get<int64_t>() < 1) return need(false, "an integer >= 1");
+    o.inpaint_steps = v.get<int64_t>();
+    return absl::OkStatus();
+  }
+  if (key == "inpaint_dilation") {
+    if (!v.is_number_integer() || v.get<int64_t>() < 1 || v.get<int64_t>() % 2 == 0) return need(false, "an odd integer >= 1");
+    o.inpaint_dilation = v.get<int64_t>();
+    return absl::OkStatus();
+  }
+  if (key == "inpaint_uncovered_fraction") {
+    if (!v.is_number() || !(v.get<double>() >= 0 && v.get<double>() < 1)) return need(false, "a number in [0, 1)");
+    o.inpaint_uncovered_fraction = v.get<double>();
+    return absl::OkStatus();
+  }
+  if (key == "inpaint_depth_threshold" || key == "inpaint_guidance") {
+    if (!v.is_number() || !std::isfinite(v.get<double>()) || v.get<double>() < 0) return need(false, "a number >= 0");
+    (key == "inpaint_guidance" ? o.inpaint_guidance : o.inpaint_depth_threshold) = v.get<double>();
+    return absl::OkStatus();
+  }
+  return std::nullopt;
 }
 
 }  // namespace
@@ -60,11 +92,15 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     } else if (key == "guidance" || key == "ip_adapter_scale") {
       GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
       (key == "guidance" ? o.guidance : o.ip_adapter_scale) = v.get<double>();
+    } else if (std::optional<absl::Status> inpaint = parse_inpaint_option(key, v, o)) {
+      GAPS_RETURN_IF_ERROR(*inpaint);
     } else {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
           "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
-          "image_encoder, ip_adapter_scale"));
+          "image_encoder, ip_adapter_scale, "
+          "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, inpaint_uncovered_fraction, "
+          "inpaint_dilation"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
@@ -72,6 +108,9 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   if (o.ip_adapter.empty() != o.image_encoder.empty()) {
     return option_error(o.ip_adapter.empty() ? "image_encoder" : "ip_adapter",
                         "an IP-Adapter needs both ip_adapter (weights) and image_encoder (CLIP image encoder folder)");
+  }
+  if (!o.inpaint.empty() && !std::isfinite(o.inpaint_depth_threshold)) {
+    return option_error("inpaint_depth_threshold", "is required with inpaint (tau_d, in render_depth's units)");
   }
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
@@ -136,6 +175,11 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
         return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " control_scale is not finite"));
       }
     }
+    if (!options_.inpaint.empty() &&
+        (!requests[i].render_depth.defined() || requests[i].render_depth.sizes() != rgb.sizes().slice(0, 2))) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("sdxl generate: request ", i, " needs render_depth of the render's size (two-stage inpainting)"));
+    }
     const double strength = requests[i].strength;
     if (!(strength >= 0.0 && strength <= 1.0)) {
       return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " strength ", strength, " outside [0, 1]"));
@@ -191,7 +235,44 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       }
     }
   }
+  if (!options_.inpaint.empty()) GAPS_RETURN_IF_ERROR(inpaint_uncovered(requests, results));
   return results;
+}
+
+absl::StatusOr<sdxl::InpaintPipeline*> SdxlGenerator::inpaint_pipeline() {
+  if (inpaint_) return inpaint_.get();
+  // dtype and device were checked by create().
+  GAPS_ASSIGN_OR_RETURN(const at::ScalarType dtype, parse_dtype(options_.dtype));
+  auto pipeline = sdxl::InpaintPipeline::load(
+      options_.inpaint, sdxl::InpaintPipelineOptions{dtype, at::Device(options_.device), options_.inpaint_scheduler,
+                                                     options_.variant});
+  if (!pipeline.ok()) {
+    return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options_.inpaint,
+                                                               " is not a usable inpainting model: ",
+                                                               pipeline.status().message()));
+  }
+  inpaint_ = *std::move(pipeline);
+  return inpaint_.get();
+}
+
+absl::Status SdxlGenerator::inpaint_uncovered(const std::vector<GenerationRequest>& requests,
+                                              std::vector<at::Tensor>& results) {
+  sdxl::TwoStageOptions two_stage;
+  two_stage.depth_threshold = options_.inpaint_depth_threshold;
+  two_stage.min_uncovered_fraction = options_.inpaint_uncovered_fraction;
+  two_stage.dilation_kernel = options_.inpaint_dilation;
+  two_stage.inpaint.steps = options_.inpaint_steps;
+  two_stage.inpaint.guidance_scale = options_.inpaint_guidance;
+  for (size_t i = 0; i < requests.size(); ++i) {
+    const GenerationRequest& r = requests[i];
+    GAPS_ASSIGN_OR_RETURN(
+        sdxl::TwoStageResult out,
+        sdxl::two_stage_generate(results[i].permute({2, 0, 1}).unsqueeze(0), r.render_depth.unsqueeze(0),
+                                 {r.prompt.empty() ? options_.prompt : r.prompt}, {r.seed}, two_stage,
+                                 [this] { return inpaint_pipeline(); }));
+    results[i] = out.images[0].permute({1, 2, 0}).contiguous();
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace gaps

@@ -26,10 +26,32 @@ absl::StatusOr<std::vector<int64_t>> per_block(const nlohmann::json& j, const st
 
 bool has_cross_attention(const std::string& block_type) { return block_type.rfind("CrossAttn", 0) == 0; }
 
+// Options of diffusers' UNet2DConditionModel this implementation does not have: each must be absent, null or
+// at its default value (the value that SD 1.x/2.x and SDXL checkpoints use), else loading fails naming it.
+absl::Status reject_unsupported_options(const nlohmann::json& j) {
+  const std::vector<std::pair<std::string, nlohmann::json>> defaults = {
+      {"act_fn", "silu"}, {"center_input_sample", false}, {"dual_cross_attention", false},
+      {"mid_block_scale_factor", 1}, {"downsample_padding", 1}, {"attention_type", "default"},
+      {"resnet_skip_time_act", false}, {"resnet_out_scale_factor", 1}, {"conv_in_kernel", 3},
+      {"conv_out_kernel", 3}, {"class_embeddings_concat", false}, {"mid_block_only_cross_attention", false}};
+  for (const auto& [key, value] : defaults) {
+    if (j.contains(key) && !j[key].is_null() && j[key] != value) {
+      return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " = ", j[key].dump(), " is not supported (only ",
+                                                   value.dump(), ")"));
+    }
+  }
+  for (const char* key : {"num_class_embeds", "cross_attention_norm", "time_embedding_act_fn", "timestep_post_act",
+                          "encoder_hid_dim"}) {
+    if (j.contains(key) && !j[key].is_null()) return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " is not supported"));
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool with_up_blocks) {
   UNetConfig c;
+  GAPS_RETURN_IF_ERROR(reject_unsupported_options(j));
   GAPS_ASSIGN_OR_RETURN(c.in_channels, config_value<int64_t>(j, "in_channels", 4));
   GAPS_ASSIGN_OR_RETURN(c.out_channels, config_value<int64_t>(j, "out_channels", 4));
   GAPS_ASSIGN_OR_RETURN(c.layers_per_block, config_value<int64_t>(j, "layers_per_block", 2));
