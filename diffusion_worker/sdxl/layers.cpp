@@ -13,7 +13,11 @@ Linear Linear::load(WeightLoader& w, const std::string& prefix, int64_t in, int6
   return l;
 }
 
-at::Tensor Linear::operator()(const at::Tensor& x) const { return at::linear(x, weight, bias); }
+at::Tensor Linear::operator()(const at::Tensor& x) const {
+  at::Tensor y = at::linear(x, weight, bias);
+  if (!lora_down.defined()) return y;
+  return y + at::linear(at::linear(x, lora_down), lora_up) * lora_scale;
+}
 
 Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel,
                     int64_t stride, int64_t padding, bool with_bias) {
