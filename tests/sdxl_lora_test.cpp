@@ -8,6 +8,7 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include "absl/strings/str_cat.h"
 #include "diffusion_worker/sdxl/lora.h"
 #include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/unet.h"
@@ -63,7 +64,9 @@ TEST(LoraTest, UNetStepMatchesPeftLoraForward) {
     EXPECT_DOUBLE_EQ(a.alpha, a.module == kPatternModule ? 2.0 : 8.0) << a.module;
   }
   const at::Tensor expected = lora_reference("unet_lora").at("out");
-  expect_close(unet_step(unet), expected, kTolerance, "UNet step with LoRA");
+  const at::Tensor actual = unet_step(unet);
+  expect_close(actual, expected, kTolerance, "UNet step with LoRA");
+  RecordProperty("max_abs_diff", absl::StrCat((actual - expected).abs().max().item<double>()));
   // The adapters matter: without them the output is the base UNet's.
   lora->detach_from(unet);
   expect_close(unet_step(unet), test::sdxl_reference("unet").at("out"), kTolerance, "UNet step after detaching");
@@ -75,7 +78,9 @@ TEST(LoraTest, MergedWeightsGiveTheAdaptedOutput) {
   auto lora = UNetLora::load(lora_file(), unet);
   ASSERT_TRUE(lora.ok()) << lora.status();
   lora->merge_into(unet);
-  expect_close(unet_step(unet), lora_reference("unet_lora").at("out"), kTolerance, "UNet step with merged LoRA");
+  const at::Tensor actual = unet_step(unet), expected = lora_reference("unet_lora").at("out");
+  expect_close(actual, expected, kTolerance, "UNet step with merged LoRA");
+  RecordProperty("max_abs_diff", absl::StrCat((actual - expected).abs().max().item<double>()));
 }
 
 TEST(LoraTest, FreshAdaptersLeaveTheOutputUnchangedAndFollowTheSeed) {

@@ -1,6 +1,6 @@
 #pragma once
 // The building blocks shared by the SDXL components, as plain ATen ops over weights taken by name from
-// a WeightLoader (diffusers parameter names). Forward only.
+// a WeightLoader (diffusers parameter names). Plain ATen ops, so autograd differentiates them (LoRA training).
 #include <memory>
 #include <string>
 #include <vector>
