@@ -2,7 +2,8 @@
 // The `sdxl` backend: pseudo-views by SDXL img2img of the render at each pose (diffusion_worker/sdxl),
 // with the request's prompt (or the configured default), strength sigma(v) and seed; with a ControlNet,
 // conditioned on the render's depth (depth_control.h) at the request's scale s_cn(v); with an IP-Adapter,
-// the request's nearest reference view is the image prompt. LoRA comes with the other conditioning backends.
+// the request's nearest reference view is the image prompt; with lora_steps > 0, adapt() trains LoRA
+// adapters of the UNet on the ground-truth views (the paper's scene adaptation), frozen afterwards.
 #include <memory>
 #include <string>
 #include <vector>
@@ -32,6 +33,15 @@ struct SdxlOptions {
   std::string ip_adapter;         // IP-Adapter weight file (diffusers single-file layout); "" = none
   std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
   double ip_adapter_scale = 0.5;  // lambda_ip, the scale of the image prompt's attention
+  // Scene adaptation by LoRA (sdxl/lora_training.h): adapt() trains rank-lora_rank adapters (alpha =
+  // rank) on to_q/to_k/to_v/to_out of every attention layer for lora_steps Adam steps at lora_lr
+  // (0 steps = no training) and writes them to lora_save when set. lora: a LoRA file (diffusers/PEFT
+  // safetensors) attached at startup instead, e.g. one saved by an earlier run.
+  int64_t lora_steps = 0;
+  int64_t lora_rank = 4;
+  double lora_lr = 1e-4;
+  std::string lora_save;
+  std::string lora;
 };
 
 // JSON object with the keys above ("weights" required); unknown keys and bad values are errors.
@@ -44,7 +54,10 @@ class SdxlGenerator final : public Generator {
 
   // "sdxl 1", or "sdxl 1 controlnet" when a ControlNet conditions the images.
   std::string name() const override;
-  // Learns nothing yet (per-scene LoRA comes with the conditioning backends): checks the views only.
+  // Checks the views; with lora_steps > 0 trains the LoRA adapters on them (all views of one size,
+  // padded as generate() pads renders; the prompt option as their prompt; with a ControlNet, each view's
+  // render_depth / render_alpha give its control image at conditioning scale 1), replacing any earlier
+  // adapters, and saves them to lora_save when set. An IP-Adapter cannot be loaded at the same time.
   absl::Status adapt(const std::vector<ReferenceView>& views) override;
   // Each render is padded at its bottom/right edge (replicated) to a multiple of the latent factor (8 for
   // SDXL: 504 x 378 runs at 504 x 384), run through img2img at its strength and cropped back. A strength
@@ -54,6 +67,7 @@ class SdxlGenerator final : public Generator {
 
  private:
   SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline);
+  absl::Status train_lora(const std::vector<ReferenceView>& views);
   SdxlOptions options_;
   std::unique_ptr<sdxl::SdxlPipeline> pipeline_;
 };

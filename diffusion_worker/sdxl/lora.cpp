@@ -97,6 +97,10 @@ std::string module_of(const std::string& key) {
   return key.substr(sizeof(kUnetPrefix) - 1, key.size() - (sizeof(kUnetPrefix) - 1) - suffix);
 }
 
+at::TensorOptions adapter_options(const Linear& layer) {
+  return at::TensorOptions().dtype(at::kFloat).device(layer.weight.device());
+}
+
 std::string shape_text(at::IntArrayRef shape) { return absl::StrCat("[", absl::StrJoin(shape, ", "), "]"); }
 
 }  // namespace
@@ -119,7 +123,7 @@ absl::StatusOr<UNetLora> UNetLora::create(UNet2DCondition& unet, const LoraConfi
     if (!targeted) continue;
     const int64_t out = layer->weight.size(0), in = layer->weight.size(1);
     const double bound = 1.0 / std::sqrt(static_cast<double>(in));
-    const at::TensorOptions options = layer->weight.options().requires_grad(false);
+    const at::TensorOptions options = adapter_options(*layer);
     Adapter a;
     a.module = module;
     a.down = at::empty({config.rank, in}, at::kFloat).uniform_(-bound, bound, generator).to(options);
@@ -181,7 +185,7 @@ absl::StatusOr<UNetLora> UNetLora::from_tensors(const TensorMap& tensors, const 
                                       out, ", ", rank, "]"));
       continue;
     }
-    const at::TensorOptions options = layer.weight.options().requires_grad(false);
+    const at::TensorOptions options = adapter_options(layer);
     lora.adapters_.push_back({module, down.to(options, /*non_blocking=*/false, /*copy=*/true),
                               up.to(options, /*non_blocking=*/false, /*copy=*/true), rule->alpha_for(module, rank)});
   }

@@ -31,7 +31,7 @@ class UNetLora {
  public:
   struct Adapter {
     std::string module;    // diffusers name of the adapted Linear
-    at::Tensor down, up;   // r x in, out x r; shared with the UNet's Linear while attached
+    at::Tensor down, up;   // r x in, out x r, float32; shared with the UNet's Linear while attached
     double alpha = 0;      // scale = alpha / rank
     double scale() const { return alpha / static_cast<double>(down.size(0)); }
   };
