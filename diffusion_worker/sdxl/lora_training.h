@@ -5,7 +5,6 @@
 // from a seeded generator), optionally with a ControlNet's residuals of the views' control images (depth),
 // by Adam on the adapters alone (the UNet's and ControlNet's weights get no gradients). Autograd runs on
 // the UNet's ATen ops, so training needs weights that are not inference tensors and no InferenceMode.
-#include <optional>
 #include <vector>
 
 #include <ATen/Tensor.h>
