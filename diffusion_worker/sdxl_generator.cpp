@@ -73,7 +73,8 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
                                                       {"device", &o.device},   {"prompt", &o.prompt},
                                                       {"scheduler", &o.scheduler}, {"variant", &o.variant},
                                                       {"controlnet", &o.controlnet},
-                                                      {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder}};
+                                                      {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder},
+                                                      {"lora_save", &o.lora_save}, {"lora", &o.lora}};
     if (strings.count(key)) {
       GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
       *strings.at(key) = v.get<std::string>();
@@ -86,6 +87,15 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     } else if (key == "steps" || key == "batch_size") {
       GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
       (key == "steps" ? o.steps : o.batch_size) = v.get<int64_t>();
+    } else if (key == "lora_steps") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 0, "an integer >= 0"));
+      o.lora_steps = v.get<int64_t>();
+    } else if (key == "lora_rank") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
+      o.lora_rank = v.get<int64_t>();
+    } else if (key == "lora_lr") {
+      GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() > 0, "a number > 0"));
+      o.lora_lr = v.get<double>();
     } else if (key == "cuda_graphs") {
       GAPS_RETURN_IF_ERROR(need(v.is_boolean(), "true or false"));
       o.cuda_graphs = v.get<bool>();
@@ -98,7 +108,7 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
           "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
-          "image_encoder, ip_adapter_scale, "
+          "image_encoder, ip_adapter_scale, lora_steps, lora_rank, lora_lr, lora_save, lora, "
           "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, inpaint_uncovered_fraction, "
           "inpaint_dilation"));
     }
@@ -112,6 +122,13 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   if (!o.inpaint.empty() && !std::isfinite(o.inpaint_depth_threshold)) {
     return option_error("inpaint_depth_threshold", "is required with inpaint (tau_d, in render_depth's units)");
   }
+  if (o.lora_steps > 0 && !o.ip_adapter.empty()) {
+    return option_error("lora_steps", "LoRA training cannot run with an IP-Adapter loaded (ip_adapter)");
+  }
+  if (o.lora_steps > 0 && !o.lora.empty()) {
+    return option_error("lora", "give either a LoRA file to load or lora_steps to train one, not both");
+  }
+  if (!o.lora_save.empty() && o.lora_steps == 0) return option_error("lora_save", "needs lora_steps > 0");
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
@@ -137,6 +154,11 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
     return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
                                                                " is not a usable SDXL model: ", pipeline.status().message()));
   }
+  if (!options.lora.empty()) {
+    if (absl::Status s = (*pipeline)->load_lora(options.lora); !s.ok()) {
+      return absl::Status(s.code(), absl::StrCat("sdxl option 'lora': ", s.message()));
+    }
+  }
   return std::unique_ptr<SdxlGenerator>(new SdxlGenerator(options, *std::move(pipeline)));
 }
 
@@ -150,7 +172,45 @@ absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
       return absl::InvalidArgumentError(absl::StrCat("sdxl adapt: view ", i, " image is not H x W x 3"));
     }
   }
-  return absl::OkStatus();
+  if (options_.lora_steps == 0) return absl::OkStatus();
+  return train_lora(views);
+}
+
+absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) {
+  const int64_t height = views[0].image.size(0), width = views[0].image.size(1), f = pipeline_->latent_factor();
+  const std::vector<int64_t> pad{0, (width + f - 1) / f * f - width, 0, (height + f - 1) / f * f - height};
+  std::vector<at::Tensor> images, controls;
+  for (size_t i = 0; i < views.size(); ++i) {
+    const ReferenceView& v = views[i];
+    if (v.image.size(0) != height || v.image.size(1) != width) {
+      return absl::InvalidArgumentError(absl::StrCat("sdxl adapt: LoRA training needs views of one size; view ", i,
+                                                     " is ", v.image.size(0), "x", v.image.size(1), ", view 0 ",
+                                                     height, "x", width));
+    }
+    images.push_back(at::replication_pad2d(v.image.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0), pad));
+    if (pipeline_->controlnet()) {
+      const auto hw = v.image.sizes().slice(0, 2);
+      if (!v.render_depth.defined() || !v.render_alpha.defined() || v.render_depth.sizes() != hw ||
+          v.render_alpha.sizes() != hw) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "sdxl adapt: view ", i, " needs render_depth and render_alpha of its image's size (ControlNet)"));
+      }
+      GAPS_ASSIGN_OR_RETURN(DepthControl control, depth_control_image(v.render_depth, v.render_alpha, options_.depth_control));
+      controls.push_back(at::replication_pad2d(control.image.unsqueeze(0), pad));
+    }
+  }
+  std::optional<sdxl::ControlInput> control;
+  if (pipeline_->controlnet()) control = sdxl::ControlInput{at::cat(controls), {1.0}};
+  sdxl::LoraConfig config;
+  config.rank = options_.lora_rank;
+  config.alpha = static_cast<double>(options_.lora_rank);
+  sdxl::LoraTrainingOptions training;
+  training.steps = options_.lora_steps;
+  training.learning_rate = options_.lora_lr;
+  GAPS_ASSIGN_OR_RETURN(const std::vector<double> losses,
+                        pipeline_->train_lora(at::cat(images), {options_.prompt}, control, config, training));
+  if (options_.lora_save.empty()) return absl::OkStatus();
+  return pipeline_->lora()->save(options_.lora_save);
 }
 
 absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vector<GenerationRequest>& requests) {

@@ -13,7 +13,13 @@ Linear Linear::load(WeightLoader& w, const std::string& prefix, int64_t in, int6
   return l;
 }
 
-at::Tensor Linear::operator()(const at::Tensor& x) const { return at::linear(x, weight, bias); }
+at::Tensor Linear::operator()(const at::Tensor& x) const {
+  at::Tensor y = at::linear(x, weight, bias);
+  if (!lora_down.defined()) return y;
+  // Adapters stay float32 under half-precision weights (trainable, and their small updates survive).
+  const at::Tensor low_rank = at::linear(at::linear(x.to(lora_down.scalar_type()), lora_down), lora_up);
+  return y + (low_rank * lora_scale).to(y.scalar_type());
+}
 
 Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel,
                     int64_t stride, int64_t padding, bool with_bias) {

@@ -1,6 +1,6 @@
 #pragma once
 // The building blocks shared by the SDXL components, as plain ATen ops over weights taken by name from
-// a WeightLoader (diffusers parameter names). Forward only.
+// a WeightLoader (diffusers parameter names). Plain ATen ops, so autograd differentiates them (LoRA training).
 #include <memory>
 #include <string>
 #include <vector>
@@ -12,6 +12,10 @@ namespace gaps::sdxl {
 
 struct Linear {
   at::Tensor weight, bias;  // bias undefined when the layer has none
+  // Optional low-rank adapter (LoRA, see lora.h): the output gains lora_scale * lora_up(lora_down(x)),
+  // lora_down r x in, lora_up out x r (float32, on the weight's device); undefined when the layer has none.
+  at::Tensor lora_down, lora_up;
+  double lora_scale = 1.0;
   static Linear load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, bool with_bias = true);
   at::Tensor operator()(const at::Tensor& x) const;
 };

@@ -9,6 +9,7 @@
 
 #include <ATen/ATen.h>
 #include <ATen/CPUGeneratorImpl.h>
+#include <ATen/core/grad_mode.h>
 #include <c10/core/InferenceMode.h>
 #include "absl/strings/str_cat.h"
 #include "diffusion_worker/sdxl/model_folder.h"
@@ -434,6 +435,80 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
     latents = scheduler.step(prediction, i, latents);
   }
   return latents;
+}
+
+absl::Status SdxlPipeline::reset_lora() {
+  if (lora_) lora_->detach_from(*unet_);
+  lora_.reset();
+  if (graphs_) {
+    graphs_.reset();
+    GAPS_RETURN_IF_ERROR(set_cuda_graphs(true));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status SdxlPipeline::load_lora(const std::string& path) {
+  GAPS_RETURN_IF_ERROR(reset_lora());
+  GAPS_ASSIGN_OR_RETURN(UNetLora lora, UNetLora::load(path, *unet_));
+  lora_ = std::move(lora);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& images,
+                                                             const std::vector<std::string>& prompts,
+                                                             const std::optional<ControlInput>& control,
+                                                             const LoraConfig& config,
+                                                             const LoraTrainingOptions& options) {
+  if (ip_adapter_) {
+    return absl::FailedPreconditionError("LoRA training: not supported while an IP-Adapter is loaded");
+  }
+  if (images.dim() != 4 || images.size(1) != 3) return absl::InvalidArgumentError("LoRA training: images must be B x 3 x H x W");
+  const int64_t batch = images.size(0), height = images.size(2), width = images.size(3), f = latent_factor();
+  if (height % f != 0 || width % f != 0) {
+    return absl::InvalidArgumentError(absl::StrCat("LoRA training: image size ", height, "x", width, " is not a multiple of ", f));
+  }
+  if (prompts.size() != 1 && static_cast<int64_t>(prompts.size()) != batch) {
+    return absl::InvalidArgumentError("LoRA training: give one prompt, or one per image");
+  }
+  if (control) {
+    GAPS_RETURN_IF_ERROR(check_control(*control, images));
+    if (control->scales.size() != 1) return absl::InvalidArgumentError("LoRA training: give one conditioning scale");
+  }
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
+  const at::TensorOptions model_options = at::TensorOptions().dtype(options_.dtype).device(options_.device);
+  LoraTrainingData data;
+  {
+    at::NoGradGuard frozen;
+    const at::Tensor moments = vae_->encode_moments((images.to(options_.device, at::kFloat) * 2 - 1).to(vae_->dtype()));
+    at::Generator generator = at::make_generator<at::CPUGeneratorImpl>(options.seed);
+    const at::Tensor latents = vae_->sample_latents(moments.to(at::kCPU, at::kFloat), generator);
+    data.latents = (latents * vae_->config().scaling_factor).to(model_options);
+    const PromptEmbeddings cond =
+        encode_prompts(prompts.size() == 1 ? std::vector<std::string>(batch, prompts[0]) : prompts);
+    data.encoder_hidden_states = cond.context;
+    data.text_embeds = cond.pooled;
+    const auto h = static_cast<float>(height), w = static_cast<float>(width);
+    data.time_ids = at::tensor(std::vector<float>{h, w, 0.0f, 0.0f, h, w}).view({1, 6}).expand({batch, 6}).to(model_options);
+    if (control) {
+      data.control_images = control->image.to(model_options);
+      data.conditioning_scale = control->scales[0];
+    }
+  }
+  GAPS_RETURN_IF_ERROR(reset_lora());
+  GAPS_ASSIGN_OR_RETURN(UNetLora lora, UNetLora::create(*unet_, config, options.seed));
+  std::vector<double> losses;
+  {
+    LoraTrainer trainer(*unet_, lora, scheduler->alphas_cumprod().to(options_.device),
+                        control ? &*controlnet_ : nullptr, options);
+    auto trained = trainer.train(data);
+    if (!trained.ok()) {
+      lora.detach_from(*unet_);
+      return trained.status();
+    }
+    losses = *std::move(trained);
+  }
+  lora_ = std::move(lora);
+  return losses;
 }
 
 }  // namespace gaps::sdxl

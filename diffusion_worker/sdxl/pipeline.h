@@ -22,6 +22,8 @@
 #include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/clip_vision_encoder.h"
 #include "diffusion_worker/sdxl/ip_adapter.h"
+#include "diffusion_worker/sdxl/lora.h"
+#include "diffusion_worker/sdxl/lora_training.h"
 #include "diffusion_worker/sdxl/schedulers.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "diffusion_worker/sdxl/vae.h"
@@ -91,6 +93,20 @@ class SdxlPipeline {
                                      const Img2ImgParams& params, const std::vector<uint64_t>& seeds,
                                      const std::optional<ControlInput>& control = std::nullopt);
 
+  // Scene adaptation: new LoRA adapters (config, seeded by options.seed) on the UNet, trained by
+  // LoraTrainer on images (B x 3 x H x W in [0, 1], H and W multiples of the latent factor; their VAE
+  // latents drawn with options.seed) with prompts (one, or one per image) and, with a ControlNet, control
+  // (one scale for all images). The adapters replace any earlier LoRA and stay attached and frozen.
+  // Returns the loss of every step. Not while an IP-Adapter is loaded (its image-prompt buffers are
+  // inference tensors, which autograd cannot use): an error.
+  absl::StatusOr<std::vector<double>> train_lora(const at::Tensor& images, const std::vector<std::string>& prompts,
+                                                 const std::optional<ControlInput>& control, const LoraConfig& config,
+                                                 const LoraTrainingOptions& options);
+  // Attaches the adapters of a LoRA file (lora.h), replacing any earlier LoRA.
+  absl::Status load_lora(const std::string& path);
+  // The attached LoRA; null when none.
+  const UNetLora* lora() const { return lora_ ? &*lora_ : nullptr; }
+
   // Switches UNet graph capture and replay on or off (see PipelineOptions::cuda_graphs).
   absl::Status set_cuda_graphs(bool on);
 
@@ -115,6 +131,10 @@ class SdxlPipeline {
   std::shared_ptr<UNetGraphs> graphs_;  // set while graph replay is on
   std::optional<ClipVisionEncoder> image_encoder_;
   std::unique_ptr<IpAdapter> ip_adapter_;
+  std::optional<UNetLora> lora_;
+
+  // Detaches the current LoRA and drops captured UNet graphs (they recorded the previous layers).
+  absl::Status reset_lora();
 
   absl::Status load_ip_adapter(at::TensorOptions model_options);
   // Encodes and projects the reference images and hands them to the UNet's decoupled cross-attention

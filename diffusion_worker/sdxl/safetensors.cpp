@@ -147,8 +147,39 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
   return tensors;
 }
 
-absl::Status write_safetensors(const std::string& path, const TensorMap& tensors) {
+absl::StatusOr<SafetensorsMetadata> read_safetensors_metadata(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot open safetensors file ", path));
+  unsigned char len[8] = {};
+  if (!in.read(reinterpret_cast<char*>(len), 8)) return header_error(path, "shorter than the 8-byte header length");
+  uint64_t header_size = 0;
+  for (int i = 7; i >= 0; --i) header_size = (header_size << 8) | len[i];
+  in.seekg(0, std::ios::end);
+  const uint64_t file_size = static_cast<uint64_t>(in.tellg());
+  if (header_size > file_size - 8) return header_error(path, absl::StrCat("header length ", header_size, " exceeds the file"));
+  std::string text(header_size, '\0');
+  in.seekg(8);
+  if (!in.read(text.data(), static_cast<std::streamsize>(header_size))) return header_error(path, "cannot read the header");
+  nlohmann::json header;
+  try {
+    header = nlohmann::json::parse(text);
+  } catch (const std::exception& e) {
+    return header_error(path, absl::StrCat("header is not valid JSON: ", e.what()));
+  }
+  SafetensorsMetadata metadata;
+  if (!header.is_object() || !header.contains("__metadata__")) return metadata;
+  const auto& entries = header["__metadata__"];
+  if (!entries.is_object()) return header_error(path, "__metadata__ is not a JSON object");
+  for (const auto& [key, value] : entries.items()) {
+    if (!value.is_string()) return header_error(path, absl::StrCat("__metadata__ entry '", key, "' is not a string"));
+    metadata.emplace(key, value.get<std::string>());
+  }
+  return metadata;
+}
+
+absl::Status write_safetensors(const std::string& path, const TensorMap& tensors, const SafetensorsMetadata& metadata) {
   nlohmann::json header = nlohmann::json::object();
+  if (!metadata.empty()) header["__metadata__"] = metadata;
   std::vector<at::Tensor> contiguous;
   uint64_t offset = 0;
   for (const auto& [name, tensor] : tensors) {

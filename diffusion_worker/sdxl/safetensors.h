@@ -16,7 +16,12 @@ using TensorMap = std::map<std::string, at::Tensor>;
 // bounds, sizes matching shape x dtype, no overlapping tensors. Errors name the file and the tensor.
 absl::StatusOr<TensorMap> read_safetensors(const std::string& path);
 
-// Writes tensors (any supported dtype, made contiguous on the CPU) to path; used by tests and benchmarks.
-absl::Status write_safetensors(const std::string& path, const TensorMap& tensors);
+// The header's "__metadata__" (string -> string; empty when the file has none). Errors name the file.
+using SafetensorsMetadata = std::map<std::string, std::string>;
+absl::StatusOr<SafetensorsMetadata> read_safetensors_metadata(const std::string& path);
+
+// Writes tensors (any supported dtype, made contiguous on the CPU) and optional "__metadata__" to path.
+absl::Status write_safetensors(const std::string& path, const TensorMap& tensors,
+                               const SafetensorsMetadata& metadata = {});
 
 }  // namespace gaps::sdxl

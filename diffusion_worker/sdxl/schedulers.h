@@ -42,6 +42,8 @@ class Scheduler {
   virtual at::Tensor step(const at::Tensor& model_output, int64_t index, const at::Tensor& sample) = 0;
   // Clean latents noised to the level of step index (img2img's start).
   virtual at::Tensor add_noise(const at::Tensor& original, const at::Tensor& noise, int64_t index) const = 0;
+  // The training schedule's cumulative alpha products (float32, num_train_timesteps; DDPM noising).
+  const at::Tensor& alphas_cumprod() const { return alphas_cumprod_; }
 
  protected:
   explicit Scheduler(const SchedulerConfig& config);

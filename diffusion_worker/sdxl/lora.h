@@ -1,0 +1,65 @@
+#pragma once
+// LoRA (low-rank adaptation) of the UNet's attention projections: each adapted Linear computes
+//   W x + b + scale * up(down(x)),  down: r x in, up: out x r, scale = alpha / r
+// (through Linear::lora_down / lora_up), and the adapters can be merged into W. Files are diffusers' LoRA
+// safetensors as StableDiffusionXLPipeline.save_lora_weights writes them for a PEFT-adapted UNet:
+//   unet.<module>.lora_A.weight (down), unet.<module>.lora_B.weight (up), e.g. module
+//   "down_blocks.1.attentions.0.transformer_blocks.0.attn1.to_q", and the "__metadata__" entry
+//   "lora_adapter_metadata" (JSON: "unet.r", "unet.lora_alpha", "unet.target_modules", optional
+//   "unet.alpha_pattern"). Without that entry alpha equals each module's rank (scale 1), as diffusers
+//   loads such files. Text-encoder adapters, kohya-style files (lora_unet_*, lora_down/lora_up), DoRA and
+//   LoRA biases are refused by name.
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "diffusion_worker/sdxl/safetensors.h"
+#include "diffusion_worker/sdxl/unet.h"
+
+namespace gaps::sdxl {
+
+struct LoraConfig {
+  int64_t rank = 4;
+  double alpha = 4;  // scale = alpha / rank
+  // Projections of every attention layer that get an adapter (suffixes of their diffusers names).
+  std::vector<std::string> targets = {"to_q", "to_k", "to_v", "to_out.0"};
+};
+
+class UNetLora {
+ public:
+  struct Adapter {
+    std::string module;    // diffusers name of the adapted Linear
+    at::Tensor down, up;   // r x in, out x r, float32; shared with the UNet's Linear while attached
+    double alpha = 0;      // scale = alpha / rank
+    double scale() const { return alpha / static_cast<double>(down.size(0)); }
+  };
+
+  // New adapters on every target projection, attached to unet: down ~ U(-1/sqrt(in), 1/sqrt(in)) (PEFT's
+  // kaiming-uniform init) from seed, up = 0, so the UNet's output is unchanged until they are trained.
+  static absl::StatusOr<UNetLora> create(UNet2DCondition& unet, const LoraConfig& config, uint64_t seed);
+  // Reads a LoRA file and attaches it to unet (left untouched on error). Errors name the file and every
+  // missing, mis-shaped or unknown tensor.
+  static absl::StatusOr<UNetLora> load(const std::string& path, UNet2DCondition& unet);
+  static absl::StatusOr<UNetLora> from_tensors(const TensorMap& tensors, const SafetensorsMetadata& metadata,
+                                               UNet2DCondition& unet, const std::string& source);
+  // Writes the adapters (float32) in the format load() and diffusers' load_lora_weights read.
+  absl::Status save(const std::string& path) const;
+
+  // down and up of every adapter, in module-name order: the trainable parameters.
+  std::vector<at::Tensor> parameters() const;
+  const std::vector<Adapter>& adapters() const { return adapters_; }
+
+  // W += scale * up @ down on every adapted layer of unet, which then runs without the adapters.
+  void merge_into(UNet2DCondition& unet) const;
+  // Removes the adapters from unet (its base weights are unchanged).
+  void detach_from(UNet2DCondition& unet) const;
+
+ private:
+  void attach_to(UNet2DCondition& unet) const;
+
+  std::vector<Adapter> adapters_;
+};
+
+}  // namespace gaps::sdxl

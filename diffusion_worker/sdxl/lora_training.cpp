@@ -1,0 +1,147 @@
+#include "diffusion_worker/sdxl/lora_training.h"
+
+#include <cmath>
+#include <utility>
+
+#include <ATen/ATen.h>
+#include <ATen/CPUGeneratorImpl.h>
+#include <ATen/core/grad_mode.h>
+#include <c10/core/InferenceMode.h>
+#include <c10/util/Exception.h>
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+
+namespace gaps::sdxl {
+namespace {
+
+std::string shape_text(const at::Tensor& t) {
+  return t.defined() ? absl::StrCat("[", absl::StrJoin(t.sizes(), ", "), "]") : "undefined";
+}
+
+}  // namespace
+
+LoraTrainer::LoraTrainer(UNet2DCondition& unet, const UNetLora& lora, at::Tensor alphas_cumprod,
+                         const ControlNet* controlnet, LoraTrainingOptions options)
+    : unet_(unet),
+      parameters_(lora.parameters()),
+      alphas_cumprod_(std::move(alphas_cumprod)),
+      controlnet_(controlnet),
+      options_(options),
+      generator_(at::make_generator<at::CPUGeneratorImpl>(options.seed)) {
+  for (auto& p : parameters_) {
+    p.set_requires_grad(true);
+    first_moments_.push_back(at::zeros_like(p));
+    second_moments_.push_back(at::zeros_like(p));
+  }
+}
+
+LoraTrainer::~LoraTrainer() {
+  for (auto& p : parameters_) {
+    p.mutable_grad() = at::Tensor();
+    p.set_requires_grad(false);
+  }
+}
+
+absl::Status LoraTrainer::check(const LoraTrainingData& data) const {
+  if (c10::InferenceMode::is_enabled()) {
+    return absl::FailedPreconditionError("LoRA training cannot run inside InferenceMode (it needs autograd)");
+  }
+  if (!data.latents.defined() || data.latents.dim() != 4) {
+    return absl::InvalidArgumentError(absl::StrCat("LoRA training: latents must be N x C x h x w, got ",
+                                                   shape_text(data.latents)));
+  }
+  const int64_t n = data.latents.size(0);
+  for (const auto& [name, t] : {std::pair<const char*, const at::Tensor&>{"encoder_hidden_states", data.encoder_hidden_states},
+                                {"text_embeds", data.text_embeds}, {"time_ids", data.time_ids}}) {
+    if (!t.defined() || t.size(0) != n) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("LoRA training: ", name, " needs one entry per view (", n, "), got ", shape_text(t)));
+    }
+  }
+  if (data.control_images.defined() && controlnet_ == nullptr) {
+    return absl::InvalidArgumentError("LoRA training: control images given but no ControlNet");
+  }
+  if (controlnet_ != nullptr && (!data.control_images.defined() || data.control_images.size(0) != n)) {
+    return absl::InvalidArgumentError(absl::StrCat("LoRA training with a ControlNet needs one control image per view (",
+                                                   n, "), got ", shape_text(data.control_images)));
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<at::Tensor> LoraTrainer::loss(const LoraTrainingData& data, const DenoisingSample& sample) const {
+  if (absl::Status s = check(data); !s.ok()) return s;
+  if (!sample.noise.defined() || !sample.noise.sizes().equals(data.latents.sizes()) || !sample.timesteps.defined() ||
+      sample.timesteps.numel() != data.latents.size(0)) {
+    return absl::InvalidArgumentError(absl::StrCat("LoRA training: noise ", shape_text(sample.noise), " and timesteps ",
+                                                   shape_text(sample.timesteps), " must match the latents ",
+                                                   shape_text(data.latents)));
+  }
+  at::AutoGradMode grad_mode(true);
+  try {
+    const at::Tensor x0 = data.latents, noise = sample.noise.to(x0.options());
+    const at::Tensor t = sample.timesteps.to(at::kLong).to(alphas_cumprod_.device());
+    const at::Tensor abar = alphas_cumprod_.index_select(0, t).to(x0.options()).view({-1, 1, 1, 1});
+    UNetInputs in;
+    in.sample = abar.sqrt() * x0 + (1 - abar).sqrt() * noise;
+    in.timestep = t.to(x0.options());
+    in.encoder_hidden_states = data.encoder_hidden_states;
+    in.text_embeds = data.text_embeds;
+    in.time_ids = data.time_ids;
+    if (controlnet_ != nullptr) {
+      at::NoGradGuard frozen;
+      ControlNetResiduals residuals = controlnet_->forward(
+          in, data.control_images, at::full({1}, data.conditioning_scale, x0.options()));
+      in.down_block_residuals = std::move(residuals.down);
+      in.mid_block_residual = std::move(residuals.mid);
+    }
+    return (unet_.forward(in).to(at::kFloat) - noise.to(at::kFloat)).pow(2).mean();
+  } catch (const c10::Error& e) {
+    return absl::InternalError(absl::StrCat("LoRA training loss failed: ", e.what_without_backtrace()));
+  }
+}
+
+absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const DenoisingSample& sample) {
+  for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
+  auto value = loss(data, sample);
+  if (!value.ok()) return value.status();
+  try {
+    value->backward();
+  } catch (const c10::Error& e) {
+    return absl::InternalError(absl::StrCat("LoRA training backward failed (inference-mode weights?): ",
+                                            e.what_without_backtrace()));
+  }
+  // torch.optim.Adam's update, on the adapters only.
+  at::NoGradGuard no_grad;
+  ++adam_steps_;
+  const double correction1 = 1 - std::pow(options_.beta1, adam_steps_);
+  const double correction2 = 1 - std::pow(options_.beta2, adam_steps_);
+  for (size_t i = 0; i < parameters_.size(); ++i) {
+    const at::Tensor& g = parameters_[i].grad();
+    if (!g.defined()) continue;
+    first_moments_[i].mul_(options_.beta1).add_(g, 1 - options_.beta1);
+    second_moments_[i].mul_(options_.beta2).addcmul_(g, g, 1 - options_.beta2);
+    const at::Tensor denominator = (second_moments_[i].sqrt() / std::sqrt(correction2)).add_(options_.epsilon);
+    parameters_[i].addcdiv_(first_moments_[i], denominator, -options_.learning_rate / correction1);
+  }
+  return value->item<double>();
+}
+
+DenoisingSample LoraTrainer::draw(const LoraTrainingData& data) {
+  const at::Tensor noise = at::randn(data.latents.sizes(), generator_, at::TensorOptions().dtype(at::kFloat));
+  const at::Tensor timesteps =
+      at::randint(0, alphas_cumprod_.size(0), {data.latents.size(0)}, generator_, at::TensorOptions().dtype(at::kLong));
+  return {noise.to(data.latents.options()), timesteps};
+}
+
+absl::StatusOr<std::vector<double>> LoraTrainer::train(const LoraTrainingData& data) {
+  if (absl::Status s = check(data); !s.ok()) return s;
+  std::vector<double> losses;
+  for (int64_t i = 0; i < options_.steps; ++i) {
+    auto value = step(data, draw(data));
+    if (!value.ok()) return value.status();
+    losses.push_back(*value);
+  }
+  return losses;
+}
+
+}  // namespace gaps::sdxl
