@@ -44,4 +44,16 @@ absl::StatusOr<DepthControl> depth_control_image(const at::Tensor& depth, const 
   return DepthControl{value.to(at::kFloat).unsqueeze(0).expand({3, -1, -1}).contiguous(), reliable};
 }
 
+absl::StatusOr<DepthControl> disparity_control_image(const at::Tensor& disparity) {
+  if (!disparity.defined() || disparity.dim() != 2) {
+    return absl::InvalidArgumentError("disparity control: the disparity must be an H x W map");
+  }
+  const at::Tensor d = disparity.to(at::kCPU, at::kDouble);
+  if (!d.isfinite().all().item<bool>()) return absl::InvalidArgumentError("disparity control: non-finite disparity");
+  const double lo = d.min().item<double>(), hi = d.max().item<double>();
+  const at::Tensor value = hi > lo ? (d - lo) / (hi - lo) : at::ones_like(d);
+  return DepthControl{value.to(at::kFloat).unsqueeze(0).expand({3, -1, -1}).contiguous(),
+                      at::ones(d.sizes(), at::kBool)};
+}
+
 }  // namespace gaps

@@ -39,4 +39,9 @@ struct DepthControl {
 absl::StatusOr<DepthControl> depth_control_image(const at::Tensor& depth, const at::Tensor& alpha,
                                                  const DepthControlOptions& options = {});
 
+// A monocular disparity map (Depth-Anything's output: larger is nearer, arbitrary scale and shift), H x W,
+// as a ControlNet image: (disparity - min) / (max - min) on 3 channels, as depth ControlNets were trained
+// on; a constant map gives ones. Every pixel is reliable.
+absl::StatusOr<DepthControl> disparity_control_image(const at::Tensor& disparity);
+
 }  // namespace gaps

@@ -72,7 +72,7 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
                                                       {"device", &o.device},   {"prompt", &o.prompt},
                                                       {"scheduler", &o.scheduler}, {"variant", &o.variant},
-                                                      {"controlnet", &o.controlnet},
+                                                      {"controlnet", &o.controlnet}, {"depth_anything", &o.depth_anything},
                                                       {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder},
                                                       {"lora_save", &o.lora_save}, {"lora", &o.lora}};
     if (strings.count(key)) {
@@ -108,7 +108,7 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
           "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
-          "image_encoder, ip_adapter_scale, lora_steps, lora_rank, lora_lr, lora_save, lora, "
+          "image_encoder, ip_adapter_scale, depth_anything, lora_steps, lora_rank, lora_lr, lora_save, lora, "
           "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, inpaint_uncovered_fraction, "
           "inpaint_dilation"));
     }
@@ -129,6 +129,9 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     return option_error("lora", "give either a LoRA file to load or lora_steps to train one, not both");
   }
   if (!o.lora_save.empty() && o.lora_steps == 0) return option_error("lora_save", "needs lora_steps > 0");
+  if (!o.depth_anything.empty() && (o.lora_steps == 0 || o.controlnet.empty())) {
+    return option_error("depth_anything", "conditions LoRA training: it needs lora_steps > 0 and a controlnet");
+  }
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
@@ -159,10 +162,23 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
       return absl::Status(s.code(), absl::StrCat("sdxl option 'lora': ", s.message()));
     }
   }
-  return std::unique_ptr<SdxlGenerator>(new SdxlGenerator(options, *std::move(pipeline)));
+  std::unique_ptr<SdxlGenerator> generator(new SdxlGenerator(options, *std::move(pipeline)));
+  if (!options.depth_anything.empty()) {
+    auto model = depth::DepthAnything::load(options.depth_anything);
+    if (!model.ok()) {
+      return absl::Status(model.status().code(), absl::StrCat("sdxl option 'depth_anything': ", model.status().message()));
+    }
+    generator->depth_model_ = *std::move(model);
+  }
+  return generator;
 }
 
-std::string SdxlGenerator::name() const { return pipeline_->controlnet() ? "sdxl 1 controlnet" : "sdxl 1"; }
+std::string SdxlGenerator::name() const {
+  std::string name = pipeline_->controlnet() ? "sdxl 1 controlnet" : "sdxl 1";
+  if (options_.lora_steps > 0 && pipeline_->controlnet())
+    absl::StrAppend(&name, depth_model_ ? " lora-depth:depth-anything" : " lora-depth:rendered");
+  return name;
+}
 
 absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
   if (views.empty()) return absl::InvalidArgumentError("sdxl adapt: no ground-truth views");
@@ -174,6 +190,26 @@ absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
   }
   if (options_.lora_steps == 0) return absl::OkStatus();
   return train_lora(views);
+}
+
+absl::StatusOr<at::Tensor> SdxlGenerator::training_control_image(const ReferenceView& v, size_t index) const {
+  if (depth_model_) {
+    auto disparity = depth_model_->estimate_depth(v.image.to(at::kCPU, at::kFloat).clamp(0, 1));
+    if (!disparity.ok()) {
+      return absl::Status(disparity.status().code(),
+                          absl::StrCat("sdxl adapt: Depth-Anything on view ", index, ": ", disparity.status().message()));
+    }
+    GAPS_ASSIGN_OR_RETURN(DepthControl control, disparity_control_image(*disparity));
+    return control.image;
+  }
+  const auto hw = v.image.sizes().slice(0, 2);
+  if (!v.render_depth.defined() || !v.render_alpha.defined() || v.render_depth.sizes() != hw ||
+      v.render_alpha.sizes() != hw) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "sdxl adapt: view ", index, " needs render_depth and render_alpha of its image's size (ControlNet)"));
+  }
+  GAPS_ASSIGN_OR_RETURN(DepthControl control, depth_control_image(v.render_depth, v.render_alpha, options_.depth_control));
+  return control.image;
 }
 
 absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) {
@@ -189,14 +225,8 @@ absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) 
     }
     images.push_back(at::replication_pad2d(v.image.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0), pad));
     if (pipeline_->controlnet()) {
-      const auto hw = v.image.sizes().slice(0, 2);
-      if (!v.render_depth.defined() || !v.render_alpha.defined() || v.render_depth.sizes() != hw ||
-          v.render_alpha.sizes() != hw) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "sdxl adapt: view ", i, " needs render_depth and render_alpha of its image's size (ControlNet)"));
-      }
-      GAPS_ASSIGN_OR_RETURN(DepthControl control, depth_control_image(v.render_depth, v.render_alpha, options_.depth_control));
-      controls.push_back(at::replication_pad2d(control.image.unsqueeze(0), pad));
+      GAPS_ASSIGN_OR_RETURN(const at::Tensor control, training_control_image(v, i));
+      controls.push_back(at::replication_pad2d(control.unsqueeze(0), pad));
     }
   }
   std::optional<sdxl::ControlInput> control;

@@ -317,6 +317,20 @@ GenerationRequest depth_request(int64_t h, int64_t w, double scale, uint64_t see
   return r;
 }
 
+// Depth-Anything's disparity as a control image: min-max normalised, every pixel reliable; constant -> 1.
+TEST(DepthControlTest, DisparityNormalisedToItsRange) {
+  auto control = disparity_control_image(at::tensor({2.0f, 4.0f, 3.0f, 6.0f}).view({2, 2}));
+  ASSERT_TRUE(control.ok()) << control.status();
+  EXPECT_EQ(control->image.sizes(), (std::vector<int64_t>{3, 2, 2}));
+  EXPECT_TRUE(at::allclose(control->image[2], at::tensor({0.0f, 0.5f, 0.25f, 1.0f}).view({2, 2})));
+  EXPECT_TRUE(control->reliable.all().item<bool>());
+  control = disparity_control_image(at::full({2, 3}, 7.0f));
+  ASSERT_TRUE(control.ok());
+  EXPECT_TRUE(at::equal(control->image, at::ones({3, 2, 3})));
+  EXPECT_FALSE(disparity_control_image(at::ones({4})).ok());
+  EXPECT_FALSE(disparity_control_image(at::tensor({1.0f, NAN}).view({1, 2})).ok());
+}
+
 TEST(SdxlControlNetGeneratorTest, ConditionsEachRequestOnItsDepth) {
   const std::string options = "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"controlnet\": \"" + controlnet_dir() +
                               "\", \"steps\": 4, \"prompt\": \"a fern\"}";

@@ -78,6 +78,25 @@ TEST_F(SdxlLoraGeneratorTest, AdaptTrainsWithDepthControl) {
   check_adaptation(", \"controlnet\": \"" + controlnet_dir() + "\"");
 }
 
+// With depth_anything, LoRA training conditions the ControlNet on Depth-Anything's depth of each view (the
+// tiny random fixture model) instead of the views' rendered depth: the adapters, hence the images, differ.
+TEST_F(SdxlLoraGeneratorTest, DepthAnythingGivesTheTrainingViewsTheirDepth) {
+  const std::string depth_model = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/depth_anything_tiny/model";
+  const std::string common = ", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 3, \"lora_lr\": 0.01";
+  auto rendered = make_generator("sdxl", options_json(common));
+  auto estimated = make_generator("sdxl", options_json(common + ", \"depth_anything\": \"" + depth_model + "\""));
+  ASSERT_TRUE(rendered.ok()) << rendered.status();
+  ASSERT_TRUE(estimated.ok()) << estimated.status();
+  EXPECT_EQ((*rendered)->name(), "sdxl 1 controlnet lora-depth:rendered");
+  EXPECT_EQ((*estimated)->name(), "sdxl 1 controlnet lora-depth:depth-anything");
+  std::vector<ReferenceView> gt = views(2, 12, 8);
+  ASSERT_TRUE((*rendered)->adapt(gt).ok());
+  for (auto& v : gt) v.render_depth = v.render_alpha = at::Tensor();  // not needed with Depth-Anything
+  const absl::Status adapted = (*estimated)->adapt(gt);
+  ASSERT_TRUE(adapted.ok()) << adapted;
+  EXPECT_GT((generate_one(**estimated) - generate_one(**rendered)).abs().max().item<double>(), 1e-4);
+}
+
 TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {
   const auto error = [](const std::string& extra) {
     auto generator = make_generator("sdxl", options_json(extra));
@@ -88,6 +107,10 @@ TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {
   EXPECT_TRUE(contains_all(error(", \"lora_rank\": 0"), {"lora_rank"}));
   EXPECT_TRUE(contains_all(error(", \"lora_lr\": 0"), {"lora_lr"}));
   EXPECT_TRUE(contains_all(error(", \"lora_steps\": 2, \"lora\": \"x.safetensors\""), {"lora", "not both"}));
+  EXPECT_TRUE(contains_all(error(", \"lora_steps\": 2, \"depth_anything\": \"d\""), {"depth_anything", "controlnet"}));
+  EXPECT_TRUE(contains_all(error(", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 2, \"depth_anything\": \"" +
+                                 (dir_ / "absent").string() + "\""),
+                           {"depth_anything", "absent"}));
   EXPECT_TRUE(contains_all(error(", \"lora\": \"" + (dir_ / "absent.safetensors").string() + "\""),
                            {"lora", "absent.safetensors"}));
 
