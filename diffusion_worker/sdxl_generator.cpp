@@ -180,6 +180,19 @@ std::string SdxlGenerator::name() const {
   return name;
 }
 
+std::string SdxlGenerator::weights_identity() const {
+  std::string out = absl::StrCat("sdxl=", options_.weights);
+  const std::pair<const char*, const std::string*> parts[] = {
+      {"controlnet", &options_.controlnet}, {"ip_adapter", &options_.ip_adapter},
+      {"image_encoder", &options_.image_encoder}, {"lora", &options_.lora},
+      {"depth_anything", &options_.depth_anything}};
+  for (const auto& [component, path] : parts)
+    if (!path->empty()) absl::StrAppend(&out, "\n", component, "=", *path);
+  if (!options_.inpaint.empty())
+    absl::StrAppend(&out, "\ninpaint=", options_.inpaint, inpaint_ ? " (loaded)" : " (on first need)");
+  return out;
+}
+
 absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
   if (views.empty()) return absl::InvalidArgumentError("sdxl adapt: no ground-truth views");
   for (size_t i = 0; i < views.size(); ++i) {

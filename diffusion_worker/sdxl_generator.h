@@ -83,6 +83,9 @@ class SdxlGenerator final : public Generator {
   // render_depth / render_alpha give its control image (padded alike) and control_scale its scale.
   // With `inpaint`, each result then goes through the two-stage pass (render_depth required).
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
+  // What is loaded: the SDXL folder and each optional component given (the inpainting model marked
+  // "loaded" or "on first need").
+  std::string weights_identity() const override;
 
  private:
   SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline);

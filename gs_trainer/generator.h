@@ -37,6 +37,8 @@ class Generator {
   virtual ~Generator() = default;
   // Backend name and version, e.g. "reproject 1".
   virtual std::string name() const = 0;
+  // The model weights in use, one "component=path" per line; empty for a weight-free backend.
+  virtual std::string weights_identity() const { return ""; }
   // Per-scene preparation before the first phase (e.g. LoRA training); may be a no-op for a backend
   // that learns nothing, which then says so in its documentation.
   virtual absl::Status adapt(const std::vector<ReferenceView>& views) = 0;

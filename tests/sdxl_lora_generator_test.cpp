@@ -89,6 +89,8 @@ TEST_F(SdxlLoraGeneratorTest, DepthAnythingGivesTheTrainingViewsTheirDepth) {
   ASSERT_TRUE(estimated.ok()) << estimated.status();
   EXPECT_EQ((*rendered)->name(), "sdxl 1 controlnet lora-depth:rendered");
   EXPECT_EQ((*estimated)->name(), "sdxl 1 controlnet lora-depth:depth-anything");
+  EXPECT_EQ((*estimated)->weights_identity(), "sdxl=" + test::sdxl_model_dir() + "\ncontrolnet=" + controlnet_dir() +
+                                                  "\ndepth_anything=" + depth_model);
   std::vector<ReferenceView> gt = views(2, 12, 8);
   ASSERT_TRUE((*rendered)->adapt(gt).ok());
   for (auto& v : gt) v.render_depth = v.render_alpha = at::Tensor();  // not needed with Depth-Anything

@@ -119,8 +119,7 @@ grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetI
   const DeviceMemory memory = device_memory(options_.device);
   info->set_device_memory_total(memory.total);
   info->set_device_memory_free(memory.free);
-  // The registry's backends are weight-free or report their weights through name(); none is loaded here.
-  info->set_weights_identity("");
+  info->set_weights_identity(generator_->weights_identity());
   for (const char* c : {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale",
                         "prompt", "seed"})
     info->add_supported_constraints(c);
