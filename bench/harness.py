@@ -28,7 +28,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 CSV_FIELDS = [
     "config", "cell", "scene", "views", "variant", "seed", "status", "psnr", "ssim", "lpips",
-    "num_gaussians", "peak_memory_bytes", "peak_memory_kind", "train_seconds", "generator_seconds",
+    "num_gaussians", "max_gaussians", "peak_memory_bytes", "peak_memory_kind", "train_seconds", "generator_seconds",
     "wall_seconds", "iterations", "resolution", "init", "commit", "device", "error",
 ]
 # `gaps train` exits with 3 when the run diverged: metrics.json then records it (a result, not a crash).
@@ -50,7 +50,12 @@ def load_config(path):
             raise ConfigError(f"{path}: '{key}' must be a non-empty list")
     config.setdefault("name", Path(path).stem)
     # Files a config names (a TrainConfig or GapsConfig JSON) are relative to the config file.
-    for flags in [config.setdefault("flags", {})] + list(config.get("variant_flags", {}).values()):
+    arms = config.setdefault("arms", {})
+    for label, arm in arms.items():
+        if not isinstance(arm, dict) or not arm.get("variant"):
+            raise ConfigError(f"{path}: arm '{label}' needs a 'variant' (vanilla, full, no-gaps, no-dropgaussian)")
+        arm.setdefault("flags", {})
+    for flags in all_flag_sets(config):
         for key in list(flags):
             if key.replace("-", "_") in PATH_FLAGS and not Path(str(flags[key])).is_absolute():
                 flags[key] = str((Path(path).resolve().parent / str(flags[key])).resolve())
@@ -59,11 +64,16 @@ def load_config(path):
             raise ConfigError(f"{path}: every scene needs 'name' and 'path' (relative to --data)")
         if not scene.get("views", config.get("views")):
             raise ConfigError(f"{path}: scene {scene['name']} has no view counts ('views' on the scene or the config)")
-    for flags in [config.get("flags", {})] + list(config.get("variant_flags", {}).values()):
+    for flags in all_flag_sets(config):
         clash = CELL_FLAGS & {k.replace("_", "-") for k in flags}
         if clash:
             raise ConfigError(f"{path}: flags {sorted(clash)} are set per cell by the harness")
     return config
+
+
+def all_flag_sets(config):
+    return ([config.get("flags", {})] + list(config.get("variant_flags", {}).values()) +
+            [arm["flags"] for arm in config.get("arms", {}).values()])
 
 
 def cell_name(scene, views, variant, seed):
@@ -92,11 +102,13 @@ def flag_args(flags):
 def command(config, cell, gaps, data, out, extra_flags=()):
     flags = dict(config.get("flags", {}))
     flags.update(config.get("variant_flags", {}).get(cell["variant"], {}))
+    arm = config.get("arms", {}).get(cell["variant"], {})
+    flags.update(arm.get("flags", {}))
     for item in extra_flags:
         key, _, value = item.partition("=")
         flags[key.lstrip("-")] = value
     return [str(gaps), "train", f"--scene={Path(data) / cell['scene_path']}", f"--views={cell['views']}",
-            f"--variant={cell['variant']}", f"--seed={cell['seed']}", f"--out={Path(out) / cell['cell']}",
+            f"--variant={arm.get('variant', cell['variant'])}", f"--seed={cell['seed']}", f"--out={Path(out) / cell['cell']}",
             "--quiet"] + flag_args(flags)
 
 
@@ -137,7 +149,7 @@ def row_from_metrics(config, cell, metrics, commit, device, wall_seconds):
         "config": config["name"], "cell": cell["cell"], "scene": cell["scene"], "views": cell["views"],
         "variant": cell["variant"], "seed": cell["seed"], "status": metrics.get("status", "ok"),
         "psnr": metrics.get("psnr"), "ssim": metrics.get("ssim"), "lpips": metrics.get("lpips"),
-        "num_gaussians": metrics.get("num_gaussians"), "peak_memory_bytes": peak.get("bytes"),
+        "num_gaussians": metrics.get("num_gaussians"), "max_gaussians": metrics.get("max_gaussians"), "peak_memory_bytes": peak.get("bytes"),
         "peak_memory_kind": peak.get("kind"), "train_seconds": metrics.get("train_seconds"),
         "generator_seconds": metrics.get("generator_seconds"), "wall_seconds": wall_seconds,
         "iterations": metrics.get("iterations"), "resolution": metrics.get("resolution"),

@@ -78,6 +78,7 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   j["ssim"] = r.metrics.ssim;
   j["lpips"] = r.metrics.lpips ? nlohmann::json(*r.metrics.lpips) : nlohmann::json(nullptr);
   j["num_gaussians"] = r.num_gaussians;
+  j["max_gaussians"] = r.max_gaussians;
   j["train_seconds"] = r.train_seconds;
   j["eval_every"] = o.eval_every;
   j["curve"] = r.curve;
@@ -173,6 +174,10 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   const PeakMemoryMeter memory(device);
   const std::vector<TrainingView> references = train;
   Trainer trainer(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config);
+  result.max_gaussians = trainer.config().max_gaussians;
+  if (o.config.gaussians_per_variation > 0)
+    log(absl::StrCat("automatic budget: ", result.max_gaussians, " Gaussians (", o.config.gaussians_per_variation,
+                     " per unit of the training views' total variation)"));
   std::optional<TimedGenerator> generator;
   std::optional<GapsTraining> method;
   Trainer::StepFunction step = [&]() -> absl::StatusOr<at::Tensor> { return trainer.step(); };

@@ -58,6 +58,7 @@ struct RunResult {
   ImageMetrics metrics;
   std::vector<ImageMetrics> per_view;
   int64_t num_gaussians = 0;
+  int64_t max_gaussians = 0;  // the budget the run trained under (resolved when automatic); 0 = none
   double train_seconds = 0.0;  // without the evaluations of the curve
   std::string summary;  // what was loaded
   std::vector<CurvePoint> curve;  // ends with the final evaluation when eval_every > 0

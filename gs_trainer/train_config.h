@@ -46,6 +46,9 @@ struct TrainConfig {
   // 0 = unlimited; otherwise densification grows the model up to this many Gaussians and no further,
   // preferring the candidates with the largest gradients when not all fit.
   int64_t max_gaussians = 0;
+  // > 0: the automatic budget — max_gaussians becomes this many Gaussians per unit of the training views'
+  // total variation (budget.h), worked out when training starts. Not together with max_gaussians.
+  double gaussians_per_variation = 0.0;
   // At the end of densification, remove the Gaussians whose blending weight summed over every pixel of every
   // training view (blending_weights) is below this many pixels: they add size, not image. 0 = keep all.
   double prune_min_contribution = 0.0;

@@ -8,6 +8,7 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
+#include "gs_trainer/budget.h"
 #include "gs_trainer/losses.h"
 
 namespace gaps {
@@ -18,8 +19,20 @@ std::vector<double> default_learning_rates(const TrainConfig& c, double extent) 
           c.feature_lr / 20.0};
 }
 
+namespace {
+
+TrainConfig with_resolved_budget(TrainConfig config, const std::vector<TrainingView>& views) {
+  if (config.gaussians_per_variation <= 0) return config;
+  TORCH_CHECK(config.max_gaussians <= 0, "set max_gaussians (", config.max_gaussians,
+              ") or gaussians_per_variation (", config.gaussians_per_variation, "), not both");
+  config.max_gaussians = automatic_budget(views, config.gaussians_per_variation);
+  return config;
+}
+
+}  // namespace
+
 Trainer::Trainer(GaussianModel initial, std::vector<TrainingView> views, TrainConfig config)
-    : config_(std::move(config)),
+    : config_(with_resolved_budget(std::move(config), views)),
       views_(std::move(views)),
       model_(std::move(initial)),
       extent_(cameras_extent([&] {

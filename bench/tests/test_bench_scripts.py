@@ -187,6 +187,26 @@ class HarnessTest(unittest.TestCase):
         self.assertIn("--init=random", argv)
         self.assertNotIn("--init=mvs", argv)
 
+    def test_arms_run_a_variant_under_their_own_label_and_flags(self):
+        self.write_config({"scenes": [{"name": "fern", "path": "llff/fern"}], "views": [3],
+                           "variants": ["vanilla", "full_budget4"], "seeds": [0],
+                           "flags": {"resolution": 8},
+                           "arms": {"full_budget4": {"variant": "full", "flags": {"gaussians-per-variation": 4}}}})
+        code, _ = self.run_harness()
+        self.assertEqual(code, 0)
+        rows = {r["cell"]: r for r in self.rows()}
+        self.assertEqual(set(rows), {"fern_v3_vanilla_s0", "fern_v3_full_budget4_s0"})
+        self.assertEqual(rows["fern_v3_full_budget4_s0"]["variant"], "full_budget4")
+        argv = json.loads((self.out / "fern_v3_full_budget4_s0" / "metrics.json").read_text())["argv"]
+        self.assertIn("--variant=full", argv)
+        self.assertIn("--gaussians-per-variation=4", argv)
+        argv = json.loads((self.out / "fern_v3_vanilla_s0" / "metrics.json").read_text())["argv"]
+        self.assertNotIn("--gaussians-per-variation=4", argv)
+        self.write_config({"scenes": [{"name": "a", "path": "a"}], "views": [3], "variants": ["x"], "seeds": [0],
+                           "arms": {"x": {"flags": {}}}})
+        with self.assertRaises(harness.ConfigError):
+            harness.load_config(self.config)
+
     def test_config_may_not_set_per_cell_flags(self):
         self.write_config({"scenes": [{"name": "a", "path": "a"}], "views": [3], "variants": ["vanilla"],
                            "seeds": [0], "flags": {"seed": 4}})
@@ -194,7 +214,8 @@ class HarnessTest(unittest.TestCase):
             harness.load_config(self.config)
 
     def test_shipped_configs_expand(self):
-        sizes = {"llff_protocol": 2 * 3 * 3, "mipnerf360_protocol": 2 * 2 * 3, "ablation": 4 * 3}
+        sizes = {"llff_protocol": 2 * 3 * 3, "mipnerf360_protocol": 2 * 2 * 3, "ablation": 4 * 3,
+                 "gaps_variants": 5 * 4 * 3, "budget_study": 5 * 3, "budget_sweep": 2 * 5}
         for name, size in sizes.items():
             config = harness.load_config(BENCH / "configs" / f"{name}.json")
             self.assertEqual(len(harness.expand(config)), size, name)
