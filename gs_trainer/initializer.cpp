@@ -1,5 +1,7 @@
 #include "gs_trainer/initializer.h"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <fstream>
 #include <system_error>
@@ -194,7 +196,8 @@ std::optional<InitResult> read_cache(const fs::path& ply) {
 absl::StatusOr<PointCloud> write_cache(const fs::path& ply, const InitResult& r) {
   std::error_code ec;
   fs::create_directories(ply.parent_path(), ec);
-  const fs::path tmp = fs::path(ply).concat(".tmp");
+  // Per process: concurrent runs of one scene (a benchmark matrix) may fill the same cache entry at once.
+  const fs::path tmp = fs::path(ply).concat(absl::StrCat(".tmp", getpid()));
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(r.points, tmp));
   nlohmann::json meta = {{"method", r.method}, {"warnings", r.warnings}, {"notes", r.notes}};
   std::ofstream out(meta_path(ply));
