@@ -3,7 +3,9 @@
 
 Per config, scene and view count: test PSNR against wall-clock training time, one line per run through the
 points of its evaluation curve, coloured by variant. Per config: final test PSNR against the number of
-Gaussians, one point per run. An index (README.md) in the output folder lists and captions every chart.
+Gaussians, one point per run. Across configs, per scene and view count where runs under a Gaussian budget
+exist: test PSNR against the model size, one line per method through its budgets (mean over seeds; the
+hollow marker is unlimited growth). An index (README.md) in the output folder lists and captions every chart.
 
   bench/charts.py runs/*/results.jsonl --out docs/charts [--formats png,svg]
 """
@@ -85,6 +87,34 @@ def psnr_vs_gaussians(config, rows, out, formats):
     return save(fig, out, f"{config}_psnr_vs_gaussians", formats)
 
 
+def base_variant(label):
+    """The method of a harness arm ("full_k2" -> "full"); plain variants are their own."""
+    return label.split("_")[0]
+
+
+def psnr_vs_budget(scene, views, rows, out, formats):
+    """One line per method through its budgets, or nothing when no run of this setting had a budget."""
+    if not any((r.get("max_gaussians") or 0) > 0 for r in rows):
+        return []
+    arms = defaultdict(list)
+    for r in rows:
+        arms[(base_variant(r["variant"]), r["variant"], (r.get("max_gaussians") or 0) > 0)].append(r)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for method in sorted({k[0] for k in arms}, key=tables.variant_key):
+        points = sorted((sum(r["num_gaussians"] for r in runs) / len(runs), sum(r["psnr"] for r in runs) / len(runs),
+                         budgeted) for (m, _, budgeted), runs in arms.items() if m == method)
+        ax.plot([p[0] for p in points], [p[1] for p in points], color=colour(method), linewidth=1.2, label=method)
+        for x, y, budgeted in points:
+            ax.scatter(x, y, color=colour(method), facecolors=colour(method) if budgeted else "white", s=36, zorder=3)
+    ax.set_xscale("log")
+    ax.set_xlabel("Gaussians at the end of training (log scale)")
+    ax.set_ylabel("test PSNR, dB")
+    ax.set_title(f"{scene}, {views} views: test PSNR against the Gaussian budget")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(title="method (hollow: no budget)")
+    return save(fig, out, f"budget_{scene}_v{views}_psnr_vs_gaussians", formats)
+
+
 def render_all(rows, out, formats):
     """Every chart of `rows`; returns [(caption, [paths])]."""
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -103,6 +133,12 @@ def render_all(rows, out, formats):
         paths = psnr_vs_gaussians(config, rows_c, out, formats)
         if paths:
             written.append((f"{config}: test PSNR against the number of Gaussians", paths))
+    finished = [r for rows_c in by_config.values() for r in rows_c if r.get("psnr") is not None]
+    for scene, views in sorted({(r["scene"], r["views"]) for r in finished}):
+        subset = [r for r in finished if (r["scene"], r["views"]) == (scene, views)]
+        paths = psnr_vs_budget(scene, views, subset, out, formats)
+        if paths:
+            written.append((f"{scene}, {views} views — test PSNR against the Gaussian budget (all configs)", paths))
     return written
 
 

@@ -22,9 +22,7 @@ std::vector<double> default_learning_rates(const TrainConfig& c, double extent) 
 namespace {
 
 TrainConfig with_resolved_budget(TrainConfig config, const std::vector<TrainingView>& views) {
-  if (config.gaussians_per_variation <= 0) return config;
-  TORCH_CHECK(config.max_gaussians <= 0, "set max_gaussians (", config.max_gaussians,
-              ") or gaussians_per_variation (", config.gaussians_per_variation, "), not both");
+  if (config.max_gaussians > 0 || config.gaussians_per_variation <= 0) return config;  // a count given wins
   config.max_gaussians = automatic_budget(views, config.gaussians_per_variation);
   return config;
 }

@@ -83,8 +83,11 @@ TEST(AutomaticBudget, TheTrainerResolvesItIntoMaxGaussians) {
   config.gaussians_per_variation = 100.0;
   Trainer trainer(one_gaussian(), two_edge_views(), config);
   EXPECT_EQ(trainer.config().max_gaussians, 900);
-  config.max_gaussians = 50;
-  EXPECT_THROW(Trainer(one_gaussian(), two_edge_views(), config), c10::Error);
+  config.max_gaussians = 50;  // a count given wins
+  EXPECT_EQ(Trainer(one_gaussian(), two_edge_views(), config).config().max_gaussians, 50);
+  config.max_gaussians = 0;
+  config.gaussians_per_variation = 0;  // unlimited
+  EXPECT_EQ(Trainer(one_gaussian(), two_edge_views(), config).config().max_gaussians, 0);
 }
 
 struct BudgetRun : test::TempDirTest {};
@@ -98,6 +101,7 @@ TEST_F(BudgetRun, DensificationStopsAtTheAutomaticBudget) {
   o.config.densification_interval = 10;
   o.config.densify_until_fraction = 1.0;
   o.config.densify_grad_threshold = 1e-7;
+  o.config.gaussians_per_variation = 0.0;
   const auto quiet = [](const std::string&) {};
   const auto unlimited = run_pipeline(o, nullptr, quiet);
   ASSERT_TRUE(unlimited.ok()) << unlimited.status();

@@ -295,6 +295,20 @@ class ChartsTest(unittest.TestCase):
             index = Path(out, "README.md").read_text()
             self.assertIn("![paper: fern, 3 views — test PSNR over training time](paper_fern_v3_psnr_vs_time.png)", index)
 
+    def test_budget_chart_only_where_budgeted_runs_exist(self):
+        budgeted = [dict(row("fern", 3, "full_k2", 0, 20.5, gaussians=400), config="sweep", max_gaussians=420),
+                    dict(row("fern", 3, "vanilla_k2", 0, 19.5, gaussians=400), config="sweep", max_gaussians=420)]
+        with tempfile.TemporaryDirectory() as out:
+            written = charts.render_all(ROWS + budgeted, out, ["svg"])
+            names = sorted(p.name for _, paths in written for p in paths)
+            self.assertIn("budget_fern_v3_psnr_vs_gaussians.svg", names)
+            self.assertNotIn("budget_fern_v6_psnr_vs_gaussians.svg", names)  # no budgeted run there
+            self.assertNotIn("budget_trex_v3_psnr_vs_gaussians.svg", names)
+            svg = Path(out, "budget_fern_v3_psnr_vs_gaussians.svg").read_text()
+            self.assertIn("full", svg)
+        self.assertEqual(charts.base_variant("no-gaps_k3.5"), "no-gaps")
+        self.assertEqual(charts.base_variant("vanilla"), "vanilla")
+
 
 if __name__ == "__main__":
     unittest.main()
