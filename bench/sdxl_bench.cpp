@@ -23,9 +23,8 @@
 #include <torch/headeronly/version.h>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
-#include "diffusion_worker/sdxl/model_folder.h"
+#include "bench/random_sdxl_folder.h"
 #include "diffusion_worker/sdxl/pipeline.h"
-#include "diffusion_worker/sdxl/random_model.h"
 
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAContext.h>
@@ -167,42 +166,15 @@ bool time_img2img(gaps::sdxl::SdxlPipeline& pipeline, const std::vector<Size>& s
 }
 #endif
 
-// Writes the random-weight folder when asked and missing; false (with a message) on failure.
-bool ensure_model(const std::string& dir) {
-  if (std::filesystem::exists(std::filesystem::path(dir) / "model_index.json")) return true;
-  if (!absl::GetFlag(FLAGS_write_model)) {
-    std::cerr << "sdxl_bench: " << dir << " holds no model; pass --write_model to write the random-weight SDXL\n";
-    return false;
-  }
-  gaps::sdxl::SdxlConfigs configs = gaps::sdxl::SdxlConfigs::base();
-  const std::string from = absl::GetFlag(FLAGS_configs_from);
-  if (!from.empty()) {
-    auto folder = gaps::sdxl::ModelFolder::open(from);
-    if (!folder.ok()) {
-      std::cerr << "sdxl_bench: " << folder.status() << "\n";
-      return false;
-    }
-    configs = {*folder->read_json("unet"), *folder->read_json("vae"), *folder->read_json("text_encoder"),
-               *folder->read_json("text_encoder_2"), *folder->read_json("scheduler", "scheduler_config.json")};
-  }
-  const auto t0 = std::chrono::steady_clock::now();
-  const absl::Status written =
-      gaps::sdxl::write_random_sdxl_model(dir, configs, absl::GetFlag(FLAGS_weights_seed), "float16");
-  if (!written.ok()) {
-    std::cerr << "sdxl_bench: " << written << "\n";
-    return false;
-  }
-  std::cerr << "sdxl_bench: wrote " << dir << " in "
-            << std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() << " s\n";
-  return true;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
   const std::string dir = absl::GetFlag(FLAGS_model_dir);
-  if (!ensure_model(dir)) return 1;
+  if (!gaps::bench::ensure_random_sdxl(dir, absl::GetFlag(FLAGS_write_model), absl::GetFlag(FLAGS_configs_from),
+                                       absl::GetFlag(FLAGS_weights_seed), "sdxl_bench")) {
+    return 1;
+  }
 #if !defined(GAPS_CUDA_KERNELS)
   std::cerr << "sdxl_bench: this build has no CUDA (configured with GAPS_CUDA=OFF or without nvcc); the full-size "
                "SDXL timings need a CUDA GPU and a CUDA build.\n";
