@@ -430,7 +430,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   if (device.is_cuda() && !at::hasCUDA()) {
-    std::cerr << "generator_bench: no CUDA device (or a build without CUDA); the full-size models (fp16, about 16 GB "
+    std::cerr << "generator_bench: no CUDA device (or a build without CUDA); the full-size models (fp16, about 13 GB "
                  "of weights) run on a GPU. --device cpu --dtype float32 runs the tiny models on the CPU.\n";
     return 2;
   }

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Random-weight models, at the published architectures, for every component of the sdxl backend that
-`generator_bench --write_model` (the SDXL base folder) does not write, in the layouts the LoRA-free loaders
-of diffusion_worker/ and diffusers both read. Weights are seeded random values (std 1/sqrt(fan-in) for
+`generator_bench --write_model` (the SDXL base folder) does not write, in the layouts the loaders of
+diffusion_worker/ and diffusers both read. Weights are seeded random values (std 1/sqrt(fan-in) for
 matrices and kernels, 0.02 for embeddings, 1 and 0 for norm scales and biases), stored as fp16 safetensors.
 
 OUT receives
