@@ -45,6 +45,7 @@
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDACachingAllocator.h>
+#include <c10/cuda/CUDAFunctions.h>
 #endif
 
 ABSL_FLAG(std::string, sdxl_dir, "/tmp/gaps_sdxl_random", "random-weight SDXL folder (written with --write_model)");
@@ -99,7 +100,8 @@ std::optional<Size> parse_size(const std::string& text, int64_t factor) {
 
 class Device {
  public:
-  explicit Device(at::Device device) : device_(device) {}
+  // "cuda" without an index means the current device; the allocator's statistics need the index itself.
+  explicit Device(at::Device device) : device_(with_index(device)) {}
   const at::Device& device() const { return device_; }
   void sync() const {
 #if defined(GAPS_CUDA_KERNELS)
@@ -136,6 +138,13 @@ class Device {
   }
 
  private:
+  static at::Device with_index(at::Device device) {
+#if defined(GAPS_CUDA_KERNELS)
+    if (device.is_cuda() && !device.has_index()) return at::Device(at::kCUDA, c10::cuda::current_device());
+#endif
+    return device;
+  }
+
   at::Device device_;
 };
 

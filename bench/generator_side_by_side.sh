@@ -15,7 +15,7 @@ work=${1:-/tmp/gaps_generator_bench}
 out=${2:-$root/bench/results/generator_gpu_$(date -u +%Y-%m-%d).jsonl}
 python=${GAPS_PYTHON:-$HOME/.cache/gaps/venv/bin/python}
 bench="${GAPS_BUILD:-$root/build}/bench/generator_bench"
-commit=$(git -C "$root" rev-parse --short HEAD 2>/dev/null || echo unknown)
+commit=${GAPS_COMMIT:-$(git -C "$root" rev-parse --short HEAD 2>/dev/null || echo unknown)}
 extra=(${GAPS_BENCH_ARGS:-})
 sdxl_args=() weights_args=()
 if [ "${GAPS_TINY:-0}" = 1 ]; then
