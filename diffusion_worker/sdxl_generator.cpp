@@ -122,9 +122,6 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   if (!o.inpaint.empty() && !std::isfinite(o.inpaint_depth_threshold)) {
     return option_error("inpaint_depth_threshold", "is required with inpaint (tau_d, in render_depth's units)");
   }
-  if (o.lora_steps > 0 && !o.ip_adapter.empty()) {
-    return option_error("lora_steps", "LoRA training cannot run with an IP-Adapter loaded (ip_adapter)");
-  }
   if (o.lora_steps > 0 && !o.lora.empty()) {
     return option_error("lora", "give either a LoRA file to load or lora_steps to train one, not both");
   }

@@ -75,7 +75,8 @@ class SdxlGenerator final : public Generator {
   // Checks the views; with lora_steps > 0 trains the LoRA adapters on them (all views of one size,
   // padded as generate() pads renders; the prompt option as their prompt; with a ControlNet, each view's
   // render_depth / render_alpha give its control image at conditioning scale 1), replacing any earlier
-  // adapters, and saves them to lora_save when set. An IP-Adapter cannot be loaded at the same time.
+  // adapters, and saves them to lora_save when set. With an IP-Adapter, training runs without the image
+  // prompt (text and depth conditioning only); generation then uses adapters and image prompt together.
   absl::Status adapt(const std::vector<ReferenceView>& views) override;
   // Each render is padded at its bottom/right edge (replicated) to a multiple of the latent factor (8 for
   // SDXL: 504 x 378 runs at 504 x 384), run through img2img at its strength and cropped back. A strength

@@ -1,7 +1,7 @@
 // Scene adaptation by LoRA in the `sdxl` backend on the tiny fixture model: adapt() with lora_steps > 0
 // trains adapters on the ground-truth views (with and without the tiny depth ControlNet) that change the
 // generated images, saves them with lora_save, and a generator started with that file (option lora)
-// generates the same images; the LoRA options' errors.
+// generates the same images; LoRA together with the IP-Adapter; the LoRA options' errors.
 #include <string>
 
 #include <ATen/ATen.h>
@@ -97,6 +97,40 @@ TEST_F(SdxlLoraGeneratorTest, DepthAnythingGivesTheTrainingViewsTheirDepth) {
   const absl::Status adapted = (*estimated)->adapt(gt);
   ASSERT_TRUE(adapted.ok()) << adapted;
   EXPECT_GT((generate_one(**estimated) - generate_one(**rendered)).abs().max().item<double>(), 1e-4);
+}
+
+// The paper's full stack: LoRA adapted with the IP-Adapter and ControlNet loaded, then generation with all
+// three. Training runs with the image branch off, so its adapters equal those of a generator without the
+// IP-Adapter (same images for a request without reference views, where the image branch has scale 0); a
+// reference view still changes the adapted generator's images.
+TEST_F(SdxlLoraGeneratorTest, AdaptsWithTheIpAdapterLoadedAndGeneratesWithBoth) {
+  const std::string ip_dir = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/ip_adapter_tiny";
+  const std::string ip = ", \"ip_adapter\": \"" + ip_dir + "/ip_adapter.safetensors\", \"image_encoder\": \"" + ip_dir +
+                         "/image_encoder\", \"ip_adapter_scale\": 0.7";
+  const std::string common = ", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 3, \"lora_lr\": 0.01";
+  auto full = make_generator("sdxl", options_json(common + ip));
+  auto without_ip = make_generator("sdxl", options_json(common));
+  ASSERT_TRUE(full.ok()) << full.status();
+  ASSERT_TRUE(without_ip.ok()) << without_ip.status();
+  GenerationRequest with_reference = request();
+  ReferenceView nearest;
+  nearest.image = at::rand({12, 8, 3}, at::make_generator<at::CPUGeneratorImpl>(8));
+  with_reference.references = {nearest};
+  const auto generate_both = [&](Generator& g) {
+    auto images = g.generate({with_reference, request()});
+    EXPECT_TRUE(images.ok()) << images.status();
+    return images.ok() ? *images : std::vector<at::Tensor>(2);
+  };
+  const std::vector<at::Tensor> before = generate_both(**full);  // sets an image prompt before training
+
+  const std::vector<ReferenceView> gt = views(2, 12, 8);
+  const absl::Status adapted = (*full)->adapt(gt);
+  ASSERT_TRUE(adapted.ok()) << adapted;
+  ASSERT_TRUE((*without_ip)->adapt(gt).ok());
+  const std::vector<at::Tensor> after = generate_both(**full);
+  EXPECT_GT((after[0] - before[0]).abs().max().item<double>(), 1e-3) << "the adapters change the images";
+  EXPECT_GT((after[0] - after[1]).abs().max().item<double>(), 1e-3) << "the image prompt still acts after adapting";
+  test::expect_close(after[1], generate_one(**without_ip), 1e-5, "adapters trained with and without the IP-Adapter");
 }
 
 TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {

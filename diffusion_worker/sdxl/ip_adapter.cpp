@@ -67,6 +67,7 @@ void ImagePrompt::set(const at::Tensor& tokens, const at::Tensor& scales) {
     slot.scales.copy_(scale_view);
   }
   current_ = &slot;
+  text_only_ = false;
 }
 
 const at::Tensor& ImagePrompt::tokens() const {
@@ -80,6 +81,7 @@ const at::Tensor& ImagePrompt::scales() const {
 }
 
 at::Tensor DecoupledCrossAttention::operator()(const Attention& attn, const at::Tensor& x, const at::Tensor& context) const {
+  if (prompt_->text_only()) return attn.to_out(attn.attend(attn.to_q(x), attn.to_k(context), attn.to_v(context)));
   const at::Tensor& tokens = prompt_->tokens();
   TORCH_CHECK(tokens.defined(), "IP-Adapter: the UNet ran without an image prompt (set_image_prompt)");
   TORCH_CHECK(tokens.size(0) == x.size(0), "IP-Adapter: image prompt for ", tokens.size(0), " images, UNet batch ",

@@ -34,6 +34,10 @@ class ImagePrompt {
  public:
   // tokens: B x T x C in the UNet's dtype and device; scales: B.
   void set(const at::Tensor& tokens, const at::Tensor& scales);
+  // No image prompt until the next set(): the layers attend to the text alone, as the UNet without the
+  // adapter does (LoRA training, which adapts the text-conditioned UNet; see SdxlPipeline::train_lora).
+  void set_text_only() { current_ = nullptr; text_only_ = true; }
+  bool text_only() const { return text_only_; }
   const at::Tensor& tokens() const;  // undefined before the first set()
   const at::Tensor& scales() const;  // B x 1 x 1
 
@@ -43,6 +47,7 @@ class ImagePrompt {
   };
   std::map<std::vector<int64_t>, Buffers> buffers_;
   const Buffers* current_ = nullptr;
+  bool text_only_ = false;
 };
 
 // The decoupled cross-attention of one attn2 layer.
@@ -72,6 +77,8 @@ class IpAdapter {
   at::Tensor project(const at::Tensor& image_embeds) const { return projection_(image_embeds); }
   // The tokens (B x T x C) and per-image scales (B) the UNet's attn2 layers attend to from now on.
   void set_image_prompt(const at::Tensor& tokens, const at::Tensor& scales) { prompt_->set(tokens, scales); }
+  // The attn2 layers attend to the text alone until the next set_image_prompt.
+  void set_text_only() { prompt_->set_text_only(); }
 
   int64_t image_embed_dim() const { return projection_.image_embeds.weight.size(1); }
   int64_t num_layers() const { return num_layers_; }

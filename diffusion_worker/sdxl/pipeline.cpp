@@ -459,9 +459,6 @@ absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& i
                                                              const std::optional<ControlInput>& control,
                                                              const LoraConfig& config,
                                                              const LoraTrainingOptions& options) {
-  if (ip_adapter_) {
-    return absl::FailedPreconditionError("LoRA training: not supported while an IP-Adapter is loaded");
-  }
   if (images.dim() != 4 || images.size(1) != 3) return absl::InvalidArgumentError("LoRA training: images must be B x 3 x H x W");
   const int64_t batch = images.size(0), height = images.size(2), width = images.size(3), f = latent_factor();
   if (height % f != 0 || width % f != 0) {
@@ -495,6 +492,10 @@ absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& i
     }
   }
   GAPS_RETURN_IF_ERROR(reset_lora());
+  // The adapters learn the scene under the text (and depth) conditioning the paper trains with; the image
+  // prompt joins at generation (img2img sets it anew). Its buffers are inference tensors, which autograd
+  // could not save for backward anyway.
+  if (ip_adapter_) ip_adapter_->set_text_only();
   GAPS_ASSIGN_OR_RETURN(UNetLora lora, UNetLora::create(*unet_, config, options.seed));
   std::vector<double> losses;
   {

@@ -97,8 +97,8 @@ class SdxlPipeline {
   // LoraTrainer on images (B x 3 x H x W in [0, 1], H and W multiples of the latent factor; their VAE
   // latents drawn with options.seed) with prompts (one, or one per image) and, with a ControlNet, control
   // (one scale for all images). The adapters replace any earlier LoRA and stay attached and frozen.
-  // Returns the loss of every step. Not while an IP-Adapter is loaded (its image-prompt buffers are
-  // inference tensors, which autograd cannot use): an error.
+  // Returns the loss of every step. With an IP-Adapter loaded, its image branch is off during training
+  // (the adapters learn the text-conditioned UNet, as the paper trains them); img2img turns it back on.
   absl::StatusOr<std::vector<double>> train_lora(const at::Tensor& images, const std::vector<std::string>& prompts,
                                                  const std::optional<ControlInput>& control, const LoraConfig& config,
                                                  const LoraTrainingOptions& options);
