@@ -119,9 +119,6 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     return option_error(o.ip_adapter.empty() ? "image_encoder" : "ip_adapter",
                         "an IP-Adapter needs both ip_adapter (weights) and image_encoder (CLIP image encoder folder)");
   }
-  if (!o.inpaint.empty() && !std::isfinite(o.inpaint_depth_threshold)) {
-    return option_error("inpaint_depth_threshold", "is required with inpaint (tau_d, in render_depth's units)");
-  }
   if (o.lora_steps > 0 && !o.lora.empty()) {
     return option_error("lora", "give either a LoRA file to load or lora_steps to train one, not both");
   }
@@ -357,14 +354,23 @@ absl::StatusOr<sdxl::InpaintPipeline*> SdxlGenerator::inpaint_pipeline() {
 
 absl::Status SdxlGenerator::inpaint_uncovered(const std::vector<GenerationRequest>& requests,
                                               std::vector<at::Tensor>& results) {
-  sdxl::TwoStageOptions two_stage;
-  two_stage.depth_threshold = options_.inpaint_depth_threshold;
-  two_stage.min_uncovered_fraction = options_.inpaint_uncovered_fraction;
-  two_stage.dilation_kernel = options_.inpaint_dilation;
-  two_stage.inpaint.steps = options_.inpaint_steps;
-  two_stage.inpaint.guidance_scale = options_.inpaint_guidance;
   for (size_t i = 0; i < requests.size(); ++i) {
     const GenerationRequest& r = requests[i];
+    // The request's settings (the trainer's GapsConfig) when it carries them, else the options.
+    const InpaintSettings settings =
+        r.inpaint.value_or(InpaintSettings{options_.inpaint_depth_threshold, options_.inpaint_uncovered_fraction,
+                                           static_cast<int>(options_.inpaint_dilation)});
+    if (!std::isfinite(settings.depth_threshold)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "sdxl generate: request ", i, " carries no inpaint settings and the inpaint_depth_threshold option (tau_d, "
+          "in render_depth's units) is not set"));
+    }
+    sdxl::TwoStageOptions two_stage;
+    two_stage.depth_threshold = settings.depth_threshold;
+    two_stage.min_uncovered_fraction = settings.uncovered_fraction;
+    two_stage.dilation_kernel = settings.dilation;
+    two_stage.inpaint.steps = options_.inpaint_steps;
+    two_stage.inpaint.guidance_scale = options_.inpaint_guidance;
     GAPS_ASSIGN_OR_RETURN(
         sdxl::TwoStageResult out,
         sdxl::two_stage_generate(results[i].permute({2, 0, 1}).unsqueeze(0), r.render_depth.unsqueeze(0),

@@ -42,8 +42,10 @@ struct SdxlOptions {
   std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
   double ip_adapter_scale = 0.5;  // lambda_ip, the scale of the image prompt's attention
   // Two-stage generation (eq. two_stage, sdxl/two_stage.h): an SD2 inpainting folder ("" = off), loaded on
-  // first need, regenerates the pixels whose render_depth is below inpaint_depth_threshold (tau_d; required
-  // with inpaint), dilated 15 x 15, in views more than 2% uncovered.
+  // first need, regenerates the pixels whose render_depth is below tau_d, dilated 15 x 15, in views more
+  // than 2% uncovered. A request's InpaintSettings (the trainer sends GapsConfig's) decide tau_d, the
+  // fraction and the dilation; the three options below serve only requests without them (then
+  // inpaint_depth_threshold must be set).
   std::string inpaint;
   double inpaint_depth_threshold = std::numeric_limits<double>::quiet_NaN();
   std::string inpaint_scheduler;  // "" = the folder's; euler | ddim | dpmpp2m (SD2's PNDM is not implemented)
