@@ -13,6 +13,7 @@
 
 #include "absl/status/statusor.h"
 #include "diffusion_worker/depth/depth_anything.h"
+#include "diffusion_worker/depth/depth_cache.h"
 #include "diffusion_worker/depth_control.h"
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
 #include "diffusion_worker/sdxl/pipeline.h"
@@ -37,6 +38,9 @@ struct SdxlOptions {
   // Depth-Anything folder (transformers layout): with a ControlNet and lora_steps, the ground-truth views'
   // control images during LoRA training come from its monocular depth; "" = their rendered depth.
   std::string depth_anything;
+  // Depth-Anything's maps of the views are cached by image content (DepthCache), so repeated adapt() calls
+  // on the same views reuse them; with a folder they also outlive the process ("" = memory only).
+  std::string depth_cache;
   DepthControlOptions depth_control;  // keys control_min_alpha, control_variance_window, control_max_relative_variance
   std::string ip_adapter;         // IP-Adapter weight file (diffusers single-file layout); "" = none
   std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
@@ -89,15 +93,20 @@ class SdxlGenerator final : public Generator {
   // What is loaded: the SDXL folder and each optional component given (the inpainting model marked
   // "loaded" or "on first need").
   std::string weights_identity() const override;
+  // Depth-Anything maps of ground-truth views (hits and computations).
+  const depth::DepthCache& depth_cache() const { return depth_cache_; }
 
  private:
   SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline);
   absl::Status train_lora(const std::vector<ReferenceView>& views);
   // The control image of a ground-truth view for LoRA training (Depth-Anything or its rendered depth).
-  absl::StatusOr<at::Tensor> training_control_image(const ReferenceView& view, size_t index) const;
+  absl::StatusOr<at::Tensor> training_control_image(const ReferenceView& view, size_t index);
   SdxlOptions options_;
   std::unique_ptr<sdxl::SdxlPipeline> pipeline_;
   std::optional<depth::DepthAnything> depth_model_;
+  depth::DepthCache depth_cache_;
+  // Depth-Anything's disparity of a view, through depth_cache_.
+  absl::StatusOr<at::Tensor> view_disparity(const at::Tensor& image, size_t index);
   // Two-stage generation: the inpainting pipeline (loaded on first call) and its pass over the results.
   absl::StatusOr<sdxl::InpaintPipeline*> inpaint_pipeline();
   absl::Status inpaint_uncovered(const std::vector<GenerationRequest>& requests, std::vector<at::Tensor>& results);
