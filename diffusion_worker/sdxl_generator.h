@@ -28,7 +28,7 @@ struct SdxlOptions {
   std::string dtype = "float32";  // float32 | float16 | bfloat16 (half types need a CUDA device)
   std::string device = "cpu";     // cpu | cuda | cuda:N
   std::string prompt;             // used when a request has no prompt
-  std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m
+  std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m | pndm
   int64_t batch_size = 4;         // requests of one size and strength denoised together
   bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
   std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
@@ -52,7 +52,7 @@ struct SdxlOptions {
   // inpaint_depth_threshold must be set).
   std::string inpaint;
   double inpaint_depth_threshold = std::numeric_limits<double>::quiet_NaN();
-  std::string inpaint_scheduler;  // "" = the folder's; euler | ddim | dpmpp2m (SD2's PNDM is not implemented)
+  std::string inpaint_scheduler;  // "" = the folder's (SD2's: PNDM); euler | ddim | dpmpp2m | pndm
   int64_t inpaint_steps = 30;     // the second stage runs from pure noise (strength 1)
   double inpaint_guidance = 7.5;
   double inpaint_uncovered_fraction = 0.02;  // inpaint views with more uncovered pixels than this
