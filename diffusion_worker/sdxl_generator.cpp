@@ -9,6 +9,7 @@
 #include <ATen/ATen.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "diffusion_worker/sdxl/two_stage.h"
 #include "gs_trainer/status_macros.h"
 
@@ -17,6 +18,13 @@ namespace {
 
 absl::Status option_error(const std::string& key, const std::string& what) {
   return absl::InvalidArgumentError(absl::StrCat("sdxl option '", key, "': ", what));
+}
+
+// FNV-1a, 64 bit: a fingerprint that is the same in every process (cache file names).
+uint64_t fnv1a(const void* data, size_t size) {
+  uint64_t hash = 1469598103934665603ull;
+  for (size_t i = 0; i < size; ++i) hash = (hash ^ static_cast<const unsigned char*>(data)[i]) * 1099511628211ull;
+  return hash;
 }
 
 absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
@@ -73,6 +81,7 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
                                                       {"device", &o.device},   {"prompt", &o.prompt},
                                                       {"scheduler", &o.scheduler}, {"variant", &o.variant},
                                                       {"controlnet", &o.controlnet}, {"depth_anything", &o.depth_anything},
+                                                      {"depth_cache", &o.depth_cache},
                                                       {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder},
                                                       {"lora_save", &o.lora_save}, {"lora", &o.lora}};
     if (strings.count(key)) {
@@ -108,7 +117,7 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
       return absl::InvalidArgumentError(absl::StrCat(
           "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
           "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
-          "image_encoder, ip_adapter_scale, depth_anything, lora_steps, lora_rank, lora_lr, lora_save, lora, "
+          "image_encoder, ip_adapter_scale, depth_anything, depth_cache, lora_steps, lora_rank, lora_lr, lora_save, lora, "
           "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, inpaint_uncovered_fraction, "
           "inpaint_dilation"));
     }
@@ -119,9 +128,6 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     return option_error(o.ip_adapter.empty() ? "image_encoder" : "ip_adapter",
                         "an IP-Adapter needs both ip_adapter (weights) and image_encoder (CLIP image encoder folder)");
   }
-  if (!o.inpaint.empty() && !std::isfinite(o.inpaint_depth_threshold)) {
-    return option_error("inpaint_depth_threshold", "is required with inpaint (tau_d, in render_depth's units)");
-  }
   if (o.lora_steps > 0 && !o.lora.empty()) {
     return option_error("lora", "give either a LoRA file to load or lora_steps to train one, not both");
   }
@@ -129,12 +135,13 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   if (!o.depth_anything.empty() && (o.lora_steps == 0 || o.controlnet.empty())) {
     return option_error("depth_anything", "conditions LoRA training: it needs lora_steps > 0 and a controlnet");
   }
+  if (!o.depth_cache.empty() && o.depth_anything.empty()) return option_error("depth_cache", "needs depth_anything");
   GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
 
 SdxlGenerator::SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline)
-    : options_(std::move(options)), pipeline_(std::move(pipeline)) {}
+    : options_(std::move(options)), pipeline_(std::move(pipeline)), depth_cache_(options_.depth_cache) {}
 
 absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlOptions& options) {
   GAPS_ASSIGN_OR_RETURN(const at::ScalarType dtype, parse_dtype(options.dtype));
@@ -202,14 +209,25 @@ absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
   return train_lora(views);
 }
 
-absl::StatusOr<at::Tensor> SdxlGenerator::training_control_image(const ReferenceView& v, size_t index) const {
+absl::StatusOr<at::Tensor> SdxlGenerator::view_disparity(const at::Tensor& image, size_t index) {
+  const at::Tensor pixels = image.to(at::kCPU, at::kFloat).clamp(0, 1).contiguous();
+  // Keyed by the depth model and the pixels: the same view misses nothing, a changed one shares nothing.
+  const std::string model_key = absl::StrFormat("model-%016x", fnv1a(options_.depth_anything.data(), options_.depth_anything.size()));
+  const std::string view_key = absl::StrFormat(
+      "%dx%d-%016x", pixels.size(0), pixels.size(1), fnv1a(pixels.const_data_ptr(), pixels.nbytes()));
+  auto disparity = depth_cache_.get_or_compute(model_key, view_key, pixels.size(0), pixels.size(1),
+                                               [&] { return depth_model_->estimate_depth(pixels); });
+  if (!disparity.ok()) {
+    return absl::Status(disparity.status().code(),
+                        absl::StrCat("sdxl adapt: Depth-Anything on view ", index, ": ", disparity.status().message()));
+  }
+  return *disparity;
+}
+
+absl::StatusOr<at::Tensor> SdxlGenerator::training_control_image(const ReferenceView& v, size_t index) {
   if (depth_model_) {
-    auto disparity = depth_model_->estimate_depth(v.image.to(at::kCPU, at::kFloat).clamp(0, 1));
-    if (!disparity.ok()) {
-      return absl::Status(disparity.status().code(),
-                          absl::StrCat("sdxl adapt: Depth-Anything on view ", index, ": ", disparity.status().message()));
-    }
-    GAPS_ASSIGN_OR_RETURN(DepthControl control, disparity_control_image(*disparity));
+    GAPS_ASSIGN_OR_RETURN(const at::Tensor disparity, view_disparity(v.image, index));
+    GAPS_ASSIGN_OR_RETURN(DepthControl control, disparity_control_image(disparity));
     return control.image;
   }
   const auto hw = v.image.sizes().slice(0, 2);
@@ -357,14 +375,23 @@ absl::StatusOr<sdxl::InpaintPipeline*> SdxlGenerator::inpaint_pipeline() {
 
 absl::Status SdxlGenerator::inpaint_uncovered(const std::vector<GenerationRequest>& requests,
                                               std::vector<at::Tensor>& results) {
-  sdxl::TwoStageOptions two_stage;
-  two_stage.depth_threshold = options_.inpaint_depth_threshold;
-  two_stage.min_uncovered_fraction = options_.inpaint_uncovered_fraction;
-  two_stage.dilation_kernel = options_.inpaint_dilation;
-  two_stage.inpaint.steps = options_.inpaint_steps;
-  two_stage.inpaint.guidance_scale = options_.inpaint_guidance;
   for (size_t i = 0; i < requests.size(); ++i) {
     const GenerationRequest& r = requests[i];
+    // The request's settings (the trainer's GapsConfig) when it carries them, else the options.
+    const InpaintSettings settings =
+        r.inpaint.value_or(InpaintSettings{options_.inpaint_depth_threshold, options_.inpaint_uncovered_fraction,
+                                           static_cast<int>(options_.inpaint_dilation)});
+    if (!std::isfinite(settings.depth_threshold)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "sdxl generate: request ", i, " carries no inpaint settings and the inpaint_depth_threshold option (tau_d, "
+          "in render_depth's units) is not set"));
+    }
+    sdxl::TwoStageOptions two_stage;
+    two_stage.depth_threshold = settings.depth_threshold;
+    two_stage.min_uncovered_fraction = settings.uncovered_fraction;
+    two_stage.dilation_kernel = settings.dilation;
+    two_stage.inpaint.steps = options_.inpaint_steps;
+    two_stage.inpaint.guidance_scale = options_.inpaint_guidance;
     GAPS_ASSIGN_OR_RETURN(
         sdxl::TwoStageResult out,
         sdxl::two_stage_generate(results[i].permute({2, 0, 1}).unsqueeze(0), r.render_depth.unsqueeze(0),

@@ -13,6 +13,7 @@
 
 #include "absl/status/statusor.h"
 #include "diffusion_worker/depth/depth_anything.h"
+#include "diffusion_worker/depth/depth_cache.h"
 #include "diffusion_worker/depth_control.h"
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
 #include "diffusion_worker/sdxl/pipeline.h"
@@ -27,7 +28,7 @@ struct SdxlOptions {
   std::string dtype = "float32";  // float32 | float16 | bfloat16 (half types need a CUDA device)
   std::string device = "cpu";     // cpu | cuda | cuda:N
   std::string prompt;             // used when a request has no prompt
-  std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m
+  std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m | pndm
   int64_t batch_size = 4;         // requests of one size and strength denoised together
   bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
   std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
@@ -37,16 +38,21 @@ struct SdxlOptions {
   // Depth-Anything folder (transformers layout): with a ControlNet and lora_steps, the ground-truth views'
   // control images during LoRA training come from its monocular depth; "" = their rendered depth.
   std::string depth_anything;
+  // Depth-Anything's maps of the views are cached by image content (DepthCache), so repeated adapt() calls
+  // on the same views reuse them; with a folder they also outlive the process ("" = memory only).
+  std::string depth_cache;
   DepthControlOptions depth_control;  // keys control_min_alpha, control_variance_window, control_max_relative_variance
   std::string ip_adapter;         // IP-Adapter weight file (diffusers single-file layout); "" = none
   std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
   double ip_adapter_scale = 0.5;  // lambda_ip, the scale of the image prompt's attention
   // Two-stage generation (eq. two_stage, sdxl/two_stage.h): an SD2 inpainting folder ("" = off), loaded on
-  // first need, regenerates the pixels whose render_depth is below inpaint_depth_threshold (tau_d; required
-  // with inpaint), dilated 15 x 15, in views more than 2% uncovered.
+  // first need, regenerates the pixels whose render_depth is below tau_d, dilated 15 x 15, in views more
+  // than 2% uncovered. A request's InpaintSettings (the trainer sends GapsConfig's) decide tau_d, the
+  // fraction and the dilation; the three options below serve only requests without them (then
+  // inpaint_depth_threshold must be set).
   std::string inpaint;
   double inpaint_depth_threshold = std::numeric_limits<double>::quiet_NaN();
-  std::string inpaint_scheduler;  // "" = the folder's; euler | ddim | dpmpp2m (SD2's PNDM is not implemented)
+  std::string inpaint_scheduler;  // "" = the folder's (SD2's: PNDM); euler | ddim | dpmpp2m | pndm
   int64_t inpaint_steps = 30;     // the second stage runs from pure noise (strength 1)
   double inpaint_guidance = 7.5;
   double inpaint_uncovered_fraction = 0.02;  // inpaint views with more uncovered pixels than this
@@ -87,15 +93,20 @@ class SdxlGenerator final : public Generator {
   // What is loaded: the SDXL folder and each optional component given (the inpainting model marked
   // "loaded" or "on first need").
   std::string weights_identity() const override;
+  // Depth-Anything maps of ground-truth views (hits and computations).
+  const depth::DepthCache& depth_cache() const { return depth_cache_; }
 
  private:
   SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline);
   absl::Status train_lora(const std::vector<ReferenceView>& views);
   // The control image of a ground-truth view for LoRA training (Depth-Anything or its rendered depth).
-  absl::StatusOr<at::Tensor> training_control_image(const ReferenceView& view, size_t index) const;
+  absl::StatusOr<at::Tensor> training_control_image(const ReferenceView& view, size_t index);
   SdxlOptions options_;
   std::unique_ptr<sdxl::SdxlPipeline> pipeline_;
   std::optional<depth::DepthAnything> depth_model_;
+  depth::DepthCache depth_cache_;
+  // Depth-Anything's disparity of a view, through depth_cache_.
+  absl::StatusOr<at::Tensor> view_disparity(const at::Tensor& image, size_t index);
   // Two-stage generation: the inpainting pipeline (loaded on first call) and its pass over the results.
   absl::StatusOr<sdxl::InpaintPipeline*> inpaint_pipeline();
   absl::Status inpaint_uncovered(const std::vector<GenerationRequest>& requests, std::vector<at::Tensor>& results);

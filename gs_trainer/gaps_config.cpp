@@ -1,3 +1,4 @@
+#include <cmath>
 #include "gs_trainer/gaps_config.h"
 
 #include <string>
@@ -17,7 +18,8 @@ namespace gaps {
   X(diversity_radius) X(exploration_period) X(exploration_fraction) X(admit_min_alpha)                   \
   X(admit_max_residual) X(admit_min_structure) X(uncertainty_lambda) X(uncertainty_eps) X(extrap_kappa) X(pseudo_loss_weight)   \
   X(drop_max) X(drop_n_ref) X(strength_max) X(strength_min) X(cn_scale) X(cn_coverage)                   \
-  X(ip_adapter_scale) X(lora_rank) X(lora_steps) X(inpaint_uncovered_fraction) X(inpaint_dilation)
+  X(ip_adapter_scale) X(lora_rank) X(lora_steps) X(inpaint_uncovered_fraction) X(inpaint_dilation) \
+  X(inpaint_depth_threshold)
 
 namespace {
 
@@ -55,6 +57,11 @@ absl::Status validate_gaps_config(const GapsConfig& c) {
       c.hist_variance_scale <= 0) {
     return invalid("scales must be positive");
   }
+  if (!(c.inpaint_uncovered_fraction >= 0 && c.inpaint_uncovered_fraction < 1))
+    return invalid("inpaint_uncovered_fraction not in [0, 1)");
+  if (c.inpaint_dilation < 1 || c.inpaint_dilation % 2 == 0) return invalid("inpaint_dilation must be odd and >= 1");
+  if (!(c.inpaint_depth_threshold >= 0) || !std::isfinite(c.inpaint_depth_threshold))
+    return invalid("inpaint_depth_threshold must be a finite number >= 0");
   return absl::OkStatus();
 }
 

@@ -7,6 +7,7 @@
 
 #include <absl/status/status.h>
 #include <nlohmann/json_fwd.hpp>
+#include "gs_trainer/generator.h"
 
 namespace gaps {
 
@@ -95,8 +96,12 @@ struct GapsConfig {
   double ip_adapter_scale = 0.5;    // λ_ip (eq:ipadapter)
   int lora_rank = 4;                // r (eq:lora)
   int lora_steps = 50;              // LoRA steps in the first diffusion phase
-  double inpaint_uncovered_fraction = 0.02;  // > 2% uncovered pixels sends a view to SD2 inpainting
-  int inpaint_dilation = 15;        // dilation kernel of the inpainting mask (eq:two_stage)
+  // Two-stage generation (eq:two_stage), sent with every generation request (GenerationRequest::inpaint).
+  double inpaint_uncovered_fraction = InpaintSettings{}.uncovered_fraction;  // > 2% uncovered: SD2 inpainting
+  int inpaint_dilation = InpaintSettings{}.dilation;  // dilation kernel of the inpainting mask (odd)
+  // τ_d: render_depth (alpha-weighted distance) below this is uncovered. Not given by the paper; 0.01 marks
+  // pixels with almost no rendered content in scenes whose surfaces lie at distances of order 1 or more.
+  double inpaint_depth_threshold = InpaintSettings{}.depth_threshold;
 
   int num_tiers() const { return static_cast<int>(tier_alpha_min.size()); }
 };

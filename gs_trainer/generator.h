@@ -2,6 +2,7 @@
 // The seam between the trainer and whatever produces pseudo-views. The trainer renders the current model
 // at each selected pose and asks a Generator for images; in-process backends (diffusion_worker/) and the
 // remote worker client implement this alike, so the trainer never knows where images come from.
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -19,6 +20,15 @@ struct ReferenceView {
   at::Tensor render_alpha;  // H x W, CPU
 };
 
+// Two-stage generation (sec. 3.3, eq. two_stage): a backend that inpaints regenerates the pixels whose
+// render_depth is below depth_threshold (tau_d), dilated by a dilation x dilation square, in views with
+// more than uncovered_fraction of them. The trainer sends GapsConfig's values with every request.
+struct InpaintSettings {
+  double depth_threshold = 0.01;    // tau_d, in render_depth's units (not given by the paper)
+  double uncovered_fraction = 0.02; // the paper's 2%
+  int dilation = 15;                // the paper's 15 x 15 kernel (odd)
+};
+
 struct GenerationRequest {
   Camera camera;            // the pseudo pose
   at::Tensor render_rgb;    // H x W x 3 full-fidelity render at the pose (no DropGaussian), CPU
@@ -30,6 +40,8 @@ struct GenerationRequest {
   std::vector<ReferenceView> references;  // nearest GT views by pose distance, nearest first
   std::string prompt;
   uint64_t seed = 0;
+  // nullopt: the backend's own inpainting options apply.
+  std::optional<InpaintSettings> inpaint;
 };
 
 class Generator {

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <map>
+#include <optional>
 
 #include "absl/strings/str_cat.h"
 #include "gs_trainer/status_macros.h"
@@ -28,6 +29,28 @@ absl::StatusOr<ReferenceView> decode_reference(const v1::ReferenceView& in, cons
   return view;
 }
 
+namespace {
+
+// All three fields or none.
+absl::StatusOr<std::optional<InpaintSettings>> decode_inpaint_settings(const v1::PoseConstraints& p,
+                                                                      const std::string& what) {
+  const int given = p.has_inpaint_depth_threshold() + p.has_inpaint_uncovered_fraction() + p.has_inpaint_dilation();
+  if (given == 0) return std::nullopt;
+  if (given != 3) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        what, ": give all of inpaint_depth_threshold, inpaint_uncovered_fraction and inpaint_dilation, or none"));
+  }
+  const InpaintSettings s{p.inpaint_depth_threshold(), p.inpaint_uncovered_fraction(), p.inpaint_dilation()};
+  if (!std::isfinite(s.depth_threshold) || s.depth_threshold < 0 || !(s.uncovered_fraction >= 0 && s.uncovered_fraction < 1) ||
+      s.dilation < 1 || s.dilation % 2 == 0) {
+    return absl::InvalidArgumentError(absl::StrCat(what, ": inpaint settings out of range (depth threshold >= 0, "
+                                                         "uncovered fraction in [0, 1), dilation odd >= 1)"));
+  }
+  return s;
+}
+
+}  // namespace
+
 void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out) {
   std::map<std::string, int> index;  // camera name -> position in out->references
   for (const auto& q : requests) {
@@ -41,6 +64,11 @@ void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1:
     pose->set_control_scale(q.control_scale);
     pose->set_prompt(q.prompt);
     pose->set_seed(q.seed);
+    if (q.inpaint) {
+      pose->set_inpaint_depth_threshold(q.inpaint->depth_threshold);
+      pose->set_inpaint_uncovered_fraction(q.inpaint->uncovered_fraction);
+      pose->set_inpaint_dilation(q.inpaint->dilation);
+    }
     for (const auto& r : q.references) {
       auto [it, inserted] = index.emplace(r.camera.name, out->references_size());
       if (inserted) encode_reference(r, out->add_references());
@@ -75,6 +103,7 @@ absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1:
     q.control_scale = p.control_scale();
     q.prompt = p.prompt();
     q.seed = p.seed();
+    GAPS_ASSIGN_OR_RETURN(q.inpaint, decode_inpaint_settings(p, what));
     for (int r : p.reference_order()) {
       if (r < 0 || r >= static_cast<int>(references.size()))
         return absl::InvalidArgumentError(absl::StrCat(what, ": reference index ", r, " out of range (",

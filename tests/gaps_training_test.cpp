@@ -29,12 +29,15 @@ class EchoGenerator : public Generator {
       EXPECT_GE(r.strength, 0.3 - 1e-12);
       EXPECT_LE(r.strength, 0.85 + 1e-12);
       out.push_back(r.render_rgb * (1 - noise_) + 0.5 * noise_);
+      EXPECT_TRUE(r.inpaint.has_value());
+      if (r.inpaint) inpaint = *r.inpaint;
     }
     calls += 1;
     return out;
   }
   int calls = 0;
   int adapted_views = 0;
+  InpaintSettings inpaint;  // of the last request
 
  private:
   double noise_;
@@ -55,11 +58,18 @@ nlohmann::json read_json(const std::filesystem::path& p) {
 
 TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   EchoGenerator gen(0.05);
-  auto r = run_pipeline(options(Variant::kFull, &gen), nullptr, [](const std::string&) {});
+  RunOptions run = options(Variant::kFull, &gen);
+  run.gaps.inpaint_depth_threshold = 0.3;  // GapsConfig's two-stage settings reach the generator
+  run.gaps.inpaint_uncovered_fraction = 0.05;
+  run.gaps.inpaint_dilation = 9;
+  auto r = run_pipeline(run, nullptr, [](const std::string&) {});
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_TRUE(std::isfinite(r->metrics.psnr));
   EXPECT_EQ(gen.calls, 2);  // phases at iterations 30 and 60
   EXPECT_EQ(gen.adapted_views, 3);
+  EXPECT_EQ(gen.inpaint.depth_threshold, 0.3);
+  EXPECT_EQ(gen.inpaint.uncovered_fraction, 0.05);
+  EXPECT_EQ(gen.inpaint.dilation, 9);
   const auto phases = read_json(dir_ / "out" / "phases.json");
   ASSERT_EQ(phases.size(), 2u);
   for (const auto& p : phases) {

@@ -3,7 +3,8 @@
 // (9 input channels, per-block attention_head_dim, linear projections, no added embedding), the gelu CLIP
 // text encoder's last hidden state, and inpainting of two images with soft masks (binarised at 0.5),
 // guidance 5 and a CPU generator seeded 1234: 2 DDIM steps, 2 Euler steps (strength 1), 3 of 4 DDIM steps
-// (strength 0.75), and one generator per image. Tolerance: max abs diff <= 1e-4 of the reference's scale.
+// (strength 0.75), one generator per image, and the folder's PNDM (skip_prk_steps) for 4 steps at
+// strength 1 and 3 of 4 at strength 0.75. Tolerance: max abs diff <= 1e-4 of the reference's scale.
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -115,12 +116,32 @@ TEST(Sd2InpaintTest, UNetMatchesDiffusers) {
   test::expect_close(unet->forward(in), ref.at("out"), 1e-4, "SD2 inpainting UNet");
 }
 
+// The prompts, seed and settings of the recorded runs.
+const nlohmann::json& inpaint_setup() {
+  static const nlohmann::json setup = [] {
+    std::ifstream in(fixture_dir() + "/reference/inpaint.json");
+    return nlohmann::json::parse(in);
+  }();
+  return setup;
+}
+
+std::vector<std::string> prompts() { return inpaint_setup()["prompts"].get<std::vector<std::string>>(); }
+
+// Runs the recorded inputs of reference `name` and compares with diffusers' output.
+void expect_run_matches(InpaintPipeline& pipeline, const std::string& name, const std::vector<uint64_t>& seeds) {
+  const nlohmann::json& run = inpaint_setup()["runs"][name];
+  const TensorMap ref = reference("inpaint_" + name);
+  InpaintParams params;
+  params.steps = run["steps"].get<int64_t>();
+  params.strength = run["strength"].get<double>();
+  params.guidance_scale = inpaint_setup()["guidance_scale"].get<double>();
+  auto out = pipeline.inpaint(ref.at("image"), ref.at("mask"), prompts(), params, seeds);
+  ASSERT_TRUE(out.ok()) << out.status();
+  test::expect_close(*out, ref.at("out"), 1e-4, "inpainting " + name);
+}
+
 class Sd2InpaintPipelineTest : public ::testing::Test {
  protected:
-  static void SetUpTestSuite() {
-    std::ifstream in(fixture_dir() + "/reference/inpaint.json");
-    setup_ = nlohmann::json::parse(in);
-  }
   static std::unique_ptr<InpaintPipeline> load(const std::string& scheduler = "") {
     InpaintPipelineOptions options;
     options.scheduler = scheduler;
@@ -128,22 +149,7 @@ class Sd2InpaintPipelineTest : public ::testing::Test {
     EXPECT_TRUE(pipeline.ok()) << pipeline.status();
     return pipeline.ok() ? *std::move(pipeline) : nullptr;
   }
-  static std::vector<std::string> prompts() { return setup_["prompts"].get<std::vector<std::string>>(); }
-  // Runs the recorded inputs of reference `name` and compares with diffusers' output.
-  static void expect_run_matches(InpaintPipeline& pipeline, const std::string& name, const std::vector<uint64_t>& seeds) {
-    const nlohmann::json& run = setup_["runs"][name];
-    const TensorMap ref = reference("inpaint_" + name);
-    InpaintParams params;
-    params.steps = run["steps"].get<int64_t>();
-    params.strength = run["strength"].get<double>();
-    params.guidance_scale = setup_["guidance_scale"].get<double>();
-    auto out = pipeline.inpaint(ref.at("image"), ref.at("mask"), prompts(), params, seeds);
-    ASSERT_TRUE(out.ok()) << out.status();
-    test::expect_close(*out, ref.at("out"), 1e-4, "inpainting " + name);
-  }
-  static nlohmann::json setup_;
 };
-nlohmann::json Sd2InpaintPipelineTest::setup_;
 
 TEST_F(Sd2InpaintPipelineTest, PromptEmbeddingsAreTheLastHiddenState) {
   auto pipeline = load();
@@ -156,7 +162,7 @@ TEST_F(Sd2InpaintPipelineTest, PromptEmbeddingsAreTheLastHiddenState) {
 TEST_F(Sd2InpaintPipelineTest, DdimFromNoiseMatchesDiffusers) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "ddim", {setup_["seed"].get<uint64_t>()});
+  expect_run_matches(*pipeline, "ddim", {inpaint_setup()["seed"].get<uint64_t>()});
   // Another seed gives another image (the draws are used).
   const TensorMap ref = reference("inpaint_ddim");
   InpaintParams params;
@@ -170,19 +176,19 @@ TEST_F(Sd2InpaintPipelineTest, DdimFromNoiseMatchesDiffusers) {
 TEST_F(Sd2InpaintPipelineTest, EulerFromNoiseMatchesDiffusers) {
   auto pipeline = load("euler");
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "euler", {setup_["seed"].get<uint64_t>()});
+  expect_run_matches(*pipeline, "euler", {inpaint_setup()["seed"].get<uint64_t>()});
 }
 
 TEST_F(Sd2InpaintPipelineTest, PartialStrengthMatchesDiffusers) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "ddim_strength", {setup_["seed"].get<uint64_t>()});
+  expect_run_matches(*pipeline, "ddim_strength", {inpaint_setup()["seed"].get<uint64_t>()});
 }
 
 TEST_F(Sd2InpaintPipelineTest, OneSeedPerImageMatchesDiffusersGeneratorList) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "seed_list", setup_["runs"]["seed_list"]["seeds"].get<std::vector<uint64_t>>());
+  expect_run_matches(*pipeline, "seed_list", inpaint_setup()["runs"]["seed_list"]["seeds"].get<std::vector<uint64_t>>());
 }
 
 TEST_F(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
@@ -194,8 +200,8 @@ TEST_F(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
     const TensorMap ref = reference("inpaint_ddim");
     InpaintParams params;
     params.steps = 2;
-    params.guidance_scale = setup_["guidance_scale"].get<double>();
-    auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), prompts(), params, {setup_["seed"].get<uint64_t>()});
+    params.guidance_scale = inpaint_setup()["guidance_scale"].get<double>();
+    auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), prompts(), params, {inpaint_setup()["seed"].get<uint64_t>()});
     ASSERT_TRUE(out.ok()) << out.status();
     test::expect_close(*out, ref.at("out"), tolerance, "half-precision inpainting");
   }
@@ -240,40 +246,46 @@ TEST(Sd2InpaintLoadTest, RejectsAUNetWithoutMaskInputs) {
 
 TEST(Sd2InpaintLoadTest, RejectsAnUnimplementedSchedulerByName) {
   InpaintPipelineOptions options;
-  options.scheduler = "pndm";
+  options.scheduler = "lms";
   auto pipeline = InpaintPipeline::load(model_dir(), options);
   ASSERT_FALSE(pipeline.ok());
-  EXPECT_TRUE(test::contains_all(std::string(pipeline.status().message()), {"scheduler", "pndm"}));
+  EXPECT_TRUE(test::contains_all(std::string(pipeline.status().message()), {"scheduler", "lms"}));
 }
 
-// The SD2 inpainting repository ships a PNDMScheduler: refused by name unless a scheduler is named, which
-// is then built from that config (here the fixture's DDIM settings under PNDM's class name).
-class Sd2InpaintPndmTest : public test::TempDirTest {};
+// The SD2 inpainting repository ships a PNDMScheduler with skip_prk_steps: here the fixture's DDIM settings
+// under that class name, as diffusers' PNDMScheduler.from_config(..., skip_prk_steps=True) recorded them.
+class Sd2InpaintPndmTest : public test::TempDirTest {
+ protected:
+  std::string pndm_folder(bool skip_prk_steps) {
+    const std::filesystem::path model = dir_ / (skip_prk_steps ? "model" : "model_prk");
+    std::filesystem::copy(model_dir(), model, std::filesystem::copy_options::recursive);
+    auto json = read_json_file((model / "scheduler" / "scheduler_config.json").string());
+    EXPECT_TRUE(json.ok()) << json.status();
+    (*json)["_class_name"] = "PNDMScheduler";
+    (*json)["skip_prk_steps"] = skip_prk_steps;
+    std::filesystem::remove(model / "scheduler" / "scheduler_config.json");
+    write(model.filename().string() + "/scheduler/scheduler_config.json", json->dump());
+    return model.string();
+  }
+};
 
-TEST_F(Sd2InpaintPndmTest, APndmFolderNeedsANamedScheduler) {
-  const std::filesystem::path model = dir_ / "model";
-  std::filesystem::copy(model_dir(), model, std::filesystem::copy_options::recursive);
-  auto json = read_json_file((model / "scheduler" / "scheduler_config.json").string());
-  ASSERT_TRUE(json.ok()) << json.status();
-  (*json)["_class_name"] = "PNDMScheduler";
-  (*json)["skip_prk_steps"] = true;
-  std::filesystem::remove(model / "scheduler" / "scheduler_config.json");
-  write("model/scheduler/scheduler_config.json", json->dump());
-  auto refused = InpaintPipeline::load(model.string(), InpaintPipelineOptions{});
+TEST_F(Sd2InpaintPndmTest, TheFoldersPndmMatchesDiffusersFromNoiseAndPartWay) {
+  auto pipeline = InpaintPipeline::load(pndm_folder(true), InpaintPipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const auto seed = inpaint_setup()["seed"].get<uint64_t>();
+  expect_run_matches(**pipeline, "pndm", {seed});
+  expect_run_matches(**pipeline, "pndm_strength", {seed});
+}
+
+TEST_F(Sd2InpaintPndmTest, RungeKuttaWarmUpIsRefusedAndANamedSchedulerReplacesIt) {
+  auto refused = InpaintPipeline::load(pndm_folder(false), InpaintPipelineOptions{});
   ASSERT_FALSE(refused.ok());
-  EXPECT_TRUE(test::contains_all(std::string(refused.status().message()), {"scheduler", "PNDMScheduler", "not supported"}));
+  EXPECT_TRUE(test::contains_all(std::string(refused.status().message()), {"scheduler", "skip_prk_steps"}));
   InpaintPipelineOptions options;
   options.scheduler = "ddim";
-  auto pipeline = InpaintPipeline::load(model.string(), options);
+  auto pipeline = InpaintPipeline::load(pndm_folder(true), options);
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
-  const TensorMap ref = reference("inpaint_ddim");
-  InpaintParams params;
-  params.steps = 2;
-  params.guidance_scale = 5.0;
-  auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), {"a photo of a fern in a garden", "a bonsai tree"},
-                                  params, {1234});
-  ASSERT_TRUE(out.ok()) << out.status();
-  test::expect_close(*out, ref.at("out"), 1e-4, "inpainting with DDIM from a PNDM config");
+  expect_run_matches(**pipeline, "ddim", {inpaint_setup()["seed"].get<uint64_t>()});
 }
 
 }  // namespace

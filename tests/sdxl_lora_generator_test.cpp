@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "diffusion_worker/backend_registry.h"
+#include "diffusion_worker/sdxl_generator.h"
 #include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
 
@@ -131,6 +132,36 @@ TEST_F(SdxlLoraGeneratorTest, AdaptsWithTheIpAdapterLoadedAndGeneratesWithBoth) 
   EXPECT_GT((after[0] - before[0]).abs().max().item<double>(), 1e-3) << "the adapters change the images";
   EXPECT_GT((after[0] - after[1]).abs().max().item<double>(), 1e-3) << "the image prompt still acts after adapting";
   test::expect_close(after[1], generate_one(**without_ip), 1e-5, "adapters trained with and without the IP-Adapter");
+}
+
+// Depth-Anything's maps of the views are cached: a second adapt on the same views computes none, other
+// views miss, and a generator with the same depth_cache folder reads them instead of computing them.
+TEST_F(SdxlLoraGeneratorTest, DepthAnythingMapsOfTheViewsAreCached) {
+  const std::string depth_model = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/depth_anything_tiny/model";
+  const std::string json = options_json(", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 1, " +
+                                        "\"depth_anything\": \"" + depth_model + "\", \"depth_cache\": \"" +
+                                        (dir_ / "depth").string() + "\"");
+  auto options = parse_sdxl_options(json);
+  ASSERT_TRUE(options.ok()) << options.status();
+  auto generator = SdxlGenerator::create(*options);
+  ASSERT_TRUE(generator.ok()) << generator.status();
+  const std::vector<ReferenceView> gt = views(2, 12, 8);
+  ASSERT_TRUE((*generator)->adapt(gt).ok());
+  EXPECT_EQ((*generator)->depth_cache().computed(), 2);
+  ASSERT_TRUE((*generator)->adapt(gt).ok());
+  EXPECT_EQ((*generator)->depth_cache().computed(), 2) << "the same views again";
+  std::vector<ReferenceView> changed = gt;
+  changed[1].image = 1 - changed[1].image;
+  ASSERT_TRUE((*generator)->adapt(changed).ok());
+  EXPECT_EQ((*generator)->depth_cache().computed(), 3) << "only the changed view misses";
+
+  auto restarted = SdxlGenerator::create(*options);
+  ASSERT_TRUE(restarted.ok()) << restarted.status();
+  ASSERT_TRUE((*restarted)->adapt(gt).ok());
+  EXPECT_EQ((*restarted)->depth_cache().computed(), 0);
+  EXPECT_EQ((*restarted)->depth_cache().disk_reads(), 2);
+  EXPECT_TRUE(contains_all(std::string(parse_sdxl_options(options_json(", \"depth_cache\": \"d\"")).status().message()),
+                           {"depth_cache", "depth_anything"}));
 }
 
 TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {

@@ -125,6 +125,27 @@ TEST(Codec, ChunkedMessagesReassembleAndRespectTheLimit) {
   EXPECT_EQ(rpc::read_chunked(read, 100, &back).code(), absl::StatusCode::kResourceExhausted);
 }
 
+// The trainer's two-stage settings travel with each pose: all three fields or none.
+TEST(Codec, InpaintSettingsTravelWithThePose) {
+  std::vector<GenerationRequest> requests = test_requests();
+  requests[0].inpaint = InpaintSettings{0.25, 0.1, 7};
+  v1::GenerateBatch batch;
+  rpc::encode_generation_batch(requests, &batch);
+  auto back = rpc::decode_generation_batch(batch);
+  ASSERT_TRUE(back.ok()) << back.status();
+  ASSERT_TRUE((*back)[0].inpaint.has_value());
+  EXPECT_EQ((*back)[0].inpaint->depth_threshold, 0.25);
+  EXPECT_EQ((*back)[0].inpaint->uncovered_fraction, 0.1);
+  EXPECT_EQ((*back)[0].inpaint->dilation, 7);
+  EXPECT_FALSE((*back)[1].inpaint.has_value());
+  batch.mutable_poses(0)->clear_inpaint_dilation();
+  const absl::Status partial = rpc::decode_generation_batch(batch).status();
+  EXPECT_EQ(partial.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(partial.message().find("inpaint_dilation"), std::string_view::npos);
+  batch.mutable_poses(0)->set_inpaint_dilation(8);
+  EXPECT_EQ(rpc::decode_generation_batch(batch).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   v1::TrainConfig config;
   ASSERT_TRUE(rpc::set_fields({{"iterations", 123}, {"lambda_dssim", 0.3}}, config.mutable_training()).ok());

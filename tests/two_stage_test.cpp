@@ -148,10 +148,15 @@ GenerationRequest request_with_depth(const at::Tensor& depth, uint64_t seed) {
   return r;
 }
 
-TEST(TwoStageBackendTest, OptionsNeedTheDepthThreshold) {
-  auto missing = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() + "\""));
-  ASSERT_FALSE(missing.ok());
-  EXPECT_TRUE(test::contains_all(std::string(missing.status().message()), {"inpaint_depth_threshold", "required"}));
+// tau_d comes with the request (the trainer's GapsConfig) or from the option; a request with neither is an error.
+TEST(TwoStageBackendTest, DepthThresholdFromTheRequestOrTheOption) {
+  auto without = make_generator("sdxl", backend_options(", \"inpaint\": \"/nonexistent/sd2-inpainting\""));
+  ASSERT_TRUE(without.ok()) << without.status();
+  GenerationRequest covered = request_with_depth(at::ones({12, 8}), 3);
+  const absl::Status missing = (*without)->generate({covered}).status();
+  EXPECT_TRUE(test::contains_all(std::string(missing.message()), {"request 0", "inpaint_depth_threshold"}));
+  covered.inpaint = InpaintSettings{};
+  EXPECT_TRUE((*without)->generate({covered}).ok());
   auto bad = make_generator("sdxl", backend_options(", \"inpaint_steps\": 0"));
   ASSERT_FALSE(bad.ok());
   EXPECT_TRUE(test::contains_all(std::string(bad.status().message()), {"inpaint_steps"}));
@@ -198,6 +203,44 @@ TEST(TwoStageBackendTest, InpaintsTheUncoveredPixelsOfTheImg2ImgResult) {
   EXPECT_GT((inside - before).abs().max().item<double>(), 1e-3);
   EXPECT_TRUE(at::equal((*out)[0].slice(0, 13), (*stage1)[0].slice(0, 13)));
   EXPECT_TRUE(at::equal((*out)[0].slice(1, 13), (*stage1)[0].slice(1, 13)));
+}
+
+// A request's InpaintSettings replace the options: here 16 of 460 pixels (3.5%) are uncovered at tau_d 0.5.
+TEST(TwoStageBackendTest, TheRequestsSettingsReachTheTwoStagePass) {
+  auto plain = make_generator("sdxl", backend_options(""));
+  auto two_stage = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
+                                                          "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2"));
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  ASSERT_TRUE(two_stage.ok()) << two_stage.status();
+  at::Tensor depth = at::ones({23, 20});
+  depth.slice(0, 2, 6).slice(1, 2, 6).fill_(0);
+  GenerationRequest r = request_with_depth(depth, 11);
+  auto stage1 = (*plain)->generate({r});
+  ASSERT_TRUE(stage1.ok()) << stage1.status();
+  const auto generate_with = [&](const InpaintSettings& settings) {
+    GenerationRequest q = r;
+    q.inpaint = settings;
+    auto out = (*two_stage)->generate({q});
+    EXPECT_TRUE(out.ok()) << out.status();
+    return out.ok() ? (*out)[0] : at::Tensor();
+  };
+  EXPECT_TRUE(at::equal(generate_with({0.5, 0.05, 15}), (*stage1)[0])) << "3.5% uncovered is below 5%";
+  EXPECT_TRUE(at::equal(generate_with({0.0, 0.02, 15}), (*stage1)[0])) << "no depth is below tau_d 0";
+  // Dilation 3: the mask is rows and columns 1-6; the result is two_stage_generate's with that kernel.
+  const at::Tensor small = generate_with({0.5, 0.02, 3});
+  auto pipeline = InpaintPipeline::load(inpaint_model_dir(), InpaintPipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  TwoStageOptions options;
+  options.depth_threshold = 0.5;
+  options.dilation_kernel = 3;
+  options.inpaint.steps = 2;
+  auto direct = two_stage_generate((*stage1)[0].permute({2, 0, 1}).unsqueeze(0), depth.unsqueeze(0), {"a fern"}, {11},
+                                   options, [&]() -> absl::StatusOr<InpaintPipeline*> { return pipeline->get(); });
+  ASSERT_TRUE(direct.ok()) << direct.status();
+  test::expect_close(small, direct->images[0].permute({1, 2, 0}), 1e-5, "backend with the request's dilation");
+  EXPECT_TRUE(at::equal(small.slice(0, 7), (*stage1)[0].slice(0, 7)));
+  EXPECT_GT((small.slice(0, 1, 7).slice(1, 1, 7) - (*stage1)[0].slice(0, 1, 7).slice(1, 1, 7)).abs().max().item<double>(),
+            1e-3);
 }
 
 TEST(TwoStageBackendTest, LoadsTheInpaintingModelOnlyWhenAViewNeedsIt) {

@@ -25,8 +25,8 @@ struct InpaintPipelineOptions {
   at::ScalarType dtype = at::kFloat;  // of the UNet and text encoder; the VAE stays float32 when its config
                                       // asks for force_upcast
   at::Device device = at::kCPU;
-  // "" = the folder's scheduler; else euler | ddim | dpmpp2m with the folder's scheduler config (the SD2
-  // inpainting repository ships a PNDMScheduler, which is not implemented: name one of these instead).
+  // "" = the folder's scheduler (the SD2 inpainting repository's is PNDM with skip_prk_steps); else
+  // euler | ddim | dpmpp2m | pndm with the folder's scheduler config.
   std::string scheduler;
   std::string variant;  // weight files: "" or "fp16" (see PipelineOptions::variant)
 };

@@ -34,7 +34,7 @@ struct PipelineOptions {
   at::ScalarType dtype = at::kFloat;  // of the UNet and text encoders; the VAE stays float32 when its
                                       // config asks for force_upcast (SDXL's VAE overflows in fp16)
   at::Device device = at::kCPU;
-  std::string scheduler;  // "" = the folder's scheduler; else euler | ddim | dpmpp2m with its config
+  std::string scheduler;  // "" = the folder's scheduler; else euler | ddim | dpmpp2m | pndm with its config
   // Capture the UNet's forward as a CUDA graph per input shape and replay it at every step (CUDA
   // devices in CUDA builds only; removes the per-kernel launch cost that dominates small images).
   bool cuda_graphs = false;

@@ -146,6 +146,81 @@ class DpmSolverPP2M final : public Scheduler {
   int64_t next_index_ = -1;
 };
 
+// diffusers' PNDMScheduler with skip_prk_steps: pseudo linear multistep (PLMS) steps only. The schedule
+// repeats its second timestep: the first two steps form one Heun-like step (the second re-evaluates the
+// model at the first step's result and averages both outputs, restarting from the first step's sample);
+// later steps combine the last 2, 3, then 4 model outputs (Adams-Bashforth). Each step moves from the
+// current timestep to the one num_train_timesteps / n below it with diffusers' transfer formula.
+class Pndm final : public Scheduler {
+ public:
+  explicit Pndm(const SchedulerConfig& c) : Scheduler(c) {}
+  void set_timesteps(int64_t n) override {
+    std::vector<double> spaced = spaced_timesteps(n, false);  // descending
+    timesteps_.clear();
+    for (double t : spaced) timesteps_.push_back(static_cast<float>(std::llround(t)));
+    if (n >= 2) timesteps_.insert(timesteps_.begin() + 1, timesteps_[1]);
+    stride_ = config_.num_train_timesteps / n;
+    outputs_.clear();
+    first_sample_ = at::Tensor();
+    taken_ = 0;
+    next_index_ = -1;
+  }
+  at::Tensor step(const at::Tensor& eps, int64_t i, const at::Tensor& sample) override {
+    TORCH_CHECK(next_index_ < 0 || i == next_index_, "PNDM steps must run in order: expected step ", next_index_,
+                ", got ", i);
+    const at::Tensor e = eps.to(at::kFloat);
+    at::Tensor x = sample.to(at::kFloat);
+    auto t = static_cast<int64_t>(timesteps_.at(i));
+    int64_t prev = t - stride_;
+    if (taken_ == 1) {  // the repeated timestep: the step from t + stride to t again
+      prev = t;
+      t += stride_;
+    } else {
+      if (outputs_.size() == 4) outputs_.erase(outputs_.begin());
+      outputs_.push_back(e);
+    }
+    at::Tensor direction;
+    const size_t n = outputs_.size();
+    if (n == 1 && taken_ == 0) {
+      direction = e;
+      first_sample_ = x;
+    } else if (n == 1 && taken_ == 1) {
+      direction = (e + outputs_[0]) / 2;
+      x = first_sample_;
+      first_sample_ = at::Tensor();
+    } else if (n == 2) {
+      direction = (3 * outputs_[1] - outputs_[0]) / 2;
+    } else if (n == 3) {
+      direction = (23 * outputs_[2] - 16 * outputs_[1] + 5 * outputs_[0]) / 12;
+    } else {
+      direction = (1.0 / 24) * (55 * outputs_[3] - 59 * outputs_[2] + 37 * outputs_[1] - 9 * outputs_[0]);
+    }
+    ++taken_;
+    next_index_ = i + 1;
+    return previous_sample(x, t, prev, direction).to(eps.scalar_type());
+  }
+  at::Tensor add_noise(const at::Tensor& original, const at::Tensor& noise, int64_t i) const override {
+    const float abar = abar_at(alphas_cumprod_, static_cast<int64_t>(timesteps_.at(i)));
+    return std::pow(abar, 0.5f) * original + std::pow(1.0f - abar, 0.5f) * noise;
+  }
+
+ private:
+  // diffusers' _get_prev_sample (formula (9) of the PNDM paper), in float32 like its 0-d tensors.
+  at::Tensor previous_sample(const at::Tensor& x, int64_t t, int64_t prev, const at::Tensor& direction) const {
+    const float abar = abar_at(alphas_cumprod_, t);
+    const float abar_prev = prev >= 0 ? abar_at(alphas_cumprod_, prev)
+                                      : (config_.set_alpha_to_one ? 1.0f : abar_at(alphas_cumprod_, 0));
+    const float sample_coeff = std::pow(abar_prev / abar, 0.5f);
+    const float denominator = abar * std::pow(1.0f - abar_prev, 0.5f) + std::pow(abar * (1.0f - abar) * abar_prev, 0.5f);
+    return sample_coeff * x - (abar_prev - abar) * direction / denominator;
+  }
+  int64_t stride_ = 1;
+  std::vector<at::Tensor> outputs_;  // the last (up to) 4 model outputs
+  at::Tensor first_sample_;          // the sample before the first step, for the repeated timestep
+  int64_t taken_ = 0;                // steps since set_timesteps
+  int64_t next_index_ = -1;
+};
+
 }  // namespace
 
 absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json& j, const std::string& kind_override) {
@@ -159,21 +234,32 @@ absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json&
     c.kind = "ddim";
   } else if (class_name == "DPMSolverMultistepScheduler") {
     c.kind = "dpmpp2m";
+  } else if (class_name == "PNDMScheduler") {
+    c.kind = "pndm";
   } else {
-    return absl::UnimplementedError(absl::StrCat("scheduler ", class_name, " is not supported (euler, ddim, dpmpp2m are)"));
+    return absl::UnimplementedError(absl::StrCat("scheduler ", class_name, " is not supported (euler, ddim, dpmpp2m, pndm are)"));
   }
-  if (c.kind != "euler" && c.kind != "ddim" && c.kind != "dpmpp2m") {
-    return absl::InvalidArgumentError(absl::StrCat("unknown scheduler '", c.kind, "' (euler, ddim, dpmpp2m)"));
+  if (c.kind != "euler" && c.kind != "ddim" && c.kind != "dpmpp2m" && c.kind != "pndm") {
+    return absl::InvalidArgumentError(absl::StrCat("unknown scheduler '", c.kind, "' (euler, ddim, dpmpp2m, pndm)"));
   }
+  const bool pndm = c.kind == "pndm";
   GAPS_ASSIGN_OR_RETURN(c.num_train_timesteps, config_value<int64_t>(j, "num_train_timesteps", 1000));
   GAPS_ASSIGN_OR_RETURN(c.steps_offset, config_value<int64_t>(j, "steps_offset", 0));
   GAPS_ASSIGN_OR_RETURN(c.beta_start, config_value<double>(j, "beta_start", 0.0001));
   GAPS_ASSIGN_OR_RETURN(c.beta_end, config_value<double>(j, "beta_end", 0.02));
   GAPS_ASSIGN_OR_RETURN(c.beta_schedule, config_value<std::string>(j, "beta_schedule", "linear"));
-  GAPS_ASSIGN_OR_RETURN(c.timestep_spacing, config_value<std::string>(j, "timestep_spacing", "linspace"));
+  GAPS_ASSIGN_OR_RETURN(c.timestep_spacing, config_value<std::string>(j, "timestep_spacing", pndm ? "leading" : "linspace"));
   // Keys a config lacks take the chosen scheduler's diffusers defaults (as from_config does).
   GAPS_ASSIGN_OR_RETURN(c.clip_sample, config_value<bool>(j, "clip_sample", c.kind == "ddim"));
-  GAPS_ASSIGN_OR_RETURN(c.set_alpha_to_one, config_value<bool>(j, "set_alpha_to_one", true));
+  GAPS_ASSIGN_OR_RETURN(c.set_alpha_to_one, config_value<bool>(j, "set_alpha_to_one", !pndm));
+  if (pndm) {
+    // PNDMScheduler's own default is false (Runge-Kutta warm-up steps); Stable Diffusion's folders set true.
+    GAPS_ASSIGN_OR_RETURN(const bool skip_prk, config_value<bool>(j, "skip_prk_steps", false));
+    if (!skip_prk) {
+      return absl::UnimplementedError(
+          "PNDM is implemented with skip_prk_steps true only (PLMS steps, as Stable Diffusion's scheduler configs set)");
+    }
+  }
   if (c.beta_schedule != "scaled_linear" && c.beta_schedule != "linear") {
     return absl::UnimplementedError(absl::StrCat("beta_schedule ", c.beta_schedule, " is not supported"));
   }
@@ -218,7 +304,7 @@ std::vector<double> Scheduler::spaced_timesteps(int64_t n, bool one_extra_for_dp
     const int64_t points = one_extra_for_dpm ? n + 1 : n;
     for (int64_t i = points - 1; i >= (one_extra_for_dpm ? 1 : 0); --i) {
       const double v = points == 1 ? 0.0 : static_cast<double>(train - 1) * i / (points - 1);
-      t.push_back(one_extra_for_dpm || config_.kind == "ddim" ? std::nearbyint(v) : v);
+      t.push_back(one_extra_for_dpm || config_.kind != "euler" ? std::nearbyint(v) : v);
     }
   } else if (config_.timestep_spacing == "leading") {
     const int64_t points = one_extra_for_dpm ? n + 1 : n;
@@ -235,6 +321,7 @@ absl::StatusOr<std::unique_ptr<Scheduler>> make_scheduler(const SchedulerConfig&
   if (config.kind == "euler") return std::unique_ptr<Scheduler>(new EulerDiscrete(config));
   if (config.kind == "ddim") return std::unique_ptr<Scheduler>(new Ddim(config));
   if (config.kind == "dpmpp2m") return std::unique_ptr<Scheduler>(new DpmSolverPP2M(config));
+  if (config.kind == "pndm") return std::unique_ptr<Scheduler>(new Pndm(config));
   return absl::InvalidArgumentError(absl::StrCat("unknown scheduler '", config.kind, "'"));
 }
 

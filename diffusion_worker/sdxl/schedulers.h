@@ -1,6 +1,6 @@
 #pragma once
 // The noise schedulers of diffusers that SDXL pipelines use: Euler discrete (SDXL's default), DDIM
-// (eta 0) and DPM-Solver++ (2M, midpoint), with diffusers' timestep spacings ("leading", "trailing",
+// (eta 0), DPM-Solver++ (2M, midpoint) and PNDM with skip_prk_steps (PLMS; Stable Diffusion 2's), with diffusers' timestep spacings ("leading", "trailing",
 // "linspace"), epsilon prediction, and the noising of img2img's start latents.
 //
 // Steps are addressed by index into timesteps() (not by timestep value), so img2img starts at an index.
@@ -15,12 +15,13 @@
 namespace gaps::sdxl {
 
 struct SchedulerConfig {
-  std::string kind = "euler";  // "euler" | "ddim" | "dpmpp2m"
+  std::string kind = "euler";  // "euler" | "ddim" | "dpmpp2m" | "pndm"
   int64_t num_train_timesteps = 1000, steps_offset = 1;
   double beta_start = 0.00085, beta_end = 0.012;
   std::string beta_schedule = "scaled_linear";  // or "linear"
   std::string timestep_spacing = "leading";      // "leading" | "trailing" | "linspace"
-  bool clip_sample = false, set_alpha_to_one = false;  // DDIM only
+  bool clip_sample = false;      // DDIM only
+  bool set_alpha_to_one = false; // DDIM and PNDM: the last step's target
   // From a diffusers scheduler_config.json; its _class_name picks the kind unless kind_override is set.
   // Options this implementation lacks (Karras sigmas, v-prediction, thresholding, ...) are an error.
   static absl::StatusOr<SchedulerConfig> from_json(const nlohmann::json& config, const std::string& kind_override = "");

@@ -13,8 +13,9 @@ OUT_DIR (default tests/fixtures/sd2_inpaint_tiny) receives
               added embedding; a CLIPTextModel with gelu; a VAE; the CLIP tokenizer of
               tests/fixtures/sdxl_tiny (pad token "!", as SD2's); a DDIM scheduler;
   reference/  the UNet's forward for fixed inputs, the prompt embeddings (last hidden state), and inpainting
-              runs with guidance and a fixed seed: 2 DDIM steps and 2 Euler steps at strength 1, and 3 of 4
-              DDIM steps at strength 0.75, as safetensors (plus inpaint.json with the prompts and settings).
+              runs with guidance and a fixed seed: 2 DDIM steps and 2 Euler steps at strength 1, 3 of 4
+              DDIM steps at strength 0.75, and PNDM (skip_prk_steps, SD2's) with 4 steps at strength 1 and
+              0.75, as safetensors (plus inpaint.json with the prompts and settings).
 """
 import json
 import os
@@ -26,8 +27,8 @@ from safetensors.torch import save_file
 
 import diffusers
 import transformers
-from diffusers import (AutoencoderKL, DDIMScheduler, EulerDiscreteScheduler, StableDiffusionInpaintPipeline,
-                       UNet2DConditionModel)
+from diffusers import (AutoencoderKL, DDIMScheduler, EulerDiscreteScheduler, PNDMScheduler,
+                       StableDiffusionInpaintPipeline, UNet2DConditionModel)
 from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -97,13 +98,16 @@ def main():
         mask[0, :, 12:, :4] = 0.4  # below 0.5: kept
         mask[1, :, :6, :] = 1.0
         mask[1, :, 9:13, 2:7] = 0.6
+        # PNDM as SD2's folders configure it (skip_prk_steps); 4 steps are 5 UNet calls (PLMS repeats one).
         runs = {"ddim": (DDIMScheduler, 2, 1.0), "euler": (EulerDiscreteScheduler, 2, 1.0),
-                "ddim_strength": (DDIMScheduler, 4, 0.75)}
+                "ddim_strength": (DDIMScheduler, 4, 0.75), "pndm": (PNDMScheduler, 4, 1.0),
+                "pndm_strength": (PNDMScheduler, 4, 0.75)}
         settings = {"prompts": prompts, "guidance_scale": 5.0, "seed": 1234, "runs": {},
                     "diffusers": diffusers.__version__, "transformers": transformers.__version__,
                     "torch": torch.__version__}
         for name, (cls, steps, strength) in runs.items():
-            pipe.scheduler = cls.from_config(scheduler.config)
+            pipe.scheduler = (cls.from_config(scheduler.config, skip_prk_steps=True) if cls is PNDMScheduler
+                              else cls.from_config(scheduler.config))
             result = pipe(prompt=prompts, image=image, mask_image=mask, height=16, width=16, strength=strength,
                           num_inference_steps=steps, guidance_scale=5.0,
                           generator=torch.Generator().manual_seed(1234), output_type="pt").images
