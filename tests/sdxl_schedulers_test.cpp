@@ -129,6 +129,23 @@ TEST(SchedulerTest, PndmAddNoiseAndItsOptions) {
   EXPECT_FALSE(defaults->set_alpha_to_one);
 }
 
+// A config without timestep_spacing takes the chosen scheduler's diffusers default: DDIM's is leading,
+// Euler's and DPM-Solver's linspace.
+TEST(SchedulerTest, MissingSpacingTakesTheSchedulersDiffusersDefault) {
+  for (const auto& [class_name, spacing] : std::vector<std::pair<std::string, std::string>>{
+           {"DDIMScheduler", "leading"}, {"EulerDiscreteScheduler", "linspace"},
+           {"DPMSolverMultistepScheduler", "linspace"}}) {
+    nlohmann::json j = config_json(class_name, "leading");
+    j.erase("timestep_spacing");
+    auto config = SchedulerConfig::from_json(j);
+    ASSERT_TRUE(config.ok()) << class_name << ": " << config.status();
+    EXPECT_EQ(config->timestep_spacing, spacing) << class_name;
+  }
+  nlohmann::json euler = config_json("EulerDiscreteScheduler", "leading");
+  euler.erase("timestep_spacing");
+  EXPECT_EQ(SchedulerConfig::from_json(euler, "ddim")->timestep_spacing, "leading") << "the chosen scheduler's default";
+}
+
 TEST(SchedulerTest, EulerAddNoiseMatchesDiffusersAtTheStartStep) {
   const TensorMap ref = test::sdxl_reference("add_noise");
   auto scheduler = make_scheduler(*SchedulerConfig::from_json(config_json("EulerDiscreteScheduler", "leading")));

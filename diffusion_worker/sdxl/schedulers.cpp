@@ -248,7 +248,8 @@ absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json&
   GAPS_ASSIGN_OR_RETURN(c.beta_start, config_value<double>(j, "beta_start", 0.0001));
   GAPS_ASSIGN_OR_RETURN(c.beta_end, config_value<double>(j, "beta_end", 0.02));
   GAPS_ASSIGN_OR_RETURN(c.beta_schedule, config_value<std::string>(j, "beta_schedule", "linear"));
-  GAPS_ASSIGN_OR_RETURN(c.timestep_spacing, config_value<std::string>(j, "timestep_spacing", pndm ? "leading" : "linspace"));
+  GAPS_ASSIGN_OR_RETURN(c.timestep_spacing, config_value<std::string>(j, "timestep_spacing",
+                                                                         pndm || c.kind == "ddim" ? "leading" : "linspace"));
   // Keys a config lacks take the chosen scheduler's diffusers defaults (as from_config does).
   GAPS_ASSIGN_OR_RETURN(c.clip_sample, config_value<bool>(j, "clip_sample", c.kind == "ddim"));
   GAPS_ASSIGN_OR_RETURN(c.set_alpha_to_one, config_value<bool>(j, "set_alpha_to_one", !pndm));
