@@ -64,22 +64,40 @@ at::Tensor local_entropy_map(const at::Tensor& image, int bins) {
   return entropy_bits(hist) / std::log2(std::min(9, bins));
 }
 
-double coverage_fraction(const at::Tensor& alpha, double threshold) {
-  return (alpha >= threshold).to(at::kDouble).mean().item<double>();
+// The statistics as 0-dim double tensors on the input's device, so measure_render can copy them to the
+// host at once: scoring a candidate pool would otherwise wait on the device once per statistic.
+namespace {
+
+at::Tensor coverage_fraction_tensor(const at::Tensor& alpha, double threshold) {
+  return (alpha >= threshold).to(at::kDouble).mean();
 }
 
-double rms_contrast(const at::Tensor& image) {
+at::Tensor rms_contrast_tensor(const at::Tensor& image) {
   const at::Tensor grey = greyscale(image).to(at::kDouble);
-  return (grey - grey.mean()).square().mean().sqrt().item<double>();
+  return (grey - grey.mean()).square().mean().sqrt();
 }
+
+}  // namespace
+
+double coverage_fraction(const at::Tensor& alpha, double threshold) {
+  return coverage_fraction_tensor(alpha, threshold).item<double>();
+}
+
+double rms_contrast(const at::Tensor& image) { return rms_contrast_tensor(image).item<double>(); }
 
 CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& alpha, double d_min_supervised,
                                      double d_min_gt, std::optional<double> history, const GapsConfig& c) {
+  const at::Tensor stats = at::stack({as_floating(alpha).mean().to(at::kDouble),
+                                      local_entropy_map(image, c.entropy_bins).mean().to(at::kDouble),
+                                      coverage_fraction_tensor(alpha, c.coverage_alpha_threshold),
+                                      rms_contrast_tensor(image)})
+                               .cpu();
+  const double* v = stats.data_ptr<double>();
   CandidateMeasurements m;
-  m.mean_alpha = as_floating(alpha).mean().item<double>();
-  m.entropy_mean = local_entropy_map(image, c.entropy_bins).mean().item<double>();
-  m.coverage = coverage_fraction(alpha, c.coverage_alpha_threshold);
-  m.contrast = rms_contrast(image);
+  m.mean_alpha = v[0];
+  m.entropy_mean = v[1];
+  m.coverage = v[2];
+  m.contrast = v[3];
   m.d_min_supervised = d_min_supervised;
   m.d_min_gt = d_min_gt;
   m.uncertainty_variance_history = history;
