@@ -30,8 +30,20 @@ matplotlib.rcParams["svg.hashsalt"] = "gaps"
 SAVE_METADATA = {"png": {"Software": None}, "svg": {"Date": None, "Creator": None}}
 
 
+# Arms (a variant under its own label and flags) take the colours that no plain variant uses.
+ARM_COLOURS = ["#ff7f0e", "#17becf", "#8c564b", "#e377c2", "#bcbd22", "#7f7f7f"]
+
+
 def colour(variant):
     return COLOURS.get(variant, "#7f7f7f")
+
+
+def label_colours(labels):
+    """Colour per label: plain variants their own, arms one each from ARM_COLOURS in label order."""
+    arms = sorted((l for l in labels if l not in COLOURS), key=tables.variant_key)
+    out = {l: ARM_COLOURS[k % len(ARM_COLOURS)] for k, l in enumerate(arms)}
+    out.update({l: COLOURS[l] for l in labels if l in COLOURS})
+    return out
 
 
 def save(fig, out, stem, formats):
@@ -46,13 +58,14 @@ def save(fig, out, stem, formats):
 
 def psnr_vs_time(config, scene, views, rows, out, formats):
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    colours = label_colours({r["variant"] for r in rows})
     labelled = set()
     for r in sorted(rows, key=lambda r: (tables.variant_key(r["variant"]), r["seed"])):
         curve = [p for p in r.get("curve") or [] if p.get("psnr") is not None]
         if not curve:
             continue
         ax.plot([p["train_seconds"] for p in curve], [p["psnr"] for p in curve], marker="o", markersize=3,
-                linewidth=1.2, alpha=0.85, color=colour(r["variant"]),
+                linewidth=1.2, alpha=0.85, color=colours[r["variant"]],
                 label=None if r["variant"] in labelled else r["variant"])
         labelled.add(r["variant"])
     if not labelled:
@@ -72,11 +85,12 @@ def psnr_vs_gaussians(config, rows, out, formats):
         return []
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     settings = sorted({(r["scene"], r["views"]) for r in finished})
+    colours = label_colours({r["variant"] for r in finished})
     for r in finished:
-        ax.scatter(r["num_gaussians"], r["psnr"], color=colour(r["variant"]),
+        ax.scatter(r["num_gaussians"], r["psnr"], color=colours[r["variant"]],
                    marker=MARKERS[settings.index((r["scene"], r["views"])) % len(MARKERS)], s=30, alpha=0.85)
     for variant in sorted({r["variant"] for r in finished}, key=tables.variant_key):
-        ax.scatter([], [], color=colour(variant), marker="o", label=variant)
+        ax.scatter([], [], color=colours[variant], marker="o", label=variant)
     for k, (scene, views) in enumerate(settings):
         ax.scatter([], [], color="#555", marker=MARKERS[k % len(MARKERS)], label=f"{scene}, {views} views")
     ax.set_xlabel("Gaussians at the end of training")
@@ -92,20 +106,36 @@ def base_variant(label):
     return label.split("_")[0]
 
 
-def psnr_vs_budget(scene, views, rows, out, formats):
-    """One line per method through its budgets, or nothing when no run of this setting had a budget."""
-    if not any((r.get("max_gaussians") or 0) > 0 for r in rows):
-        return []
+def budgeted(r):
+    return (r.get("max_gaussians") or 0) > 0
+
+
+def budget_points(rows):
+    """Per method, (mean Gaussians, mean PSNR, budgeted) of each of its arms, sorted by size. Only runs from the
+    budgeted runs' initialisation count: another initialisation is another experiment, not another budget."""
+    inits = {r.get("init") for r in rows if budgeted(r)}
     arms = defaultdict(list)
     for r in rows:
-        arms[(base_variant(r["variant"]), r["variant"], (r.get("max_gaussians") or 0) > 0)].append(r)
+        if r.get("init") in inits:
+            arms[(base_variant(r["variant"]), r["variant"], budgeted(r))].append(r)
+    points = defaultdict(list)
+    for (method, _, is_budgeted), runs in arms.items():
+        points[method].append((sum(r["num_gaussians"] for r in runs) / len(runs),
+                               sum(r["psnr"] for r in runs) / len(runs), is_budgeted))
+    return {method: sorted(p) for method, p in points.items()}
+
+
+def psnr_vs_budget(scene, views, rows, out, formats):
+    """One line per method through its budgets, or nothing when no run of this setting had a budget."""
+    if not any(budgeted(r) for r in rows):
+        return []
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for method in sorted({k[0] for k in arms}, key=tables.variant_key):
-        points = sorted((sum(r["num_gaussians"] for r in runs) / len(runs), sum(r["psnr"] for r in runs) / len(runs),
-                         budgeted) for (m, _, budgeted), runs in arms.items() if m == method)
+    lines = budget_points(rows)
+    for method in sorted(lines, key=tables.variant_key):
+        points = lines[method]
         ax.plot([p[0] for p in points], [p[1] for p in points], color=colour(method), linewidth=1.2, label=method)
-        for x, y, budgeted in points:
-            ax.scatter(x, y, color=colour(method), facecolors=colour(method) if budgeted else "white", s=36, zorder=3)
+        for x, y, is_budgeted in points:
+            ax.scatter(x, y, color=colour(method), facecolors=colour(method) if is_budgeted else "white", s=36, zorder=3)
     ax.set_xscale("log")
     ax.set_xlabel("Gaussians at the end of training (log scale)")
     ax.set_ylabel("test PSNR, dB")

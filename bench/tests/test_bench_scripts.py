@@ -262,6 +262,14 @@ class TablesTest(unittest.TestCase):
         # 6 views, full: only fern finished, so no scene average over fern and trex exists.
         self.assertIn("| trex | full | 19.00 ± 0.00 (+1.00) | n/a |", self.text)
 
+    def test_each_view_count_averages_the_scenes_run_at_it(self):
+        # A config mixing datasets: bonsai only at 12 views, fern only at 3.
+        mixed = [row("fern", 3, "vanilla", 0, 20.0), row("fern", 3, "full", 0, 21.0),
+                 row("bonsai", 12, "vanilla", 0, 15.0), row("bonsai", 12, "full", 0, 16.5)]
+        text = tables.render_all(mixed)["paper"]
+        self.assertIn("| vanilla | 20.00 | 0.5000 | n/a | 15.00 | 0.5000 | n/a |", text)
+        self.assertIn("| Δ full − vanilla | +1.00 | +0.0000 | n/a | +1.50 | +0.0000 | n/a |", text)
+
     def test_cost_table(self):
         self.assertIn("| 3 | full | 4 | 1000 ± 0 | 1024 ± 0 (cuda_allocator) | 60.0 ± 0.0 | 5.0 ± 0.0 | cuda: H200 |", self.text)
 
@@ -307,6 +315,18 @@ class ChartsTest(unittest.TestCase):
             svg = Path(out, "budget_fern_v3_psnr_vs_gaussians.svg").read_text()
             self.assertIn("full", svg)
         self.assertEqual(charts.base_variant("no-gaps_k3.5"), "no-gaps")
+
+    def test_arms_get_distinct_colours_and_variants_keep_theirs(self):
+        colours = charts.label_colours({"vanilla", "vanilla_k2", "full_k8", "full"})
+        self.assertEqual(colours["vanilla"], charts.COLOURS["vanilla"])
+        self.assertEqual(colours["full"], charts.COLOURS["full"])
+        self.assertEqual(len(set(colours.values())), 4)
+
+    def test_budget_lines_keep_to_the_budgeted_runs_initialisation(self):
+        runs = [dict(row("fern", 3, "vanilla", 0, 20.0, gaussians=1000), init="mvs"),
+                dict(row("fern", 3, "vanilla_k2", 0, 21.0, gaussians=300), init="mvs", max_gaussians=300),
+                dict(row("fern", 3, "vanilla_sparse", 0, 17.0, gaussians=900), init="sparse")]
+        self.assertEqual(charts.budget_points(runs), {"vanilla": [(300.0, 21.0, True), (1000.0, 20.0, False)]})
         self.assertEqual(charts.base_variant("vanilla"), "vanilla")
 
 
