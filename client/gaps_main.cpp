@@ -35,7 +35,7 @@ ABSL_FLAG(double, gaussians_per_variation, -1, "automatic Gaussian budget when -
 ABSL_FLAG(uint64_t, seed, 0, "random seed");
 ABSL_FLAG(std::string, device, "", "cpu or cuda (default: cuda when available)");
 ABSL_FLAG(std::string, out, "", "output folder (PLY, renders, metrics.json)");
-ABSL_FLAG(std::string, init, "mvs", "initial points: mvs (from the training views), sparse, random, scene or ply");
+ABSL_FLAG(std::string, init, "auto", "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from the training views), sparse, random, scene or ply");
 ABSL_FLAG(std::string, init_cache, "", "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, init_ply, "", "PLY point cloud for --init ply (given alone, implies it)");
 ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");

@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cmath>
 #include <fstream>
 #include <system_error>
 
@@ -66,8 +67,9 @@ std::string describe_camera(const Camera& c, const at::Tensor& image) {
 
 absl::Status check_inputs(const std::string& method, const std::vector<Camera>& cameras,
                           const std::vector<at::Tensor>& images) {
-  if (method != "mvs" && method != "sparse" && method != "random")
-    return absl::InvalidArgumentError(absl::StrCat("unknown initialisation '", method, "' (mvs, sparse or random)"));
+  if (method != "auto" && method != "mvs" && method != "sparse" && method != "random")
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown initialisation '", method, "' (auto, mvs, sparse or random)"));
   if (cameras.empty()) return absl::InvalidArgumentError("initialisation needs at least one training view");
   if (cameras.size() != images.size())
     return absl::InvalidArgumentError(absl::StrCat(cameras.size(), " cameras but ", images.size(), " images"));
@@ -220,9 +222,22 @@ std::string init_cache_key(const std::string& method, const std::vector<Camera>&
   return absl::StrFormat("%s_%dv_%dx%d_%s_%016x", scene_name(cameras), cameras.size(), w, h, method, fnv1a(text));
 }
 
-absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
+double viewing_direction_spread_degrees(const std::vector<Camera>& cameras) {
+  double min_cosine = 1.0;
+  for (size_t i = 0; i < cameras.size(); ++i)
+    for (size_t j = i + 1; j < cameras.size(); ++j)
+      min_cosine = std::min(min_cosine, cameras[i].forward().normalized().dot(cameras[j].forward().normalized()));
+  return std::acos(std::clamp(min_cosine, -1.0, 1.0)) * 180.0 / M_PI;
+}
+
+std::string auto_init_method(const std::vector<Camera>& cameras) {
+  return viewing_direction_spread_degrees(cameras) > kSurroundingViewsDegrees ? "sparse" : "mvs";
+}
+
+namespace {
+
+absl::StatusOr<InitResult> cached_or_computed(const std::string& method, const std::vector<Camera>& train_cameras,
                                               const std::vector<at::Tensor>& train_images, const InitOptions& opts) {
-  GAPS_RETURN_IF_ERROR(check_inputs(method, train_cameras, train_images));
   fs::path cache;
   // Random points cost nothing to draw again; caching them would only hide changes.
   if (!opts.cache_dir.empty() && method != "random") {
@@ -241,6 +256,20 @@ absl::StatusOr<InitResult> run_initialization(const std::string& method, const s
       r.warnings.push_back(absl::StrCat("cache not written: ", stored.status().message()));
     }
   }
+  return r;
+}
+
+}  // namespace
+
+absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
+                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts) {
+  GAPS_RETURN_IF_ERROR(check_inputs(method, train_cameras, train_images));
+  if (method != "auto") return cached_or_computed(method, train_cameras, train_images, opts);
+  const std::string chosen = auto_init_method(train_cameras);
+  GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed(chosen, train_cameras, train_images, opts));
+  r.notes.insert(r.notes.begin(),
+                 absl::StrFormat("auto: %s (viewing directions span %.0f degrees; over %.0f the views surround the scene)",
+                                 chosen, viewing_direction_spread_degrees(train_cameras), kSurroundingViewsDegrees));
   return r;
 }
 

@@ -19,10 +19,11 @@ struct RunOptions {
   int views = 3;        // training views (<= 0: every non-test view)
   int resolution = 8;   // downscale factor
   std::filesystem::path out_dir;
+  // "auto" ("mvs" for forward-facing views, "sparse" for views that surround the scene: auto_init_method),
   // "mvs" (sparse triangulation + plane-sweep stereo from the training views only; falls back to "sparse",
   // then "random", saying why), "sparse", "random" (uniform in the training cameras' frusta), "scene" (points
   // shipped with the scene, e.g. a COLMAP model: only honest when made without the test views) or "ply".
-  std::string init = "mvs";
+  std::string init = "auto";
   std::filesystem::path init_ply;
   // Initial point clouds are cached here per scene, views, resolution and method (empty: no cache).
   std::filesystem::path init_cache_dir;

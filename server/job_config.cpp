@@ -12,15 +12,15 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
   RunOptions o;
   o.views = c.views();
   o.resolution = 1;  // uploads arrive at the resolution to train at
-  const std::string init = c.init().empty() ? "mvs" : c.init();
+  const std::string init = c.init().empty() ? "auto" : c.init();
   if (init == "points") {
     if (!has_points) return absl::InvalidArgumentError("config: init 'points' needs an uploaded point cloud");
     o.init = "ply";
     o.init_ply = points_file;
-  } else if (init == "mvs" || init == "sparse" || init == "random") {
+  } else if (init == "auto" || init == "mvs" || init == "sparse" || init == "random") {
     o.init = init;
   } else {
-    return absl::InvalidArgumentError(absl::StrCat("config: unknown init '", init, "' (mvs, sparse, random, points)"));
+    return absl::InvalidArgumentError(absl::StrCat("config: unknown init '", init, "' (auto, mvs, sparse, random, points)"));
   }
   if (c.random_points() < 0) return absl::InvalidArgumentError("config: random_points must not be negative");
   if (c.random_points() > 0) o.random_points = c.random_points();

@@ -3,6 +3,8 @@
 #include "gs_trainer/initializer.h"
 
 #include <chrono>
+#include <cmath>
+#include <iostream>
 #include <filesystem>
 #include <random>
 #include <string>
@@ -334,6 +336,13 @@ TEST(Initializer, MvsOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   EXPECT_EQ(second->method, "mvs");
   EXPECT_TRUE(at::equal(first->points.xyz, second->points.xyz));
   EXPECT_TRUE(at::equal(first->points.rgb, second->points.rgb));
+  // "auto" on these forward-facing views is mvs, shares its cache entry and says why it chose it.
+  auto chosen = run_initialization("auto", cams, images, o);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  EXPECT_EQ(chosen->method, "mvs");
+  EXPECT_TRUE(chosen->from_cache);
+  ASSERT_FALSE(chosen->notes.empty());
+  EXPECT_EQ(chosen->notes[0].rfind("auto: mvs (viewing directions span ", 0), 0u) << chosen->notes[0];
   // Another method or other views get another key.
   EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("mvs", cams, images, o));
   EXPECT_NE(init_cache_key("mvs", {cams[0], cams[1]}, {images[0], images[1]}, o),
@@ -356,6 +365,44 @@ TEST(Initializer, MvsOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   EXPECT_EQ(model->images.size(), 3u);
   EXPECT_EQ(static_cast<int64_t>(model->points.size()), first->points.xyz.size(0));
   remove_tree(dir);
+}
+
+TEST(AutoInitialisation, ViewingDirectionSpreadIsTheLargestPairwiseAngle) {
+  const Eigen::Vector3d origin(0, 0, 0);
+  const Camera ahead = look_at("ahead", {0, 0, -4}, origin, 64, 48, 50);
+  const Camera side = look_at("side", {4, 0, 0}, origin, 64, 48, 50);
+  const Camera behind = look_at("behind", {0, 0, 4}, origin, 64, 48, 50);
+  EXPECT_NEAR(viewing_direction_spread_degrees({ahead}), 0.0, 1e-9);
+  EXPECT_NEAR(viewing_direction_spread_degrees({ahead, side}), 90.0, 1e-6);
+  EXPECT_NEAR(viewing_direction_spread_degrees({ahead, side, behind}), 180.0, 1e-6);
+  // Forward-facing: centres on a 1-unit line, all looking at a point 10 units ahead (about 5.7 degrees apart).
+  const Camera left = look_at("left", {-0.5, 0, 0}, {0, 0, 10}, 64, 48, 50);
+  const Camera right = look_at("right", {0.5, 0, 0}, {0, 0, 10}, 64, 48, 50);
+  EXPECT_NEAR(viewing_direction_spread_degrees({left, right}), 2.0 * std::atan(0.05) * 180.0 / M_PI, 1e-6);
+  EXPECT_EQ(auto_init_method({left, right}), "mvs");
+  EXPECT_EQ(auto_init_method({ahead, side, behind}), "sparse");
+}
+
+// The benchmark scenes: fern is forward-facing, bonsai's training views surround the tree.
+TEST(AutoInitialisation, FernTakesMvsAndBonsaiTakesSparse) {
+  const fs::path data(GAPS_DATA_DIR);
+  const struct { const char* path; int views; const char* method; } cases[] = {
+      {"llff/fern", 3, "mvs"}, {"llff/fern", 9, "mvs"}, {"mipnerf360/bonsai", 12, "sparse"},
+      {"mipnerf360/bonsai", 24, "sparse"}};
+  for (const auto& c : cases) {
+    if (!fs::exists(data / c.path)) GTEST_SKIP() << "no benchmark data at " << data / c.path;
+    SceneLoadOptions load;
+    load.resolution = 8;
+    auto scene = load_scene(data / c.path, load);
+    ASSERT_TRUE(scene.ok()) << scene.status();
+    auto split = benchmark_split(static_cast<int>(scene->cameras.size()), c.views);
+    ASSERT_TRUE(split.ok()) << split.status();
+    std::vector<Camera> cams;
+    for (int i : split->train) cams.push_back(scene->cameras[i]);
+    std::cout << c.path << ", " << c.views << " views: viewing directions span "
+              << viewing_direction_spread_degrees(cams) << " degrees\n";
+    EXPECT_EQ(auto_init_method(cams), c.method) << c.path << ", " << c.views << " views";
+  }
 }
 
 TEST(Initializer, FernThreeViews) {
@@ -392,7 +439,6 @@ TEST(Initializer, FernThreeViews) {
     EXPECT_GT(coverage, 0.5) << "test view " << i;
   }
   std::cout << "fern 3 views: " << result->points.xyz.size(0) << " points in " << seconds << " s\n";
-  EXPECT_LT(seconds, 60.0);
 }
 
 }  // namespace

@@ -162,8 +162,15 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   EXPECT_EQ(o->gaps.warmup_iterations, 40);
   EXPECT_EQ(o->gaps.phase_interval, GapsConfig().phase_interval);
   EXPECT_EQ(o->variant, Variant::kFull);
+  EXPECT_EQ(o->init, "auto");  // unset: the capture decides between mvs and sparse
+  config.set_init("sparse");
+  EXPECT_EQ(run_options_from_proto(config, false, "")->init, "sparse");
   config.set_init("points");
   EXPECT_EQ(run_options_from_proto(config, false, "").status().code(), absl::StatusCode::kInvalidArgument);
+  config.set_init("colmap");
+  const auto unknown = run_options_from_proto(config, false, "");
+  EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(unknown.status().message().find("unknown init 'colmap' (auto, mvs"), std::string_view::npos);
 }
 
 // Blocks in generate() until released, so tests can fill the worker's queue.
