@@ -83,6 +83,27 @@ TEST(LoraTest, MergedWeightsGiveTheAdaptedOutput) {
   RecordProperty("max_abs_diff", absl::StrCat((actual - expected).abs().max().item<double>()));
 }
 
+TEST(LoraTest, UnmergingRestoresTheBaseWeightsBitForBit) {
+  sdxl::UNet2DCondition unet = tiny_unet();
+  const at::Tensor base = unet_step(unet);
+  std::vector<at::Tensor> before;
+  unet.for_each_attention([&](const std::string&, sdxl::Attention& a) { before.push_back(a.to_q.weight.clone()); });
+  auto lora = UNetLora::load(lora_file(), unet);
+  ASSERT_TRUE(lora.ok()) << lora.status();
+  lora->merge_into(unet);
+  EXPECT_TRUE(lora->merged());
+  lora->merge_into(unet);  // a second merge must not add the adapters twice
+  expect_close(unet_step(unet), lora_reference("unet_lora").at("out"), kTolerance, "UNet step after two merges");
+  lora->unmerge_from(unet);
+  EXPECT_FALSE(lora->merged());
+  size_t i = 0;
+  unet.for_each_attention([&](const std::string& name, sdxl::Attention& a) {
+    EXPECT_TRUE(at::equal(a.to_q.weight, before[i++])) << name;
+    EXPECT_FALSE(a.to_q.lora_down.defined()) << name;
+  });
+  EXPECT_TRUE(at::equal(unet_step(unet), base));
+}
+
 TEST(LoraTest, FreshAdaptersLeaveTheOutputUnchangedAndFollowTheSeed) {
   sdxl::UNet2DCondition unet = tiny_unet();
   const at::Tensor base = unet_step(unet);

@@ -237,16 +237,25 @@ void UNetLora::attach_to(UNet2DCondition& unet) const {
   }
 }
 
-void UNetLora::merge_into(UNet2DCondition& unet) const {
+void UNetLora::merge_into(UNet2DCondition& unet) {
+  if (merged()) return;
   // In place, so that anything holding the weight tensors (a captured CUDA graph) sees the merged values.
   c10::InferenceMode inference;
   const auto layers = projection_layers(unet);
   for (const auto& a : adapters_) {
     Linear& layer = *layers.at(a.module);
+    base_weights_[a.module] = layer.weight.to(at::kCPU, /*non_blocking=*/false, /*copy=*/true);
     layer.weight.add_(at::matmul(a.up, a.down).to(layer.weight.scalar_type()), a.scale());
     layer.lora_down = at::Tensor();
     layer.lora_up = at::Tensor();
   }
+}
+
+void UNetLora::unmerge_from(UNet2DCondition& unet) {
+  c10::InferenceMode inference;
+  const auto layers = projection_layers(unet);
+  for (const auto& [module, weight] : base_weights_) layers.at(module)->weight.copy_(weight);
+  base_weights_.clear();
 }
 
 void UNetLora::detach_from(UNet2DCondition& unet) const {

@@ -9,6 +9,7 @@
 //   "unet.alpha_pattern"). Without that entry alpha equals each module's rank (scale 1), as diffusers
 //   loads such files. Text-encoder adapters, kohya-style files (lora_unet_*, lora_down/lora_up), DoRA and
 //   LoRA biases are refused by name.
+#include <map>
 #include <string>
 #include <vector>
 
@@ -51,8 +52,13 @@ class UNetLora {
   std::vector<at::Tensor> parameters() const;
   const std::vector<Adapter>& adapters() const { return adapters_; }
 
-  // W += scale * up @ down on every adapted layer of unet, which then runs without the adapters.
-  void merge_into(UNet2DCondition& unet) const;
+  // W += scale * up @ down on every adapted layer of unet, which then runs without the adapters. A host copy
+  // of every W it changes is kept first, so that unmerge_from can restore them bit for bit (subtracting
+  // again would leave half-precision rounding behind with every scene).
+  void merge_into(UNet2DCondition& unet);
+  // Restores the weights merge_into changed; nothing to do when it was not merged.
+  void unmerge_from(UNet2DCondition& unet);
+  bool merged() const { return !base_weights_.empty(); }
   // Removes the adapters from unet (its base weights are unchanged).
   void detach_from(UNet2DCondition& unet) const;
 
@@ -60,6 +66,7 @@ class UNetLora {
   void attach_to(UNet2DCondition& unet) const;
 
   std::vector<Adapter> adapters_;
+  std::map<std::string, at::Tensor> base_weights_;  // module -> W before merge_into (CPU)
 };
 
 }  // namespace gaps::sdxl

@@ -438,6 +438,7 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
 }
 
 absl::Status SdxlPipeline::reset_lora() {
+  if (lora_ && lora_->merged()) lora_->unmerge_from(*unet_);
   if (lora_) lora_->detach_from(*unet_);
   lora_.reset();
   if (graphs_) {
@@ -451,6 +452,7 @@ absl::Status SdxlPipeline::load_lora(const std::string& path) {
   GAPS_RETURN_IF_ERROR(reset_lora());
   GAPS_ASSIGN_OR_RETURN(UNetLora lora, UNetLora::load(path, *unet_));
   lora_ = std::move(lora);
+  lora_->merge_into(*unet_);
   return absl::OkStatus();
 }
 
@@ -509,6 +511,7 @@ absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& i
     losses = *std::move(trained);
   }
   lora_ = std::move(lora);
+  lora_->merge_into(*unet_);
   return losses;
 }
 

@@ -96,15 +96,17 @@ class SdxlPipeline {
   // Scene adaptation: new LoRA adapters (config, seeded by options.seed) on the UNet, trained by
   // LoraTrainer on images (B x 3 x H x W in [0, 1], H and W multiples of the latent factor; their VAE
   // latents drawn with options.seed) with prompts (one, or one per image) and, with a ControlNet, control
-  // (one scale for all images). The adapters replace any earlier LoRA and stay attached and frozen.
+  // (one scale for all images). The adapters replace any earlier LoRA; once trained they are frozen and
+  // merged into the UNet's weights (UNetLora::merge_into), so generation runs at the base UNet's cost;
+  // replacing them restores the base weights exactly.
   // Returns the loss of every step. With an IP-Adapter loaded, its image branch is off during training
   // (the adapters learn the text-conditioned UNet, as the paper trains them); img2img turns it back on.
   absl::StatusOr<std::vector<double>> train_lora(const at::Tensor& images, const std::vector<std::string>& prompts,
                                                  const std::optional<ControlInput>& control, const LoraConfig& config,
                                                  const LoraTrainingOptions& options);
-  // Attaches the adapters of a LoRA file (lora.h), replacing any earlier LoRA.
+  // Applies the adapters of a LoRA file (lora.h), merged as after train_lora, replacing any earlier LoRA.
   absl::Status load_lora(const std::string& path);
-  // The attached LoRA; null when none.
+  // The applied LoRA (merged into the UNet); null when none.
   const UNetLora* lora() const { return lora_ ? &*lora_ : nullptr; }
 
   // Switches UNet graph capture and replay on or off (see PipelineOptions::cuda_graphs).
