@@ -1,10 +1,11 @@
-#include <cmath>
 #include "gs_trainer/gaps_config.h"
 
+#include <cmath>
 #include <string>
 
 #include <absl/strings/str_cat.h>
 #include <nlohmann/json.hpp>
+#include "gs_trainer/json_fields.h"
 
 namespace gaps {
 
@@ -76,24 +77,13 @@ int num_diffusion_phases(int total_iterations, const GapsConfig& c) {
   return (total_iterations - 1 - c.warmup_iterations) / c.phase_interval + 1;
 }
 
-void to_json(nlohmann::json& j, const GapsConfig& c) {
-#define GAPS_TO_JSON(f) j[#f] = c.f;
-  GAPS_GAPS_CONFIG_FIELDS(GAPS_TO_JSON)
-#undef GAPS_TO_JSON
-}
+void to_json(nlohmann::json& j, const GapsConfig& c) { GAPS_GAPS_CONFIG_FIELDS(GAPS_WRITE_FIELD) }
 
 void from_json(const nlohmann::json& j, GapsConfig& c) {
-  for (auto it = j.begin(); it != j.end(); ++it) {
-    bool known = false;
-#define GAPS_FROM_JSON(f)   \
-  if (it.key() == #f) {     \
-    it.value().get_to(c.f); \
-    known = true;           \
-  }
-    GAPS_GAPS_CONFIG_FIELDS(GAPS_FROM_JSON)
-#undef GAPS_FROM_JSON
-    if (!known) throw nlohmann::json::other_error::create(501, "unknown GAPS option '" + it.key() + "'", &j);
-  }
+  read_fields(j, "GAPS", [&](const std::string& key, const nlohmann::json& value) {
+    GAPS_GAPS_CONFIG_FIELDS(GAPS_READ_FIELD)
+    return false;
+  });
   if (absl::Status s = validate_gaps_config(c); !s.ok()) {
     throw nlohmann::json::other_error::create(502, std::string(s.message()), &j);
   }

@@ -1,6 +1,9 @@
 #include "gs_trainer/train_config.h"
 
+#include <string>
+
 #include <nlohmann/json.hpp>
+#include "gs_trainer/json_fields.h"
 
 namespace gaps {
 
@@ -13,24 +16,13 @@ namespace gaps {
   X(percent_dense) X(min_opacity) X(max_screen_size) X(max_gaussians) X(gaussians_per_variation)        \
   X(prune_min_contribution) X(background)
 
-void to_json(nlohmann::json& j, const TrainConfig& c) {
-#define GAPS_TO_JSON(f) j[#f] = c.f;
-  GAPS_TRAIN_CONFIG_FIELDS(GAPS_TO_JSON)
-#undef GAPS_TO_JSON
-}
+void to_json(nlohmann::json& j, const TrainConfig& c) { GAPS_TRAIN_CONFIG_FIELDS(GAPS_WRITE_FIELD) }
 
 void from_json(const nlohmann::json& j, TrainConfig& c) {
-  for (auto it = j.begin(); it != j.end(); ++it) {
-    bool known = false;
-#define GAPS_FROM_JSON(f) \
-  if (it.key() == #f) {   \
-    it.value().get_to(c.f); \
-    known = true;         \
-  }
-    GAPS_TRAIN_CONFIG_FIELDS(GAPS_FROM_JSON)
-#undef GAPS_FROM_JSON
-    if (!known) throw nlohmann::json::other_error::create(501, "unknown training option '" + it.key() + "'", &j);
-  }
+  read_fields(j, "training", [&](const std::string& key, const nlohmann::json& value) {
+    GAPS_TRAIN_CONFIG_FIELDS(GAPS_READ_FIELD)
+    return false;
+  });
 }
 
 }  // namespace gaps
