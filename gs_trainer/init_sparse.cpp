@@ -78,19 +78,6 @@ double median(std::vector<double> values) {
   return values[mid];
 }
 
-absl::Status check_inputs(const std::vector<Camera>& cameras, const std::vector<at::Tensor>& images) {
-  if (cameras.size() != images.size())
-    return absl::InvalidArgumentError(
-        absl::StrCat(cameras.size(), " cameras but ", images.size(), " images for the initialisation"));
-  for (size_t i = 0; i < cameras.size(); ++i) {
-    const at::Tensor& im = images[i];
-    if (im.dim() != 3 || im.size(2) != 3 || im.size(0) != cameras[i].height || im.size(1) != cameras[i].width)
-      return absl::InvalidArgumentError(
-          absl::StrCat("image of ", cameras[i].name, " is not ", cameras[i].height, "x", cameras[i].width, "x3"));
-  }
-  return absl::OkStatus();
-}
-
 // Homogeneous pixel positions as an Nx3 float tensor.
 at::Tensor homogeneous(const std::vector<Eigen::Vector2d>& xy) {
   at::Tensor h = at::ones({static_cast<int64_t>(xy.size()), 3}, at::kFloat);
@@ -128,6 +115,19 @@ struct UnionFind {
 };
 
 }  // namespace
+
+absl::Status check_view_images(const std::vector<Camera>& cameras, const std::vector<at::Tensor>& images) {
+  if (cameras.size() != images.size())
+    return absl::InvalidArgumentError(
+        absl::StrCat(cameras.size(), " cameras but ", images.size(), " images for the initialisation"));
+  for (size_t i = 0; i < cameras.size(); ++i) {
+    const at::Tensor& im = images[i];
+    if (im.dim() != 3 || im.size(2) != 3 || im.size(0) != cameras[i].height || im.size(1) != cameras[i].width)
+      return absl::InvalidArgumentError(
+          absl::StrCat("image of ", cameras[i].name, " is not ", cameras[i].height, "x", cameras[i].width, "x3"));
+  }
+  return absl::OkStatus();
+}
 
 std::optional<Eigen::Vector2d> project_point(const Camera& camera, const Eigen::Vector3d& xyz) {
   const Eigen::Vector3d p = camera.R * xyz + camera.t;
@@ -329,7 +329,7 @@ TrackVerdict triangulate_track(const std::vector<Camera>& cameras, std::vector<O
 absl::StatusOr<SparseResult> sparse_reconstruct(const std::vector<Camera>& cameras,
                                                 const std::vector<at::Tensor>& images, const SparseOptions& options) {
   const auto start = std::chrono::steady_clock::now();
-  if (absl::Status s = check_inputs(cameras, images); !s.ok()) return s;
+  if (absl::Status s = check_view_images(cameras, images); !s.ok()) return s;
   const int views = static_cast<int>(cameras.size());
   SparseResult result;
   SparseStats& stats = result.stats;

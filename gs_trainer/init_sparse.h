@@ -10,6 +10,7 @@
 
 #include <ATen/Tensor.h>
 #include <Eigen/Core>
+#include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "gs_trainer/camera.h"
 #include "gs_trainer/scene.h"
@@ -73,6 +74,9 @@ struct SparseResult {
   std::vector<std::vector<int>> point_views;  // views observing each point (for neighbour selection)
   SparseStats stats;
 };
+
+// One HxWx3 image per camera, at the camera's size; the error names the first view that is not.
+absl::Status check_view_images(const std::vector<Camera>& cameras, const std::vector<at::Tensor>& images);
 
 // Projection of a world point to pixels; nullopt when it is not in front of the camera (z <= 0).
 std::optional<Eigen::Vector2d> project_point(const Camera& camera, const Eigen::Vector3d& xyz);

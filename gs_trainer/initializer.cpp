@@ -71,15 +71,7 @@ absl::Status check_inputs(const std::string& method, const std::vector<Camera>& 
     return absl::InvalidArgumentError(
         absl::StrCat("unknown initialisation '", method, "' (auto, mvs, sparse or random)"));
   if (cameras.empty()) return absl::InvalidArgumentError("initialisation needs at least one training view");
-  if (cameras.size() != images.size())
-    return absl::InvalidArgumentError(absl::StrCat(cameras.size(), " cameras but ", images.size(), " images"));
-  for (size_t i = 0; i < cameras.size(); ++i) {
-    const at::Tensor& im = images[i];
-    if (im.dim() != 3 || im.size(2) != 3 || im.size(0) != cameras[i].height || im.size(1) != cameras[i].width)
-      return absl::InvalidArgumentError(
-          absl::StrCat("image of ", cameras[i].name, " is not ", cameras[i].height, "x", cameras[i].width, "x3"));
-  }
-  return absl::OkStatus();
+  return check_view_images(cameras, images);
 }
 
 PointCloud random_cloud(const std::vector<Camera>& cameras, const InitOptions& opts) {
