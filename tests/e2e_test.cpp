@@ -9,6 +9,7 @@
 #include "gs_trainer/gaussians.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -49,12 +50,7 @@ void expect_outputs(const std::filesystem::path& out, int test_views) {
 TEST_F(EndToEnd, SyntheticSceneFromThreeViews) {
   const auto dir = dir_;
   ASSERT_TRUE(write_synthetic_scene(dir / "scene", {}).ok());
-  RunOptions o;
-  o.scene_dir = dir / "scene";
-  o.out_dir = dir / "out";
-  o.views = 3;
-  o.resolution = 1;
-  o.init = "random";
+  RunOptions o = test::short_run(dir);
   o.random_points = 4000;
   o.config.iterations = 600;
   const auto r = run(o);
