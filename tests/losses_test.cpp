@@ -3,7 +3,6 @@
 #include "gs_trainer/losses.h"
 
 #include <ATen/ATen.h>
-#include <dirent.h>
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -17,6 +16,8 @@
 #include <string>
 #include <utility>
 #include <vector>
+
+#include "gs_trainer/io_util.h"
 
 namespace gaps {
 namespace {
@@ -153,18 +154,6 @@ at::Tensor read_raw_double(const std::filesystem::path& path, at::IntArrayRef sh
   return t;
 }
 
-// Not std::filesystem::remove_all: libtorch.so exports its own copy of that symbol, the call binds
-// there and crashes.
-void remove_flat_directory(const std::string& dir) {
-  if (DIR* d = opendir(dir.c_str())) {
-    while (dirent* entry = readdir(d)) {
-      const std::string name = entry->d_name;
-      if (name != "." && name != "..") unlink((dir + "/" + name).c_str());
-    }
-    closedir(d);
-  }
-  rmdir(dir.c_str());
-}
 
 TEST(Ssim, MatchesOriginal3dgsPythonImplementation) {
   ASSERT_TRUE(std::filesystem::exists(GAPS_PYTHON))
@@ -185,7 +174,7 @@ TEST(Ssim, MatchesOriginal3dgsPythonImplementation) {
   auto [rc, output] = run_command(command);
   ASSERT_EQ(rc, 0) << command << "\n" << output;
   at::Tensor expected = read_raw_double(dir / "map.f64", {h, w, 3});
-  remove_flat_directory(dir);
+  remove_tree(dir);
   at::Tensor map = gaps::ssim_map(pred, gt);
   EXPECT_LT((map - expected).abs().max().item<double>(), 1e-12);
   // The images differ enough for the check to mean something.

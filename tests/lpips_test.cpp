@@ -7,7 +7,6 @@
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
-#include <dirent.h>
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -25,6 +24,8 @@
 #include "gs_trainer/metrics.h"
 #include "gs_trainer/torch_pickle.h"
 
+#include "gs_trainer/io_util.h"
+
 namespace gaps {
 namespace {
 
@@ -38,23 +39,13 @@ const std::string kLinWeights = std::string(GAPS_DATA_DIR) + "/lpips/vgg.pth";
 // Exit status of tests/scripts/lpips_reference.py when a Python module it needs is missing.
 constexpr int kMissingPythonModule = 77;
 
-// ---- small file helpers (no std::filesystem::remove_all: libtorch.so exports a broken copy) ----
+// ---- small file helpers ----
 
 std::string make_temp_dir(const std::string& stem) {
   std::string pattern = "/tmp/" + stem + "_XXXXXX";
   return mkdtemp(pattern.data()) != nullptr ? pattern : std::string();
 }
 
-void remove_flat_directory(const std::string& dir) {
-  if (DIR* d = opendir(dir.c_str())) {
-    while (dirent* entry = readdir(d)) {
-      const std::string name = entry->d_name;
-      if (name != "." && name != "..") unlink((dir + "/" + name).c_str());
-    }
-    closedir(d);
-  }
-  rmdir(dir.c_str());
-}
 
 std::string read_file(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
@@ -83,7 +74,7 @@ bool contains(absl::string_view haystack, absl::string_view needle) {
 class ScratchDir {
  public:
   ScratchDir() : path_(make_temp_dir("gaps_lpips_scratch")) {}
-  ~ScratchDir() { remove_flat_directory(path_); }
+  ~ScratchDir() { remove_tree(path_); }
   std::string file(const std::string& name) const { return path_ + "/" + name; }
 
  private:
@@ -225,7 +216,7 @@ class PythonFixtures : public ::testing::Test {
     manifest_ = nlohmann::json::parse(read_file(dir_ + "/manifest.json"));
   }
   static void TearDownTestSuite() {
-    if (!dir_.empty()) remove_flat_directory(dir_);
+    if (!dir_.empty()) remove_tree(dir_);
   }
   void SetUp() override {
     if (!skip_.empty()) GTEST_SKIP() << skip_;
