@@ -44,14 +44,7 @@ sdxl::UNet2DCondition tiny_unet() {
 }
 
 at::Tensor unet_step(const sdxl::UNet2DCondition& unet) {
-  const TensorMap ref = test::sdxl_reference("unet");
-  sdxl::UNetInputs in;
-  in.sample = ref.at("sample");
-  in.timestep = ref.at("timestep");
-  in.encoder_hidden_states = ref.at("encoder_hidden_states");
-  in.text_embeds = ref.at("text_embeds");
-  in.time_ids = ref.at("time_ids");
-  return unet.forward(in);
+  return unet.forward(test::recorded_unet_inputs(test::sdxl_reference("unet")));
 }
 
 TEST(LoraTest, UNetStepMatchesPeftLoraForward) {
