@@ -153,7 +153,8 @@ def row_from_metrics(config, cell, metrics, commit, device, wall_seconds):
         "peak_memory_kind": peak.get("kind"), "train_seconds": metrics.get("train_seconds"),
         "generator_seconds": metrics.get("generator_seconds"), "wall_seconds": wall_seconds,
         "iterations": metrics.get("iterations"), "resolution": metrics.get("resolution"),
-        "init": metrics.get("init"), "commit": commit, "device": f"{metrics.get('device')}: {device}",
+        # The method that made the points (metrics.json's init_method: "auto" resolved, fallbacks taken).
+        "init": metrics.get("init_method") or metrics.get("init"), "commit": commit, "device": f"{metrics.get('device')}: {device}",
         "error": metrics.get("error"), "curve": metrics.get("curve", []),
     }
     return row

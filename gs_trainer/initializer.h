@@ -63,10 +63,11 @@ std::string auto_init_method(const std::vector<Camera>& cameras);
 absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
                                               const std::vector<at::Tensor>& train_images, const InitOptions& opts);
 
-// The points only; *report (if given) gets the statistics and the warning lines, newline-terminated.
+// The points only; *report (if given) gets the statistics and the warning lines, newline-terminated, and
+// *method_used (if given) the method that made the points ("auto" resolved, fallbacks taken).
 absl::StatusOr<PointCloud> initialize_points(const std::string& method, const std::vector<Camera>& train_cameras,
                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts,
-                                             std::string* report);
+                                             std::string* report, std::string* method_used = nullptr);
 
 // Cache file stem: <scene>_<N>v_<W>x<H>_<method>_<16 hex digits> where the hash covers the method, every
 // camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options.

@@ -33,9 +33,11 @@ absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const s
   return views;
 }
 
+// *method_used: the method that made the points (o.init, with "auto" resolved and any fallback taken).
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train,
-                                          const std::function<void(const std::string&)>& log) {
+                                          const std::function<void(const std::string&)>& log, std::string* method_used) {
+  *method_used = o.init;
   if (o.init == "ply") {
     if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
     return read_point_cloud_ply(o.init_ply);
@@ -56,7 +58,7 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   init.random_points = o.random_points;
   init.seed = o.config.seed;
   std::string report;
-  auto points = initialize_points(o.init, cameras, images, init, &report);
+  auto points = initialize_points(o.init, cameras, images, init, &report, method_used);
   if (!report.empty()) log(report);
   return points;
 }
@@ -90,6 +92,7 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   j["device"] = o.config.device;
   j["seed"] = o.config.seed;
   j["init"] = o.init;
+  j["init_method"] = r.init_method;
   j["variant"] = variant_name(o.variant);
   if (!failure.empty()) {
     for (const char* key : {"psnr", "ssim", "lpips"}) j[key] = nullptr;
@@ -137,7 +140,8 @@ absl::Status run_init_only(const RunOptions& o, const std::function<void(const s
   GAPS_ASSIGN_OR_RETURN(Split split, benchmark_split(static_cast<int>(scene.cameras.size()), o.views));
   log(describe(scene, split));
   GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
-  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
+  std::string init_method;
+  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log, &init_method));
   std::filesystem::create_directories(o.out_dir);
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
   std::vector<Camera> cameras;
@@ -167,7 +171,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   log(result.summary);
   GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
   GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> test, load_views(scene, split.test, device));
-  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
+  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log, &result.init_method));
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
 
   std::filesystem::create_directories(o.out_dir);

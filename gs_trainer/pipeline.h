@@ -65,6 +65,7 @@ struct RunResult {
   std::vector<CurvePoint> curve;  // ends with the final evaluation when eval_every > 0
   PeakMemory peak_memory;
   std::optional<double> generator_seconds;  // method variants only
+  std::string init_method;  // what made the initial points: RunOptions::init with "auto" resolved, fallbacks taken
 };
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;

@@ -38,6 +38,7 @@ void expect_outputs(const std::filesystem::path& out, int test_views) {
                           "device", "seed"})
     EXPECT_TRUE(j.contains(key)) << key;
   EXPECT_TRUE(j["lpips"].is_null()) << "no LPIPS backbone was given, so LPIPS must be null";
+  EXPECT_EQ(j.value("init_method", ""), "random");  // both runs below start from random points
   EXPECT_EQ(j["per_view"].size(), static_cast<size_t>(test_views));
   auto model = load_gaussians_ply(out / "point_cloud.ply");
   ASSERT_TRUE(model.ok()) << model.status();

@@ -48,7 +48,8 @@ FAKE_GAPS = textwrap.dedent("""\
     m = {{"status": "ok", "psnr": psnr, "ssim": 0.5, "lpips": None, "num_gaussians": 1000 * views,
           "train_seconds": 10.0, "generator_seconds": None if variant == "vanilla" else 2.0,
           "peak_memory": {{"kind": "cuda_allocator", "bytes": 2 ** 30}}, "iterations": 100, "resolution": 8,
-          "init": args.get("init"), "device": "cuda", "argv": sys.argv[1:],
+          "init": args.get("init"), "init_method": "sparse" if args.get("init") == "auto" else args.get("init"),
+          "device": "cuda", "argv": sys.argv[1:],
           "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
           "curve": [{{"iteration": 50, "train_seconds": 5.0, "psnr": psnr - 1, "ssim": 0.4, "lpips": None,
                       "num_gaussians": 500}},
@@ -118,6 +119,7 @@ class HarnessTest(unittest.TestCase):
         self.assertEqual(full["generator_seconds"], 2.0)
         self.assertEqual(len(full["curve"]), 2)
         self.assertTrue(full["device"].startswith("cuda: "))
+        self.assertEqual(full["init"], "mvs")
         diverged = rows["fern_v3_no-gaps_s0"]
         self.assertEqual(diverged["status"], "diverged")
         self.assertIsNone(diverged["psnr"])
@@ -186,6 +188,11 @@ class HarnessTest(unittest.TestCase):
         self.assertIn("--device=cuda", argv)
         self.assertIn("--init=random", argv)
         self.assertNotIn("--init=mvs", argv)
+
+    def test_rows_record_the_initialisation_that_ran(self):
+        code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "init=auto")
+        self.assertEqual(code, 0)
+        self.assertEqual(self.rows()[0]["init"], "sparse")  # "auto" as resolved by the trainer
 
     def test_arms_run_a_variant_under_their_own_label_and_flags(self):
         self.write_config({"scenes": [{"name": "fern", "path": "llff/fern"}], "views": [3],
