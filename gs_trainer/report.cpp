@@ -89,6 +89,7 @@ std::string metrics_table(const json& m) {
       {"training views", std::to_string(m.value("views", 0))},
       {"iterations", std::to_string(m.value("iterations", 0))},
       {"seed", std::to_string(m.value("seed", 0))},
+      {"initial points", m.value("init_method", m.value("init", ""))},
       {"device", m.value("device", "")},
       {"test PSNR (dB)", json_number(m.value("psnr", json()), "%.2f")},
       {"test SSIM", json_number(m.value("ssim", json()), "%.4f")},

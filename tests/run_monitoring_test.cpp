@@ -144,6 +144,8 @@ TEST_F(RunMonitoring, CurvePeakMemoryAndReportOfAVanillaRun) {
   // Two test views of the synthetic scene, each as ground truth and render.
   EXPECT_EQ(count(html, "src=\"data:image/png;base64,"), 4);
   EXPECT_NE(html.find("No pseudo-view phases"), std::string::npos);
+  EXPECT_NE(html.find("<tr><th>initial points</th><td>" + m["init_method"].get<std::string>() + "</td></tr>"),
+            std::string::npos);
 }
 
 TEST_F(RunMonitoring, PeakMemoryOnCudaComesFromTheCachingAllocator) {
