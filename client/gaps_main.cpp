@@ -39,6 +39,7 @@ ABSL_FLAG(std::string, init, "auto", "initial points: auto (mvs for forward-faci
 ABSL_FLAG(std::string, init_cache, "", "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, init_ply, "", "PLY point cloud for --init ply (given alone, implies it)");
 ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
+ABSL_FLAG(int, init_resolution, 0, "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger images than -r 8 trains on (0: --resolution)");
 ABSL_FLAG(std::string, config, "", "JSON file of training options (TrainConfig field names)");
 ABSL_FLAG(std::string, lpips_backbone, "", "VGG16 weights (torchvision vgg16-397923af.pth); LPIPS is null without");
 ABSL_FLAG(std::string, lpips_weights, "", "LPIPS v0.1 linear weights (vgg.pth)");
@@ -95,6 +96,7 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
   o.init_ply = absl::GetFlag(FLAGS_init_ply);
   if (!o.init_ply.empty()) o.init = "ply";
   o.random_points = absl::GetFlag(FLAGS_random_points);
+  o.init_resolution = absl::GetFlag(FLAGS_init_resolution);
   o.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
   if (o.init_cache_dir.empty()) {
     const char* cache = std::getenv("GAPS_CACHE");

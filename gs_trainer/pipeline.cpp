@@ -1,5 +1,6 @@
 #include "gs_trainer/pipeline.h"
 
+#include <algorithm>
 #include <chrono>
 #include <fstream>
 
@@ -33,6 +34,33 @@ absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const s
   return views;
 }
 
+// The training views as the initialisation reads them: `train` itself, or the same views loaded again at
+// o.init_resolution (matched by image name), so that SIFT and the plane sweep can see more pixels than the
+// model trains on. The points are in world units either way.
+absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOptions& o,
+                                                                   const std::vector<TrainingView>& train,
+                                                                   const std::function<void(const std::string&)>& log) {
+  if (o.init_resolution < 0)
+    return absl::InvalidArgumentError(absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ",
+                                                   o.init_resolution));
+  if (o.init_resolution == 0 || o.init_resolution == o.resolution || train.empty()) return train;
+  SceneLoadOptions load;
+  load.resolution = o.init_resolution;
+  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(o.scene_dir, load));
+  std::vector<int> indices;
+  for (const auto& v : train) {
+    const auto same = std::find_if(scene.cameras.begin(), scene.cameras.end(),
+                                   [&](const Camera& c) { return c.name == v.camera.name; });
+    if (same == scene.cameras.end())
+      return absl::NotFoundError(absl::StrCat("init resolution ", o.init_resolution, ": no image ", v.camera.name));
+    indices.push_back(static_cast<int>(same - scene.cameras.begin()));
+  }
+  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> views, load_views(scene, indices, at::kCPU));
+  log(absl::StrCat("init: reading the training views at ", views[0].camera.width, "x", views[0].camera.height,
+                   " (init resolution ", o.init_resolution, ")"));
+  return views;
+}
+
 // *method_used: the method that made the points (o.init, with "auto" resolved and any fallback taken).
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train,
@@ -49,7 +77,8 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   }
   std::vector<Camera> cameras;
   std::vector<at::Tensor> images;
-  for (const auto& v : train) {
+  GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> views, views_for_initialisation(o, train, log));
+  for (const auto& v : views) {
     cameras.push_back(v.camera);
     images.push_back(v.image);
   }
@@ -93,6 +122,7 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   j["seed"] = o.config.seed;
   j["init"] = o.init;
   j["init_method"] = r.init_method;
+  j["init_resolution"] = o.init_resolution > 0 ? o.init_resolution : o.resolution;
   j["variant"] = variant_name(o.variant);
   if (!failure.empty()) {
     for (const char* key : {"psnr", "ssim", "lpips"}) j[key] = nullptr;

@@ -28,6 +28,8 @@ struct RunOptions {
   // Initial point clouds are cached here per scene, views, resolution and method (empty: no cache).
   std::filesystem::path init_cache_dir;
   int64_t random_points = 20000;
+  // Downscale factor of the images the initialisation (sparse, mvs) reads; 0: the training resolution.
+  int init_resolution = 0;
   // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
   std::filesystem::path lpips_backbone;
   std::filesystem::path lpips_weights;  // LPIPS v0.1 linear layers (vgg.pth)

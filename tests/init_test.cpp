@@ -19,6 +19,9 @@
 #include "gs_trainer/init_dense.h"
 #include "gs_trainer/init_sparse.h"
 #include "gs_trainer/io_util.h"
+#include "gs_trainer/pipeline.h"
+#include "gs_trainer/ply.h"
+#include "tests/test_util.h"
 
 namespace gaps {
 namespace {
@@ -439,6 +442,48 @@ TEST(Initializer, FernThreeViews) {
     EXPECT_GT(coverage, 0.5) << "test view " << i;
   }
   std::cout << "fern 3 views: " << result->points.xyz.size(0) << " points in " << seconds << " s\n";
+}
+
+class InitResolution : public test::TempDirTest {};
+
+// The initialisation may read larger images than training uses: fern at -r 8 triangulated from its -r 4
+// images. Same views, same poses, more pixels: more points.
+TEST_F(InitResolution, FernTriangulatesMoreFromLargerImages) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
+  const auto points_at = [&](int init_resolution, std::string* log) -> int64_t {
+    RunOptions o;
+    o.scene_dir = fern;
+    o.views = 3;
+    o.resolution = 8;
+    o.init = "sparse";
+    o.init_resolution = init_resolution;
+    o.config.device = "cpu";
+    o.out_dir = dir_ / ("init_r" + std::to_string(init_resolution));
+    const absl::Status done = run_init_only(o, [&](const std::string& line) { *log += line + "\n"; });
+    EXPECT_TRUE(done.ok()) << done;
+    auto points = read_point_cloud_ply(o.out_dir / "points.ply");
+    EXPECT_TRUE(points.ok()) << points.status();
+    return points.ok() ? points->xyz.size(0) : 0;
+  };
+  std::string training_log, larger_log;
+  const int64_t at_training = points_at(0, &training_log);
+  const int64_t from_larger = points_at(4, &larger_log);
+  std::cout << "fern 3 views, sparse points: " << at_training << " from 504x378, " << from_larger << " from 1008x756\n";
+  EXPECT_EQ(training_log.find("init: reading the training views at"), std::string::npos) << training_log;
+  EXPECT_NE(larger_log.find("init: reading the training views at 1008x756 (init resolution 4)"), std::string::npos)
+      << larger_log;
+  EXPECT_GT(from_larger, at_training);
+
+  RunOptions negative;
+  negative.scene_dir = fern;
+  negative.init = "sparse";
+  negative.init_resolution = -2;
+  negative.config.device = "cpu";
+  negative.out_dir = dir_ / "negative";
+  const absl::Status refused = run_init_only(negative, [](const std::string&) {});
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(refused.message()).find("init resolution must be >= 0"), std::string::npos) << refused;
 }
 
 }  // namespace
