@@ -22,25 +22,21 @@ import os
 import sys
 
 import torch
-from safetensors.torch import save_file
 
 import diffusers
 import transformers
 from diffusers import AutoencoderKL, DDIMScheduler, EulerDiscreteScheduler, PNDMScheduler, UNet2DConditionModel
 from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
 
+from reference_tensors import reference_saver
 from sd2_inpaint_folder import save_sd2_inpaint_folder
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = sys.argv[1] if len(sys.argv) > 1 else os.path.join(HERE, "..", "fixtures", "sd2_inpaint_tiny")
 MODEL = os.path.join(OUT, "model")
 REF = os.path.join(OUT, "reference")
+save = reference_saver(REF)
 SDXL_TOKENIZER = os.path.join(HERE, "..", "fixtures", "sdxl_tiny", "model", "tokenizer_2")
-
-
-def save(name, tensors):
-    save_file({k: v.detach().contiguous().float() if v.is_floating_point() else v.contiguous()
-               for k, v in tensors.items()}, os.path.join(REF, name + ".safetensors"))
 
 
 def main():
