@@ -242,6 +242,17 @@ struct Bench {
     return j;
   }
 
+  // Completes a timed case's line with what every timed case reports (its timing, whether its last output
+  // is finite, the allocator's peak) and writes it.
+  void emit_timed(nlohmann::json j, const Timing& t, const at::Tensor& out) const {
+    j["runs"] = absl::GetFlag(FLAGS_runs);
+    j["ms"] = t.median_ms;
+    j["min_ms"] = t.min_ms;
+    j["output_finite"] = out.isfinite().all().item<bool>();
+    j["peak_mib"] = case_peak();
+    emit(j);
+  }
+
   // One pseudo-view through the pipeline at every size: img2img with the ControlNet, optionally the image
   // prompt.
   bool time_img2img(sdxl::SdxlPipeline& pipeline, const std::string& case_name, bool image_prompt) const {
@@ -267,12 +278,7 @@ struct Bench {
       j["ip_adapter_scale"] = image_prompt ? nlohmann::json(absl::GetFlag(FLAGS_ip_scale)) : nlohmann::json(nullptr);
       j["lora"] = pipeline.lora() != nullptr;
       j["cuda_graphs"] = absl::GetFlag(FLAGS_cuda_graphs);
-      j["runs"] = absl::GetFlag(FLAGS_runs);
-      j["ms"] = t.median_ms;
-      j["min_ms"] = t.min_ms;
-      j["output_finite"] = out.isfinite().all().item<bool>();
-      j["peak_mib"] = case_peak();
-      emit(j);
+      emit_timed(j, t, out);
     }
     return true;
   }
@@ -349,12 +355,7 @@ struct Bench {
       j["strength"] = params.strength;
       j["guidance"] = params.guidance_scale;
       j["masked_fraction"] = in.mask.mean().item<double>();
-      j["runs"] = absl::GetFlag(FLAGS_runs);
-      j["ms"] = t.median_ms;
-      j["min_ms"] = t.min_ms;
-      j["output_finite"] = out.isfinite().all().item<bool>();
-      j["peak_mib"] = case_peak();
-      emit(j);
+      emit_timed(j, t, out);
     }
     return true;
   }
@@ -373,12 +374,7 @@ struct Bench {
     });
     if (!t.status.ok()) return fail("Depth-Anything", t.status);
     nlohmann::json j = line("depth_anything", s);
-    j["runs"] = absl::GetFlag(FLAGS_runs);
-    j["ms"] = t.median_ms;
-    j["min_ms"] = t.min_ms;
-    j["output_finite"] = out.isfinite().all().item<bool>();
-    j["peak_mib"] = case_peak();
-    emit(j);
+    emit_timed(j, t, out);
     return true;
   }
 

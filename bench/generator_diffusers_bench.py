@@ -20,7 +20,6 @@ Usage: python bench/generator_diffusers_bench.py --sdxl_dir SDXL --weights_dir W
 """
 import argparse
 import importlib.util
-import json
 import os
 
 import numpy as np
@@ -30,7 +29,7 @@ from PIL import Image
 import diffusers
 from diffusers import ControlNetModel, StableDiffusionInpaintPipeline, StableDiffusionXLControlNetImg2ImgPipeline
 
-from sdxl_diffusers_bench import reset_peak, sync, time_ms
+from diffusers_timing import json_lines, reset_peak, sync, time_ms
 
 PROMPT = "a photo of a fern in a garden"
 IP_WEIGHTS = "ip-adapter_sdxl_vit-h.safetensors"
@@ -91,12 +90,7 @@ def main():
     lora_dir = os.path.join(w, "lora")
     has_peft = importlib.util.find_spec("peft") is not None
 
-    def emit(j):
-        line = json.dumps(j)
-        print(line, flush=True)
-        if args.json:
-            with open(args.json, "a") as f:
-                f.write(line + "\n")
+    emit = json_lines(args.json)
 
     common = {"bench": "generator", "impl": "diffusers", "diffusers": diffusers.__version__,
               "torch": torch.__version__, "dtype": args.dtype, "commit": args.commit,

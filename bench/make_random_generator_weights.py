@@ -36,7 +36,7 @@ Usage: python bench/make_random_generator_weights.py --sdxl_dir SDXL --out OUT [
 import argparse
 import json
 import os
-import shutil
+import sys
 import time
 
 import torch
@@ -45,13 +45,16 @@ from safetensors.torch import save_file
 
 import diffusers
 import transformers
-from diffusers import (AutoencoderKL, ControlNetModel, DDIMScheduler, StableDiffusionInpaintPipeline,
-                       UNet2DConditionModel)
+from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
 from transformers import (CLIPTextConfig, CLIPTextModel, CLIPTokenizer, CLIPVisionConfig,
                           CLIPVisionModelWithProjection, DepthAnythingConfig, DepthAnythingForDepthEstimation,
                           Dinov2Config)
 from transformers.image_utils import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from transformers.models.dpt.image_processing_dpt import DPTImageProcessor
+
+# The SD2 inpainting folder is written as the tiny test fixture's is.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "scripts"))
+from sd2_inpaint_folder import save_sd2_inpaint_folder  # noqa: E402
 
 LORA_TARGETS = ["to_q", "to_k", "to_v", "to_out.0"]
 
@@ -76,6 +79,11 @@ def randomize(model, g):
                 else:
                     p.normal_(0, 0.02, generator=g)
     return model
+
+
+def save_tensors(path, tensors, dtype, metadata=None):
+    """A single-file checkpoint in the components' dtype (safetensors takes contiguous CPU tensors)."""
+    save_file({k: v.to(dtype).cpu().contiguous() for k, v in tensors.items()}, path, metadata=metadata)
 
 
 def meta_unet(sdxl_dir):
@@ -121,8 +129,7 @@ def write_ip_adapter(out, unet, tiny, dtype, device, g):
         for kv in ("to_k_ip", "to_v_ip"):
             tensors[f"ip_adapter.{key}.{kv}.weight"] = torch.randn(hidden, cross, generator=g, device=device) * cross ** -0.5
         key += 2
-    save_file({k: v.to(dtype).cpu().contiguous() for k, v in tensors.items()},
-              os.path.join(folder, "ip-adapter_sdxl_vit-h.safetensors"))
+    save_tensors(os.path.join(folder, "ip-adapter_sdxl_vit-h.safetensors"), tensors, dtype)
 
 
 def write_lora(out, unet, dtype, device, g, rank=4):
@@ -136,8 +143,7 @@ def write_lora(out, unet, dtype, device, g, rank=4):
     metadata = {"lora_adapter_metadata": json.dumps(
         {"unet.r": rank, "unet.lora_alpha": rank, "unet.target_modules": LORA_TARGETS})}
     os.makedirs(os.path.join(out, "lora"), exist_ok=True)
-    save_file({k: v.to(dtype).cpu().contiguous() for k, v in tensors.items()},
-              os.path.join(out, "lora", "pytorch_lora_weights.safetensors"), metadata=metadata)
+    save_tensors(os.path.join(out, "lora", "pytorch_lora_weights.safetensors"), tensors, dtype, metadata)
 
 
 def write_sd2_inpaint(out, sdxl_dir, tiny, dtype, device, g):
@@ -171,17 +177,7 @@ def write_sd2_inpaint(out, sdxl_dir, tiny, dtype, device, g):
                             **vae_config)
     for model in (text_encoder, unet, vae):
         randomize(model, g).to(dtype)
-    scheduler = DDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
-                              num_train_timesteps=1000, steps_offset=1, clip_sample=False, set_alpha_to_one=False,
-                              timestep_spacing="leading", prediction_type="epsilon")
-    pipe = StableDiffusionInpaintPipeline(vae=vae, text_encoder=text_encoder, tokenizer=tokenizer, unet=unet,
-                                          scheduler=scheduler, safety_checker=None, feature_extractor=None,
-                                          requires_safety_checker=False)
-    folder = os.path.join(out, "sd2_inpaint")
-    pipe.save_pretrained(folder, safe_serialization=True)
-    # The LibTorch tokenizer reads the BPE files (transformers 5 saves only tokenizer.json).
-    for name in ("vocab.json", "merges.txt"):
-        shutil.copy(os.path.join(tokenizer_dir, name), os.path.join(folder, "tokenizer", name))
+    save_sd2_inpaint_folder(os.path.join(out, "sd2_inpaint"), vae, text_encoder, unet, tokenizer, tokenizer_dir)
 
 
 def write_depth_anything(out, tiny, dtype, device, g):

@@ -11,42 +11,19 @@ Usage: python bench/sdxl_diffusers_bench.py --model_dir DIR [--runs 10] [--json 
        (--device cpu --dtype float32 runs the same code on the CPU, for a smoke test on a tiny model)
 """
 import argparse
-import json
 import time
 
 import torch
 import diffusers
 from diffusers import StableDiffusionXLImg2ImgPipeline
 
+from diffusers_timing import json_lines, reset_peak, sync, time_ms
+
 SIZES = [("1024x1024", 1024, 1024, 1024, 1024), ("504x378", 504, 378, 504, 384)]
-
-
-def sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-
-
-def time_ms(device, warmup, runs, f):
-    for _ in range(warmup):
-        f()
-    sync(device)
-    ms = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        f()
-        sync(device)
-        ms.append((time.perf_counter() - t0) * 1000)
-    ms.sort()
-    return ms[len(ms) // 2], ms[0]
 
 
 def peak_gib(device):
     return torch.cuda.max_memory_allocated() / 2**30 if device.type == "cuda" else None
-
-
-def reset_peak(device):
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats()
 
 
 def main():
@@ -74,12 +51,7 @@ def main():
             (w, h), (rw, rh) = (map(int, view.split("x")), map(int, run.split("x")))
             sizes.append((view, w, h, rw, rh))
 
-    def emit(j):
-        line = json.dumps(j)
-        print(line, flush=True)
-        if args.json:
-            with open(args.json, "a") as f:
-                f.write(line + "\n")
+    emit = json_lines(args.json)
 
     common = {"bench": "sdxl", "impl": "diffusers", "diffusers": diffusers.__version__, "torch": torch.__version__,
               "dtype": args.dtype,

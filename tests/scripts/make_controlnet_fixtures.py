@@ -24,20 +24,18 @@ import os
 import sys
 
 import torch
-from safetensors.torch import save_file
 
 import diffusers
 import transformers
 from diffusers import ControlNetModel, StableDiffusionXLControlNetImg2ImgPipeline, StableDiffusionXLImg2ImgPipeline
 
+from reference_tensors import reference_saver
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 SDXL = os.path.join(HERE, "..", "fixtures", "sdxl_tiny", "model")
 OUT = sys.argv[1] if len(sys.argv) > 1 else os.path.join(HERE, "..", "fixtures", "sdxl_controlnet_tiny")
 REF = os.path.join(OUT, "reference")
-
-
-def save(name, tensors):
-    save_file({k: v.detach().contiguous().float() for k, v in tensors.items()}, os.path.join(REF, name + ".safetensors"))
+save = reference_saver(REF)
 
 
 def main():

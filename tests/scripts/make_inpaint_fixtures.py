@@ -19,28 +19,24 @@ OUT_DIR (default tests/fixtures/sd2_inpaint_tiny) receives
 """
 import json
 import os
-import shutil
 import sys
 
 import torch
-from safetensors.torch import save_file
 
 import diffusers
 import transformers
-from diffusers import (AutoencoderKL, DDIMScheduler, EulerDiscreteScheduler, PNDMScheduler,
-                       StableDiffusionInpaintPipeline, UNet2DConditionModel)
+from diffusers import AutoencoderKL, DDIMScheduler, EulerDiscreteScheduler, PNDMScheduler, UNet2DConditionModel
 from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer
+
+from reference_tensors import reference_saver
+from sd2_inpaint_folder import save_sd2_inpaint_folder
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = sys.argv[1] if len(sys.argv) > 1 else os.path.join(HERE, "..", "fixtures", "sd2_inpaint_tiny")
 MODEL = os.path.join(OUT, "model")
 REF = os.path.join(OUT, "reference")
+save = reference_saver(REF)
 SDXL_TOKENIZER = os.path.join(HERE, "..", "fixtures", "sdxl_tiny", "model", "tokenizer_2")
-
-
-def save(name, tensors):
-    save_file({k: v.detach().contiguous().float() if v.is_floating_point() else v.contiguous()
-               for k, v in tensors.items()}, os.path.join(REF, name + ".safetensors"))
 
 
 def main():
@@ -69,16 +65,8 @@ def main():
                     p.copy_(1 + 0.1 * torch.randn(p.shape, generator=g))
                 else:
                     p.copy_(torch.randn(p.shape, generator=g) / max(1, p[0].numel()) ** 0.5)
-    scheduler = DDIMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
-                              num_train_timesteps=1000, steps_offset=1, clip_sample=False, set_alpha_to_one=False,
-                              timestep_spacing="leading", prediction_type="epsilon")
-    pipe = StableDiffusionInpaintPipeline(vae=vae, text_encoder=text_encoder, tokenizer=tokenizer, unet=unet,
-                                          scheduler=scheduler, safety_checker=None, feature_extractor=None,
-                                          requires_safety_checker=False)
-    pipe.save_pretrained(MODEL, safe_serialization=True)
-    # transformers 5 saves only tokenizer.json; the BPE files are the ones the LibTorch tokenizer reads.
-    for name in ("vocab.json", "merges.txt"):
-        shutil.copy(os.path.join(SDXL_TOKENIZER, name), os.path.join(MODEL, "tokenizer", name))
+    pipe = save_sd2_inpaint_folder(MODEL, vae, text_encoder, unet, tokenizer, SDXL_TOKENIZER)
+    scheduler = pipe.scheduler
 
     prompts = ["a photo of a fern in a garden", "a bonsai tree"]
     with torch.no_grad():

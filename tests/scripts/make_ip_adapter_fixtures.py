@@ -36,10 +36,13 @@ import transformers
 from diffusers import StableDiffusionXLImg2ImgPipeline
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
+from reference_tensors import reference_saver
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 SDXL_MODEL = os.path.join(HERE, "..", "fixtures", "sdxl_tiny", "model")
 OUT = sys.argv[1] if len(sys.argv) > 1 else os.path.join(HERE, "..", "fixtures", "ip_adapter_tiny")
 REF = os.path.join(OUT, "reference")
+save = reference_saver(REF)
 SCALE = 0.5
 
 
@@ -51,11 +54,6 @@ def randomize(module, g):
                 p.copy_(1 + 0.1 * torch.randn(p.shape, generator=g))
             else:
                 p.copy_(torch.randn(p.shape, generator=g) / max(1, p[0].numel()) ** 0.5)
-
-
-def save(name, tensors):
-    save_file({k: v.detach().contiguous().float() for k, v in tensors.items()},
-              os.path.join(REF, name + ".safetensors"))
 
 
 def ip_adapter_state_dict(unet, image_embed_dim, g):

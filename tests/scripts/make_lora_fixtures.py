@@ -34,11 +34,12 @@ import sys
 
 import torch
 import torch.nn.functional as F
-from safetensors.torch import save_file
 
 import diffusers
 from diffusers import ControlNetModel, DDPMScheduler, StableDiffusionXLPipeline, UNet2DConditionModel
 from safetensors.torch import load_file
+
+from reference_tensors import reference_saver
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIXTURES = os.path.join(HERE, "..", "fixtures")
@@ -46,13 +47,10 @@ SDXL = os.path.join(FIXTURES, "sdxl_tiny", "model")
 CONTROLNET = os.path.join(FIXTURES, "sdxl_controlnet_tiny", "controlnet")
 OUT = sys.argv[1] if len(sys.argv) > 1 else os.path.join(FIXTURES, "lora_tiny")
 REF = os.path.join(OUT, "reference")
+save = reference_saver(REF)
 RANK, ALPHA = 4, 8.0
 PATTERN_MODULE, PATTERN_ALPHA = "mid_block.attentions.0.transformer_blocks.0.attn1.to_q", 2.0
 PROJECTIONS = ("to_q", "to_k", "to_v", "to_out.0")
-
-
-def save(name, tensors):
-    save_file({k: v.detach().contiguous().float() for k, v in tensors.items()}, os.path.join(REF, name + ".safetensors"))
 
 
 def projection_modules(unet):

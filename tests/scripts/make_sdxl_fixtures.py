@@ -22,7 +22,6 @@ import os
 import sys
 
 import torch
-from safetensors.torch import save_file
 
 import diffusers
 import transformers
@@ -30,10 +29,13 @@ from diffusers import (AutoencoderKL, DDIMScheduler, DPMSolverMultistepScheduler
                        StableDiffusionXLImg2ImgPipeline, UNet2DConditionModel)
 from transformers import CLIPTextConfig, CLIPTextModel, CLIPTextModelWithProjection, CLIPTokenizer
 
+from reference_tensors import reference_saver
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = sys.argv[1] if len(sys.argv) > 1 else os.path.join(HERE, "..", "fixtures", "sdxl_tiny")
 MODEL = os.path.join(OUT, "model")
 REF = os.path.join(OUT, "reference")
+save = reference_saver(REF)
 
 CORPUS = [
     "a photo of a fern in a garden", "a bonsai tree on a wooden table", "a high quality photo of a room",
@@ -99,11 +101,6 @@ def write_tokenizer(folder, vocab, merges, pad_token):
                         pad_token=pad_token, model_max_length=77)
     tok.save_pretrained(folder)
     return CLIPTokenizer.from_pretrained(folder)
-
-
-def save(name, tensors):
-    save_file({k: v.detach().contiguous().float() if v.is_floating_point() else v.contiguous()
-               for k, v in tensors.items()}, os.path.join(REF, name + ".safetensors"))
 
 
 def main():
