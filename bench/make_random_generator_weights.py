@@ -21,7 +21,7 @@ OUT receives
                                  projections), OpenCLIP ViT-H text encoder as CLIPTextModel (hidden 1024,
                                  23 layers, 16 heads, MLP 4096, gelu), the SD VAE, the SDXL folder's
                                  tokenizer_2 (pad "!", as SD2's) and a DDIM scheduler on SD2's betas (the
-                                 published folder ships PNDM, which the LibTorch side does not implement);
+                                 published folder ships PNDM; DDIM as when the recorded timings were taken);
   depth_anything/                depth-anything/Depth-Anything-V2-Small-hf: DINOv2-S/14 backbone (hidden 384,
                                  12 layers, 6 heads), DPT neck [48, 96, 192, 384], fusion 64, head 32, and
                                  its DPTImageProcessor settings (518, keep aspect, multiple of 14, bicubic).
