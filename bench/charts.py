@@ -110,13 +110,19 @@ def budgeted(r):
     return (r.get("max_gaussians") or 0) > 0
 
 
+def initialisation(r):
+    """The initialisation of a run: method and the resolution its images were read at (rows from before
+    --init-resolution read the training resolution)."""
+    return r.get("init"), r.get("init_resolution") or r.get("resolution")
+
+
 def budget_points(rows):
     """Per method, (mean Gaussians, mean PSNR, budgeted) of each of its arms, sorted by size. Only runs from the
     budgeted runs' initialisation count: another initialisation is another experiment, not another budget."""
-    inits = {r.get("init") for r in rows if budgeted(r)}
+    inits = {initialisation(r) for r in rows if budgeted(r)}
     arms = defaultdict(list)
     for r in rows:
-        if r.get("init") in inits:
+        if initialisation(r) in inits:
             arms[(base_variant(r["variant"]), r["variant"], budgeted(r))].append(r)
     points = defaultdict(list)
     for (method, _, is_budgeted), runs in arms.items():

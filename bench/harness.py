@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 CSV_FIELDS = [
     "config", "cell", "scene", "views", "variant", "seed", "status", "psnr", "ssim", "lpips",
     "num_gaussians", "max_gaussians", "peak_memory_bytes", "peak_memory_kind", "train_seconds", "generator_seconds",
-    "wall_seconds", "iterations", "resolution", "init", "commit", "device", "error",
+    "wall_seconds", "iterations", "resolution", "init", "init_resolution", "commit", "device", "error",
 ]
 # `gaps train` exits with 3 when the run diverged: metrics.json then records it (a result, not a crash).
 EXIT_DIVERGED = 3
@@ -154,7 +154,8 @@ def row_from_metrics(config, cell, metrics, commit, device, wall_seconds):
         "generator_seconds": metrics.get("generator_seconds"), "wall_seconds": wall_seconds,
         "iterations": metrics.get("iterations"), "resolution": metrics.get("resolution"),
         # The method that made the points (metrics.json's init_method: "auto" resolved, fallbacks taken).
-        "init": metrics.get("init_method") or metrics.get("init"), "commit": commit, "device": f"{metrics.get('device')}: {device}",
+        "init": metrics.get("init_method") or metrics.get("init"),
+        "init_resolution": metrics.get("init_resolution") or metrics.get("resolution"), "commit": commit, "device": f"{metrics.get('device')}: {device}",
         "error": metrics.get("error"), "curve": metrics.get("curve", []),
     }
     return row

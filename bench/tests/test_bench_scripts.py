@@ -49,6 +49,7 @@ FAKE_GAPS = textwrap.dedent("""\
           "train_seconds": 10.0, "generator_seconds": None if variant == "vanilla" else 2.0,
           "peak_memory": {{"kind": "cuda_allocator", "bytes": 2 ** 30}}, "iterations": 100, "resolution": 8,
           "init": args.get("init"), "init_method": "sparse" if args.get("init") == "auto" else args.get("init"),
+          "init_resolution": int(args.get("init-resolution") or 8),
           "device": "cuda", "argv": sys.argv[1:],
           "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
           "curve": [{{"iteration": 50, "train_seconds": 5.0, "psnr": psnr - 1, "ssim": 0.4, "lpips": None,
@@ -193,6 +194,7 @@ class HarnessTest(unittest.TestCase):
         code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "init=auto")
         self.assertEqual(code, 0)
         self.assertEqual(self.rows()[0]["init"], "sparse")  # "auto" as resolved by the trainer
+        self.assertEqual(self.rows()[0]["init_resolution"], 8)
 
     def test_arms_run_a_variant_under_their_own_label_and_flags(self):
         self.write_config({"scenes": [{"name": "fern", "path": "llff/fern"}], "views": [3],
@@ -332,7 +334,8 @@ class ChartsTest(unittest.TestCase):
     def test_budget_lines_keep_to_the_budgeted_runs_initialisation(self):
         runs = [dict(row("fern", 3, "vanilla", 0, 20.0, gaussians=1000), init="mvs"),
                 dict(row("fern", 3, "vanilla_k2", 0, 21.0, gaussians=300), init="mvs", max_gaussians=300),
-                dict(row("fern", 3, "vanilla_sparse", 0, 17.0, gaussians=900), init="sparse")]
+                dict(row("fern", 3, "vanilla_sparse", 0, 17.0, gaussians=900), init="sparse"),
+                dict(row("fern", 3, "vanilla_init_r4", 0, 21.5, gaussians=950), init="mvs", init_resolution=4)]
         self.assertEqual(charts.budget_points(runs), {"vanilla": [(300.0, 21.0, True), (1000.0, 20.0, False)]})
         self.assertEqual(charts.base_variant("vanilla"), "vanilla")
 
