@@ -155,7 +155,8 @@ def row_from_metrics(config, cell, metrics, commit, device, wall_seconds):
         "iterations": metrics.get("iterations"), "resolution": metrics.get("resolution"),
         # The method that made the points (metrics.json's init_method: "auto" resolved, fallbacks taken).
         "init": metrics.get("init_method") or metrics.get("init"),
-        "init_resolution": metrics.get("init_resolution") or metrics.get("resolution"), "commit": commit, "device": f"{metrics.get('device')}: {device}",
+        "init_resolution": metrics.get("init_resolution") or metrics.get("resolution"),
+        "commit": commit, "device": f"{metrics.get('device')}: {device}",
         "error": metrics.get("error"), "curve": metrics.get("curve", []),
     }
     return row

@@ -11,6 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "diffusion_worker/sdxl/two_stage.h"
+#include "gs_trainer/io_util.h"
 #include "gs_trainer/status_macros.h"
 
 namespace gaps {
@@ -18,13 +19,6 @@ namespace {
 
 absl::Status option_error(const std::string& key, const std::string& what) {
   return absl::InvalidArgumentError(absl::StrCat("sdxl option '", key, "': ", what));
-}
-
-// FNV-1a, 64 bit: a fingerprint that is the same in every process (cache file names).
-uint64_t fnv1a(const void* data, size_t size) {
-  uint64_t hash = 1469598103934665603ull;
-  for (size_t i = 0; i < size; ++i) hash = (hash ^ static_cast<const unsigned char*>(data)[i]) * 1099511628211ull;
-  return hash;
 }
 
 absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
@@ -212,7 +206,7 @@ absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
 absl::StatusOr<at::Tensor> SdxlGenerator::view_disparity(const at::Tensor& image, size_t index) {
   const at::Tensor pixels = image.to(at::kCPU, at::kFloat).clamp(0, 1).contiguous();
   // Keyed by the depth model and the pixels: the same view misses nothing, a changed one shares nothing.
-  const std::string model_key = absl::StrFormat("model-%016x", fnv1a(options_.depth_anything.data(), options_.depth_anything.size()));
+  const std::string model_key = absl::StrFormat("model-%016x", fnv1a(options_.depth_anything));
   const std::string view_key = absl::StrFormat(
       "%dx%d-%016x", pixels.size(0), pixels.size(1), fnv1a(pixels.const_data_ptr(), pixels.nbytes()));
   auto disparity = depth_cache_.get_or_compute(model_key, view_key, pixels.size(0), pixels.size(1),

@@ -1,6 +1,5 @@
 #include "gs_trainer/gaps_config.h"
 
-#include <cmath>
 #include <string>
 
 #include <absl/strings/str_cat.h>
@@ -58,11 +57,8 @@ absl::Status validate_gaps_config(const GapsConfig& c) {
       c.hist_variance_scale <= 0) {
     return invalid("scales must be positive");
   }
-  if (!(c.inpaint_uncovered_fraction >= 0 && c.inpaint_uncovered_fraction < 1))
-    return invalid("inpaint_uncovered_fraction not in [0, 1)");
-  if (c.inpaint_dilation < 1 || c.inpaint_dilation % 2 == 0) return invalid("inpaint_dilation must be odd and >= 1");
-  if (!(c.inpaint_depth_threshold >= 0) || !std::isfinite(c.inpaint_depth_threshold))
-    return invalid("inpaint_depth_threshold must be a finite number >= 0");
+  const absl::Status inpaint = check_inpaint_settings(inpaint_settings(c));
+  if (!inpaint.ok()) return invalid(std::string(inpaint.message()));
   return absl::OkStatus();
 }
 

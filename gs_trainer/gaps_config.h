@@ -106,6 +106,11 @@ struct GapsConfig {
   int num_tiers() const { return static_cast<int>(tier_alpha_min.size()); }
 };
 
+// The two-stage settings every generation request carries.
+inline InpaintSettings inpaint_settings(const GapsConfig& c) {
+  return {c.inpaint_depth_threshold, c.inpaint_uncovered_fraction, c.inpaint_dilation};
+}
+
 // Checks ranges and the tier layout (equal lengths, nested ranges containing [0, 1]).
 absl::Status validate_gaps_config(const GapsConfig& c);
 

@@ -179,8 +179,7 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     q.control_scale = adaptive_control_scale(q.coverage, config_);
     q.references = references_for(c.camera);
     q.seed = rng_();
-    q.inpaint = InpaintSettings{config_.inpaint_depth_threshold, config_.inpaint_uncovered_fraction,
-                                config_.inpaint_dilation};
+    q.inpaint = inpaint_settings(config_);
     requests.push_back(std::move(q));
     renders.push_back(std::move(r));
   }

@@ -2,11 +2,13 @@
 // The seam between the trainer and whatever produces pseudo-views. The trainer renders the current model
 // at each selected pose and asks a Generator for images; in-process backends (diffusion_worker/) and the
 // remote worker client implement this alike, so the trainer never knows where images come from.
+#include <cmath>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include <ATen/Tensor.h>
+#include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "gs_trainer/camera.h"
 
@@ -28,6 +30,16 @@ struct InpaintSettings {
   double uncovered_fraction = 0.02; // the paper's 2%
   int dilation = 15;                // the paper's 15 x 15 kernel (odd)
 };
+
+// OK, or an InvalidArgument naming the first field out of range (the GapsConfig / proto field names).
+inline absl::Status check_inpaint_settings(const InpaintSettings& s) {
+  if (!(s.depth_threshold >= 0) || !std::isfinite(s.depth_threshold))
+    return absl::InvalidArgumentError("inpaint_depth_threshold must be a finite number >= 0");
+  if (!(s.uncovered_fraction >= 0 && s.uncovered_fraction < 1))
+    return absl::InvalidArgumentError("inpaint_uncovered_fraction not in [0, 1)");
+  if (s.dilation < 1 || s.dilation % 2 == 0) return absl::InvalidArgumentError("inpaint_dilation must be odd and >= 1");
+  return absl::OkStatus();
+}
 
 struct GenerationRequest {
   Camera camera;            // the pseudo pose

@@ -14,6 +14,7 @@
 #include "absl/strings/str_join.h"
 #include "gs_trainer/colmap.h"
 #include "gs_trainer/gaussians.h"
+#include "gs_trainer/io_util.h"
 #include "gs_trainer/ply.h"
 #include "gs_trainer/status_macros.h"
 
@@ -25,14 +26,6 @@ namespace fs = std::filesystem;
 // Bumped whenever an algorithm or default changes what a method produces, so stale caches are not reused.
 constexpr char kCacheVersion[] = "init-v2";
 
-uint64_t fnv1a(const std::string& text) {
-  uint64_t h = 1469598103934665603ull;
-  for (unsigned char c : text) {
-    h ^= c;
-    h *= 1099511628211ull;
-  }
-  return h;
-}
 
 std::string scene_name(const std::vector<Camera>& cameras) {
   // image_path is <scene>/<images folder>/<file>; synthetic cameras may have none.
@@ -67,7 +60,7 @@ std::string describe_camera(const Camera& c, const at::Tensor& image) {
 
 absl::Status check_inputs(const std::string& method, const std::vector<Camera>& cameras,
                           const std::vector<at::Tensor>& images) {
-  if (method != "auto" && method != "mvs" && method != "sparse" && method != "random")
+  if (!is_init_method(method))
     return absl::InvalidArgumentError(
         absl::StrCat("unknown initialisation '", method, "' (auto, mvs, sparse or random)"));
   if (cameras.empty()) return absl::InvalidArgumentError("initialisation needs at least one training view");
@@ -212,6 +205,10 @@ std::string init_cache_key(const std::string& method, const std::vector<Camera>&
     absl::StrAppend(&text, "|", describe_camera(cameras[i], i < images.size() ? images[i] : at::zeros({1})));
   const int w = cameras.empty() ? 0 : cameras[0].width, h = cameras.empty() ? 0 : cameras[0].height;
   return absl::StrFormat("%s_%dv_%dx%d_%s_%016x", scene_name(cameras), cameras.size(), w, h, method, fnv1a(text));
+}
+
+bool is_init_method(const std::string& name) {
+  return name == "auto" || name == "mvs" || name == "sparse" || name == "random";
 }
 
 double viewing_direction_spread_degrees(const std::vector<Camera>& cameras) {

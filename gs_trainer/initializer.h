@@ -45,6 +45,9 @@ struct InitResult {
   bool from_cache = false;
 };
 
+// The methods run_initialization knows: auto, mvs, sparse, random.
+bool is_init_method(const std::string& name);
+
 // Training views whose viewing directions differ by more than this surround the scene (a 360° capture).
 inline constexpr double kSurroundingViewsDegrees = 90.0;
 

@@ -38,4 +38,10 @@ void remove_tree(const std::filesystem::path& dir) {
   std::filesystem::remove(dir, ec);
 }
 
+uint64_t fnv1a(const void* data, size_t size) {
+  uint64_t hash = 1469598103934665603ull;
+  for (size_t i = 0; i < size; ++i) hash = (hash ^ static_cast<const unsigned char*>(data)[i]) * 1099511628211ull;
+  return hash;
+}
+
 }  // namespace gaps

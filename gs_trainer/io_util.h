@@ -1,6 +1,8 @@
 #pragma once
-// Whole-file reads and writes whose errors name the file, shared by the scene and image readers, and a
-// folder removal that is safe in programs linking LibTorch.
+// Whole-file reads and writes whose errors name the file, shared by the scene and image readers, a
+// folder removal that is safe in programs linking LibTorch, and the content hash of cache file names.
+#include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <string>
 
@@ -18,5 +20,10 @@ absl::Status write_file_bytes(const std::filesystem::path& path, absl::string_vi
 // std::filesystem::remove_all must not be called where libtorch.so (which exports its own copy) is
 // loaded, as that copy crashes.
 void remove_tree(const std::filesystem::path& dir);
+
+// FNV-1a, 64 bit: a fingerprint that is the same in every process and build (cache file names; std::hash
+// promises neither).
+uint64_t fnv1a(const void* data, size_t size);
+inline uint64_t fnv1a(absl::string_view text) { return fnv1a(text.data(), text.size()); }
 
 }  // namespace gaps

@@ -61,11 +61,12 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
   return views;
 }
 
-// *method_used: the method that made the points (o.init, with "auto" resolved and any fallback taken).
+// *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train,
-                                          const std::function<void(const std::string&)>& log, std::string* method_used) {
-  *method_used = o.init;
+                                          const std::function<void(const std::string&)>& log,
+                                          std::string* method_used = nullptr) {
+  if (method_used) *method_used = o.init;
   if (o.init == "ply") {
     if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
     return read_point_cloud_ply(o.init_ply);
@@ -170,8 +171,7 @@ absl::Status run_init_only(const RunOptions& o, const std::function<void(const s
   GAPS_ASSIGN_OR_RETURN(Split split, benchmark_split(static_cast<int>(scene.cameras.size()), o.views));
   log(describe(scene, split));
   GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
-  std::string init_method;
-  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log, &init_method));
+  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
   std::filesystem::create_directories(o.out_dir);
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
   std::vector<Camera> cameras;

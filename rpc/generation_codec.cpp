@@ -41,11 +41,8 @@ absl::StatusOr<std::optional<InpaintSettings>> decode_inpaint_settings(const v1:
         what, ": give all of inpaint_depth_threshold, inpaint_uncovered_fraction and inpaint_dilation, or none"));
   }
   const InpaintSettings s{p.inpaint_depth_threshold(), p.inpaint_uncovered_fraction(), p.inpaint_dilation()};
-  if (!std::isfinite(s.depth_threshold) || s.depth_threshold < 0 || !(s.uncovered_fraction >= 0 && s.uncovered_fraction < 1) ||
-      s.dilation < 1 || s.dilation % 2 == 0) {
-    return absl::InvalidArgumentError(absl::StrCat(what, ": inpaint settings out of range (depth threshold >= 0, "
-                                                         "uncovered fraction in [0, 1), dilation odd >= 1)"));
-  }
+  if (absl::Status range = check_inpaint_settings(s); !range.ok())
+    return absl::InvalidArgumentError(absl::StrCat(what, ": ", range.message()));
   return s;
 }
 

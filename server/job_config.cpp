@@ -2,6 +2,7 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "gs_trainer/initializer.h"
 #include "gs_trainer/status_macros.h"
 #include "rpc/config_codec.h"
 
@@ -17,7 +18,7 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
     if (!has_points) return absl::InvalidArgumentError("config: init 'points' needs an uploaded point cloud");
     o.init = "ply";
     o.init_ply = points_file;
-  } else if (init == "auto" || init == "mvs" || init == "sparse" || init == "random") {
+  } else if (is_init_method(init)) {
     o.init = init;
   } else {
     return absl::InvalidArgumentError(absl::StrCat("config: unknown init '", init, "' (auto, mvs, sparse, random, points)"));

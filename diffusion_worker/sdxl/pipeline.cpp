@@ -438,8 +438,10 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
 }
 
 absl::Status SdxlPipeline::reset_lora() {
-  if (lora_ && lora_->merged()) lora_->unmerge_from(*unet_);
-  if (lora_) lora_->detach_from(*unet_);
+  if (lora_) {
+    lora_->unmerge_from(*unet_);
+    lora_->detach_from(*unet_);
+  }
   lora_.reset();
   if (graphs_) {
     graphs_.reset();

@@ -64,31 +64,43 @@ class EulerDiscrete final : public Scheduler {
   std::vector<float> sigmas_;
 };
 
-class Ddim final : public Scheduler {
+// Schedulers that step between integer training timesteps num_train_timesteps / n apart and noise img2img's
+// start as DDPM does (DDIM, PNDM).
+class TimestepScheduler : public Scheduler {
  public:
-  explicit Ddim(const SchedulerConfig& c) : Scheduler(c) {}
-  void set_timesteps(int64_t n) override {
-    timesteps_.clear();
-    for (double t : spaced_timesteps(n, false)) timesteps_.push_back(static_cast<float>(std::llround(t)));
-    num_steps_ = n;
-  }
-  at::Tensor step(const at::Tensor& eps, int64_t i, const at::Tensor& sample) override {
-    const auto t = static_cast<int64_t>(timesteps_.at(i));
-    const int64_t prev = t - config_.num_train_timesteps / num_steps_;
-    const float abar = abar_at(alphas_cumprod_, t);
-    const float abar_prev = prev >= 0 ? abar_at(alphas_cumprod_, prev)
-                                      : (config_.set_alpha_to_one ? 1.0f : abar_at(alphas_cumprod_, 0));
-    at::Tensor x0 = (sample - std::pow(1.0f - abar, 0.5f) * eps) / std::pow(abar, 0.5f);
-    if (config_.clip_sample) x0 = x0.clamp(-1.0, 1.0);
-    return std::pow(abar_prev, 0.5f) * x0 + std::pow(1.0f - abar_prev, 0.5f) * eps;
-  }
+  using Scheduler::Scheduler;
   at::Tensor add_noise(const at::Tensor& original, const at::Tensor& noise, int64_t i) const override {
     const float abar = abar_at(alphas_cumprod_, static_cast<int64_t>(timesteps_.at(i)));
     return std::pow(abar, 0.5f) * original + std::pow(1.0f - abar, 0.5f) * noise;
   }
 
- private:
-  int64_t num_steps_ = 1;
+ protected:
+  // diffusers' spaced timesteps for n steps, rounded; and the stride between them.
+  void set_integer_timesteps(int64_t n) {
+    timesteps_.clear();
+    for (double t : spaced_timesteps(n, false)) timesteps_.push_back(static_cast<float>(std::llround(t)));
+    stride_ = config_.num_train_timesteps / n;
+  }
+  // abar at the step's target timestep prev; below 0 (the last step) 1 or abar_0 by set_alpha_to_one.
+  float abar_target(int64_t prev) const {
+    if (prev >= 0) return abar_at(alphas_cumprod_, prev);
+    return config_.set_alpha_to_one ? 1.0f : abar_at(alphas_cumprod_, 0);
+  }
+  int64_t stride_ = 1;
+};
+
+class Ddim final : public TimestepScheduler {
+ public:
+  explicit Ddim(const SchedulerConfig& c) : TimestepScheduler(c) {}
+  void set_timesteps(int64_t n) override { set_integer_timesteps(n); }
+  at::Tensor step(const at::Tensor& eps, int64_t i, const at::Tensor& sample) override {
+    const auto t = static_cast<int64_t>(timesteps_.at(i));
+    const float abar = abar_at(alphas_cumprod_, t);
+    const float abar_prev = abar_target(t - stride_);
+    at::Tensor x0 = (sample - std::pow(1.0f - abar, 0.5f) * eps) / std::pow(abar, 0.5f);
+    if (config_.clip_sample) x0 = x0.clamp(-1.0, 1.0);
+    return std::pow(abar_prev, 0.5f) * x0 + std::pow(1.0f - abar_prev, 0.5f) * eps;
+  }
 };
 
 // DPM-Solver++ in data (x0) prediction, order 2, midpoint; first order at the first and last step.
@@ -151,15 +163,12 @@ class DpmSolverPP2M final : public Scheduler {
 // model at the first step's result and averages both outputs, restarting from the first step's sample);
 // later steps combine the last 2, 3, then 4 model outputs (Adams-Bashforth). Each step moves from the
 // current timestep to the one num_train_timesteps / n below it with diffusers' transfer formula.
-class Pndm final : public Scheduler {
+class Pndm final : public TimestepScheduler {
  public:
-  explicit Pndm(const SchedulerConfig& c) : Scheduler(c) {}
+  explicit Pndm(const SchedulerConfig& c) : TimestepScheduler(c) {}
   void set_timesteps(int64_t n) override {
-    std::vector<double> spaced = spaced_timesteps(n, false);  // descending
-    timesteps_.clear();
-    for (double t : spaced) timesteps_.push_back(static_cast<float>(std::llround(t)));
+    set_integer_timesteps(n);  // descending
     if (n >= 2) timesteps_.insert(timesteps_.begin() + 1, timesteps_[1]);
-    stride_ = config_.num_train_timesteps / n;
     outputs_.clear();
     first_sample_ = at::Tensor();
     taken_ = 0;
@@ -199,22 +208,16 @@ class Pndm final : public Scheduler {
     next_index_ = i + 1;
     return previous_sample(x, t, prev, direction).to(eps.scalar_type());
   }
-  at::Tensor add_noise(const at::Tensor& original, const at::Tensor& noise, int64_t i) const override {
-    const float abar = abar_at(alphas_cumprod_, static_cast<int64_t>(timesteps_.at(i)));
-    return std::pow(abar, 0.5f) * original + std::pow(1.0f - abar, 0.5f) * noise;
-  }
 
  private:
   // diffusers' _get_prev_sample (formula (9) of the PNDM paper), in float32 like its 0-d tensors.
   at::Tensor previous_sample(const at::Tensor& x, int64_t t, int64_t prev, const at::Tensor& direction) const {
     const float abar = abar_at(alphas_cumprod_, t);
-    const float abar_prev = prev >= 0 ? abar_at(alphas_cumprod_, prev)
-                                      : (config_.set_alpha_to_one ? 1.0f : abar_at(alphas_cumprod_, 0));
+    const float abar_prev = abar_target(prev);
     const float sample_coeff = std::pow(abar_prev / abar, 0.5f);
     const float denominator = abar * std::pow(1.0f - abar_prev, 0.5f) + std::pow(abar * (1.0f - abar) * abar_prev, 0.5f);
     return sample_coeff * x - (abar_prev - abar) * direction / denominator;
   }
-  int64_t stride_ = 1;
   std::vector<at::Tensor> outputs_;  // the last (up to) 4 model outputs
   at::Tensor first_sample_;          // the sample before the first step, for the repeated timestep
   int64_t taken_ = 0;                // steps since set_timesteps
