@@ -41,7 +41,8 @@ GapsTraining::GapsTraining(Trainer& trainer, Generator* generator, std::vector<T
       gt_views_(std::move(gt_views)),
       config_(std::move(config)),
       variant_(variant),
-      rng_(seed ^ 0x9e3779b97f4a7c15ULL) {
+      rng_(seed ^ 0x9e3779b97f4a7c15ULL),
+      seed_(seed) {
   for (const auto& v : gt_views_) gt_cameras_.push_back(v.camera);
   TORCH_CHECK(variant_ == Variant::kVanilla || generator_ != nullptr, "variant ", variant_name(variant_),
               " needs a generator");
@@ -52,7 +53,11 @@ at::Tensor GapsTraining::drop_scale() {
   const auto& model = trainer_.model();
   const double r = drop_ratio(trainer_.iteration() + 1, trainer_.config().iterations, model.size(), config_);
   if (r <= 0) return {};
-  return drop_gaussian_scale(model.size(), r, std::nullopt, model.means.options());
+  if (!drop_rng_.defined() || drop_rng_.device() != model.means.device()) {
+    drop_rng_ = at::globalContext().defaultGenerator(model.means.device()).clone();
+    drop_rng_.set_current_seed(seed_ ^ 0xd1b54a32d192ed03ULL);
+  }
+  return drop_gaussian_scale(model.size(), r, drop_rng_, model.means.options());
 }
 
 absl::StatusOr<at::Tensor> GapsTraining::step() {

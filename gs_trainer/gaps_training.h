@@ -13,6 +13,7 @@
 #include <vector>
 
 #include <ATen/Tensor.h>
+#include <ATen/core/Generator.h>
 #include <nlohmann/json.hpp>
 #include "absl/status/statusor.h"
 #include "gs_trainer/gaps_config.h"
@@ -62,6 +63,10 @@ class GapsTraining {
   GapsConfig config_;
   Variant variant_;
   std::mt19937_64 rng_;
+  uint64_t seed_;
+  // DropGaussian's masks come from a generator of the run's own (seeded from `seed_`, on the model's device)
+  // so that a run of the method is reproducible whatever else draws from ATen's default generator.
+  at::Generator drop_rng_;
   int tier_ = 0;
   bool adapted_ = false;
   std::map<int, PseudoView> admitted_;               // candidate id -> latest admitted view
