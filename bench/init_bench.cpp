@@ -15,7 +15,7 @@
 #include "absl/flags/parse.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
-#include "gs_trainer/initializer.h"
+#include "gs_trainer/init/initializer.h"
 
 ABSL_FLAG(std::string, method, "mvs", "mvs, sparse or random");
 ABSL_FLAG(std::string, fern_views, "3,6,9", "training view counts on LLFF fern (empty: skip)");

@@ -22,9 +22,9 @@
 #include <torch/headeronly/version.h>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
-#include "gs_trainer/gaussians.h"
-#include "gs_trainer/rasterize_backend.h"
-#include "gs_trainer/render.h"
+#include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/raster/rasterize_backend.h"
+#include "gs_trainer/model/render.h"
 
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAContext.h>

@@ -16,7 +16,7 @@
 #include "client/remote_client.h"
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
-#include "gs_trainer/scene.h"
+#include "gs_trainer/scene/scene.h"
 #include "server/remote_generator.h"
 #include "server/trainer_service.h"
 

@@ -15,11 +15,11 @@
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include <torch/csrc/autograd/profiler_kineto.h>
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/ply.h"
-#include "gs_trainer/losses.h"
+#include "common/image_io.h"
+#include "common/ply.h"
+#include "gs_trainer/raster/losses.h"
 #include "gs_trainer/pipeline.h"
-#include "gs_trainer/render.h"
+#include "gs_trainer/model/render.h"
 
 ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
 ABSL_FLAG(int, views, 3, "training views");

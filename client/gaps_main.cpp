@@ -21,9 +21,9 @@
 #include "absl/strings/str_format.h"
 #include "client/remote_commands.h"
 #include "diffusion_worker/backend_registry.h"
-#include "gs_trainer/divergence.h"
+#include "gs_trainer/train/divergence.h"
 #include "gs_trainer/pipeline.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 #include "gs_trainer/synthetic.h"
 
 ABSL_FLAG(std::string, scene, "", "scene folder (LLFF poses_bounds.npy, COLMAP sparse/, or transforms.json)");

@@ -4,10 +4,10 @@
 #include <optional>
 
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/scene.h"
-#include "gs_trainer/status_macros.h"
+#include "common/image_io.h"
+#include "common/io_util.h"
+#include "gs_trainer/scene/scene.h"
+#include "common/status_macros.h"
 #include "rpc/codec.h"
 
 namespace gaps::client {

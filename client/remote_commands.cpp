@@ -10,8 +10,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/remote_client.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/status_macros.h"
+#include "common/io_util.h"
+#include "common/status_macros.h"
 #include "rpc/config_codec.h"
 
 // Shared with `gaps train` (defined in gaps_main.cpp).

@@ -6,7 +6,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "gs_trainer/generator.h"
+#include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
 

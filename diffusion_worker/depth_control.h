@@ -4,7 +4,7 @@
 // coverage (< τ_α) or a high local depth variance (depth edges, floaters), and the reliable pixels carry
 // inverse depth normalised to [0, 1] by its range over them (near = bright, as SDXL depth ControlNets
 // are trained on), repeated over 3 channels. The conditioning scale s_cn(v) of eq. adaptive_cn comes with
-// the request (gs_trainer/gaps_admission.h, adaptive_control_scale).
+// the request (gs_trainer/gaps/admission.h, adaptive_control_scale).
 #include <cstdint>
 
 #include <ATen/Tensor.h>

@@ -18,7 +18,7 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 
 namespace gaps {
 namespace {

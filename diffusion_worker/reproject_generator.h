@@ -41,7 +41,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
-#include "gs_trainer/generator.h"
+#include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
 

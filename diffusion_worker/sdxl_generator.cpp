@@ -11,8 +11,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "diffusion_worker/sdxl/two_stage.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/status_macros.h"
+#include "common/io_util.h"
+#include "common/status_macros.h"
 
 namespace gaps {
 namespace {

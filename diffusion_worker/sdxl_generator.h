@@ -17,7 +17,7 @@
 #include "diffusion_worker/depth_control.h"
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
 #include "diffusion_worker/sdxl/pipeline.h"
-#include "gs_trainer/generator.h"
+#include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
 

@@ -5,9 +5,9 @@
 #include <ATen/ATen.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/npy.h"
-#include "gs_trainer/status_macros.h"
+#include "common/io_util.h"
+#include "common/npy.h"
+#include "common/status_macros.h"
 
 namespace gaps {
 

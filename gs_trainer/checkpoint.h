@@ -8,8 +8,8 @@
 #include <filesystem>
 
 #include "absl/status/statusor.h"
-#include "gs_trainer/gaps_training.h"
-#include "gs_trainer/trainer.h"
+#include "gs_trainer/gaps/training.h"
+#include "gs_trainer/train/trainer.h"
 
 namespace gaps {
 

@@ -8,15 +8,15 @@
 #include <ATen/core/grad_mode.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/divergence.h"
+#include "gs_trainer/train/divergence.h"
 #include "gs_trainer/checkpoint.h"
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/initializer.h"
-#include "gs_trainer/lpips.h"
-#include "gs_trainer/ply.h"
-#include "gs_trainer/render.h"
+#include "common/image_io.h"
+#include "gs_trainer/init/initializer.h"
+#include "gs_trainer/eval/lpips.h"
+#include "common/ply.h"
+#include "gs_trainer/model/render.h"
 #include "gs_trainer/report.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 
 namespace gaps {
 namespace {

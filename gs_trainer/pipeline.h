@@ -6,11 +6,11 @@
 #include <string>
 
 #include "absl/status/statusor.h"
-#include "gs_trainer/gaps_training.h"
-#include "gs_trainer/metrics.h"
+#include "gs_trainer/gaps/training.h"
+#include "gs_trainer/eval/metrics.h"
 #include "gs_trainer/run_stats.h"
-#include "gs_trainer/scene.h"
-#include "gs_trainer/trainer.h"
+#include "gs_trainer/scene/scene.h"
+#include "gs_trainer/train/trainer.h"
 
 namespace gaps {
 

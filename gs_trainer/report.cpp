@@ -9,9 +9,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_replace.h"
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/status_macros.h"
+#include "common/image_io.h"
+#include "common/io_util.h"
+#include "common/status_macros.h"
 
 namespace gaps {
 namespace {

@@ -7,7 +7,7 @@
 #include <vector>
 
 #include "absl/status/status.h"
-#include "gs_trainer/trainer.h"
+#include "gs_trainer/train/trainer.h"
 
 namespace gaps {
 

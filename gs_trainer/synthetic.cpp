@@ -9,10 +9,10 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/render.h"
-#include "gs_trainer/spherical_harmonics.h"
-#include "gs_trainer/status_macros.h"
+#include "common/image_io.h"
+#include "gs_trainer/model/render.h"
+#include "common/spherical_harmonics.h"
+#include "common/status_macros.h"
 
 namespace gaps {
 namespace {

@@ -5,7 +5,7 @@
 #include <filesystem>
 
 #include "absl/status/status.h"
-#include "gs_trainer/gaussians.h"
+#include "gs_trainer/model/gaussians.h"
 
 namespace gaps {
 

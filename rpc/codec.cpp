@@ -6,9 +6,9 @@
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/scene_internal.h"
-#include "gs_trainer/status_macros.h"
+#include "common/image_io.h"
+#include "gs_trainer/scene/scene.h"
+#include "common/status_macros.h"
 
 namespace gaps::rpc {
 
@@ -119,7 +119,7 @@ absl::StatusOr<Camera> decode_camera(const v1::Camera& in, const std::string& wh
   }
   c.near = in.near();
   c.far = in.far();
-  GAPS_RETURN_IF_ERROR(scene_internal::check_rotation(c.R, what));
+  GAPS_RETURN_IF_ERROR(check_rotation(c.R, what));
   return c;
 }
 

@@ -9,7 +9,7 @@
 #include <grpcpp/grpcpp.h>
 #include "absl/status/statusor.h"
 #include "gaps/v1/common.pb.h"
-#include "gs_trainer/camera.h"
+#include "gs_trainer/scene/camera.h"
 
 namespace gaps::rpc {
 

@@ -5,7 +5,7 @@
 #include <optional>
 
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 #include "rpc/codec.h"
 
 namespace gaps::rpc {

@@ -6,7 +6,7 @@
 
 #include "absl/status/statusor.h"
 #include "gaps/v1/diffusion_worker.pb.h"
-#include "gs_trainer/generator.h"
+#include "gs_trainer/gaps/generator.h"
 
 namespace gaps::rpc {
 

@@ -5,8 +5,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
 #include "absl/strings/ascii.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/status_macros.h"
+#include "common/io_util.h"
+#include "common/status_macros.h"
 
 namespace gaps::rpc {
 namespace {

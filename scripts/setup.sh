@@ -12,6 +12,7 @@ DEBIAN_PACKAGES=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
   libopencv-dev libeigen3-dev libstb-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
   openssl  # the TLS end-to-end test makes its certificate with it
+  clang-format  # scripts/check_format.sh (the format check in the test suite)
 )
 PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib)
 

@@ -2,8 +2,8 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/initializer.h"
-#include "gs_trainer/status_macros.h"
+#include "gs_trainer/init/initializer.h"
+#include "common/status_macros.h"
 #include "rpc/config_codec.h"
 
 namespace gaps {

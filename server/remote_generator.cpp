@@ -5,7 +5,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "grpc/health/v1/health.grpc.pb.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
 

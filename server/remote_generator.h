@@ -2,7 +2,7 @@
 // A gaps::Generator that asks diffusion workers (gaps-worker) over gRPC. It spreads calls over a pool of
 // worker addresses, skips workers that failed recently until a health check passes again, retries with
 // exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
-// return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps_training.h).
+// return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps/training.h).
 #include <chrono>
 #include <memory>
 #include <mutex>
@@ -11,7 +11,7 @@
 
 #include "gaps/v1/diffusion_worker.grpc.pb.h"
 #include "gaps/v1/diffusion_worker.pb.h"
-#include "gs_trainer/generator.h"
+#include "gs_trainer/gaps/generator.h"
 #include "rpc/security.h"
 
 namespace gaps {

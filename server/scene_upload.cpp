@@ -4,11 +4,11 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/io_util.h"
-#include "gs_trainer/ply.h"
-#include "gs_trainer/scene.h"
-#include "gs_trainer/status_macros.h"
+#include "common/image_io.h"
+#include "common/io_util.h"
+#include "common/ply.h"
+#include "gs_trainer/scene/scene.h"
+#include "common/status_macros.h"
 #include "rpc/codec.h"
 #include "server/job_config.h"
 

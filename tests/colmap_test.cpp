@@ -1,4 +1,4 @@
-#include "gs_trainer/colmap.h"
+#include "gs_trainer/scene/colmap.h"
 
 #include <cmath>
 #include <filesystem>
@@ -11,8 +11,8 @@
 
 #include "tests/test_util.h"
 
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/scene.h"
+#include "common/image_io.h"
+#include "gs_trainer/scene/scene.h"
 
 namespace gaps {
 namespace {

@@ -11,7 +11,7 @@
 #include <gtest/gtest.h>
 #include "diffusion_worker/depth/depth_cache.h"
 #include "diffusion_worker/sdxl/model_folder.h"
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 #include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
 

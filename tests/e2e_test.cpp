@@ -6,7 +6,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/gaussians.h"
+#include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/synthetic_run.h"

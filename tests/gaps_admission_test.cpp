@@ -7,8 +7,8 @@
 #include <cmath>
 #include <string>
 
-#include "gs_trainer/gaps_admission.h"
-#include "gs_trainer/gaps_config.h"
+#include "gs_trainer/gaps/admission.h"
+#include "gs_trainer/gaps/config.h"
 
 namespace gaps {
 namespace {

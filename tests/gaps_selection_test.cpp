@@ -12,9 +12,10 @@
 #include <Eigen/Geometry>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/gaps_config.h"
-#include "gs_trainer/gaps_pose.h"
-#include "gs_trainer/gaps_scores.h"
+#include "gs_trainer/gaps/config.h"
+#include "gs_trainer/gaps/pose.h"
+#include "gs_trainer/gaps/scores.h"
+#include "gs_trainer/eval/image_stats.h"
 
 namespace gaps {
 namespace {

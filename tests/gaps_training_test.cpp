@@ -4,7 +4,7 @@
 #include <gtest/gtest.h>
 
 #include "diffusion_worker/backend_registry.h"
-#include "gs_trainer/gaps_training.h"
+#include "gs_trainer/gaps/training.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/synthetic_run.h"

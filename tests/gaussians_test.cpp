@@ -9,9 +9,9 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
-#include "gs_trainer/gaussians.h"
-#include "gs_trainer/ply.h"
-#include "gs_trainer/spherical_harmonics.h"
+#include "gs_trainer/model/gaussians.h"
+#include "common/ply.h"
+#include "common/spherical_harmonics.h"
 
 namespace gaps {
 namespace {

@@ -16,7 +16,7 @@
 #include <nlohmann/json.hpp>
 #include <torch/version.h>
 #include "diffusion_worker/backend_registry.h"
-#include "gs_trainer/io_util.h"
+#include "common/io_util.h"
 #include "gs_trainer/pipeline.h"
 #include "tests/test_util.h"
 

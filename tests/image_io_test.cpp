@@ -1,4 +1,4 @@
-#include "gs_trainer/image_io.h"
+#include "common/image_io.h"
 
 #include <cstdint>
 #include <filesystem>

@@ -1,6 +1,6 @@
 // Point-cloud initialisation from the training views: triangulation, epipolar filtering, plane sweep,
 // fusion, the fallback chain and the cache on synthetic scenes, then the whole pipeline on LLFF fern.
-#include "gs_trainer/initializer.h"
+#include "gs_trainer/init/initializer.h"
 
 #include <chrono>
 #include <cmath>
@@ -15,12 +15,12 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
-#include "gs_trainer/colmap.h"
-#include "gs_trainer/init_dense.h"
-#include "gs_trainer/init_sparse.h"
-#include "gs_trainer/io_util.h"
+#include "gs_trainer/scene/colmap.h"
+#include "gs_trainer/init/plane_sweep.h"
+#include "gs_trainer/init/sparse.h"
+#include "common/io_util.h"
 #include "gs_trainer/pipeline.h"
-#include "gs_trainer/ply.h"
+#include "common/ply.h"
 #include "tests/test_util.h"
 
 namespace gaps {

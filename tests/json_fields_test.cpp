@@ -4,8 +4,8 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/gaps_config.h"
-#include "gs_trainer/train_config.h"
+#include "gs_trainer/gaps/config.h"
+#include "gs_trainer/train/train_config.h"
 
 namespace gaps {
 namespace {

@@ -1,6 +1,6 @@
 // Training losses: values against closed forms, the original 3DGS Python SSIM, and autograd
 // gradients against finite differences (float64, tiny images).
-#include "gs_trainer/losses.h"
+#include "gs_trainer/raster/losses.h"
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -17,7 +17,7 @@
 #include <utility>
 #include <vector>
 
-#include "gs_trainer/io_util.h"
+#include "common/io_util.h"
 
 namespace gaps {
 namespace {

@@ -3,7 +3,7 @@
 // Parity: tests/scripts/lpips_reference.py builds a torchvision VGG16 with random weights, saves it
 // as zip and legacy checkpoints and scores image pairs with PyPI's `lpips` package; the C++ metric
 // must agree on both files. The real v0.1 linear weights come from GAPS_DATA_DIR/lpips/vgg.pth.
-#include "gs_trainer/lpips.h"
+#include "gs_trainer/eval/lpips.h"
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
@@ -21,10 +21,10 @@
 #include <utility>
 #include <vector>
 
-#include "gs_trainer/metrics.h"
-#include "gs_trainer/torch_pickle.h"
+#include "gs_trainer/eval/metrics.h"
+#include "common/torch_pickle.h"
 
-#include "gs_trainer/io_util.h"
+#include "common/io_util.h"
 
 namespace gaps {
 namespace {

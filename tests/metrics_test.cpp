@@ -1,6 +1,6 @@
 // Evaluation metrics: PSNR and SSIM values, clamping, and the per-view averaging helper.
 // (LPIPS through evaluate_image is covered in lpips_test.cpp, which has a backbone to load.)
-#include "gs_trainer/metrics.h"
+#include "gs_trainer/eval/metrics.h"
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -8,7 +8,7 @@
 #include <cmath>
 #include <limits>
 
-#include "gs_trainer/losses.h"
+#include "gs_trainer/raster/losses.h"
 
 namespace gaps {
 namespace {

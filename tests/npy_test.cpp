@@ -1,4 +1,4 @@
-#include "gs_trainer/npy.h"
+#include "common/npy.h"
 
 #include <cstring>
 #include <filesystem>

@@ -22,11 +22,11 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
-#include "gs_trainer/gaussians.h"
-#include "gs_trainer/rasterize_backend.h"
-#include "gs_trainer/rasterizer.h"
-#include "gs_trainer/render.h"
-#include "gs_trainer/scene.h"
+#include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/raster/rasterize_backend.h"
+#include "gs_trainer/raster/rasterizer.h"
+#include "gs_trainer/model/render.h"
+#include "gs_trainer/scene/scene.h"
 
 namespace gaps {
 namespace {

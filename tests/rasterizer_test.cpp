@@ -9,8 +9,8 @@
 #include <Eigen/Dense>
 #include <gtest/gtest.h>
 
-#include "gs_trainer/rasterize_backend.h"
-#include "gs_trainer/rasterizer.h"
+#include "gs_trainer/raster/rasterize_backend.h"
+#include "gs_trainer/raster/rasterizer.h"
 
 namespace gaps {
 namespace {

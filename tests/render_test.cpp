@@ -6,8 +6,8 @@
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
-#include "gs_trainer/rasterizer.h"
-#include "gs_trainer/render.h"
+#include "gs_trainer/raster/rasterizer.h"
+#include "gs_trainer/model/render.h"
 
 namespace gaps {
 namespace {

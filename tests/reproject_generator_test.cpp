@@ -19,7 +19,7 @@
 #include <vector>
 
 #include "diffusion_worker/backend_registry.h"
-#include "gs_trainer/scene.h"
+#include "gs_trainer/scene/scene.h"
 
 namespace gaps {
 namespace {

@@ -7,7 +7,7 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
-#include "gs_trainer/io_util.h"
+#include "common/io_util.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/synthetic_run.h"

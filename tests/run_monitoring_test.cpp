@@ -11,7 +11,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/divergence.h"
+#include "gs_trainer/train/divergence.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/report.h"
 #include "gs_trainer/synthetic.h"

@@ -1,4 +1,4 @@
-#include "gs_trainer/scene.h"
+#include "gs_trainer/scene/scene.h"
 
 #include <cmath>
 #include <filesystem>
@@ -14,8 +14,8 @@
 #include "tests/test_util.h"
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/image_io.h"
-#include "gs_trainer/npy.h"
+#include "common/image_io.h"
+#include "common/npy.h"
 
 namespace gaps {
 namespace {

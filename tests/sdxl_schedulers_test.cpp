@@ -9,7 +9,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 #include "diffusion_worker/sdxl/schedulers.h"
 #include "tests/sdxl_test_util.h"
 

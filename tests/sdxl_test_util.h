@@ -7,7 +7,7 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <gtest/gtest.h>
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 #include "diffusion_worker/sdxl/unet.h"
 
 namespace gaps::test {

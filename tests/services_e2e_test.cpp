@@ -19,8 +19,8 @@
 #include <nlohmann/json.hpp>
 
 #include "client/remote_client.h"
-#include "gs_trainer/gaussians.h"
-#include "gs_trainer/image_io.h"
+#include "gs_trainer/model/gaussians.h"
+#include "common/image_io.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
 #include "tests/test_util.h"

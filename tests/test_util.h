@@ -6,11 +6,11 @@
 #include <system_error>
 
 #include <gtest/gtest.h>
-#include "gs_trainer/io_util.h"
+#include "common/io_util.h"
 
 namespace gaps::test {
 
-// Never std::filesystem::remove_all in binaries linking LibTorch (see gs_trainer/io_util.h).
+// Never std::filesystem::remove_all in binaries linking LibTorch (see common/io_util.h).
 using ::gaps::remove_tree;
 
 // A fresh folder per test (named after the suite and test), removed afterwards.

@@ -6,12 +6,12 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/adam.h"
-#include "gs_trainer/camera.h"
-#include "gs_trainer/densify.h"
-#include "gs_trainer/render.h"
-#include "gs_trainer/train_config.h"
-#include "gs_trainer/trainer.h"
+#include "gs_trainer/train/adam.h"
+#include "gs_trainer/scene/camera.h"
+#include "gs_trainer/train/densify.h"
+#include "gs_trainer/model/render.h"
+#include "gs_trainer/train/train_config.h"
+#include "gs_trainer/train/trainer.h"
 
 namespace gaps {
 namespace {

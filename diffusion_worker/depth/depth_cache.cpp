@@ -6,8 +6,8 @@
 #include <ATen/ATen.h>
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/npy.h"
-#include "gs_trainer/status_macros.h"
+#include "common/npy.h"
+#include "common/status_macros.h"
 
 namespace gaps::depth {
 namespace {

@@ -10,7 +10,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_replace.h"
 #include "diffusion_worker/sdxl/model_folder.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 
 namespace gaps::depth {
 namespace {

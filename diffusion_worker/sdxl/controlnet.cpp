@@ -7,7 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "diffusion_worker/sdxl/model_folder.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 
 namespace gaps::sdxl {
 

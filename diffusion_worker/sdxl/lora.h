@@ -16,7 +16,7 @@
 #include <ATen/Tensor.h>
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 #include "diffusion_worker/sdxl/unet.h"
 
 namespace gaps::sdxl {

@@ -6,7 +6,7 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/status/statusor.h"
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 
 namespace gaps::sdxl {
 

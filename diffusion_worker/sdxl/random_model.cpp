@@ -8,10 +8,10 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include "absl/strings/str_cat.h"
 #include "diffusion_worker/sdxl/clip_text_encoder.h"
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "diffusion_worker/sdxl/vae.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 
 namespace gaps::sdxl {
 namespace {

@@ -4,7 +4,7 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 
 namespace gaps::sdxl {
 

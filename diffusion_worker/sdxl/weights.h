@@ -7,7 +7,7 @@
 
 #include <ATen/Tensor.h>
 #include "absl/status/status.h"
-#include "diffusion_worker/sdxl/safetensors.h"
+#include "common/safetensors.h"
 
 namespace gaps::sdxl {
 

@@ -7,7 +7,7 @@
 
 #include <ATen/Context.h>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/status_macros.h"
+#include "common/status_macros.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
 #include "rpc/security.h"

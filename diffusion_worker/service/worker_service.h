@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "gaps/v1/diffusion_worker.grpc.pb.h"
-#include "gs_trainer/generator.h"
+#include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
 

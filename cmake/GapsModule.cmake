@@ -1,0 +1,26 @@
+# gaps_module(NAME <target> [SOURCE_DIRS <dir>...] [CUDA_DIRS <dir>...] [DEPS <target>...])
+# One static library per folder: the folder's *.cpp (and those of SOURCE_DIRS below it), its CUDA kernels
+# (*.cu of CUDA_DIRS) when the CUDA build is on, and PUBLIC links to the modules it may use. Every module
+# reuses gaps_common's precompiled header, so LibTorch's headers are parsed once per build.
+function(gaps_module)
+  cmake_parse_arguments(M "" "NAME" "SOURCE_DIRS;CUDA_DIRS;DEPS" ${ARGN})
+  set(sources "")
+  foreach(dir "." ${M_SOURCE_DIRS})
+    file(GLOB found CONFIGURE_DEPENDS ${CMAKE_CURRENT_SOURCE_DIR}/${dir}/*.cpp)
+    list(APPEND sources ${found})
+  endforeach()
+  add_library(${M_NAME} STATIC ${sources})
+  if(GAPS_WITH_CUDA)
+    foreach(dir ${M_CUDA_DIRS})
+      file(GLOB found CONFIGURE_DEPENDS ${CMAKE_CURRENT_SOURCE_DIR}/${dir}/*.cu)
+      target_sources(${M_NAME} PRIVATE ${found})
+      # nvcc does not take the C++ precompiled header; the kernels include only the ATen headers they use.
+      set_source_files_properties(${found} PROPERTIES SKIP_PRECOMPILE_HEADERS ON)
+    endforeach()
+  endif()
+  target_link_libraries(${M_NAME} PUBLIC ${M_DEPS})
+  if(NOT M_NAME STREQUAL "gaps_common")
+    target_link_libraries(${M_NAME} PUBLIC gaps_common)
+    target_precompile_headers(${M_NAME} REUSE_FROM gaps_common)
+  endif()
+endfunction()

@@ -1,0 +1,142 @@
+#include "common/image_io.h"
+
+#include <cstdio>
+#include <string>
+
+#include <ATen/ATen.h>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "common/io_util.h"
+
+// stb is compiled here with internal linkage, so no other library that bundles its own copy (or
+// Debian's libstb.so, absent on the GPU machines) can clash with or be required for these symbols.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wunused-function"
+#pragma GCC diagnostic ignored "-Wmissing-field-initializers"
+#define STB_IMAGE_STATIC
+#define STB_IMAGE_IMPLEMENTATION
+#define STBI_ONLY_PNG
+#define STBI_ONLY_JPEG
+#include <stb/stb_image.h>
+#define STB_IMAGE_WRITE_STATIC
+#define STB_IMAGE_WRITE_IMPLEMENTATION
+#include <stb/stb_image_write.h>
+#pragma GCC diagnostic pop
+
+namespace gaps {
+namespace {
+
+namespace fs = std::filesystem;
+
+absl::Status corrupt(const fs::path& path) {
+  return absl::DataLossError(
+      absl::StrCat(path.string(), ": not a readable PNG/JPEG image (", stbi_failure_reason(), ")"));
+}
+
+// stb hands back interleaved pixels with 1 (grey), 2 (grey+alpha), 3 (RGB) or 4 (RGBA) channels.
+template <typename T>
+at::Tensor to_rgb_float(const T* pixels, int width, int height, int channels, float scale) {
+  at::Tensor image = at::empty({height, width, 3}, at::kFloat);
+  float* out = image.data_ptr<float>();
+  const int64_t count = int64_t{width} * height;
+  for (int64_t i = 0; i < count; ++i) {
+    const T* p = pixels + i * channels;
+    const bool grey = channels < 3;
+    for (int c = 0; c < 3; ++c) out[i * 3 + c] = static_cast<float>(p[grey ? 0 : c]) * scale;
+  }
+  return image;
+}
+
+absl::StatusOr<at::Tensor> decode(const fs::path& path, const std::string& bytes) {
+  const auto* data = reinterpret_cast<const stbi_uc*>(bytes.data());
+  const int size = static_cast<int>(bytes.size());
+  int width = 0, height = 0, channels = 0;
+  if (!stbi_info_from_memory(data, size, &width, &height, &channels)) return corrupt(path);
+  if (channels < 1 || channels > 4)
+    return absl::InvalidArgumentError(absl::StrCat(path.string(), ": unsupported channel count ", channels));
+  at::Tensor image;
+  if (stbi_is_16_bit_from_memory(data, size)) {
+    stbi_us* pixels = stbi_load_16_from_memory(data, size, &width, &height, &channels, 0);
+    if (pixels == nullptr) return corrupt(path);
+    image = to_rgb_float(pixels, width, height, channels, 1.0f / 65535.0f);
+    stbi_image_free(pixels);
+  } else {
+    stbi_uc* pixels = stbi_load_from_memory(data, size, &width, &height, &channels, 0);
+    if (pixels == nullptr) return corrupt(path);
+    image = to_rgb_float(pixels, width, height, channels, 1.0f / 255.0f);
+    stbi_image_free(pixels);
+  }
+  return image;
+}
+
+void append_bytes(void* context, void* data, int size) {
+  static_cast<std::string*>(context)->append(static_cast<const char*>(data), size);
+}
+
+}  // namespace
+
+absl::StatusOr<at::Tensor> read_image(const fs::path& path) {
+  absl::StatusOr<std::string> bytes = read_file_bytes(path, "image file");
+  if (!bytes.ok()) return bytes.status();
+  return decode(path, *bytes);
+}
+
+absl::StatusOr<std::pair<int, int>> read_image_size(const fs::path& path) {
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) return absl::NotFoundError(absl::StrCat(path.string(), ": image file not found"));
+  FILE* file = std::fopen(path.c_str(), "rb");
+  if (file == nullptr) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be opened"));
+  int width = 0, height = 0, channels = 0;
+  const int ok = stbi_info_from_file(file, &width, &height, &channels);
+  std::fclose(file);
+  if (!ok) return corrupt(path);
+  return std::make_pair(width, height);
+}
+
+absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::string& what) {
+  const bool shape_ok = image.dim() == 3 && (image.size(2) == 3 || image.size(2) == 1);
+  if (!shape_ok)
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, ": PNG encoding needs an HxWx3 or HxWx1 image, got shape [", absl::StrJoin(image.sizes().vec(), ", "), "]"));
+  const at::Tensor bytes = image.detach()
+                               .to(at::kCPU, at::kFloat)
+                               .nan_to_num(0.0)
+                               .clamp(0.0, 1.0)
+                               .mul(255.0f)
+                               .round()
+                               .to(at::kByte)
+                               .contiguous();
+  const int height = static_cast<int>(image.size(0)), width = static_cast<int>(image.size(1));
+  const int channels = static_cast<int>(image.size(2));
+  std::string png;
+  if (!stbi_write_png_to_func(append_bytes, &png, width, height, channels, bytes.data_ptr<uint8_t>(),
+                              width * channels))
+    return absl::InternalError(absl::StrCat(what, ": PNG encoding failed"));
+  return png;
+}
+
+absl::Status write_png(const fs::path& path, const at::Tensor& image) {
+  absl::StatusOr<std::string> png = encode_png(image, path.string());
+  if (!png.ok()) return png.status();
+  return write_file_bytes(path, *png);
+}
+
+absl::StatusOr<at::Tensor> decode_image(const std::string& bytes, const std::string& what) {
+  return decode(what, bytes);
+}
+
+at::Tensor resize_image(const at::Tensor& image, int width, int height) {
+  const at::Tensor src = image.to(at::kCPU, at::kFloat).contiguous();
+  const int channels = static_cast<int>(src.size(2));
+  if (src.size(0) == height && src.size(1) == width) return src.clone();
+  const cv::Mat in(static_cast<int>(src.size(0)), static_cast<int>(src.size(1)), CV_32FC(channels),
+                   src.data_ptr<float>());
+  at::Tensor dst = at::empty({height, width, channels}, at::kFloat);
+  cv::Mat out(height, width, CV_32FC(channels), dst.data_ptr<float>());
+  cv::resize(in, out, out.size(), 0, 0, cv::INTER_AREA);
+  return dst;
+}
+
+}  // namespace gaps

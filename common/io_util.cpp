@@ -1,0 +1,47 @@
+#include "common/io_util.h"
+
+#include <fstream>
+#include <system_error>
+#include <iterator>
+
+#include "absl/strings/str_cat.h"
+
+namespace gaps {
+
+absl::StatusOr<std::string> read_file_bytes(const std::filesystem::path& path, absl::string_view what) {
+  std::error_code ec;
+  if (!std::filesystem::exists(path, ec)) return absl::NotFoundError(absl::StrCat(path.string(), ": ", what, " not found"));
+  if (!std::filesystem::is_regular_file(path, ec))
+    return absl::InvalidArgumentError(absl::StrCat(path.string(), ": not a regular file"));
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be opened"));
+  std::string bytes{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+  if (in.bad()) return absl::DataLossError(absl::StrCat(path.string(), ": read error"));
+  return bytes;
+}
+
+absl::Status write_file_bytes(const std::filesystem::path& path, absl::string_view bytes) {
+  std::ofstream out(path, std::ios::binary | std::ios::trunc);
+  out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+  out.close();
+  if (!out) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be written"));
+  return absl::OkStatus();
+}
+
+void remove_tree(const std::filesystem::path& dir) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec)) return;
+  for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
+    if (entry.is_directory(ec)) remove_tree(entry.path());
+    std::filesystem::remove(entry.path(), ec);
+  }
+  std::filesystem::remove(dir, ec);
+}
+
+uint64_t fnv1a(const void* data, size_t size) {
+  uint64_t hash = 1469598103934665603ull;
+  for (size_t i = 0; i < size; ++i) hash = (hash ^ static_cast<const unsigned char*>(data)[i]) * 1099511628211ull;
+  return hash;
+}
+
+}  // namespace gaps

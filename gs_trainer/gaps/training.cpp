@@ -1,0 +1,226 @@
+#include "gs_trainer/gaps/training.h"
+
+#include <algorithm>
+#include <numeric>
+
+#include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "common/image_io.h"
+#include "gs_trainer/gaps/admission.h"
+#include "gs_trainer/gaps/scores.h"
+#include "gs_trainer/model/render.h"
+#include "common/status_macros.h"
+
+namespace gaps {
+
+absl::StatusOr<Variant> parse_variant(const std::string& name) {
+  if (name == "vanilla") return Variant::kVanilla;
+  if (name == "full") return Variant::kFull;
+  if (name == "no-gaps") return Variant::kNoGaps;
+  if (name == "no-dropgaussian") return Variant::kNoDropGaussian;
+  return absl::InvalidArgumentError(
+      absl::StrCat("unknown variant '", name, "' (vanilla, full, no-gaps, no-dropgaussian)"));
+}
+
+std::string variant_name(Variant v) {
+  switch (v) {
+    case Variant::kVanilla: return "vanilla";
+    case Variant::kFull: return "full";
+    case Variant::kNoGaps: return "no-gaps";
+    case Variant::kNoDropGaussian: return "no-dropgaussian";
+  }
+  return "?";
+}
+
+GapsTraining::GapsTraining(Trainer& trainer, Generator* generator, std::vector<TrainingView> gt_views,
+                           GapsConfig config, Variant variant, uint64_t seed)
+    : trainer_(trainer),
+      generator_(generator),
+      gt_views_(std::move(gt_views)),
+      config_(std::move(config)),
+      variant_(variant),
+      rng_(seed ^ 0x9e3779b97f4a7c15ULL),
+      seed_(seed) {
+  for (const auto& v : gt_views_) gt_cameras_.push_back(v.camera);
+  TORCH_CHECK(variant_ == Variant::kVanilla || generator_ != nullptr, "variant ", variant_name(variant_),
+              " needs a generator");
+}
+
+at::Tensor GapsTraining::drop_scale() {
+  if (variant_ == Variant::kVanilla || variant_ == Variant::kNoDropGaussian) return {};
+  const auto& model = trainer_.model();
+  const double r = drop_ratio(trainer_.iteration() + 1, trainer_.config().iterations, model.size(), config_);
+  if (r <= 0) return {};
+  if (!drop_rng_.defined() || drop_rng_.device() != model.means.device()) {
+    drop_rng_ = at::globalContext().defaultGenerator(model.means.device()).clone();
+    drop_rng_.set_current_seed(seed_ ^ 0xd1b54a32d192ed03ULL);
+  }
+  return drop_gaussian_scale(model.size(), r, drop_rng_, model.means.options());
+}
+
+absl::StatusOr<at::Tensor> GapsTraining::step() {
+  const int next = trainer_.iteration() + 1;
+  if (variant_ != Variant::kVanilla) {
+    const int phase = diffusion_phase_at(next, trainer_.config().iterations, config_);
+    if (phase >= 0) GAPS_RETURN_IF_ERROR(run_phase(phase));
+  }
+  const at::Tensor scale = drop_scale();
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  if (!admitted_.empty() && next > config_.warmup_iterations && u(rng_) < config_.pseudo_probability) {
+    std::uniform_int_distribution<size_t> pick(0, admitted_.size() - 1);
+    auto it = admitted_.begin();
+    std::advance(it, pick(rng_));
+    return trainer_.step_pseudo(it->second, scale);
+  }
+  return trainer_.step(scale);
+}
+
+std::vector<Camera> GapsTraining::supervised_cameras() const {
+  std::vector<Camera> cams = gt_cameras_;
+  for (const auto& [id, v] : admitted_) cams.push_back(v.camera);
+  return cams;
+}
+
+std::vector<ReferenceView> GapsTraining::references_for(const Camera& pose) const {
+  std::vector<std::pair<double, size_t>> order;
+  for (size_t i = 0; i < gt_renders_.size(); ++i)
+    order.push_back({pose_distance(pose, gt_renders_[i].camera, config_.pose_rotation_weight), i});
+  std::sort(order.begin(), order.end());
+  std::vector<ReferenceView> refs;
+  for (const auto& [d, i] : order) refs.push_back(gt_renders_[i]);
+  return refs;
+}
+
+// The paper's no-GAPS ablation: the midpoints of (up to) 8 training pairs, generated once, never refreshed.
+std::vector<Candidate> GapsTraining::no_gaps_candidates() const {
+  std::vector<Candidate> out;
+  for (const auto& c : build_candidate_pool(gt_cameras_, config_, 0))
+    if (std::abs(c.alpha - 0.5) < 1e-9 && out.size() < 8) out.push_back(c);
+  return out;
+}
+
+absl::Status GapsTraining::run_phase(int phase) {
+  at::AutoGradMode no_grad(false);
+  const GaussianModel& model = trainer_.model();
+  const int t = trainer_.iteration(), T = trainer_.config().iterations;
+  nlohmann::json entry = {{"phase", phase}, {"iteration", t}, {"tier", tier_}, {"gaussians", model.size()},
+                          {"drop_ratio", drop_ratio(t, T, model.size(), config_)},
+                          {"beta", annealed_beta(t, T, config_)}};
+  if (variant_ == Variant::kNoGaps && phase > 0) return absl::OkStatus();  // generated once, never refreshed
+  if (phase_observer_) phase_observer_("started", entry);
+  const absl::Status generated = run_phase_generation(phase, entry);
+  if (generated.code() != absl::StatusCode::kUnavailable) GAPS_RETURN_IF_ERROR(generated);
+  if (!generated.ok()) {
+    entry["skipped"] = true;
+    entry["skip_reason"] = std::string(generated.message());
+  }
+  log_.push_back(entry);
+  if (phase_observer_) phase_observer_(generated.ok() ? "finished" : "skipped", entry);
+  return absl::OkStatus();
+}
+
+absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry) {
+  const GaussianModel& model = trainer_.model();
+  const int t = trainer_.iteration(), T = trainer_.config().iterations;
+
+  // The model's current renders at the GT poses: the references carry them (depth for warping).
+  gt_renders_.clear();
+  for (const auto& v : gt_views_) {
+    const RenderOutput r = render(model, v.camera);
+    gt_renders_.push_back({v.camera, v.image.cpu(), r.depth.cpu(), r.alpha.cpu()});
+  }
+  if (!adapted_) {
+    GAPS_RETURN_IF_ERROR(generator_->adapt(gt_renders_));
+    adapted_ = true;
+  }
+
+  std::vector<Candidate> chosen;
+  if (variant_ == Variant::kNoGaps) {
+    chosen = no_gaps_candidates();
+  } else {
+    std::vector<Candidate> pool = build_candidate_pool(gt_cameras_, config_, tier_);
+    const std::vector<Camera> supervised = supervised_cameras();
+    std::vector<double> scores;
+    for (auto& c : pool) {
+      c.admitted_before = admitted_.count(c.id) > 0;
+      const RenderOutput r = render(model, c.camera);
+      const auto history = uncertainty_history_.count(c.id) ? std::optional<double>(uncertainty_history_[c.id])
+                                                            : std::nullopt;
+      const auto m = measure_render(r.rgb.clamp(0, 1), r.alpha, min_pose_distance(c.camera, supervised),
+                                    min_pose_distance(c.camera, gt_cameras_), history, config_);
+      const ScoreTerms s = score_candidate(m, t, T, config_);
+      scores.push_back(s.score);
+      entry["candidates"].push_back({{"id", c.id}, {"pair", {c.i, c.j}}, {"alpha", c.alpha},
+                                     {"i_recon", s.i_recon}, {"c_gen", s.c_gen}, {"score", s.score}});
+    }
+    for (int k : select_for_phase(pool, scores, phase, config_)) chosen.push_back(pool[k]);
+  }
+  return generate_and_admit(chosen, variant_ != Variant::kNoGaps, entry);
+}
+
+absl::Status GapsTraining::save_for_inspection(int phase, int id, bool admitted, const at::Tensor& image) const {
+  if (inspection_dir_.empty()) return absl::OkStatus();
+  const auto dir = inspection_dir_ / absl::StrFormat("phase_%02d", phase);
+  std::filesystem::create_directories(dir);
+  return write_png(dir / absl::StrFormat("cand_%03d_%s.png", id, admitted ? "admitted" : "rejected"), image);
+}
+
+absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate,
+                                              nlohmann::json& entry) {
+  const GaussianModel& model = trainer_.model();
+  std::vector<GenerationRequest> requests;
+  std::vector<RenderOutput> renders;
+  for (const auto& c : chosen) {
+    RenderOutput r = render(model, c.camera);
+    GenerationRequest q;
+    q.camera = c.camera;
+    q.render_rgb = r.rgb.clamp(0, 1).cpu();
+    q.render_depth = r.depth.cpu();
+    q.render_alpha = r.alpha.cpu();
+    q.coverage = coverage_fraction(r.alpha, config_.coverage_alpha_threshold);
+    q.strength = adaptive_strength(q.coverage, config_);
+    q.control_scale = adaptive_control_scale(q.coverage, config_);
+    q.references = references_for(c.camera);
+    q.seed = rng_();
+    q.inpaint = inpaint_settings(config_);
+    requests.push_back(std::move(q));
+    renders.push_back(std::move(r));
+  }
+  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
+  if (images.size() != requests.size())
+    return absl::InternalError(absl::StrCat("generator ", generator_->name(), " returned ", images.size(),
+                                            " images for ", requests.size(), " requests"));
+  std::vector<double> admitted_variances;
+  const auto device = model.means.device();
+  for (size_t k = 0; k < chosen.size(); ++k) {
+    const at::Tensor image = images[k].to(device);
+    const at::Tensor rendered = renders[k].rgb.clamp(0, 1), alpha = renders[k].alpha;
+    const AdmissionDecision d = admit_pseudo_view(image, rendered, alpha, config_);
+    const bool admit = !gate || d.admitted;
+    const at::Tensor u = uncertainty_map(image, rendered);
+    entry["selection"].push_back({{"id", chosen[k].id}, {"pair", {chosen[k].i, chosen[k].j}},
+                                  {"alpha", chosen[k].alpha}, {"coverage", requests[k].coverage},
+                                  {"strength", requests[k].strength}, {"admitted", admit},
+                                  {"reason", gate ? d.reason : "no admission gate (no-gaps)"}});
+    GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
+    if (!admit) continue;
+    const double variance = uncertainty_variance(u);
+    uncertainty_history_[chosen[k].id] = variance;
+    admitted_variances.push_back(variance);
+    // no-gaps trains on plain pixels: its ablation has no uncertainty weighting either.
+    const at::Tensor weight = gate ? pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_)
+                                   : at::full_like(alpha, config_.pseudo_loss_weight);
+    admitted_[chosen[k].id] = {chosen[k].camera, image, weight, chosen[k].id};
+  }
+  entry["admitted"] = admitted_variances.size();
+  entry["mean_uncertainty_variance"] =
+      admitted_variances.empty() ? 0.0
+                                 : std::accumulate(admitted_variances.begin(), admitted_variances.end(), 0.0) /
+                                       admitted_variances.size();
+  if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
+  return absl::OkStatus();
+}
+
+}  // namespace gaps

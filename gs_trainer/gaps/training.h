@@ -1,0 +1,80 @@
+#pragma once
+// The alternating optimisation of the paper (sec. 3.2): GT-only warmup, then a diffusion phase every
+// phase_interval iterations (GAPS selection, generation, admission), and between phases iterations that
+// train on an admitted pseudo-view with probability p_pseudo, all under density-adaptive DropGaussian.
+// Variants for the ablation: vanilla, full, no-gaps (8 pair-midpoint views generated once, no gate),
+// no-dropgaussian. A generator answering UNAVAILABLE (e.g. no remote worker reachable) skips the phase:
+// it is logged with "skipped" and training goes on with the pseudo-views admitted so far.
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include <ATen/core/Generator.h>
+#include <nlohmann/json.hpp>
+#include "absl/status/statusor.h"
+#include "gs_trainer/gaps/config.h"
+#include "gs_trainer/gaps/pose.h"
+#include "gs_trainer/gaps/generator.h"
+#include "gs_trainer/train/trainer.h"
+
+namespace gaps {
+
+enum class Variant { kVanilla, kFull, kNoGaps, kNoDropGaussian };
+absl::StatusOr<Variant> parse_variant(const std::string& name);
+std::string variant_name(Variant v);
+
+class GapsTraining {
+ public:
+  // `gt_views` are the trainer's training views (the references for generation).
+  GapsTraining(Trainer& trainer, Generator* generator, std::vector<TrainingView> gt_views, GapsConfig config,
+               Variant variant, uint64_t seed);
+
+  // One iteration: a diffusion phase first when one is due, then a pseudo or GT step.
+  absl::StatusOr<at::Tensor> step();
+  // Per phase: candidates and scores, the selection, admissions with reasons, tier, beta, drop ratio.
+  const nlohmann::json& phase_log() const { return log_; }
+  const std::map<int, PseudoView>& admitted() const { return admitted_; }
+  // When set, every phase's generated images are written there as phase_PP/cand_III_{admitted,rejected}.png.
+  void set_inspection_dir(const std::filesystem::path& dir) { inspection_dir_ = dir; }
+  // Called as phases start ("started", with phase and iteration), end ("finished", with the phase's log
+  // entry) or are skipped ("skipped", with a "skip_reason").
+  using PhaseObserver = std::function<void(const std::string& event, const nlohmann::json& entry)>;
+  void set_phase_observer(PhaseObserver observer) { phase_observer_ = std::move(observer); }
+
+ private:
+  friend struct CheckpointAccess;  // gs_trainer/checkpoint.cpp saves and restores this state
+  absl::Status run_phase(int phase);
+  absl::Status run_phase_generation(int phase, nlohmann::json& entry);
+  absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);
+  std::vector<Candidate> no_gaps_candidates() const;
+  std::vector<ReferenceView> references_for(const Camera& pose) const;
+  absl::Status save_for_inspection(int phase, int id, bool admitted, const at::Tensor& image) const;
+  at::Tensor drop_scale();
+  std::vector<Camera> supervised_cameras() const;
+
+  Trainer& trainer_;
+  Generator* generator_;
+  std::vector<TrainingView> gt_views_;
+  std::vector<Camera> gt_cameras_;
+  GapsConfig config_;
+  Variant variant_;
+  std::mt19937_64 rng_;
+  uint64_t seed_;
+  // DropGaussian's masks come from a generator of the run's own (seeded from `seed_`, on the model's device)
+  // so that a run of the method is reproducible whatever else draws from ATen's default generator.
+  at::Generator drop_rng_;
+  int tier_ = 0;
+  bool adapted_ = false;
+  std::map<int, PseudoView> admitted_;               // candidate id -> latest admitted view
+  std::map<int, double> uncertainty_history_;        // candidate id -> last uncertainty variance
+  std::filesystem::path inspection_dir_;
+  std::vector<ReferenceView> gt_renders_;            // GT views with the model's renders, per phase
+  nlohmann::json log_ = nlohmann::json::array();
+  PhaseObserver phase_observer_;
+};
+
+}  // namespace gaps

@@ -1,0 +1,301 @@
+#include "gs_trainer/init/initializer.h"
+
+#include <unistd.h>
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <system_error>
+
+#include <ATen/ATen.h>
+#include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
+#include "gs_trainer/scene/colmap.h"
+#include "gs_trainer/scene/bounds.h"
+#include "common/io_util.h"
+#include "common/ply.h"
+#include "common/status_macros.h"
+
+namespace gaps {
+namespace {
+
+namespace fs = std::filesystem;
+
+// Bumped whenever an algorithm or default changes what a method produces, so stale caches are not reused.
+constexpr char kCacheVersion[] = "init-v2";
+
+
+std::string scene_name(const std::vector<Camera>& cameras) {
+  // image_path is <scene>/<images folder>/<file>; synthetic cameras may have none.
+  std::string name = cameras.empty() ? "" : cameras[0].image_path.parent_path().parent_path().filename().string();
+  for (char& c : name)
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_') c = '_';
+  return name.empty() ? "scene" : name;
+}
+
+std::string describe_options(const InitOptions& o) {
+  const SparseOptions& s = o.sparse;
+  const DenseOptions& d = o.dense;
+  return absl::StrFormat(
+      "random %d seed %d minpts %d %d | sparse %d %.6g %.6g %.6g %.6g %.6g %d | dense %d %d %d %d %d %.6g %d %.6g "
+      "%.6g %.6g %d %.6g %.6g %.6g %d",
+      o.random_points, o.seed, o.min_sparse_points, o.min_dense_points, s.max_features, s.contrast_threshold, s.ratio,
+      s.max_epipolar_px, s.max_reprojection_px, s.min_angle_deg, s.refine_iterations, d.max_image_side, d.num_planes,
+      d.window, d.max_neighbors, d.planes_per_chunk, d.depth_margin, d.min_points_for_range, d.min_score, d.min_margin,
+      d.min_texture_std, d.min_consistent_views, d.max_relative_depth_diff, d.max_reprojection_px, d.max_colour_diff,
+      d.max_points);
+}
+
+std::string describe_camera(const Camera& c, const at::Tensor& image) {
+  std::string text = absl::StrFormat("%s %dx%d %.10g %.10g %.10g %.10g %.10g %.10g", c.name, c.width, c.height, c.fx,
+                                     c.fy, c.cx, c.cy, c.near, c.far);
+  for (int i = 0; i < 9; ++i) absl::StrAppend(&text, absl::StrFormat(" %.10g", c.R(i / 3, i % 3)));
+  for (int i = 0; i < 3; ++i) absl::StrAppend(&text, absl::StrFormat(" %.10g", c.t(i)));
+  // The pixels matter too (same names, other images): their sum is a cheap fingerprint.
+  absl::StrAppend(&text, absl::StrFormat(" sum %.9g", image.to(at::kDouble).sum().item<double>()));
+  return text;
+}
+
+absl::Status check_inputs(const std::string& method, const std::vector<Camera>& cameras,
+                          const std::vector<at::Tensor>& images) {
+  if (!is_init_method(method))
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown initialisation '", method, "' (auto, mvs, sparse or random)"));
+  if (cameras.empty()) return absl::InvalidArgumentError("initialisation needs at least one training view");
+  return check_view_images(cameras, images);
+}
+
+PointCloud random_cloud(const std::vector<Camera>& cameras, const InitOptions& opts) {
+  double far = 0;
+  for (const Camera& c : cameras) far = std::max(far, c.far);
+  if (far <= 0) far = default_far_bound(cameras);
+  return random_points_in_views(cameras, opts.random_points, far, opts.seed);
+}
+
+bool all_centres_coincide(const std::vector<Camera>& cameras) {
+  const double scale = 1e-9 * (1.0 + cameras[0].center().norm());
+  for (const Camera& c : cameras)
+    if ((c.center() - cameras[0].center()).norm() > scale) return false;
+  return true;
+}
+
+std::string sparse_note(const SparseStats& s) {
+  return absl::StrFormat(
+      "sparse: %d keypoints, %d ratio-test matches, %d epipolar-consistent, %d tracks -> %d points (rejected: %d "
+      "cheirality, %d reprojection, %d angle), median reprojection %.3f px, %.1f s",
+      s.keypoints, s.ratio_matches, s.epipolar_matches, s.tracks, s.points, s.rejected_cheirality,
+      s.rejected_reprojection, s.rejected_angle, s.median_reprojection_px, s.seconds);
+}
+
+std::string dense_note(const DenseStats& d) {
+  return absl::StrFormat("mvs: depth pixels per view [%s], %d fused points -> %d after voxel grid (voxel %.4g), %.1f s",
+                         absl::StrJoin(d.depth_pixels, ", "), d.fused_before_voxel, d.points, d.voxel_size, d.seconds);
+}
+
+// Why triangulation gave too few points, from its statistics.
+std::string sparse_failure(const SparseStats& s, int views, const InitOptions& opts) {
+  const int pairs = views * (views - 1) / 2;
+  if (s.degenerate_pairs == pairs) return "degenerate baseline: every pair of training cameras shares one centre";
+  if (s.epipolar_matches < opts.min_sparse_points)
+    return absl::StrCat("too few matches (", s.keypoints, " keypoints, ", s.ratio_matches, " pass the ratio test, ",
+                        s.epipolar_matches, " agree with the poses' epipolar geometry)");
+  if (s.rejected_angle * 2 >= s.tracks)
+    return absl::StrCat("degenerate baseline: ", s.rejected_angle, " of ", s.tracks,
+                        " tracks have triangulation angles under ", opts.sparse.min_angle_deg, " degrees");
+  return absl::StrCat("too few triangulated points (", s.points, " of ", s.tracks, " tracks; need ",
+                      opts.min_sparse_points, ")");
+}
+
+// The fallback chain, without the cache.
+absl::StatusOr<InitResult> compute(const std::string& method, const std::vector<Camera>& cameras,
+                                   const std::vector<at::Tensor>& images, const InitOptions& opts) {
+  InitResult r;
+  const auto fall_back_to_random = [&](const std::string& why) {
+    if (!why.empty()) r.warnings.push_back(absl::StrCat(why, "; falling back to random points"));
+    r.points = random_cloud(cameras, opts);
+    r.method = "random";
+    return r;
+  };
+  if (method == "random") return fall_back_to_random("");
+  if (cameras.size() < 2)
+    return fall_back_to_random(absl::StrCat(method, " needs at least two views, got a single training view"));
+  if (all_centres_coincide(cameras))
+    return fall_back_to_random(
+        absl::StrCat(method, ": degenerate baseline, all ", cameras.size(), " training cameras share one centre"));
+
+  GAPS_ASSIGN_OR_RETURN(SparseResult sparse, sparse_reconstruct(cameras, images, opts.sparse));
+  r.sparse = sparse.stats;
+  r.notes.push_back(sparse_note(sparse.stats));
+  const bool sparse_ok = sparse.stats.points >= opts.min_sparse_points;
+  const std::string sparse_why = sparse_ok ? "" : sparse_failure(sparse.stats, static_cast<int>(cameras.size()), opts);
+
+  if (method == "mvs") {
+    // Runs even when triangulation failed: the cameras' near/far may still bound the sweep.
+    auto dense = dense_reconstruct(cameras, images, sparse, opts.dense);
+    std::string why;
+    if (dense.ok()) {
+      r.dense = dense->stats;
+      r.notes.push_back(dense_note(dense->stats));
+      if (dense->stats.points >= opts.min_dense_points) {
+        r.points = std::move(dense->points);
+        r.method = "mvs";
+        return r;
+      }
+      why = absl::StrCat("too few fused points (", dense->stats.points, " < ", opts.min_dense_points, ")");
+    } else {
+      why = std::string(dense.status().message());
+    }
+    if (!sparse_why.empty()) why = absl::StrCat(why, "; sparse: ", sparse_why);
+    if (!sparse_ok) return fall_back_to_random(absl::StrCat("mvs failed: ", why));
+    r.warnings.push_back(absl::StrCat("mvs failed: ", why, "; falling back to the sparse points"));
+  }
+  if (!sparse_ok) return fall_back_to_random(absl::StrCat("sparse failed: ", sparse_why));
+  r.points = std::move(sparse.points);
+  r.method = "sparse";
+  return r;
+}
+
+fs::path meta_path(const fs::path& ply) { return fs::path(ply).replace_extension(".json"); }
+
+// A cached result, or nullopt when there is none (or it cannot be read: then it is recomputed).
+std::optional<InitResult> read_cache(const fs::path& ply) {
+  std::error_code ec;
+  if (!fs::exists(ply, ec) || !fs::exists(meta_path(ply), ec)) return std::nullopt;
+  auto points = read_point_cloud_ply(ply);
+  if (!points.ok()) return std::nullopt;
+  std::ifstream in(meta_path(ply));
+  const nlohmann::json meta = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
+  if (meta.is_discarded() || !meta.contains("method")) return std::nullopt;
+  InitResult r;
+  r.points = std::move(*points);
+  r.method = meta["method"].get<std::string>();
+  r.warnings = meta.value("warnings", std::vector<std::string>{});
+  r.notes = meta.value("notes", std::vector<std::string>{});
+  r.cache_file = ply;
+  r.from_cache = true;
+  return r;
+}
+
+// Writes the PLY (via a temporary file, so a concurrent reader never sees half of one) and the metadata,
+// then returns the points as read back, so that a first run and a cached run give identical points.
+absl::StatusOr<PointCloud> write_cache(const fs::path& ply, const InitResult& r) {
+  std::error_code ec;
+  fs::create_directories(ply.parent_path(), ec);
+  // Per process: concurrent runs of one scene (a benchmark matrix) may fill the same cache entry at once.
+  const fs::path tmp = fs::path(ply).concat(absl::StrCat(".tmp", getpid()));
+  GAPS_RETURN_IF_ERROR(write_point_cloud_ply(r.points, tmp));
+  nlohmann::json meta = {{"method", r.method}, {"warnings", r.warnings}, {"notes", r.notes}};
+  std::ofstream out(meta_path(ply));
+  out << meta.dump(2) << "\n";
+  out.close();
+  if (!out) return absl::InternalError(absl::StrCat(meta_path(ply).string(), ": cannot write"));
+  fs::rename(tmp, ply, ec);
+  if (ec) return absl::InternalError(absl::StrCat(ply.string(), ": cannot write: ", ec.message()));
+  return read_point_cloud_ply(ply);
+}
+
+}  // namespace
+
+std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
+                           const std::vector<at::Tensor>& images, const InitOptions& opts) {
+  std::string text = absl::StrCat(kCacheVersion, "|", method, "|", describe_options(opts));
+  for (size_t i = 0; i < cameras.size(); ++i)
+    absl::StrAppend(&text, "|", describe_camera(cameras[i], i < images.size() ? images[i] : at::zeros({1})));
+  const int w = cameras.empty() ? 0 : cameras[0].width, h = cameras.empty() ? 0 : cameras[0].height;
+  return absl::StrFormat("%s_%dv_%dx%d_%s_%016x", scene_name(cameras), cameras.size(), w, h, method, fnv1a(text));
+}
+
+bool is_init_method(const std::string& name) {
+  return name == "auto" || name == "mvs" || name == "sparse" || name == "random";
+}
+
+double viewing_direction_spread_degrees(const std::vector<Camera>& cameras) {
+  double min_cosine = 1.0;
+  for (size_t i = 0; i < cameras.size(); ++i)
+    for (size_t j = i + 1; j < cameras.size(); ++j)
+      min_cosine = std::min(min_cosine, cameras[i].forward().normalized().dot(cameras[j].forward().normalized()));
+  return std::acos(std::clamp(min_cosine, -1.0, 1.0)) * 180.0 / M_PI;
+}
+
+std::string auto_init_method(const std::vector<Camera>& cameras) {
+  return viewing_direction_spread_degrees(cameras) > kSurroundingViewsDegrees ? "sparse" : "mvs";
+}
+
+namespace {
+
+absl::StatusOr<InitResult> cached_or_computed(const std::string& method, const std::vector<Camera>& train_cameras,
+                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts) {
+  fs::path cache;
+  // Random points cost nothing to draw again; caching them would only hide changes.
+  if (!opts.cache_dir.empty() && method != "random") {
+    cache = opts.cache_dir / (init_cache_key(method, train_cameras, train_images, opts) + ".ply");
+    if (std::optional<InitResult> cached = read_cache(cache)) return std::move(*cached);
+  }
+  GAPS_ASSIGN_OR_RETURN(InitResult r, compute(method, train_cameras, train_images, opts));
+  r.points.xyz = r.points.xyz.to(at::kCPU, at::kFloat).contiguous();
+  r.points.rgb = r.points.rgb.to(at::kCPU, at::kFloat).contiguous();
+  if (!cache.empty()) {
+    auto stored = write_cache(cache, r);
+    if (stored.ok()) {
+      r.points = std::move(*stored);
+      r.cache_file = cache;
+    } else {
+      r.warnings.push_back(absl::StrCat("cache not written: ", stored.status().message()));
+    }
+  }
+  return r;
+}
+
+}  // namespace
+
+absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
+                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts) {
+  GAPS_RETURN_IF_ERROR(check_inputs(method, train_cameras, train_images));
+  if (method != "auto") return cached_or_computed(method, train_cameras, train_images, opts);
+  const std::string chosen = auto_init_method(train_cameras);
+  GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed(chosen, train_cameras, train_images, opts));
+  r.notes.insert(r.notes.begin(),
+                 absl::StrFormat("auto: %s (viewing directions span %.0f degrees; over %.0f the views surround the scene)",
+                                 chosen, viewing_direction_spread_degrees(train_cameras), kSurroundingViewsDegrees));
+  return r;
+}
+
+absl::StatusOr<PointCloud> initialize_points(const std::string& method, const std::vector<Camera>& train_cameras,
+                                             const std::vector<at::Tensor>& train_images, const InitOptions& opts,
+                                             std::string* report, std::string* method_used) {
+  GAPS_ASSIGN_OR_RETURN(InitResult r, run_initialization(method, train_cameras, train_images, opts));
+  if (method_used) *method_used = r.method;
+  if (report) {
+    std::string& out = *report;
+    if (r.from_cache) absl::StrAppend(&out, "init: reusing ", r.cache_file.string(), " (computed earlier:)\n");
+    for (const std::string& n : r.notes) absl::StrAppend(&out, "init: ", n, "\n");
+    for (const std::string& w : r.warnings) absl::StrAppend(&out, "warning: init: ", w, "\n");
+    absl::StrAppend(
+        &out, "init: ", r.method, ", ", r.points.xyz.size(0), " points from ", train_cameras.size(), " training views",
+        r.from_cache || r.cache_file.empty() ? "" : absl::StrCat(", cached in ", r.cache_file.string()), "\n");
+  }
+  return std::move(r.points);
+}
+
+absl::Status write_init_as_colmap(const std::filesystem::path& dir, const std::vector<Camera>& cameras,
+                                  const PointCloud& points) {
+  return write_colmap_text(dir, colmap_from_cameras(cameras, points));
+}
+
+double view_coverage(const Camera& camera, const at::Tensor& xyz, int cell) {
+  const int cols = (camera.width + cell - 1) / cell, rows = (camera.height + cell - 1) / cell;
+  if (cols <= 0 || rows <= 0) return 0.0;
+  std::vector<char> hit(static_cast<size_t>(cols) * rows, 0);
+  const at::Tensor pts = xyz.to(at::kCPU, at::kDouble).contiguous();
+  const auto a = pts.accessor<double, 2>();
+  for (int64_t i = 0; i < pts.size(0); ++i) {
+    const auto p = project_point(camera, Eigen::Vector3d(a[i][0], a[i][1], a[i][2]));
+    if (!p || p->x() < 0 || p->y() < 0 || p->x() >= camera.width || p->y() >= camera.height) continue;
+    hit[static_cast<size_t>(p->y() / cell) * cols + static_cast<size_t>(p->x() / cell)] = 1;
+  }
+  return static_cast<double>(std::count(hit.begin(), hit.end(), 1)) / hit.size();
+}
+
+}  // namespace gaps

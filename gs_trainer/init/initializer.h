@@ -1,0 +1,88 @@
+#pragma once
+// Initial point cloud for training from the N training views only (the sparse-view protocol: nothing from
+// the test views). Methods, in the order of the honest fallback chain:
+//   "mvs"    sparse triangulation, then plane-sweep stereo + fusion (init_dense.h);
+//   "sparse" SIFT matching + triangulation with the known poses (init_sparse.h);
+//   "random" uniform points in the cameras' frusta (gaussians.h).
+// A method that cannot produce enough points falls back to the next one and says why in the report.
+// "auto" picks by the capture (auto_init_method): "mvs" for forward-facing views, "sparse" for views that
+// surround the scene.
+#include <cstdint>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "gs_trainer/scene/camera.h"
+#include "gs_trainer/init/plane_sweep.h"
+#include "gs_trainer/init/sparse.h"
+#include "gs_trainer/scene/scene.h"
+
+namespace gaps {
+
+struct InitOptions {
+  // Results are cached here as <key>.ply + <key>.json (see init_cache_key); empty: no cache.
+  std::filesystem::path cache_dir;
+  int64_t random_points = 20000;
+  uint64_t seed = 0;
+  SparseOptions sparse;
+  DenseOptions dense;
+  int64_t min_sparse_points = 50;   // fewer triangulated points: "sparse" has failed
+  int64_t min_dense_points = 1000;  // fewer fused points: "mvs" has failed
+};
+
+struct InitResult {
+  PointCloud points;                  // CPU tensors
+  std::string method;                 // the method that produced the points
+  std::vector<std::string> warnings;  // one per fallback, saying why
+  std::vector<std::string> notes;     // per-stage statistics, one line each
+  std::optional<SparseStats> sparse;
+  std::optional<DenseStats> dense;
+  std::filesystem::path cache_file;  // the PLY read or written (empty without a cache)
+  bool from_cache = false;
+};
+
+// The methods run_initialization knows: auto, mvs, sparse, random.
+bool is_init_method(const std::string& name);
+
+// Training views whose viewing directions differ by more than this surround the scene (a 360° capture).
+inline constexpr double kSurroundingViewsDegrees = 90.0;
+
+// Largest angle in degrees between two cameras' viewing directions (0 for fewer than two cameras).
+double viewing_direction_spread_degrees(const std::vector<Camera>& cameras);
+
+// What "auto" resolves to: "sparse" when the views surround the scene, else "mvs". The plane sweep compares
+// square windows between neighbouring views; across the tens of degrees between the neighbours of a sparse
+// 360° capture those windows no longer match and the fused cloud is wrong enough to cost 3DGS more than
+// having few points (bench/configs/init_comparison.json: bonsai 12 views, vanilla 17.01 dB from the sparse
+// points against 14.66 from the MVS cloud; fern 3 views, forward-facing, 20.59 from MVS against 17.74).
+std::string auto_init_method(const std::vector<Camera>& cameras);
+
+// The full result. images[i] is HxWx3 float in [0, 1] at cameras[i]'s size, on any device. Errors only for
+// an unknown method or invalid input; everything else falls back (see above).
+absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
+                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts);
+
+// The points only; *report (if given) gets the statistics and the warning lines, newline-terminated, and
+// *method_used (if given) the method that made the points ("auto" resolved, fallbacks taken).
+absl::StatusOr<PointCloud> initialize_points(const std::string& method, const std::vector<Camera>& train_cameras,
+                                             const std::vector<at::Tensor>& train_images, const InitOptions& opts,
+                                             std::string* report, std::string* method_used = nullptr);
+
+// Cache file stem: <scene>_<N>v_<W>x<H>_<method>_<16 hex digits> where the hash covers the method, every
+// camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options.
+std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
+                           const std::vector<at::Tensor>& images, const InitOptions& opts);
+
+// cameras.txt / images.txt / points3D.txt in `dir` (one PINHOLE camera per view, ids from 1; points without
+// tracks), so COLMAP users can inspect our points or replace them with their own reconstruction.
+absl::Status write_init_as_colmap(const std::filesystem::path& dir, const std::vector<Camera>& cameras,
+                                  const PointCloud& points);
+
+// Fraction of the camera's cell x cell pixel blocks that at least one point (in front of it) projects into.
+double view_coverage(const Camera& camera, const at::Tensor& xyz, int cell = 16);
+
+}  // namespace gaps

@@ -1,0 +1,43 @@
+#pragma once
+// The Gaussian scene model: raw (pre-activation) parameters as in 3DGS, their activations, creation from
+// points and the standard 3DGS PLY layout.
+#include <filesystem>
+#include <vector>
+
+#include <ATen/Tensor.h>
+#include "absl/status/statusor.h"
+#include "gs_trainer/scene/camera.h"
+#include "gs_trainer/scene/bounds.h"
+#include "gs_trainer/scene/scene.h"
+
+namespace gaps {
+
+struct GaussianModel {
+  at::Tensor means;           // N x 3
+  at::Tensor log_scales;      // N x 3, scale = exp(log_scale)
+  at::Tensor quats;           // N x 4 (w, x, y, z), normalised when used
+  at::Tensor opacity_logits;  // N, opacity = sigmoid(logit)
+  at::Tensor sh_dc;           // N x 1 x 3
+  at::Tensor sh_rest;         // N x (K-1) x 3, K = (max_sh_degree + 1)^2
+  int max_sh_degree = 3;
+  int sh_degree = 0;  // active degree, raised during training
+
+  int64_t size() const { return means.defined() ? means.size(0) : 0; }
+  at::Tensor scales() const;
+  at::Tensor opacities() const;
+  at::Tensor sh() const;  // N x K x 3
+
+  // The six parameter tensors in a fixed order (means, log_scales, quats, opacity_logits, sh_dc, sh_rest).
+  std::vector<at::Tensor*> parameters();
+  GaussianModel to(const at::Device& device) const;
+};
+
+// 3DGS initialisation: colours to the SH DC term, isotropic scales from the mean squared distance to the
+// three nearest neighbours, identity rotations, opacity 0.1.
+GaussianModel gaussians_from_points(const PointCloud& points, int max_sh_degree);
+
+// Standard 3DGS PLY: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 (binary little endian).
+absl::Status save_gaussians_ply(const GaussianModel& model, const std::filesystem::path& path);
+absl::StatusOr<GaussianModel> load_gaussians_ply(const std::filesystem::path& path);
+
+}  // namespace gaps

@@ -1,0 +1,33 @@
+#pragma once
+// Renders a Gaussian model from a camera: colour, the paper's depth (eq. depth_render: alpha-composited
+// distance from the camera centre) and alpha, plus what densification needs.
+#include <ATen/Tensor.h>
+
+#include "gs_trainer/scene/camera.h"
+#include "gs_trainer/model/gaussians.h"
+
+namespace gaps {
+
+struct RenderOptions {
+  at::Tensor background;       // 3 values composited behind the Gaussians; undefined = black
+  at::Tensor opacity_scale;    // N multiplicative opacity factors (e.g. DropGaussian's mask); undefined = 1
+  at::Tensor means2d_abs_sink; // N x 2, receives absolute 2D-mean gradients in backward (optional)
+};
+
+struct RenderOutput {
+  at::Tensor rgb;      // H x W x 3
+  at::Tensor depth;    // H x W  (not normalised by alpha, as in the paper)
+  at::Tensor alpha;    // H x W
+  at::Tensor means2d;  // N x 2 projected means; call retain_grad() before backward to read their gradient
+  at::Tensor radii;    // N int32 screen-space radii, 0 where not visible
+};
+
+RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options = {});
+
+// Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth
+// of the image it makes. Read off the rasterizer's backward pass (the image is linear in the features, with
+// the blending weights as coefficients), so both backends give it without a kernel of their own. N values,
+// no gradient.
+at::Tensor blending_weights(const GaussianModel& model, const Camera& camera);
+
+}  // namespace gaps

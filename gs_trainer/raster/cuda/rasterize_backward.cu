@@ -1,0 +1,255 @@
+// Backward of the tile compositing on the GPU, as in gsplat: one 16x16 thread block per tile, one thread
+// per pixel, walking the tile's list back to front in shared-memory batches. Each thread undoes its
+// pixel's compositing (T grows back by 1 / (1 - alpha), `behind` holds the features composited behind)
+// with the operations of rasterize_backward_cpu.cpp. The 32 pixels of a warp then sum their gradients for
+// the current Gaussian with shuffles, and one lane adds the sums to the per-Gaussian gradients with
+// atomics: 32 times fewer atomics than per-pixel ones. The |mean2d| sums are compiled in only where a
+// caller asks for them (absolute-gradient densification). Measured on an H200 (bench/results/
+// rasterizer_backward_variants_gpu_2026-11-22.txt), each of these was slower than this plain form:
+// a reduce-scatter that leaves each sum in its own lane so that one warp-wide atomic stores them all
+// (+40%), the same butterflies with the atomics spread over the lanes (+5%), skipping per warp the sums of
+// channels without output gradient (more registers, lower occupancy: +20% at 1M Gaussians), and forcing
+// 5 or 6 resident blocks per multiprocessor by launch bounds (no gain).
+// Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
+// deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
+// millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
+// sums in another order than the CPU's anyway, and the alpha decisions it must share with the forward
+// pass come from gaussian_power, which is written with unfused intrinsics.
+#include <type_traits>
+
+#include <ATen/core/Tensor.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/zeros.h>
+#include <c10/cuda/CUDAGuard.h>
+
+#include "gs_trainer/raster/rasterize_backend.h"
+
+namespace gaps::backend {
+namespace {
+
+constexpr int kTile = raster::kTileSize;
+constexpr int kBlock = kTile * kTile;
+constexpr int kWarps = kBlock / 32;
+constexpr unsigned kFullMask = 0xffffffffu;
+
+// Channel capacities as in rasterize_forward.cu.
+template <typename F> void dispatch_channels(int channels, F&& f) {
+  TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
+              channels);
+  if (channels <= 4)
+    f(std::integral_constant<int, 4>{});
+  else
+    f(std::integral_constant<int, 16>{});
+}
+
+__device__ float warp_sum(float v) {
+  for (int offset = 16; offset > 0; offset /= 2) v += __shfl_xor_sync(kFullMask, v, offset);
+  return v;
+}
+
+// The gradient slots of one Gaussian.
+enum Slot { kMeanX, kMeanY, kConicA, kConicB, kConicC, kOpacity, kAbsX, kAbsY, kFeatures };
+
+
+// The largest n_contrib of the block: entries past it were walked by no pixel of the tile.
+__device__ int block_max(int v, int* s_warp) {
+  for (int offset = 16; offset > 0; offset /= 2) v = max(v, __shfl_xor_sync(kFullMask, v, offset));
+  const int thread = threadIdx.y * kTile + threadIdx.x;
+  if (thread % 32 == 0) s_warp[thread / 32] = v;
+  __syncthreads();
+  int m = s_warp[0];
+  for (int w = 1; w < kWarps; ++w) m = max(m, s_warp[w]);
+  return m;
+}
+
+struct BackwardArgs {
+  int width, height, tiles_x, channels;
+  const int32_t* __restrict__ ranges;
+  const int32_t* __restrict__ ids;
+  const float* __restrict__ means2d;
+  const float* __restrict__ conics;
+  const float* __restrict__ opacities;
+  const float* __restrict__ features;
+  const float* __restrict__ final_T;
+  const int32_t* __restrict__ n_contrib;
+  const float* __restrict__ g_out_features;  // H x W x C
+  const float* __restrict__ g_out_alpha;     // H x W
+  float* __restrict__ g_means2d;             // N x 2
+  float* __restrict__ g_conics;              // N x 3
+  float* __restrict__ g_opacities;           // N
+  float* __restrict__ g_features;            // N x C
+  float* __restrict__ g_means2d_abs;         // N x 2
+};
+
+// Where the sum of a gradient slot goes; nullptr for padding slots past the channels.
+__device__ float* slot_target(const BackwardArgs& a, int64_t g, int slot) {
+  if (slot < kConicA) return a.g_means2d + 2 * g + (slot - kMeanX);
+  if (slot < kOpacity) return a.g_conics + 3 * g + (slot - kConicA);
+  if (slot == kOpacity) return a.g_opacities + g;
+  if (slot < kFeatures) return a.g_means2d_abs + 2 * g + (slot - kAbsX);
+  if (slot - kFeatures < a.channels) return a.g_features + g * a.channels + (slot - kFeatures);
+  return nullptr;
+}
+
+// ABS: also sum the absolute 2D-mean gradients (only absolute-gradient densification asks for them).
+template <int CMAX, bool ABS> __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
+  const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
+  const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
+  const int thread = threadIdx.y * kTile + threadIdx.x;
+  const int lane = thread % 32;
+  const bool inside = px < a.width && py < a.height;
+  const float cx = static_cast<float>(px) + 0.5f, cy = static_cast<float>(py) + 0.5f;
+
+  __shared__ int s_id[kBlock];
+  __shared__ raster::Vec2<float> s_mean[kBlock];
+  __shared__ raster::Sym2<float> s_conic[kBlock];
+  __shared__ float s_opacity[kBlock];
+  __shared__ __align__(16) float s_feat[kBlock * CMAX];
+  __shared__ int s_warp[kWarps];
+
+  // The pixel's forward state and output gradients.
+  const int64_t pix = static_cast<int64_t>(py) * a.width + px;
+  const float final_T = inside ? a.final_T[pix] : 1.f;
+  const int contrib = inside ? a.n_contrib[pix] : 0;
+  float g_out[CMAX];
+  for (int ch = 0; ch < CMAX; ++ch)
+    g_out[ch] = inside && ch < a.channels ? a.g_out_features[pix * a.channels + ch] : 0.f;
+  const float g_out_alpha = inside ? a.g_out_alpha[pix] : 0.f;
+  float T = final_T;
+  float last_alpha = 0.f;
+  float behind[CMAX], last_feat[CMAX];
+  for (int ch = 0; ch < CMAX; ++ch) behind[ch] = last_feat[ch] = 0.f;
+
+  const int begin = a.ranges[2 * tile];
+  const int max_contrib = block_max(contrib, s_warp);
+  for (int batch_end = begin + max_contrib; batch_end > begin; batch_end -= kBlock) {
+    __syncthreads();  // the previous batch is consumed
+    // Staged back to front: slot j holds entry batch_end - 1 - j.
+    const int k = batch_end - 1 - thread;
+    if (k >= begin) {
+      const int g = a.ids[k];
+      s_id[thread] = g;
+      s_mean[thread] = {a.means2d[2 * g], a.means2d[2 * g + 1]};
+      s_conic[thread] = {a.conics[3 * g], a.conics[3 * g + 1], a.conics[3 * g + 2]};
+      s_opacity[thread] = a.opacities[g];
+      for (int ch = 0; ch < CMAX; ++ch)
+        s_feat[thread * CMAX + ch] = ch < a.channels ? a.features[static_cast<int64_t>(g) * a.channels + ch] : 0.f;
+    }
+    __syncthreads();
+    const int batch = min(kBlock, batch_end - begin);
+    // Every lane runs every iteration (the bounds are block-uniform), so the warp shuffles below are safe.
+    for (int j = 0; j < batch; ++j) {
+      const int entry = batch_end - 1 - j - begin;  // position in the tile's list
+      float alpha = 0.f, gauss = 0.f, dx = 0.f, dy = 0.f;
+      const bool valid = entry < contrib && raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j],
+                                                                              cx, cy, alpha, gauss, dx, dy);
+      if (!__any_sync(kFullMask, valid)) continue;
+      constexpr int kSlots = kFeatures + CMAX;
+      float slots[kSlots];
+#pragma unroll
+      for (int i = 0; i < kSlots; ++i) slots[i] = 0.f;
+      if (valid) {
+        const float inv_one_minus_alpha = 1.f / (1.f - alpha);
+        T *= inv_one_minus_alpha;  // transmittance in front of this Gaussian
+        const float t = T;
+        const float* f = s_feat + j * CMAX;
+        float g_alpha = 0.f;
+#pragma unroll
+        for (int ch = 0; ch < CMAX; ++ch) {
+          behind[ch] = last_alpha * last_feat[ch] + (1 - last_alpha) * behind[ch];
+          last_feat[ch] = f[ch];
+          slots[kFeatures + ch] = alpha * t * g_out[ch];
+          g_alpha += (f[ch] - behind[ch]) * t * g_out[ch];
+        }
+        last_alpha = alpha;
+        g_alpha += g_out_alpha * final_T * inv_one_minus_alpha;  // alpha_out = 1 - prod(1 - alpha_j)
+        raster::Vec2<float> g_mean;
+        raster::Sym2<float> g_conic;
+        float g_opacity;
+        raster::eval_alpha_vjp(s_conic[j], s_opacity[j], gauss, dx, dy, g_alpha, g_mean, g_conic, g_opacity);
+        slots[kMeanX] = g_mean.x;
+        slots[kMeanY] = g_mean.y;
+        slots[kConicA] = g_conic.a;
+        slots[kConicB] = g_conic.b;
+        slots[kConicC] = g_conic.c;
+        slots[kOpacity] = g_opacity;
+        slots[kAbsX] = fabsf(g_mean.x);
+        slots[kAbsY] = fabsf(g_mean.y);
+      }
+#pragma unroll
+      for (int i = 0; i < kSlots; ++i)
+        if (ABS || (i != kAbsX && i != kAbsY)) slots[i] = warp_sum(slots[i]);
+      if (lane == 0) {
+        const int64_t g = s_id[j];
+#pragma unroll
+        for (int i = 0; i < kSlots; ++i) {
+          float* target = slot_target(a, g, i);
+          if ((ABS || (i != kAbsX && i != kAbsY)) && target != nullptr) atomicAdd(target, slots[i]);
+        }
+      }
+    }
+  }
+}
+
+}  // namespace
+
+RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& means2d_in, const at::Tensor& conics_in,
+                                    const at::Tensor& opacities_in, const at::Tensor& features_in,
+                                    const RasterOutput& fwd, const at::Tensor& g_features_in,
+                                    const at::Tensor& g_alpha_in, bool absolute_grads) {
+  for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in, &g_features_in, &g_alpha_in})
+    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
+                "the CUDA rasterizer computes in float32 only, got a ", t->scalar_type(), " tensor on ",
+                t->device(), " (use the CPU backend for double precision)");
+  const c10::cuda::CUDAGuard guard(means2d_in.device());
+  const auto means2d = means2d_in.contiguous(), conics = conics_in.contiguous();
+  const auto opacities = opacities_in.contiguous(), features = features_in.contiguous();
+  const auto g_features = g_features_in.contiguous(), g_alpha = g_alpha_in.contiguous();
+  const auto final_T = fwd.final_T.contiguous(), n_contrib = fwd.n_contrib.contiguous();
+  const auto ranges = bins.tile_ranges.contiguous(), ids = bins.gaussian_ids.contiguous();
+  const int channels = static_cast<int>(features.size(1));
+  const int height = static_cast<int>(fwd.alpha.size(0)), width = static_cast<int>(fwd.alpha.size(1));
+  const int64_t n = means2d.size(0);
+  const auto opts = features.options();
+
+  RasterGrads grads;
+  grads.means2d = at::zeros({n, 2}, opts);
+  grads.conics = at::zeros({n, 3}, opts);
+  grads.opacities = at::zeros({n}, opts);
+  grads.features = at::zeros({n, channels}, opts);
+  if (absolute_grads) grads.means2d_abs = at::zeros({n, 2}, opts);
+  if (n == 0) return grads;
+
+  const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
+  const BackwardArgs args{width,
+                          height,
+                          tiles_x,
+                          channels,
+                          ranges.data_ptr<int32_t>(),
+                          ids.data_ptr<int32_t>(),
+                          means2d.data_ptr<float>(),
+                          conics.data_ptr<float>(),
+                          opacities.data_ptr<float>(),
+                          features.data_ptr<float>(),
+                          final_T.data_ptr<float>(),
+                          n_contrib.data_ptr<int32_t>(),
+                          g_features.data_ptr<float>(),
+                          g_alpha.data_ptr<float>(),
+                          grads.means2d.data_ptr<float>(),
+                          grads.conics.data_ptr<float>(),
+                          grads.opacities.data_ptr<float>(),
+                          grads.features.data_ptr<float>(),
+                          absolute_grads ? grads.means2d_abs.data_ptr<float>() : nullptr};
+  dispatch_channels(channels, [&](auto cmax) {
+    const dim3 grid(tiles_x, tiles_y), block(kTile, kTile);
+    const auto stream = at::cuda::getCurrentCUDAStream();
+    if (absolute_grads)
+      rasterize_backward_kernel<decltype(cmax)::value, true><<<grid, block, 0, stream>>>(args);
+    else
+      rasterize_backward_kernel<decltype(cmax)::value, false><<<grid, block, 0, stream>>>(args);
+  });
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return grads;
+}
+
+}  // namespace gaps::backend

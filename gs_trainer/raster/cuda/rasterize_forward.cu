@@ -1,0 +1,138 @@
+// Front-to-back compositing on the GPU, as in 3DGS / gsplat: one 16x16 thread block per tile, one thread
+// per pixel. The block walks its tile's depth-sorted list in batches of 256 Gaussians staged in shared
+// memory; each thread composites its pixel with exactly the CPU's rules (rasterize_forward_cpu.cpp):
+// skip alpha < 1/255, clamp alpha at 0.99, stop before the transmittance falls below 1e-4, and record
+// how far the list was walked (n_contrib) for the backward pass.
+#include <type_traits>
+
+#include <ATen/core/Tensor.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
+#include <c10/cuda/CUDAGuard.h>
+
+#include "gs_trainer/raster/rasterize_backend.h"
+
+namespace gaps::backend {
+namespace {
+
+constexpr int kTile = raster::kTileSize;
+constexpr int kBlock = kTile * kTile;
+
+// Feature channels live in registers, so kernels are compiled for a channel capacity: 4 covers
+// colour + depth (what render() composites); 16 is the general case.
+template <typename F> void dispatch_channels(int channels, F&& f) {
+  TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
+              channels);
+  if (channels <= 4)
+    f(std::integral_constant<int, 4>{});
+  else
+    f(std::integral_constant<int, 16>{});
+}
+
+struct ForwardArgs {
+  int width, height, tiles_x, channels;
+  const int32_t* __restrict__ ranges;
+  const int32_t* __restrict__ ids;
+  const float* __restrict__ means2d;
+  const float* __restrict__ conics;
+  const float* __restrict__ opacities;
+  const float* __restrict__ features;
+  float* __restrict__ out_features;
+  float* __restrict__ out_alpha;
+  float* __restrict__ out_final_T;
+  int32_t* __restrict__ out_n_contrib;
+};
+
+template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_forward_kernel(ForwardArgs a) {
+  const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
+  const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
+  const int thread = threadIdx.y * kTile + threadIdx.x;
+  const bool inside = px < a.width && py < a.height;
+  const float cx = static_cast<float>(px) + 0.5f, cy = static_cast<float>(py) + 0.5f;
+
+  __shared__ raster::Vec2<float> s_mean[kBlock];
+  __shared__ raster::Sym2<float> s_conic[kBlock];
+  __shared__ float s_opacity[kBlock];
+  __shared__ __align__(16) float s_feat[kBlock * CMAX];
+
+  const int begin = a.ranges[2 * tile], end = a.ranges[2 * tile + 1];
+  float T = 1.f;
+  float acc[CMAX];
+  for (int ch = 0; ch < CMAX; ++ch) acc[ch] = 0.f;
+  int last = 0;
+  bool done = !inside;  // threads past the image edge only help stage batches
+
+  for (int batch_start = begin; batch_start < end; batch_start += kBlock) {
+    // Also the barrier that lets this batch overwrite the previous one.
+    if (__syncthreads_count(done) == kBlock) break;
+    const int k = batch_start + thread;
+    if (k < end) {
+      const int g = a.ids[k];
+      s_mean[thread] = {a.means2d[2 * g], a.means2d[2 * g + 1]};
+      s_conic[thread] = {a.conics[3 * g], a.conics[3 * g + 1], a.conics[3 * g + 2]};
+      s_opacity[thread] = a.opacities[g];
+      for (int ch = 0; ch < CMAX; ++ch)
+        s_feat[thread * CMAX + ch] = ch < a.channels ? a.features[static_cast<int64_t>(g) * a.channels + ch] : 0.f;
+    }
+    __syncthreads();
+    const int batch = min(kBlock, end - batch_start);
+    for (int j = 0; !done && j < batch; ++j) {
+      float alpha, gauss, dx, dy;
+      if (!raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j], cx, cy, alpha, gauss, dx, dy))
+        continue;
+      const float next = T * (1 - alpha);
+      if (next < static_cast<float>(raster::kMinTransmittance)) {
+        done = true;
+        break;
+      }
+      const float w = alpha * T;
+      for (int ch = 0; ch < CMAX; ++ch) acc[ch] += w * s_feat[j * CMAX + ch];
+      T = next;
+      last = batch_start + j - begin + 1;
+    }
+  }
+  if (!inside) return;
+  const int64_t pix = static_cast<int64_t>(py) * a.width + px;
+  for (int ch = 0; ch < CMAX; ++ch)
+    if (ch < a.channels) a.out_features[pix * a.channels + ch] = acc[ch];
+  a.out_alpha[pix] = 1 - T;
+  a.out_final_T[pix] = T;
+  a.out_n_contrib[pix] = last;
+}
+
+}  // namespace
+
+RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d_in, const at::Tensor& conics_in,
+                                    const at::Tensor& opacities_in, const at::Tensor& features_in, int width,
+                                    int height) {
+  for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in})
+    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
+                "the CUDA rasterizer computes in float32 only, got a ", t->scalar_type(), " tensor on ",
+                t->device(), " (use the CPU backend for double precision)");
+  const c10::cuda::CUDAGuard guard(means2d_in.device());
+  const auto means2d = means2d_in.contiguous(), conics = conics_in.contiguous();
+  const auto opacities = opacities_in.contiguous(), features = features_in.contiguous();
+  const auto ranges = bins.tile_ranges.contiguous(), ids = bins.gaussian_ids.contiguous();
+  const int channels = static_cast<int>(features.size(1));
+  const auto opts = features.options();
+  // Every pixel is written by the kernel, so no clearing pass is needed.
+  RasterOutput out;
+  out.features = at::empty({height, width, channels}, opts);
+  out.alpha = at::empty({height, width}, opts);
+  out.final_T = at::empty({height, width}, opts);
+  out.n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
+
+  const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
+  const ForwardArgs args{width, height, tiles_x, channels, ranges.data_ptr<int32_t>(), ids.data_ptr<int32_t>(),
+                         means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
+                         features.data_ptr<float>(), out.features.data_ptr<float>(), out.alpha.data_ptr<float>(),
+                         out.final_T.data_ptr<float>(), out.n_contrib.data_ptr<int32_t>()};
+  dispatch_channels(channels, [&](auto cmax) {
+    rasterize_forward_kernel<decltype(cmax)::value>
+        <<<dim3(tiles_x, tiles_y), dim3(kTile, kTile), 0, at::cuda::getCurrentCUDAStream()>>>(args);
+  });
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
+}  // namespace gaps::backend

@@ -1,0 +1,102 @@
+// Per-Gaussian colour (SH at the view direction) and distance on the GPU, forward and backward: one thread
+// per Gaussian running shade_math.h, the maths of shade_cpu.cpp. One kernel each way replaces the few dozen
+// element-wise ATen launches (and their autograd nodes) that the same computation costs in tensor ops.
+#include <ATen/core/Tensor.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros_like.h>
+#include <c10/cuda/CUDAGuard.h>
+
+#include "gs_trainer/raster/cuda/cuda_common.h"
+#include "gs_trainer/raster/rasterize_backend.h"
+#include "gs_trainer/raster/shade_math.h"
+
+namespace gaps::backend {
+namespace {
+
+void check_inputs(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest) {
+  check_cuda_float("means", means);
+  check_cuda_float("sh_dc", sh_dc);
+  check_cuda_float("sh_rest", sh_rest);
+}
+
+struct CentreF {
+  float c[3];
+};
+
+__global__ void shade_forward_kernel(int64_t n, int degree, CentreF centre, const float* __restrict__ means,
+                                     const float* __restrict__ dc, const float* __restrict__ rest, int64_t stride,
+                                     float* __restrict__ out) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  float m[3], d[3], o[4];
+  for (int k = 0; k < 3; ++k) {
+    m[k] = means[3 * i + k];
+    d[k] = dc[3 * i + k];
+  }
+  raster::shade_one(degree, m, centre.c, d, rest + stride * i, o);
+  reinterpret_cast<float4*>(out)[i] = make_float4(o[0], o[1], o[2], o[3]);
+}
+
+__global__ void shade_backward_kernel(int64_t n, int degree, CentreF centre, const float* __restrict__ means,
+                                      const float* __restrict__ dc, const float* __restrict__ rest, int64_t stride,
+                                      const float* __restrict__ g_features, float* __restrict__ g_means,
+                                      float* __restrict__ g_dc, float* __restrict__ g_rest) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  float m[3], d[3], gm[3], gd[3];
+  for (int k = 0; k < 3; ++k) {
+    m[k] = means[3 * i + k];
+    d[k] = dc[3 * i + k];
+  }
+  const float gf[4] = {g_features[4 * i], g_features[4 * i + 1], g_features[4 * i + 2], g_features[4 * i + 3]};
+  raster::shade_one_vjp(degree, m, centre.c, d, rest + stride * i, gf, gm, gd, g_rest + stride * i);
+  for (int k = 0; k < 3; ++k) {
+    g_means[3 * i + k] = gm[k];
+    g_dc[3 * i + k] = gd[k];
+  }
+}
+
+constexpr int kThreads = kElementwiseThreads;
+CentreF to_float(const Centre& c) { return {{float(c.x), float(c.y), float(c.z)}}; }
+
+}  // namespace
+
+at::Tensor shade_forward_cuda(const at::Tensor& means_in, const at::Tensor& sh_dc_in, const at::Tensor& sh_rest_in,
+                              int degree, const Centre& centre) {
+  check_inputs(means_in, sh_dc_in, sh_rest_in);
+  const c10::cuda::CUDAGuard guard(means_in.device());
+  const auto means = means_in.contiguous(), dc = sh_dc_in.contiguous(), rest = sh_rest_in.contiguous();
+  const int64_t n = means.size(0);
+  at::Tensor out = at::empty({n, 4}, means.options());
+  if (n == 0) return out;
+  shade_forward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+      n, degree, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(),
+      rest.size(1) * 3, out.data_ptr<float>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
+ShadeGrads shade_backward_cuda(const at::Tensor& means_in, const at::Tensor& sh_dc_in, const at::Tensor& sh_rest_in,
+                               int degree, const Centre& centre, const at::Tensor& g_features_in) {
+  check_inputs(means_in, sh_dc_in, sh_rest_in);
+  check_cuda_float("g_features", g_features_in);
+  const c10::cuda::CUDAGuard guard(means_in.device());
+  const auto means = means_in.contiguous(), dc = sh_dc_in.contiguous(), rest = sh_rest_in.contiguous();
+  const auto g_features = g_features_in.contiguous();
+  const int64_t n = means.size(0);
+  ShadeGrads g;
+  g.means = at::empty_like(means);
+  g.sh_dc = at::empty_like(dc);
+  g.sh_rest = at::zeros_like(rest);  // rows above the active degree get no gradient
+  if (n == 0) return g;
+  shade_backward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+      n, degree, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(),
+      rest.size(1) * 3, g_features.data_ptr<float>(), g.means.data_ptr<float>(), g.sh_dc.data_ptr<float>(),
+      g.sh_rest.data_ptr<float>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return g;
+}
+
+}  // namespace gaps::backend

@@ -1,0 +1,93 @@
+#pragma once
+// The rasterizer's stages as plain tensor functions, one implementation per device (CPU here, CUDA in
+// gs_trainer/cuda/). rasterizer.h wraps them as autograd functions; nothing else should call them.
+#include <tuple>
+
+#include <ATen/Tensor.h>
+#include "gs_trainer/raster/raster_math.h"
+
+namespace gaps::backend {
+
+struct Projection {
+  at::Tensor means2d;  // N x 2
+  at::Tensor conics;   // N x 3  (a, b, c) of the inverse dilated 2D covariance
+  at::Tensor depths;   // N      camera-space z
+  at::Tensor radii;    // N      int32, 0 = culled
+};
+
+struct ProjectionGrads {
+  at::Tensor means, quats, scales;
+};
+
+// Gaussians sorted front to back inside each 16x16 tile.
+struct TileBins {
+  at::Tensor gaussian_ids;  // M int32, tile-major then depth order
+  at::Tensor tile_ranges;   // T x 2 int32, [begin, end) into gaussian_ids per tile (row-major tiles)
+};
+
+struct RasterOutput {
+  at::Tensor features;   // H x W x C
+  at::Tensor alpha;      // H x W
+  at::Tensor final_T;    // H x W transmittance after the last contributor
+  at::Tensor n_contrib;  // H x W int32, entries of the tile list walked up to the last contributor
+};
+
+struct ShadeGrads {
+  at::Tensor means, sh_dc, sh_rest;
+};
+
+// Camera centre of the view being shaded (world coordinates).
+struct Centre {
+  double x, y, z;
+};
+
+struct RasterGrads {
+  at::Tensor means2d, conics, opacities, features;
+  at::Tensor means2d_abs;  // N x 2: sum over pixels of |dL/dmean2d| contributions (absolute-gradient densification)
+};
+
+// viewmat: 4x4 world-to-camera; all float tensors of one dtype (float32 or float64) on the CPU.
+Projection project_forward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                               const at::Tensor& viewmat, const raster::Intrinsics& K);
+ProjectionGrads project_backward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                     const at::Tensor& viewmat, const raster::Intrinsics& K, const at::Tensor& radii,
+                                     const at::Tensor& g_means2d, const at::Tensor& g_conics);
+// N x 4 per-Gaussian features (SH colour at the view direction, clamped at 0; distance to the centre).
+// sh_dc: N x 1 x 3, sh_rest: N x R x 3 with R >= (degree + 1)^2 - 1.
+at::Tensor shade_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                             int degree, const Centre& centre);
+ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                              int degree, const Centre& centre, const at::Tensor& g_features);
+TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                       const at::Tensor& radii, const at::Tensor& depths, int width, int height);
+RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
+                                   const at::Tensor& opacities, const at::Tensor& features, int width, int height);
+RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
+                                   const at::Tensor& opacities, const at::Tensor& features,
+                                   const RasterOutput& forward, const at::Tensor& g_features,
+                                   const at::Tensor& g_alpha);
+
+#if defined(GAPS_CUDA_KERNELS)
+Projection project_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                const at::Tensor& viewmat, const raster::Intrinsics& K);
+ProjectionGrads project_backward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                      const at::Tensor& viewmat, const raster::Intrinsics& K,
+                                      const at::Tensor& radii, const at::Tensor& g_means2d,
+                                      const at::Tensor& g_conics);
+at::Tensor shade_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                              int degree, const Centre& centre);
+ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                               int degree, const Centre& centre, const at::Tensor& g_features);
+TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                        const at::Tensor& radii, const at::Tensor& depths, int width, int height);
+RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
+                                    const at::Tensor& opacities, const at::Tensor& features, int width,
+                                    int height);
+// `absolute_grads` = false leaves RasterGrads::means2d_abs undefined and saves its sums.
+RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
+                                    const at::Tensor& opacities, const at::Tensor& features,
+                                    const RasterOutput& forward, const at::Tensor& g_features,
+                                    const at::Tensor& g_alpha, bool absolute_grads = true);
+#endif
+
+}  // namespace gaps::backend

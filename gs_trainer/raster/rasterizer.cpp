@@ -1,0 +1,205 @@
+// Autograd wrappers: pick the device's backend, save what the backward pass needs.
+#include "gs_trainer/raster/rasterizer.h"
+
+#include <optional>
+
+#include <ATen/ATen.h>
+#include <torch/csrc/autograd/custom_function.h>
+
+#include "gs_trainer/raster/rasterize_backend.h"
+
+namespace gaps {
+namespace {
+
+using torch::autograd::AutogradContext;
+using torch::autograd::tensor_list;
+using torch::autograd::Variable;
+
+[[noreturn]] void no_cuda_backend() {
+  TORCH_CHECK(false, "gaps was built without CUDA kernels (GAPS_CUDA=OFF or no nvcc): use --device cpu");
+}
+
+raster::Intrinsics intrinsics_from(AutogradContext* ctx) {
+  const auto v = ctx->saved_data["K"].toDoubleVector();
+  return {v[0], v[1], v[2], v[3], static_cast<int>(v[4]), static_cast<int>(v[5])};
+}
+
+backend::Centre centre_from(AutogradContext* ctx) {
+  const auto v = ctx->saved_data["centre"].toDoubleVector();
+  return {v[0], v[1], v[2]};
+}
+
+class ShadeFunction : public torch::autograd::Function<ShadeFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable means, Variable sh_dc, Variable sh_rest, int64_t degree,
+                             std::vector<double> centre) {
+    const backend::Centre c{centre[0], centre[1], centre[2]};
+    at::Tensor features;
+    if (means.is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      features = backend::shade_forward_cuda(means, sh_dc, sh_rest, static_cast<int>(degree), c);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      features = backend::shade_forward_cpu(means, sh_dc, sh_rest, static_cast<int>(degree), c);
+    }
+    ctx->save_for_backward({means, sh_dc, sh_rest});
+    ctx->saved_data["centre"] = centre;
+    ctx->saved_data["degree"] = degree;
+    return {features};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const auto s = ctx->get_saved_variables();
+    const int degree = static_cast<int>(ctx->saved_data["degree"].toInt());
+    const at::Tensor g = grads[0].defined() ? grads[0] : at::zeros({s[0].size(0), 4}, s[0].options());
+    backend::ShadeGrads out;
+    if (s[0].is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      out = backend::shade_backward_cuda(s[0], s[1], s[2], degree, centre_from(ctx), g);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      out = backend::shade_backward_cpu(s[0], s[1], s[2], degree, centre_from(ctx), g);
+    }
+    return {out.means, out.sh_dc, out.sh_rest, Variable(), Variable()};
+  }
+};
+
+class ProjectFunction : public torch::autograd::Function<ProjectFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable means, Variable quats, Variable scales,
+                             Variable viewmat, std::vector<double> K) {
+    const raster::Intrinsics intr{K[0], K[1], K[2], K[3], static_cast<int>(K[4]), static_cast<int>(K[5])};
+    backend::Projection p;
+    if (means.is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      p = backend::project_forward_cuda(means, quats, scales, viewmat, intr);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      p = backend::project_forward_cpu(means, quats, scales, viewmat, intr);
+    }
+    ctx->save_for_backward({means, quats, scales, viewmat, p.radii});
+    ctx->saved_data["K"] = K;
+    ctx->mark_non_differentiable({p.depths, p.radii});
+    return {p.means2d, p.conics, p.depths, p.radii};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const auto s = ctx->get_saved_variables();
+    const auto intr = intrinsics_from(ctx);
+    const at::Tensor g_means2d = grads[0].defined() ? grads[0] : at::zeros_like(s[0].narrow(1, 0, 2));
+    const at::Tensor g_conics = grads[1].defined() ? grads[1] : at::zeros_like(s[2]);
+    backend::ProjectionGrads g;
+    if (s[0].is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      g = backend::project_backward_cuda(s[0], s[1], s[2], s[3], intr, s[4], g_means2d, g_conics);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      g = backend::project_backward_cpu(s[0], s[1], s[2], s[3], intr, s[4], g_means2d, g_conics);
+    }
+    return {g.means, g.quats, g.scales, Variable(), Variable()};
+  }
+};
+
+class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable means2d, Variable conics, Variable opacities,
+                             Variable features, Variable depths, Variable radii, int64_t width, int64_t height,
+                             std::optional<at::Tensor> abs_sink) {
+    const int w = static_cast<int>(width), h = static_cast<int>(height);
+    backend::TileBins bins;
+    backend::RasterOutput out;
+    if (means2d.is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      bins = backend::bin_tiles_cuda(means2d, conics, opacities, radii, depths, w, h);
+      out = backend::rasterize_forward_cuda(bins, means2d, conics, opacities, features, w, h);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      bins = backend::bin_tiles_cpu(means2d, conics, opacities, radii, depths, w, h);
+      out = backend::rasterize_forward_cpu(bins, means2d, conics, opacities, features, w, h);
+    }
+    ctx->save_for_backward({means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_ranges,
+                            out.final_T, out.n_contrib, out.alpha});
+    // The sink is an output buffer, not an input of the graph, so it travels outside the saved variables.
+    if (abs_sink) ctx->saved_data["abs_sink"] = *abs_sink;
+    return {out.features, out.alpha};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const auto s = ctx->get_saved_variables();
+    const backend::TileBins bins{s[4], s[5]};
+    backend::RasterOutput fwd;
+    fwd.final_T = s[6];
+    fwd.n_contrib = s[7];
+    fwd.alpha = s[8];
+    const int h = static_cast<int>(fwd.alpha.size(0)), w = static_cast<int>(fwd.alpha.size(1));
+    const at::Tensor g_feat = grads[0].defined() ? grads[0] : at::zeros({h, w, s[3].size(1)}, s[3].options());
+    const at::Tensor g_alpha = grads[1].defined() ? grads[1] : at::zeros_like(fwd.alpha);
+    backend::RasterGrads g;
+    if (s[0].is_cuda()) {
+#if defined(GAPS_CUDA_KERNELS)
+      g = backend::rasterize_backward_cuda(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha,
+                                           ctx->saved_data.count("abs_sink") > 0);
+#else
+      no_cuda_backend();
+#endif
+    } else {
+      g = backend::rasterize_backward_cpu(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha);
+    }
+    if (ctx->saved_data.count("abs_sink")) ctx->saved_data["abs_sink"].toTensor().add_(g.means2d_abs);
+    return {g.means2d, g.conics, g.opacities, g.features, Variable(), Variable(), Variable(), Variable(),
+            Variable()};
+  }
+};
+
+}  // namespace
+
+at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                           const std::array<double, 3>& centre) {
+  TORCH_CHECK(degree >= 0 && degree <= 3, "SH degree must be 0..3, got ", degree);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be N x 3, got ", means.sizes());
+  const int64_t n = means.size(0), needed = (degree + 1) * (degree + 1) - 1;
+  TORCH_CHECK(sh_dc.sizes() == at::IntArrayRef({n, 1, 3}), "sh_dc must be N x 1 x 3, got ", sh_dc.sizes());
+  TORCH_CHECK(sh_rest.dim() == 3 && sh_rest.size(0) == n && sh_rest.size(1) >= needed && sh_rest.size(2) == 3,
+              "sh_rest must be N x R x 3 with R >= ", needed, " for SH degree ", degree, ", got ", sh_rest.sizes());
+  TORCH_CHECK(sh_dc.scalar_type() == means.scalar_type() && sh_rest.scalar_type() == means.scalar_type(),
+              "means and SH coefficients must share a dtype");
+  return ShadeFunction::apply(means, sh_dc, sh_rest, degree, std::vector<double>(centre.begin(), centre.end()))[0];
+}
+
+ProjectedGaussians project_gaussians(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                     const at::Tensor& viewmat, const raster::Intrinsics& K) {
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be N x 3, got ", means.sizes());
+  TORCH_CHECK(quats.sizes() == at::IntArrayRef({means.size(0), 4}), "quats must be N x 4, got ", quats.sizes());
+  TORCH_CHECK(scales.sizes() == means.sizes(), "scales must be N x 3, got ", scales.sizes());
+  TORCH_CHECK(viewmat.sizes() == at::IntArrayRef({4, 4}), "viewmat must be 4 x 4, got ", viewmat.sizes());
+  const std::vector<double> k{K.fx, K.fy, K.cx, K.cy, double(K.width), double(K.height)};
+  auto out = ProjectFunction::apply(means, quats, scales, viewmat.to(means.options()), k);
+  return {out[0], out[1], out[2], out[3]};
+}
+
+RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics,
+                                    const at::Tensor& opacities, const at::Tensor& features,
+                                    const at::Tensor& depths, const at::Tensor& radii, int width, int height,
+                                    const at::Tensor& means2d_abs_sink) {
+  const int64_t n = means2d.size(0);
+  TORCH_CHECK(conics.sizes() == at::IntArrayRef({n, 3}), "conics must be N x 3, got ", conics.sizes());
+  TORCH_CHECK(opacities.sizes() == at::IntArrayRef({n}), "opacities must be N, got ", opacities.sizes());
+  TORCH_CHECK(features.dim() == 2 && features.size(0) == n, "features must be N x C, got ", features.sizes());
+  TORCH_CHECK(width > 0 && height > 0, "image size must be positive, got ", width, "x", height);
+  std::optional<at::Tensor> sink;
+  if (means2d_abs_sink.defined()) sink = means2d_abs_sink;
+  auto out = RasterizeFunction::apply(means2d, conics, opacities, features, depths, radii, width, height, sink);
+  return {out[0], out[1]};
+}
+
+}  // namespace gaps

@@ -1,0 +1,84 @@
+#include "gs_trainer/train/adam.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
+
+#if defined(GAPS_CUDA_KERNELS)
+#include "gs_trainer/train/cuda/adam_cuda.h"
+#endif
+
+namespace gaps {
+
+GaussianAdam::GaussianAdam(GaussianModel& model, std::vector<double> learning_rates, double eps, double beta1,
+                           double beta2)
+    : model_(model), eps_(eps), beta1_(beta1), beta2_(beta2) {
+  const auto params = model.parameters();
+  TORCH_CHECK(learning_rates.size() == params.size(), "one learning rate per parameter tensor expected");
+  for (size_t i = 0; i < params.size(); ++i) {
+    *params[i] = params[i]->detach().requires_grad_(true);
+    groups_.push_back({params[i], learning_rates[i], at::zeros_like(*params[i]), at::zeros_like(*params[i])});
+  }
+}
+
+void GaussianAdam::step() {
+  ++steps_;
+  const double bc1 = 1 - std::pow(beta1_, static_cast<double>(steps_));
+  const double bc2 = 1 - std::pow(beta2_, static_cast<double>(steps_));
+  at::AutoGradMode no_grad(false);
+  for (auto& g : groups_) {
+    const at::Tensor& grad = g.param->grad();
+    if (!grad.defined()) continue;
+#if defined(GAPS_CUDA_KERNELS)
+    if (g.param->is_cuda() && grad.is_contiguous()) {
+      at::Tensor param = g.param->detach();  // shares storage: the update is in place
+      backend::adam_update_cuda(param, grad, g.exp_avg, g.exp_avg_sq, {g.lr, beta1_, beta2_, eps_, bc1, bc2});
+      continue;
+    }
+#endif
+    g.exp_avg.mul_(beta1_).add_(grad, 1 - beta1_);
+    g.exp_avg_sq.mul_(beta2_).addcmul_(grad, grad, 1 - beta2_);
+    const at::Tensor denom = (g.exp_avg_sq.sqrt() / std::sqrt(bc2)).add_(eps_);
+    g.param->addcdiv_(g.exp_avg, denom, -g.lr / bc1);
+  }
+}
+
+void GaussianAdam::zero_grad() {
+  for (auto& g : groups_)
+    if (g.param->grad().defined()) g.param->mutable_grad() = at::Tensor();
+}
+
+void GaussianAdam::keep_rows(const at::Tensor& keep) {
+  const at::Tensor idx = keep.nonzero().squeeze(1);
+  for (auto& g : groups_) {
+    *g.param = g.param->detach().index_select(0, idx).requires_grad_(true);
+    g.exp_avg = g.exp_avg.index_select(0, idx);
+    g.exp_avg_sq = g.exp_avg_sq.index_select(0, idx);
+  }
+}
+
+void GaussianAdam::append_rows(const GaussianModel& extra) {
+  auto extra_params = const_cast<GaussianModel&>(extra).parameters();
+  for (size_t i = 0; i < groups_.size(); ++i) {
+    auto& g = groups_[i];
+    const at::Tensor add = extra_params[i]->detach().to(g.param->options().requires_grad(false));
+    *g.param = at::cat({g.param->detach(), add}).requires_grad_(true);
+    g.exp_avg = at::cat({g.exp_avg, at::zeros_like(add)});
+    g.exp_avg_sq = at::cat({g.exp_avg_sq, at::zeros_like(add)});
+  }
+}
+
+void GaussianAdam::reset_state(size_t index) {
+  groups_[index].exp_avg.zero_();
+  groups_[index].exp_avg_sq.zero_();
+}
+
+double exponential_lr(int64_t step, double lr_init, double lr_final, int64_t max_steps) {
+  if (lr_init <= 0 && lr_final <= 0) return 0.0;
+  const double t = std::clamp(static_cast<double>(step) / std::max<int64_t>(max_steps, 1), 0.0, 1.0);
+  return std::exp(std::log(lr_init) * (1 - t) + std::log(lr_final) * t);
+}
+
+}  // namespace gaps

@@ -1,0 +1,22 @@
+// The automatic Gaussian budget: how many Gaussians a scene needs, read off its training views.
+//
+// A Gaussian is needed where the image changes; flat regions are covered by a few large ones. The measure
+// of change is the views' total variation (the sum over pixels of the grey-level gradient magnitude,
+// intensities in [0, 1], central differences), so the budget is that sum times a density
+// (TrainConfig::gaussians_per_variation; total_variation in eval/image_stats.h). Vanilla 3DGS grows about 7.5 to 11.5 Gaussians per unit of it on fern and
+// bonsai at -r 8 (docs/benchmarks.md, "A model no larger than the scene needs").
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <ATen/core/Tensor.h>
+
+namespace gaps {
+
+struct TrainingView;
+
+// gaussians_per_variation × Σ_views total_variation, at least 1.
+int64_t automatic_budget(const std::vector<TrainingView>& views, double gaussians_per_variation);
+
+}  // namespace gaps
