@@ -22,8 +22,8 @@
 // memory figures.
 #include <algorithm>
 #include <chrono>
-#include <functional>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <memory>
 #include <optional>
@@ -31,8 +31,8 @@
 #include <vector>
 
 #include <ATen/ATen.h>
-#include <nlohmann/json.hpp>
 #include <torch/headeronly/version.h>
+#include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/strings/numbers.h"
@@ -194,7 +194,8 @@ ViewInputs view_inputs(const Size& s, int64_t batch, uint64_t seed) {
   const std::vector<int64_t> pad{0, s.run_width - s.width, 0, s.run_height - s.height};
   ViewInputs in;
   in.image = at::replication_pad2d(at::rand({batch, 3, s.height, s.width}), pad);
-  in.control = at::replication_pad2d(at::rand({batch, 1, s.height, s.width}).expand({batch, 3, s.height, s.width}), pad);
+  in.control =
+      at::replication_pad2d(at::rand({batch, 1, s.height, s.width}).expand({batch, 3, s.height, s.width}), pad);
   in.reference = at::rand({s.height, s.width, 3});
   in.mask = at::zeros({batch, 1, s.run_height, s.run_width});
   in.mask.slice(3, s.run_width * 3 / 4).fill_(1);
@@ -284,8 +285,8 @@ struct Bench {
   }
 
   sdxl::PipelineOptions pipeline_options(bool ip_adapter) const {
-    sdxl::PipelineOptions o{dtype, device.device(), "", absl::GetFlag(FLAGS_cuda_graphs), "",
-                            weights_dir + "/controlnet"};
+    sdxl::PipelineOptions o{
+        dtype, device.device(), "", absl::GetFlag(FLAGS_cuda_graphs), "", weights_dir + "/controlnet"};
     if (ip_adapter) {
       o.ip_adapter = weights_dir + "/ip_adapter/ip-adapter_sdxl_vit-h.safetensors";
       o.image_encoder = weights_dir + "/ip_adapter/image_encoder";
@@ -431,7 +432,8 @@ int main(int argc, char** argv) {
   try {
     device = at::Device(absl::GetFlag(FLAGS_device));
   } catch (const std::exception&) {
-    std::cerr << "generator_bench: --device " << absl::GetFlag(FLAGS_device) << " is not a device (cpu, cuda, cuda:N)\n";
+    std::cerr << "generator_bench: --device " << absl::GetFlag(FLAGS_device)
+              << " is not a device (cpu, cuda, cuda:N)\n";
     return 2;
   }
   if (device.is_cuda() && !at::hasCUDA()) {

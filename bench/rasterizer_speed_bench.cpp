@@ -18,13 +18,13 @@
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <c10/core/GradMode.h>
-#include <nlohmann/json.hpp>
 #include <torch/headeronly/version.h>
+#include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "gs_trainer/model/gaussians.h"
-#include "gs_trainer/raster/rasterize_backend.h"
 #include "gs_trainer/model/render.h"
+#include "gs_trainer/raster/rasterize_backend.h"
 
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAContext.h>
@@ -123,12 +123,11 @@ double peak_memory_mib(const at::Device& device) {
   return -1.0;
 }
 
-void dump_case(const Case& cs, const gaps::GaussianModel& model, const gaps::Camera& camera,
-               const std::string& dir) {
+void dump_case(const Case& cs, const gaps::GaussianModel& model, const gaps::Camera& camera, const std::string& dir) {
   const std::string stem = dir + "/" + cs.name;
   const absl::Status saved = gaps::save_gaussians_ply(model, stem + ".ply");
   TORCH_CHECK(saved.ok(), "writing ", stem, ".ply: ", saved.message());
-  nlohmann::json j = {{"width", camera.width}, {"height", camera.height}, {"fx", camera.fx},   {"fy", camera.fy},
+  nlohmann::json j = {{"width", camera.width}, {"height", camera.height}, {"fx", camera.fx},      {"fy", camera.fy},
                       {"cx", camera.cx},       {"cy", camera.cy},         {"viewmat", "identity"}};
   std::ofstream(stem + ".json") << j.dump(1) << "\n";
 }
@@ -224,9 +223,8 @@ nlohmann::json time_case(const Case& cs, const at::Device& device, int runs) {
 
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
-  const std::vector<Case> cases = {{"100k_504x378", 100000, 504, 378},
-                                   {"300k_504x378", 300000, 504, 378},
-                                   {"1M_1000x1000", 1000000, 1000, 1000}};
+  const std::vector<Case> cases = {
+      {"100k_504x378", 100000, 504, 378}, {"300k_504x378", 300000, 504, 378}, {"1M_1000x1000", 1000000, 1000, 1000}};
   nlohmann::json common;
   common["torch"] = TORCH_VERSION;
   common["cpu_threads"] = at::get_num_threads();

@@ -111,9 +111,14 @@ int main(int argc, char** argv) {
   const double in_process = median_seconds(repeats, [&] { (void)(*local)->generate(requests); });
   const double over_rpc = median_seconds(repeats, [&] { (void)(*remote)->generate(requests); });
   const auto& c0 = requests[0].camera;
-  std::cout << nlohmann::json{{"bench", "generation_round_trip"}, {"backend", "reproject"}, {"width", c0.width},
-                              {"height", c0.height}, {"batch", batch}, {"references", refs.size()},
-                              {"in_process_s", in_process}, {"rpc_s", over_rpc},
+  std::cout << nlohmann::json{{"bench", "generation_round_trip"},
+                              {"backend", "reproject"},
+                              {"width", c0.width},
+                              {"height", c0.height},
+                              {"batch", batch},
+                              {"references", refs.size()},
+                              {"in_process_s", in_process},
+                              {"rpc_s", over_rpc},
                               {"overhead_per_view_ms", 1000.0 * (over_rpc - in_process) / batch},
                               {"repeats", repeats}}
                    .dump()
@@ -145,10 +150,15 @@ int main(int argc, char** argv) {
     auto job = client->submit(spec, *prepared);
     if (!job.ok()) std::cerr << job.status() << "\n";
   });
-  std::cout << nlohmann::json{{"bench", "scene_upload"}, {"images", prepared->images.size()}, {"bytes", bytes},
-                              {"width", prepared->cameras[0].width()}, {"height", prepared->cameras[0].height()},
-                              {"client_prepare_s", prepare_s}, {"submit_s", submit_s},
-                              {"throughput_mb_per_s", bytes / 1e6 / submit_s}, {"repeats", repeats}}
+  std::cout << nlohmann::json{{"bench", "scene_upload"},
+                              {"images", prepared->images.size()},
+                              {"bytes", bytes},
+                              {"width", prepared->cameras[0].width()},
+                              {"height", prepared->cameras[0].height()},
+                              {"client_prepare_s", prepare_s},
+                              {"submit_s", submit_s},
+                              {"throughput_mb_per_s", bytes / 1e6 / submit_s},
+                              {"repeats", repeats}}
                    .dump()
             << std::endl;
   trainer_server->Shutdown(std::chrono::system_clock::now());

@@ -19,8 +19,8 @@
 
 #include <ATen/ATen.h>
 #include <c10/core/InferenceMode.h>
-#include <nlohmann/json.hpp>
 #include <torch/headeronly/version.h>
+#include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "bench/random_sdxl_folder.h"
@@ -36,7 +36,8 @@
 
 ABSL_FLAG(std::string, model_dir, "/tmp/gaps_sdxl_random", "random-weight SDXL folder (written with --write_model)");
 ABSL_FLAG(bool, write_model, false, "write the random-weight folder first when it has no model_index.json");
-ABSL_FLAG(std::string, configs_from, "", "take the component configs from this SDXL folder instead of SDXL base 1.0 "
+ABSL_FLAG(std::string, configs_from, "",
+          "take the component configs from this SDXL folder instead of SDXL base 1.0 "
           "(e.g. the tiny test model, for a smoke test of the writer and of sdxl_diffusers_bench.py)");
 ABSL_FLAG(uint64_t, weights_seed, 0, "seed of the random weights");
 ABSL_FLAG(std::string, dtype, "float16", "float16 or bfloat16");

@@ -11,15 +11,15 @@
 
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
+#include <torch/csrc/autograd/profiler_kineto.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
-#include <torch/csrc/autograd/profiler_kineto.h>
 #include "common/image_io.h"
 #include "common/ply.h"
-#include "gs_trainer/raster/losses.h"
-#include "gs_trainer/pipeline.h"
 #include "gs_trainer/model/render.h"
+#include "gs_trainer/pipeline.h"
+#include "gs_trainer/raster/losses.h"
 
 ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
 ABSL_FLAG(int, views, 3, "training views");
@@ -111,7 +111,8 @@ int main(int argc, char** argv) {
   const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
   const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU, prof::ActivityType::CUDA};
   const std::string trace = absl::GetFlag(FLAGS_trace);
-  const int trace_begin = absl::GetFlag(FLAGS_trace_at), trace_end = trace_begin + absl::GetFlag(FLAGS_trace_iterations);
+  const int trace_begin = absl::GetFlag(FLAGS_trace_at),
+            trace_end = trace_begin + absl::GetFlag(FLAGS_trace_iterations);
   if (!trace.empty()) torch::autograd::profiler::prepareProfiler(trace_config, activities);
   double traced_seconds = 0;
   const auto start = std::chrono::steady_clock::now();
@@ -152,6 +153,7 @@ int main(int argc, char** argv) {
     j["traced_seconds_with_profiler"] = traced_seconds;
   }
   std::cout << j.dump() << "\n";
-  if (const std::string path = absl::GetFlag(FLAGS_json); !path.empty()) std::ofstream(path, std::ios::app) << j.dump() << "\n";
+  if (const std::string path = absl::GetFlag(FLAGS_json); !path.empty())
+    std::ofstream(path, std::ios::app) << j.dump() << "\n";
   return 0;
 }

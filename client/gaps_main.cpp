@@ -20,26 +20,37 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/remote_commands.h"
-#include "diffusion_worker/backend_registry.h"
-#include "gs_trainer/train/divergence.h"
-#include "gs_trainer/pipeline.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/backend_registry.h"
+#include "gs_trainer/pipeline.h"
 #include "gs_trainer/synthetic.h"
+#include "gs_trainer/train/divergence.h"
 
 ABSL_FLAG(std::string, scene, "", "scene folder (LLFF poses_bounds.npy, COLMAP sparse/, or transforms.json)");
 ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
 ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
 ABSL_FLAG(int, iterations, 10000, "training iterations");
-ABSL_FLAG(int64_t, max_gaussians, -1, "Gaussian budget: densification grows the model up to this many, preferring the largest gradients; wins over --gaussians-per-variation (0: the automatic budget decides; default: the --config file's max_gaussians, else 0)");
-ABSL_FLAG(double, gaussians_per_variation, -1, "automatic Gaussian budget when --max-gaussians is 0: this many Gaussians per unit of the training views' total variation (sum of grey-level gradient magnitudes; 3.5 gives 31-46 % of vanilla 3DGS's model on fern and bonsai); 0: unlimited growth as in 3DGS (default: the --config file's value, else 3.5)");
+ABSL_FLAG(
+    int64_t, max_gaussians, -1,
+    "Gaussian budget: densification grows the model up to this many, preferring the largest gradients; wins over "
+    "--gaussians-per-variation (0: the automatic budget decides; default: the --config file's max_gaussians, else 0)");
+ABSL_FLAG(double, gaussians_per_variation, -1,
+          "automatic Gaussian budget when --max-gaussians is 0: this many Gaussians per unit of the training views' "
+          "total variation (sum of grey-level gradient magnitudes; 3.5 gives 31-46 % of vanilla 3DGS's model on fern "
+          "and bonsai); 0: unlimited growth as in 3DGS (default: the --config file's value, else 3.5)");
 ABSL_FLAG(uint64_t, seed, 0, "random seed");
 ABSL_FLAG(std::string, device, "", "cpu or cuda (default: cuda when available)");
 ABSL_FLAG(std::string, out, "", "output folder (PLY, renders, metrics.json)");
-ABSL_FLAG(std::string, init, "auto", "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from the training views), sparse, random, scene or ply");
-ABSL_FLAG(std::string, init_cache, "", "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
+ABSL_FLAG(std::string, init, "auto",
+          "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from "
+          "the training views), sparse, random, scene or ply");
+ABSL_FLAG(std::string, init_cache, "",
+          "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, init_ply, "", "PLY point cloud for --init ply (given alone, implies it)");
 ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
-ABSL_FLAG(int, init_resolution, 0, "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger images than -r 8 trains on (0: --resolution)");
+ABSL_FLAG(int, init_resolution, 0,
+          "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger "
+          "images than -r 8 trains on (0: --resolution)");
 ABSL_FLAG(std::string, config, "", "JSON file of training options (TrainConfig field names)");
 ABSL_FLAG(std::string, lpips_backbone, "", "VGG16 weights (torchvision vgg16-397923af.pth); LPIPS is null without");
 ABSL_FLAG(std::string, lpips_weights, "", "LPIPS v0.1 linear weights (vgg.pth)");
@@ -48,7 +59,8 @@ ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), 
 ABSL_FLAG(std::string, backend, "reproject", "pseudo-view generator backend for the method variants");
 ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
 ABSL_FLAG(std::string, gaps_config, "", "JSON file of GAPS options (GapsConfig field names)");
-ABSL_FLAG(int, eval_every, 1000, "evaluate the test views every N iterations into metrics.json's curve (0: only at the end)");
+ABSL_FLAG(int, eval_every, 1000,
+          "evaluate the test views every N iterations into metrics.json's curve (0: only at the end)");
 ABSL_FLAG(bool, report, true, "write report.html (metrics, curve, renders next to ground truth, pseudo-views)");
 ABSL_FLAG(int, n_active, 0, "pseudo-views selected per phase (0: 16, or 24 for scenes of more than 100 images)");
 
@@ -68,9 +80,9 @@ void print_progress(const gaps::TrainProgress& p) {
   const int filled = static_cast<int>(width * static_cast<double>(p.iteration) / p.iterations);
   const double eta = p.iterations_per_second > 0 ? (p.iterations - p.iteration) / p.iterations_per_second : 0;
   std::fprintf(stderr, "\r[%s%s] %6d/%d  loss %.4f  %8lld Gaussians  %6.1f it/s  ETA %02d:%02d ",
-               std::string(filled, '#').c_str(), std::string(width - filled, '.').c_str(), p.iteration,
-               p.iterations, p.loss, static_cast<long long>(p.num_gaussians), p.iterations_per_second,
-               static_cast<int>(eta) / 60, static_cast<int>(eta) % 60);
+               std::string(filled, '#').c_str(), std::string(width - filled, '.').c_str(), p.iteration, p.iterations,
+               p.loss, static_cast<long long>(p.num_gaussians), p.iterations_per_second, static_cast<int>(eta) / 60,
+               static_cast<int>(eta) % 60);
   if (p.iteration == p.iterations) std::fprintf(stderr, "\n");
 }
 
@@ -101,8 +113,10 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
   if (o.init_cache_dir.empty()) {
     const char* cache = std::getenv("GAPS_CACHE");
     const char* home = std::getenv("HOME");
-    if (cache) o.init_cache_dir = std::filesystem::path(cache) / "init";
-    else if (home) o.init_cache_dir = std::filesystem::path(home) / ".cache" / "gaps" / "init";
+    if (cache)
+      o.init_cache_dir = std::filesystem::path(cache) / "init";
+    else if (home)
+      o.init_cache_dir = std::filesystem::path(home) / ".cache" / "gaps" / "init";
   }
   o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);
   o.lpips_weights = absl::GetFlag(FLAGS_lpips_weights);
@@ -148,8 +162,8 @@ int report(const absl::StatusOr<gaps::RunResult>& result, const gaps::RunOptions
     return gaps::is_divergence(result.status()) ? 3 : 1;
   }
   const auto& m = result->metrics;
-  std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training\n",
-                               m.psnr, m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : "n/a (no backbone)",
+  std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training\n", m.psnr,
+                               m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : "n/a (no backbone)",
                                result->num_gaussians, result->train_seconds);
   std::cout << "outputs in " << o.out_dir.string() << " (point_cloud.ply, renders/, metrics.json"
             << (o.html_report ? ", report.html)\n" : ")\n");
@@ -169,9 +183,8 @@ void log_line(const std::string& s) { std::cerr << s << "\n"; }
 std::vector<std::string> storage_;
 
 bool flag_given(const std::vector<std::string>& args, const std::string& name) {
-  return std::any_of(args.begin(), args.end(), [&](const std::string& a) {
-    return a == name || a.rfind(name + "=", 0) == 0;
-  });
+  return std::any_of(args.begin(), args.end(),
+                     [&](const std::string& a) { return a == name || a.rfind(name + "=", 0) == 0; });
 }
 
 // Runs the pipeline with the generator the flags ask for (only the method variants use one).
@@ -254,7 +267,8 @@ int main(int argc, char** argv) {
   if (command == "train") return run_train();
   if (command == "init") return run_init();
   if (gaps::client::is_remote_command(command))
-    return gaps::client::run_remote_command(command, std::vector<std::string>(positional.begin() + 2, positional.end()));
+    return gaps::client::run_remote_command(command,
+                                            std::vector<std::string>(positional.begin() + 2, positional.end()));
   if (command == "demo") {
     // The demo's own budget, unless the user chose one.
     if (!flag_given(storage, "--iterations")) absl::SetFlag(&FLAGS_iterations, 1500);

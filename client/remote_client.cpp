@@ -6,8 +6,8 @@
 #include "absl/strings/str_cat.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
-#include "gs_trainer/scene/scene.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/scene.h"
 #include "rpc/codec.h"
 
 namespace gaps::client {
@@ -108,7 +108,8 @@ absl::StatusOr<v1::JobStatus> TrainerClient::watch(const std::string& job_id,
     if (event.has_cancelled()) final_status = event.cancelled();
   }
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(reader->Finish(), "WatchJob"));
-  if (!final_status) return absl::UnavailableError(absl::StrCat("event stream of ", job_id, " ended before the job did"));
+  if (!final_status)
+    return absl::UnavailableError(absl::StrCat("event stream of ", job_id, " ended before the job did"));
   return *final_status;
 }
 

@@ -32,7 +32,8 @@ class TrainerClient {
   // Uploads the scene with the spec (its cameras are replaced by the scene's); returns the job id.
   absl::StatusOr<std::string> submit(v1::JobSpec spec, const PreparedScene& scene);
   // Streams events to `on_event` until the job ends; returns its final status.
-  absl::StatusOr<v1::JobStatus> watch(const std::string& job_id, const std::function<void(const v1::JobEvent&)>& on_event,
+  absl::StatusOr<v1::JobStatus> watch(const std::string& job_id,
+                                      const std::function<void(const v1::JobEvent&)>& on_event,
                                       int64_t from_sequence = 0);
   absl::StatusOr<v1::JobStatus> get(const std::string& job_id);
   absl::StatusOr<std::vector<v1::JobStatus>> list();

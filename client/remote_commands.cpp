@@ -83,7 +83,8 @@ void print_event(const v1::JobEvent& e, bool quiet) {
     if (quiet) return;
     const v1::Progress& p = e.progress();
     const int width = 30;
-    const int filled = p.iterations() > 0 ? static_cast<int>(width * static_cast<double>(p.iteration()) / p.iterations()) : 0;
+    const int filled =
+        p.iterations() > 0 ? static_cast<int>(width * static_cast<double>(p.iteration()) / p.iterations()) : 0;
     std::fprintf(stderr, "\r[%s%s] %6d/%d  loss %.4f  %8lld Gaussians  %6.1f it/s ", std::string(filled, '#').c_str(),
                  std::string(width - filled, '.').c_str(), p.iteration(), p.iterations(), p.loss(),
                  static_cast<long long>(p.num_gaussians()), p.iterations_per_second());
@@ -91,11 +92,14 @@ void print_event(const v1::JobEvent& e, bool quiet) {
     return;
   }
   if (e.has_phase_started())
-    std::fprintf(stderr, "\nphase %d started at iteration %d\n", e.phase_started().phase(), e.phase_started().iteration());
+    std::fprintf(stderr, "\nphase %d started at iteration %d\n", e.phase_started().phase(),
+                 e.phase_started().iteration());
   if (e.has_phase_finished()) {
     const v1::PhaseEvent& p = e.phase_finished();
-    if (p.skipped()) std::fprintf(stderr, "\nphase %d SKIPPED: %s\n", p.phase(), p.skip_reason().c_str());
-    else std::fprintf(stderr, "\nphase %d finished: %d selected, %d admitted\n", p.phase(), p.selected(), p.admitted());
+    if (p.skipped())
+      std::fprintf(stderr, "\nphase %d SKIPPED: %s\n", p.phase(), p.skip_reason().c_str());
+    else
+      std::fprintf(stderr, "\nphase %d finished: %d selected, %d admitted\n", p.phase(), p.selected(), p.admitted());
   }
   if (e.has_log()) std::fprintf(stderr, "%s\n", e.log().c_str());
   if (e.has_state_changed()) std::fprintf(stderr, "state: %s\n", v1::JobState_Name(e.state_changed()).c_str());
@@ -123,7 +127,8 @@ absl::StatusOr<int> watch(TrainerClient& client, const std::string& job_id) {
 absl::StatusOr<int> run(const std::string& command, const std::vector<std::string>& args) {
   GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect());
   const auto need_argument = [&](const char* what) -> absl::Status {
-    if (args.size() != 1) return absl::InvalidArgumentError(absl::StrCat("gaps ", command, " takes one argument: ", what));
+    if (args.size() != 1)
+      return absl::InvalidArgumentError(absl::StrCat("gaps ", command, " takes one argument: ", what));
     return absl::OkStatus();
   };
   if (command == "submit") {

@@ -98,8 +98,8 @@ absl::StatusOr<std::pair<int, int>> read_image_size(const fs::path& path) {
 absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::string& what) {
   const bool shape_ok = image.dim() == 3 && (image.size(2) == 3 || image.size(2) == 1);
   if (!shape_ok)
-    return absl::InvalidArgumentError(
-        absl::StrCat(what, ": PNG encoding needs an HxWx3 or HxWx1 image, got shape [", absl::StrJoin(image.sizes().vec(), ", "), "]"));
+    return absl::InvalidArgumentError(absl::StrCat(what, ": PNG encoding needs an HxWx3 or HxWx1 image, got shape [",
+                                                   absl::StrJoin(image.sizes().vec(), ", "), "]"));
   const at::Tensor bytes = image.detach()
                                .to(at::kCPU, at::kFloat)
                                .nan_to_num(0.0)
@@ -111,8 +111,7 @@ absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::strin
   const int height = static_cast<int>(image.size(0)), width = static_cast<int>(image.size(1));
   const int channels = static_cast<int>(image.size(2));
   std::string png;
-  if (!stbi_write_png_to_func(append_bytes, &png, width, height, channels, bytes.data_ptr<uint8_t>(),
-                              width * channels))
+  if (!stbi_write_png_to_func(append_bytes, &png, width, height, channels, bytes.data_ptr<uint8_t>(), width * channels))
     return absl::InternalError(absl::StrCat(what, ": PNG encoding failed"));
   return png;
 }

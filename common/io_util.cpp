@@ -1,8 +1,8 @@
 #include "common/io_util.h"
 
 #include <fstream>
-#include <system_error>
 #include <iterator>
+#include <system_error>
 
 #include "absl/strings/str_cat.h"
 
@@ -10,7 +10,8 @@ namespace gaps {
 
 absl::StatusOr<std::string> read_file_bytes(const std::filesystem::path& path, absl::string_view what) {
   std::error_code ec;
-  if (!std::filesystem::exists(path, ec)) return absl::NotFoundError(absl::StrCat(path.string(), ": ", what, " not found"));
+  if (!std::filesystem::exists(path, ec))
+    return absl::NotFoundError(absl::StrCat(path.string(), ": ", what, " not found"));
   if (!std::filesystem::is_regular_file(path, ec))
     return absl::InvalidArgumentError(absl::StrCat(path.string(), ": not a regular file"));
   std::ifstream in(path, std::ios::binary);

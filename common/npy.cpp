@@ -56,8 +56,8 @@ absl::StatusOr<Dtype> parse_descr(absl::string_view value) {
   if (descr[0] == '>' && !one_byte)
     return absl::InvalidArgumentError(absl::StrCat("big-endian dtype '", descr, "' is not supported"));
   const bool known_order = descr[0] == '<' || descr[0] == '|' || descr[0] == '=' || descr[0] == '>';
-  const bool known_size = descr.size() == 3 && (dtype.size == 1 || dtype.size == 2 || dtype.size == 4 ||
-                                                 dtype.size == 8);
+  const bool known_size =
+      descr.size() == 3 && (dtype.size == 1 || dtype.size == 2 || dtype.size == 4 || dtype.size == 8);
   const bool float_ok = dtype.kind == 'f' && (dtype.size == 4 || dtype.size == 8);
   const bool int_ok = dtype.kind == 'i' || dtype.kind == 'u' || (dtype.kind == 'b' && dtype.size == 1);
   if (!known_order || !known_size || !(float_ok || int_ok))
@@ -98,23 +98,34 @@ void convert(const char* src, int64_t count, double* dst) {
 
 void convert_elements(const Dtype& dtype, const char* src, int64_t count, double* dst) {
   switch (dtype.kind * 16 + dtype.size) {
-    case 'f' * 16 + 4: return convert<float>(src, count, dst);
-    case 'f' * 16 + 8: return convert<double>(src, count, dst);
-    case 'i' * 16 + 1: return convert<int8_t>(src, count, dst);
-    case 'i' * 16 + 2: return convert<int16_t>(src, count, dst);
-    case 'i' * 16 + 4: return convert<int32_t>(src, count, dst);
-    case 'i' * 16 + 8: return convert<int64_t>(src, count, dst);
-    case 'u' * 16 + 2: return convert<uint16_t>(src, count, dst);
-    case 'u' * 16 + 4: return convert<uint32_t>(src, count, dst);
-    case 'u' * 16 + 8: return convert<uint64_t>(src, count, dst);
-    default: return convert<uint8_t>(src, count, dst);  // u1 and b1
+    case 'f' * 16 + 4:
+      return convert<float>(src, count, dst);
+    case 'f' * 16 + 8:
+      return convert<double>(src, count, dst);
+    case 'i' * 16 + 1:
+      return convert<int8_t>(src, count, dst);
+    case 'i' * 16 + 2:
+      return convert<int16_t>(src, count, dst);
+    case 'i' * 16 + 4:
+      return convert<int32_t>(src, count, dst);
+    case 'i' * 16 + 8:
+      return convert<int64_t>(src, count, dst);
+    case 'u' * 16 + 2:
+      return convert<uint16_t>(src, count, dst);
+    case 'u' * 16 + 4:
+      return convert<uint32_t>(src, count, dst);
+    case 'u' * 16 + 8:
+      return convert<uint64_t>(src, count, dst);
+    default:
+      return convert<uint8_t>(src, count, dst);  // u1 and b1
   }
 }
 
 // Splits the file into its header text and payload, checking magic and version.
 absl::Status split_header(absl::string_view bytes, absl::string_view name, absl::string_view* header,
                           absl::string_view* payload) {
-  if (bytes.size() < 10 || bytes.substr(0, kMagic.size()) != kMagic) return npy_error(name, "not a .npy file (bad magic)");
+  if (bytes.size() < 10 || bytes.substr(0, kMagic.size()) != kMagic)
+    return npy_error(name, "not a .npy file (bad magic)");
   const int major = static_cast<unsigned char>(bytes[6]);
   if (major < 1 || major > 3) return npy_error(name, absl::StrCat("unsupported .npy version ", major));
   const size_t len_bytes = major == 1 ? 2 : 4;
@@ -148,8 +159,8 @@ absl::StatusOr<NpyArray> parse_header_and_data(absl::string_view header, absl::s
   const uint64_t expected = static_cast<uint64_t>(count) * dtype.size;
   if (payload.size() != expected)
     return absl::InvalidArgumentError(absl::StrCat("data has ", payload.size(), " bytes but shape (",
-                                                   absl::StrJoin(array.shape, ", "), ") of '", array.descr,
-                                                   "' needs ", expected));
+                                                   absl::StrJoin(array.shape, ", "), ") of '", array.descr, "' needs ",
+                                                   expected));
   array.data = at::empty(array.shape, at::kDouble);
   convert_elements(dtype, payload.data(), count, array.data.data_ptr<double>());
   return array;

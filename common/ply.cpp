@@ -21,15 +21,17 @@ struct PlyProperty {
 int type_size(const std::string& type) {
   if (type == "char" || type == "uchar" || type == "int8" || type == "uint8") return 1;
   if (type == "short" || type == "ushort" || type == "int16" || type == "uint16") return 2;
-  if (type == "int" || type == "uint" || type == "float" || type == "int32" || type == "uint32" ||
-      type == "float32")
+  if (type == "int" || type == "uint" || type == "float" || type == "int32" || type == "uint32" || type == "float32")
     return 4;
   if (type == "double" || type == "float64") return 8;
   return 0;
 }
 
 double decode(const char* p, const std::string& type) {
-  auto as = [p](auto v) { std::memcpy(&v, p, sizeof(v)); return static_cast<double>(v); };
+  auto as = [p](auto v) {
+    std::memcpy(&v, p, sizeof(v));
+    return static_cast<double>(v);
+  };
   if (type == "char" || type == "int8") return as(int8_t{});
   if (type == "uchar" || type == "uint8") return as(uint8_t{});
   if (type == "short" || type == "int16") return as(int16_t{});
@@ -127,8 +129,8 @@ absl::StatusOr<PlyVertices> read_ply_vertices(const std::filesystem::path& path)
 
 absl::Status write_ply_vertices(const std::filesystem::path& path, const std::vector<std::string>& names,
                                 const at::Tensor& columns) {
-  TORCH_CHECK(columns.dim() == 2 && columns.size(1) == static_cast<int64_t>(names.size()),
-              "PLY columns must be N x ", names.size());
+  TORCH_CHECK(columns.dim() == 2 && columns.size(1) == static_cast<int64_t>(names.size()), "PLY columns must be N x ",
+              names.size());
   std::ofstream out(path, std::ios::binary);
   if (!out) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot write PLY file"));
   const auto data = columns.to(at::kCPU, at::kFloat).contiguous();

@@ -31,10 +31,9 @@ struct DtypeInfo {
   const char* name;
   at::ScalarType type;
 };
-constexpr DtypeInfo kDtypes[] = {{"F32", at::kFloat}, {"F16", at::kHalf},  {"BF16", at::kBFloat16},
-                                 {"F64", at::kDouble}, {"I64", at::kLong}, {"I32", at::kInt},
-                                 {"I16", at::kShort},  {"I8", at::kChar},  {"U8", at::kByte},
-                                 {"BOOL", at::kBool}};
+constexpr DtypeInfo kDtypes[] = {{"F32", at::kFloat}, {"F16", at::kHalf}, {"BF16", at::kBFloat16}, {"F64", at::kDouble},
+                                 {"I64", at::kLong},  {"I32", at::kInt},  {"I16", at::kShort},     {"I8", at::kChar},
+                                 {"U8", at::kByte},   {"BOOL", at::kBool}};
 
 bool dtype_from_name(const std::string& name, at::ScalarType* type) {
   for (const auto& d : kDtypes) {
@@ -61,7 +60,8 @@ absl::Status header_error(const std::string& path, const std::string& what) {
 
 absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
   const int fd = ::open(path.c_str(), O_RDONLY);
-  if (fd < 0) return absl::NotFoundError(absl::StrCat("cannot open safetensors file ", path, ": ", std::strerror(errno)));
+  if (fd < 0)
+    return absl::NotFoundError(absl::StrCat("cannot open safetensors file ", path, ": ", std::strerror(errno)));
   struct stat st {};
   if (fstat(fd, &st) != 0) {
     ::close(fd);
@@ -83,7 +83,8 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
   uint64_t header_size = 0;
   for (int i = 7; i >= 0; --i) header_size = (header_size << 8) | bytes[i];
   if (header_size > mapping->size - 8) {
-    return header_error(path, absl::StrCat("header length ", header_size, " exceeds the file (", mapping->size, " bytes)"));
+    return header_error(path,
+                        absl::StrCat("header length ", header_size, " exceeds the file (", mapping->size, " bytes)"));
   }
   nlohmann::json header;
   try {
@@ -99,7 +100,9 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
   std::vector<std::pair<uint64_t, uint64_t>> ranges;
   for (const auto& [name, entry] : header.items()) {
     if (name == "__metadata__") continue;
-    const auto fail = [&](const std::string& what) { return header_error(path, absl::StrCat("tensor '", name, "': ", what)); };
+    const auto fail = [&](const std::string& what) {
+      return header_error(path, absl::StrCat("tensor '", name, "': ", what));
+    };
     if (!entry.is_object() || !entry.contains("dtype") || !entry.contains("shape") || !entry.contains("data_offsets")) {
       return fail("entry needs dtype, shape and data_offsets");
     }
@@ -115,12 +118,14 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
       numel *= static_cast<uint64_t>(shape.back());
     }
     const auto& offsets = entry["data_offsets"];
-    if (!offsets.is_array() || offsets.size() != 2 || !offsets[0].is_number_unsigned() || !offsets[1].is_number_unsigned()) {
+    if (!offsets.is_array() || offsets.size() != 2 || !offsets[0].is_number_unsigned() ||
+        !offsets[1].is_number_unsigned()) {
       return fail("data_offsets must be two non-negative integers");
     }
     const uint64_t begin = offsets[0].get<uint64_t>(), end = offsets[1].get<uint64_t>();
     if (begin > end || end > data_size) {
-      return fail(absl::StrCat("data_offsets [", begin, ", ", end, ") outside the data section (", data_size, " bytes)"));
+      return fail(
+          absl::StrCat("data_offsets [", begin, ", ", end, ") outside the data section (", data_size, " bytes)"));
     }
     const uint64_t expected = numel * at::elementSize(type);
     if (end - begin != expected) {
@@ -130,7 +135,8 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
     void* ptr = const_cast<uint8_t*>(base + begin);
     at::Tensor t;
     if (reinterpret_cast<uintptr_t>(ptr) % at::elementSize(type) == 0) {
-      t = at::from_blob(ptr, shape, [mapping](void*) {}, at::TensorOptions().dtype(type));
+      t = at::from_blob(
+          ptr, shape, [mapping](void*) {}, at::TensorOptions().dtype(type));
     } else {
       // Misaligned data (a writer that does not pad the header) is copied rather than viewed.
       t = at::empty(shape, at::TensorOptions().dtype(type));
@@ -156,10 +162,12 @@ absl::StatusOr<SafetensorsMetadata> read_safetensors_metadata(const std::string&
   for (int i = 7; i >= 0; --i) header_size = (header_size << 8) | len[i];
   in.seekg(0, std::ios::end);
   const uint64_t file_size = static_cast<uint64_t>(in.tellg());
-  if (header_size > file_size - 8) return header_error(path, absl::StrCat("header length ", header_size, " exceeds the file"));
+  if (header_size > file_size - 8)
+    return header_error(path, absl::StrCat("header length ", header_size, " exceeds the file"));
   std::string text(header_size, '\0');
   in.seekg(8);
-  if (!in.read(text.data(), static_cast<std::streamsize>(header_size))) return header_error(path, "cannot read the header");
+  if (!in.read(text.data(), static_cast<std::streamsize>(header_size)))
+    return header_error(path, "cannot read the header");
   nlohmann::json header;
   try {
     header = nlohmann::json::parse(text);
@@ -184,7 +192,8 @@ absl::Status write_safetensors(const std::string& path, const TensorMap& tensors
   uint64_t offset = 0;
   for (const auto& [name, tensor] : tensors) {
     const char* dtype = dtype_name(tensor.scalar_type());
-    if (dtype == nullptr) return absl::InvalidArgumentError(absl::StrCat("tensor '", name, "': dtype not writable as safetensors"));
+    if (dtype == nullptr)
+      return absl::InvalidArgumentError(absl::StrCat("tensor '", name, "': dtype not writable as safetensors"));
     at::Tensor t = tensor.to(at::kCPU).contiguous();
     const uint64_t size = t.numel() * t.element_size();
     header[name] = {{"dtype", dtype}, {"shape", t.sizes().vec()}, {"data_offsets", {offset, offset + size}}};

@@ -17,5 +17,4 @@
   if (!var.ok()) return var.status();              \
   lhs = std::move(*var)
 
-#define GAPS_ASSIGN_OR_RETURN(lhs, expr) \
-  GAPS_ASSIGN_OR_RETURN_IMPL(GAPS_CONCAT(gaps_statusor_, __LINE__), lhs, expr)
+#define GAPS_ASSIGN_OR_RETURN(lhs, expr) GAPS_ASSIGN_OR_RETURN_IMPL(GAPS_CONCAT(gaps_statusor_, __LINE__), lhs, expr)

@@ -43,8 +43,7 @@ class ByteSource {
 
 absl::Status truncated(uint64_t offset, uint64_t wanted, uint64_t left) {
   return absl::DataLossError(absl::StrFormat(
-      "unexpected end of data at byte %d (needed %d more bytes, %d left): file truncated?", offset,
-      wanted, left));
+      "unexpected end of data at byte %d (needed %d more bytes, %d left): file truncated?", offset, wanted, left));
 }
 
 class MemorySource final : public ByteSource {
@@ -155,8 +154,8 @@ struct PyObj {
   std::vector<ObjPtr> items;                       // kTuple, kList
   std::vector<std::pair<ObjPtr, ObjPtr>> entries;  // kDict, insertion order (later keys win)
   std::shared_ptr<StorageRef> storage;             // kStorage, kTensor
-  int64_t storage_offset = 0;  // elements; kStorage: legacy view offset, kTensor: tensor offset
-  std::vector<int64_t> sizes, strides;  // kTensor
+  int64_t storage_offset = 0;                      // elements; kStorage: legacy view offset, kTensor: tensor offset
+  std::vector<int64_t> sizes, strides;             // kTensor
 };
 
 ObjPtr make(Kind kind) {
@@ -184,20 +183,19 @@ bool is_sequence(const PyObj& obj) { return obj.kind == Kind::kTuple || obj.kind
 
 // torch.<Name>Storage (or the old torch.cuda.<Name>Storage) -> element type.
 std::optional<at::ScalarType> storage_dtype(const std::string& global) {
-  static const std::unordered_map<std::string, at::ScalarType> kTypes = {
-      {"FloatStorage", at::kFloat},
-      {"DoubleStorage", at::kDouble},
-      {"HalfStorage", at::kHalf},
-      {"BFloat16Storage", at::kBFloat16},
-      {"LongStorage", at::kLong},
-      {"IntStorage", at::kInt},
-      {"ShortStorage", at::kShort},
-      {"CharStorage", at::kChar},
-      {"ByteStorage", at::kByte},
-      {"BoolStorage", at::kBool},
-      {"ComplexFloatStorage", at::kComplexFloat},
-      {"ComplexDoubleStorage", at::kComplexDouble},
-      {"UntypedStorage", at::kByte}};
+  static const std::unordered_map<std::string, at::ScalarType> kTypes = {{"FloatStorage", at::kFloat},
+                                                                         {"DoubleStorage", at::kDouble},
+                                                                         {"HalfStorage", at::kHalf},
+                                                                         {"BFloat16Storage", at::kBFloat16},
+                                                                         {"LongStorage", at::kLong},
+                                                                         {"IntStorage", at::kInt},
+                                                                         {"ShortStorage", at::kShort},
+                                                                         {"CharStorage", at::kChar},
+                                                                         {"ByteStorage", at::kByte},
+                                                                         {"BoolStorage", at::kBool},
+                                                                         {"ComplexFloatStorage", at::kComplexFloat},
+                                                                         {"ComplexDoubleStorage", at::kComplexDouble},
+                                                                         {"UntypedStorage", at::kByte}};
   for (std::string_view module : {"torch.", "torch.cuda."}) {
     if (global.rfind(module, 0) != 0) continue;
     auto it = kTypes.find(global.substr(module.size()));
@@ -224,8 +222,7 @@ class Unpickler {
       if (absl::Status s = execute(op); !s.ok()) return wrap(s);
     }
     if (stack_.size() != 1 || !marks_.empty()) {
-      return error(
-          absl::StrFormat("malformed pickle: %d objects left on the stack at STOP", stack_.size()));
+      return error(absl::StrFormat("malformed pickle: %d objects left on the stack at STOP", stack_.size()));
     }
     return stack_.back();
   }
@@ -235,13 +232,11 @@ class Unpickler {
     return absl::Status(status.code(), absl::StrCat(context_, ": ", status.message()));
   }
   absl::Status error(absl::string_view what) const {
-    return absl::InvalidArgumentError(
-        absl::StrFormat("%s: %s (pickle opcode at byte %d)", context_, what, op_offset_));
+    return absl::InvalidArgumentError(absl::StrFormat("%s: %s (pickle opcode at byte %d)", context_, what, op_offset_));
   }
   // Errors raised inside execute() get the context added by load().
   absl::Status fail(absl::string_view what) const {
-    return absl::InvalidArgumentError(
-        absl::StrFormat("%s (pickle opcode at byte %d)", what, op_offset_));
+    return absl::InvalidArgumentError(absl::StrFormat("%s (pickle opcode at byte %d)", what, op_offset_));
   }
 
   // ---- raw reads ----
@@ -304,8 +299,7 @@ class Unpickler {
   absl::StatusOr<ObjPtr> top_of_kind(Kind kind, absl::string_view opcode) {
     GAPS_ASSIGN_OR_RETURN(ObjPtr obj, top());
     if (obj->kind != kind) {
-      return fail(absl::StrCat(opcode, " applied to a ", kind_name(obj->kind), ", expected a ",
-                               kind_name(kind)));
+      return fail(absl::StrCat(opcode, " applied to a ", kind_name(obj->kind), ", expected a ", kind_name(kind)));
     }
     return obj;
   }
@@ -391,8 +385,7 @@ class Unpickler {
     // An OrderedDict's instance attributes (a state dict's `_metadata`: module versions) arrive
     // through BUILD; they hold no tensors, so they are dropped.
     if (obj->kind == Kind::kDict) return absl::OkStatus();
-    return fail(absl::StrCat("BUILD (setting object state) on a ", kind_name(obj->kind),
-                             " is not supported"));
+    return fail(absl::StrCat("BUILD (setting object state) on a ", kind_name(obj->kind), " is not supported"));
   }
 
   absl::StatusOr<ObjPtr> call(const std::string& name, const std::vector<ObjPtr>& args);
@@ -417,13 +410,11 @@ absl::StatusOr<ObjPtr> Unpickler::call(const std::string& name, const std::vecto
     return rebuild_tensor(args);
   }
   // Parameters saved directly (keep_vars=True) wrap a tensor; the wrapper is irrelevant here.
-  if (name == "torch._utils._rebuild_parameter" ||
-      name == "torch._utils._rebuild_parameter_with_state") {
+  if (name == "torch._utils._rebuild_parameter" || name == "torch._utils._rebuild_parameter_with_state") {
     if (args.empty() || args[0]->kind != Kind::kTensor) return fail(name + " without a tensor");
     return args[0];
   }
-  return fail(absl::StrCat("unsupported callable ", name,
-                           " (only state dicts of plain tensors can be read)"));
+  return fail(absl::StrCat("unsupported callable ", name, " (only state dicts of plain tensors can be read)"));
 }
 
 absl::StatusOr<ObjPtr> Unpickler::make_ordered_dict(const std::vector<ObjPtr>& args) {
@@ -473,8 +464,7 @@ absl::StatusOr<ObjPtr> Unpickler::rebuild_tensor(const std::vector<ObjPtr>& args
 // ('storage', <storage type>, key, location, numel[, view_metadata]) -> storage object.
 absl::StatusOr<ObjPtr> Unpickler::persistent_load(const ObjPtr& pid) {
   const auto& f = pid->items;
-  if (pid->kind != Kind::kTuple || f.size() < 5 || f[0]->kind != Kind::kString ||
-      f[0]->text != "storage") {
+  if (pid->kind != Kind::kTuple || f.size() < 5 || f[0]->kind != Kind::kString || f[0]->text != "storage") {
     return fail("unsupported persistent id (expected a ('storage', ...) tuple)");
   }
   if (f[1]->kind != Kind::kGlobal || f[2]->kind != Kind::kString || f[4]->kind != Kind::kInt) {
@@ -742,17 +732,15 @@ absl::StatusOr<at::Tensor> materialise(const PyObj& t, const std::string& name) 
   }
   if (empty) return at::empty(t.sizes, at::TensorOptions().dtype(s.dtype));
   if (t.storage_offset < 0 || last >= s.numel) {
-    return problem(absl::StrFormat(
-        "view (offset %d, sizes [%s], strides [%s]) exceeds its storage of %d elements",
-        t.storage_offset, absl::StrJoin(t.sizes, ","), absl::StrJoin(t.strides, ","), s.numel));
+    return problem(absl::StrFormat("view (offset %d, sizes [%s], strides [%s]) exceeds its storage of %d elements",
+                                   t.storage_offset, absl::StrJoin(t.sizes, ","), absl::StrJoin(t.strides, ","),
+                                   s.numel));
   }
   // Independent contiguous copies: callers get plain tensors whatever views were saved.
-  return s.data.as_strided(t.sizes, t.strides, t.storage_offset)
-      .clone(at::MemoryFormat::Contiguous);
+  return s.data.as_strided(t.sizes, t.strides, t.storage_offset).clone(at::MemoryFormat::Contiguous);
 }
 
-absl::StatusOr<std::map<std::string, at::Tensor>> to_state_dict(const PyObj& root,
-                                                                const std::string& path) {
+absl::StatusOr<std::map<std::string, at::Tensor>> to_state_dict(const PyObj& root, const std::string& path) {
   auto problem = [&](absl::string_view what) {
     return absl::InvalidArgumentError(absl::StrCat("torch checkpoint '", path, "': ", what));
   };
@@ -765,8 +753,7 @@ absl::StatusOr<std::map<std::string, at::Tensor>> to_state_dict(const PyObj& roo
       return problem(absl::StrCat("a key is not a string (found ", kind_name(key->kind), ")"));
     }
     if (value->kind != Kind::kTensor) {
-      return problem(absl::StrCat("entry '", key->text, "' is not a tensor (found ",
-                                  kind_name(value->kind), ")"));
+      return problem(absl::StrCat("entry '", key->text, "' is not a tensor (found ", kind_name(value->kind), ")"));
     }
     auto tensor = materialise(*value, key->text);
     if (!tensor.ok()) return problem(tensor.status().message());
@@ -779,9 +766,7 @@ at::Tensor allocate_storage(const StorageRef& ref) {
   return at::empty({ref.numel}, at::TensorOptions().dtype(ref.dtype));
 }
 
-int64_t storage_nbytes(const StorageRef& ref) {
-  return ref.numel * static_cast<int64_t>(c10::elementSize(ref.dtype));
-}
+int64_t storage_nbytes(const StorageRef& ref) { return ref.numel * static_cast<int64_t>(c10::elementSize(ref.dtype)); }
 
 // ---- zip container ----
 
@@ -793,8 +778,7 @@ absl::StatusOr<std::map<std::string, at::Tensor>> load_zip(const std::string& pa
       auto [ptr, size] = reader.getRecord("byteorder");
       std::string order(static_cast<const char*>(ptr.get()), size);
       if (order != "little") {
-        return absl::UnimplementedError(
-            absl::StrCat(context, ": byte order '", order, "' is not supported"));
+        return absl::UnimplementedError(absl::StrCat(context, ": byte order '", order, "' is not supported"));
       }
     }
     if (!reader.hasRecord("data.pkl")) {
@@ -808,22 +792,19 @@ absl::StatusOr<std::map<std::string, at::Tensor>> load_zip(const std::string& pa
     for (auto& [key, ref] : storages) {
       const std::string record = "data/" + key;
       if (!reader.hasRecord(record)) {
-        return absl::InvalidArgumentError(
-            absl::StrCat(context, ": storage record ", record, " is missing"));
+        return absl::InvalidArgumentError(absl::StrCat(context, ": storage record ", record, " is missing"));
       }
       const size_t nbytes = reader.getRecordSize(record);
       if (static_cast<int64_t>(nbytes) != storage_nbytes(*ref)) {
-        return absl::DataLossError(
-            absl::StrFormat("%s: storage record %s has %d bytes, expected %d", context, record,
-                            nbytes, storage_nbytes(*ref)));
+        return absl::DataLossError(absl::StrFormat("%s: storage record %s has %d bytes, expected %d", context, record,
+                                                   nbytes, storage_nbytes(*ref)));
       }
       ref->data = allocate_storage(*ref);
       reader.getRecord(record, ref->data.data_ptr(), nbytes);
     }
     return to_state_dict(*root, path);
   } catch (const c10::Error& e) {
-    return absl::DataLossError(
-        absl::StrCat(context, ": unreadable archive: ", e.what_without_backtrace()));
+    return absl::DataLossError(absl::StrCat(context, ": unreadable archive: ", e.what_without_backtrace()));
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat(context, ": unreadable archive: ", e.what()));
   }
@@ -835,8 +816,7 @@ absl::StatusOr<std::map<std::string, at::Tensor>> load_zip(const std::string& pa
 constexpr std::string_view kLegacyMagic("\x6c\xfc\x9c\x46\xf9\x20\x6a\xa8\x50\x19", 10);
 constexpr int64_t kLegacyProtocolVersion = 1001;
 
-absl::Status check_legacy_header(ByteSource& src, StorageTable& storages,
-                                 const std::string& context) {
+absl::Status check_legacy_header(ByteSource& src, StorageTable& storages, const std::string& context) {
   auto magic = Unpickler(src, absl::StrCat(context, " magic number"), storages).load();
   if (!magic.ok() || (*magic)->kind != Kind::kBigInt || (*magic)->text != kLegacyMagic) {
     return absl::InvalidArgumentError(
@@ -845,21 +825,17 @@ absl::Status check_legacy_header(ByteSource& src, StorageTable& storages,
                      " starting with the torch magic number)",
                      magic.ok() ? "" : absl::StrCat("; ", magic.status().message())));
   }
-  GAPS_ASSIGN_OR_RETURN(ObjPtr version,
-                        Unpickler(src, absl::StrCat(context, " protocol"), storages).load());
+  GAPS_ASSIGN_OR_RETURN(ObjPtr version, Unpickler(src, absl::StrCat(context, " protocol"), storages).load());
   if (version->kind != Kind::kInt || version->int_value != kLegacyProtocolVersion) {
     return absl::UnimplementedError(absl::StrCat(context, ": unsupported legacy protocol version"));
   }
-  GAPS_ASSIGN_OR_RETURN(ObjPtr sys_info,
-                        Unpickler(src, absl::StrCat(context, " sys_info"), storages).load());
+  GAPS_ASSIGN_OR_RETURN(ObjPtr sys_info, Unpickler(src, absl::StrCat(context, " sys_info"), storages).load());
   if (sys_info->kind != Kind::kDict) {
     return absl::InvalidArgumentError(absl::StrCat(context, ": sys_info is not a dict"));
   }
   for (const auto& [key, value] : sys_info->entries) {
-    if (key->kind == Kind::kString && key->text == "little_endian" && value->kind == Kind::kBool &&
-        !value->int_value) {
-      return absl::UnimplementedError(
-          absl::StrCat(context, ": big-endian files are not supported"));
+    if (key->kind == Kind::kString && key->text == "little_endian" && value->kind == Kind::kBool && !value->int_value) {
+      return absl::UnimplementedError(absl::StrCat(context, ": big-endian files are not supported"));
     }
   }
   return absl::OkStatus();
@@ -867,48 +843,42 @@ absl::Status check_legacy_header(ByteSource& src, StorageTable& storages,
 
 // After the main pickle: a pickled list of storage keys, then per key an int64 element count and
 // the raw bytes, in that order.
-absl::Status read_legacy_storages(ByteSource& src, StorageTable& storages,
-                                  const std::string& context) {
-  GAPS_ASSIGN_OR_RETURN(ObjPtr keys,
-                        Unpickler(src, absl::StrCat(context, " storage keys"), storages).load());
+absl::Status read_legacy_storages(ByteSource& src, StorageTable& storages, const std::string& context) {
+  GAPS_ASSIGN_OR_RETURN(ObjPtr keys, Unpickler(src, absl::StrCat(context, " storage keys"), storages).load());
   if (keys->kind != Kind::kList) {
     return absl::InvalidArgumentError(absl::StrCat(context, ": storage key list is not a list"));
   }
   for (const ObjPtr& key : keys->items) {
     auto it = key->kind == Kind::kString ? storages.find(key->text) : storages.end();
     if (it == storages.end()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat(context, ": storage key list names an unreferenced storage"));
+      return absl::InvalidArgumentError(absl::StrCat(context, ": storage key list names an unreferenced storage"));
     }
     StorageRef& ref = *it->second;
     auto fail = [&](const absl::Status& s) {
-      return absl::Status(s.code(),
-                          absl::StrCat(context, ": storage '", ref.key, "': ", s.message()));
+      return absl::Status(s.code(), absl::StrCat(context, ": storage '", ref.key, "': ", s.message()));
     };
     int64_t numel = 0;
     if (absl::Status s = src.read(&numel, sizeof numel); !s.ok()) return fail(s);
     if (numel != ref.numel) {
-      return fail(absl::DataLossError(
-          absl::StrFormat("%d elements in the data section, %d in the pickle", numel, ref.numel)));
+      return fail(
+          absl::DataLossError(absl::StrFormat("%d elements in the data section, %d in the pickle", numel, ref.numel)));
     }
     if (static_cast<uint64_t>(storage_nbytes(ref)) > src.remaining()) {
       return fail(truncated(src.offset(), storage_nbytes(ref), src.remaining()));
     }
     ref.data = allocate_storage(ref);
-    if (absl::Status s = src.read(ref.data.data_ptr(), storage_nbytes(ref)); !s.ok())
-      return fail(s);
+    if (absl::Status s = src.read(ref.data.data_ptr(), storage_nbytes(ref)); !s.ok()) return fail(s);
   }
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::map<std::string, at::Tensor>> load_legacy(const std::string& path,
-                                                              std::ifstream& in, uint64_t size) {
+absl::StatusOr<std::map<std::string, at::Tensor>> load_legacy(const std::string& path, std::ifstream& in,
+                                                              uint64_t size) {
   const std::string context = absl::StrCat("torch checkpoint '", path, "' (legacy format)");
   FileSource src(in, size);
   StorageTable storages;
   GAPS_RETURN_IF_ERROR(check_legacy_header(src, storages, context));
-  GAPS_ASSIGN_OR_RETURN(ObjPtr root,
-                        Unpickler(src, absl::StrCat(context, " main pickle"), storages).load());
+  GAPS_ASSIGN_OR_RETURN(ObjPtr root, Unpickler(src, absl::StrCat(context, " main pickle"), storages).load());
   GAPS_RETURN_IF_ERROR(read_legacy_storages(src, storages, context));
   return to_state_dict(*root, path);
 }
@@ -918,8 +888,8 @@ absl::StatusOr<std::map<std::string, at::Tensor>> load_checkpoint(const std::str
   if (!in) return absl::NotFoundError(absl::StrCat("cannot open torch checkpoint '", path, "'"));
   const std::streamoff end = in.tellg();  // -1 for directories and other unreadable things
   if (end <= 0) {
-    return absl::InvalidArgumentError(absl::StrCat("torch checkpoint '", path, "' is ",
-                                                   end == 0 ? "empty" : "not a readable file"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("torch checkpoint '", path, "' is ", end == 0 ? "empty" : "not a readable file"));
   }
   const auto size = static_cast<uint64_t>(end);
   in.seekg(0);
@@ -941,11 +911,9 @@ absl::StatusOr<std::map<std::string, at::Tensor>> load_torch_state_dict(const st
   try {
     return load_checkpoint(path);
   } catch (const c10::Error& e) {
-    return absl::InternalError(
-        absl::StrCat("torch checkpoint '", path, "': ", e.what_without_backtrace()));
+    return absl::InternalError(absl::StrCat("torch checkpoint '", path, "': ", e.what_without_backtrace()));
   } catch (const std::bad_alloc&) {
-    return absl::ResourceExhaustedError(
-        absl::StrCat("torch checkpoint '", path, "': out of memory while loading"));
+    return absl::ResourceExhaustedError(absl::StrCat("torch checkpoint '", path, "': out of memory while loading"));
   }
 }
 

@@ -12,7 +12,8 @@ absl::StatusOr<DepthControl> depth_control_image(const at::Tensor& depth, const 
   }
   if (o.variance_window < 1 || o.variance_window % 2 == 0 || !(o.max_relative_variance >= 0) || !(o.min_alpha > 0)) {
     return absl::InvalidArgumentError(absl::StrCat("depth control: variance_window must be odd and >= 1 (got ",
-                                                   o.variance_window, "), max_relative_variance >= 0 and min_alpha > 0"));
+                                                   o.variance_window,
+                                                   "), max_relative_variance >= 0 and min_alpha > 0"));
   }
   // Double precision: the variance is a difference of nearly equal means.
   const at::Tensor a = alpha.to(at::kCPU, at::kDouble);

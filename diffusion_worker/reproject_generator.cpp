@@ -112,8 +112,8 @@ absl::StatusOr<ValueRange> check_tensor(const at::Tensor& t, const std::vector<i
                                         const std::string& what) {
   if (!t.defined()) return absl::InvalidArgumentError(absl::StrCat(what, " is missing"));
   if (t.sizes() != at::IntArrayRef(expected)) {
-    return absl::InvalidArgumentError(absl::StrCat(what, " is ", shape_of(t), ", expected ",
-                                                   absl::StrJoin(expected, "x"), " (from its camera)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, " is ", shape_of(t), ", expected ", absl::StrJoin(expected, "x"), " (from its camera)"));
   }
   if (!t.is_floating_point()) {
     return absl::InvalidArgumentError(
@@ -128,16 +128,15 @@ absl::Status check_camera(const Camera& c, const std::string& what) {
   const bool finite = std::isfinite(c.fx) && std::isfinite(c.fy) && std::isfinite(c.cx) && std::isfinite(c.cy) &&
                       c.R.allFinite() && c.t.allFinite();
   if (c.width <= 0 || c.height <= 0 || !finite || c.fx <= 0 || c.fy <= 0) {
-    return absl::InvalidArgumentError(absl::StrCat(what, " camera is invalid (", c.width, "x", c.height, ", fx ",
-                                                   c.fx, ", fy ", c.fy, ", pose ",
-                                                   finite ? "finite" : "not finite", ")"));
+    return absl::InvalidArgumentError(absl::StrCat(what, " camera is invalid (", c.width, "x", c.height, ", fx ", c.fx,
+                                                   ", fy ", c.fy, ", pose ", finite ? "finite" : "not finite", ")"));
   }
   return absl::OkStatus();
 }
 
 // Image, depth and alpha of one view at its camera's size; depth/alpha finite and non-negative.
-absl::Status check_view(const Camera& camera, const at::Tensor& image, const at::Tensor& depth,
-                        const at::Tensor& alpha, const std::string& image_name, const std::string& what) {
+absl::Status check_view(const Camera& camera, const at::Tensor& image, const at::Tensor& depth, const at::Tensor& alpha,
+                        const std::string& image_name, const std::string& what) {
   GAPS_RETURN_IF_ERROR(check_camera(camera, what));
   const int64_t h = camera.height, w = camera.width;
   GAPS_RETURN_IF_ERROR(check_tensor(image, {h, w, 3}, absl::StrCat(what, " ", image_name)).status());
@@ -256,8 +255,7 @@ ReferenceWarp splat_reference(const ReferenceView& ref, const Camera& target, co
   const float* src = image.data_ptr<float>();
 
   for (const Splat& s : splats) {
-    for_each_footprint_pixel(s, o.splat_footprint, w, h,
-                             [&](int64_t p, float) { zbuf[p] = std::min(zbuf[p], s.z); });
+    for_each_footprint_pixel(s, o.splat_footprint, w, h, [&](int64_t p, float) { zbuf[p] = std::min(zbuf[p], s.z); });
   }
   const float band = 1.0f + static_cast<float>(o.depth_tolerance);
   for (const Splat& s : splats) {
@@ -355,8 +353,7 @@ at::Tensor anchor_on_render(const at::Tensor& render, const at::Tensor& render_c
 
 cv::Mat to_cv_mask(const at::Tensor& mask) {
   at::Tensor bytes = mask.to(at::kByte).mul(255).contiguous();
-  return cv::Mat(static_cast<int>(mask.size(0)), static_cast<int>(mask.size(1)), CV_8UC1,
-                 bytes.data_ptr<uint8_t>())
+  return cv::Mat(static_cast<int>(mask.size(0)), static_cast<int>(mask.size(1)), CV_8UC1, bytes.data_ptr<uint8_t>())
       .clone();
 }
 
@@ -445,8 +442,7 @@ absl::StatusOr<ReprojectOptions> parse_reproject_options(const std::string& json
   if (absl::StripAsciiWhitespace(json_or_empty).empty()) return options;
   const nlohmann::json j = nlohmann::json::parse(json_or_empty, nullptr, /*allow_exceptions=*/false);
   if (j.is_discarded() || !j.is_object()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("reproject options must be a JSON object, got: ", json_or_empty));
+    return absl::InvalidArgumentError(absl::StrCat("reproject options must be a JSON object, got: ", json_or_empty));
   }
   for (auto it = j.begin(); it != j.end(); ++it) {
     GAPS_ASSIGN_OR_RETURN(const bool known, set_option(options, it.key(), it.value()));
@@ -481,8 +477,7 @@ absl::StatusOr<ReprojectResult> ReprojectGenerator::generate_one(const Generatio
   }
 }
 
-absl::StatusOr<std::vector<at::Tensor>> ReprojectGenerator::generate(
-    const std::vector<GenerationRequest>& requests) {
+absl::StatusOr<std::vector<at::Tensor>> ReprojectGenerator::generate(const std::vector<GenerationRequest>& requests) {
   GAPS_RETURN_IF_ERROR(validate_reproject_options(options_));
   for (size_t i = 0; i < requests.size(); ++i) {
     GAPS_RETURN_IF_ERROR(check_request(requests[i], options_.num_references, absl::StrCat("request ", i)));
@@ -501,8 +496,7 @@ absl::StatusOr<std::vector<at::Tensor>> ReprojectGenerator::generate(
     }
   });
   for (size_t i = 0; i < requests.size(); ++i) {
-    if (!errors[i].empty())
-      return absl::InternalError(absl::StrCat("reproject request ", i, " failed: ", errors[i]));
+    if (!errors[i].empty()) return absl::InternalError(absl::StrCat("reproject request ", i, " failed: ", errors[i]));
   }
   return images;
 }

@@ -10,9 +10,9 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "diffusion_worker/sdxl/two_stage.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/two_stage.h"
 
 namespace gaps {
 namespace {
@@ -30,7 +30,9 @@ absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
 
 // The two-stage keys; nullopt for a key that is not one of them.
 std::optional<absl::Status> parse_inpaint_option(const std::string& key, const nlohmann::json& v, SdxlOptions& o) {
-  const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
+  const auto need = [&](bool ok, const char* type) {
+    return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type));
+  };
   if (key == "inpaint" || key == "inpaint_scheduler") {
     if (!v.is_string()) return need(false, "a string");
     (key == "inpaint" ? o.inpaint : o.inpaint_scheduler) = v.get<std::string>();
@@ -42,7 +44,8 @@ std::optional<absl::Status> parse_inpaint_option(const std::string& key, const n
     return absl::OkStatus();
   }
   if (key == "inpaint_dilation") {
-    if (!v.is_number_integer() || v.get<int64_t>() < 1 || v.get<int64_t>() % 2 == 0) return need(false, "an odd integer >= 1");
+    if (!v.is_number_integer() || v.get<int64_t>() < 1 || v.get<int64_t>() % 2 == 0)
+      return need(false, "an odd integer >= 1");
     o.inpaint_dilation = v.get<int64_t>();
     return absl::OkStatus();
   }
@@ -64,28 +67,39 @@ std::optional<absl::Status> parse_inpaint_option(const std::string& key, const n
 absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   const nlohmann::json j = nlohmann::json::parse(json, nullptr, /*allow_exceptions=*/false);
   if (j.is_discarded() || !j.is_object()) {
-    return absl::InvalidArgumentError(absl::StrCat("sdxl options must be a JSON object with at least \"weights\", got: ", json));
+    return absl::InvalidArgumentError(
+        absl::StrCat("sdxl options must be a JSON object with at least \"weights\", got: ", json));
   }
   SdxlOptions o;
   for (auto it = j.begin(); it != j.end(); ++it) {
     const std::string& key = it.key();
     const nlohmann::json& v = it.value();
-    const auto need = [&](bool ok, const char* type) { return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type)); };
-    const std::map<std::string, std::string*> strings{{"weights", &o.weights}, {"dtype", &o.dtype},
-                                                      {"device", &o.device},   {"prompt", &o.prompt},
-                                                      {"scheduler", &o.scheduler}, {"variant", &o.variant},
-                                                      {"controlnet", &o.controlnet}, {"depth_anything", &o.depth_anything},
+    const auto need = [&](bool ok, const char* type) {
+      return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type));
+    };
+    const std::map<std::string, std::string*> strings{{"weights", &o.weights},
+                                                      {"dtype", &o.dtype},
+                                                      {"device", &o.device},
+                                                      {"prompt", &o.prompt},
+                                                      {"scheduler", &o.scheduler},
+                                                      {"variant", &o.variant},
+                                                      {"controlnet", &o.controlnet},
+                                                      {"depth_anything", &o.depth_anything},
                                                       {"depth_cache", &o.depth_cache},
-                                                      {"ip_adapter", &o.ip_adapter}, {"image_encoder", &o.image_encoder},
-                                                      {"lora_save", &o.lora_save}, {"lora", &o.lora}};
+                                                      {"ip_adapter", &o.ip_adapter},
+                                                      {"image_encoder", &o.image_encoder},
+                                                      {"lora_save", &o.lora_save},
+                                                      {"lora", &o.lora}};
     if (strings.count(key)) {
       GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
       *strings.at(key) = v.get<std::string>();
     } else if (key == "control_min_alpha" || key == "control_max_relative_variance") {
       GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
-      (key == "control_min_alpha" ? o.depth_control.min_alpha : o.depth_control.max_relative_variance) = v.get<double>();
+      (key == "control_min_alpha" ? o.depth_control.min_alpha : o.depth_control.max_relative_variance) =
+          v.get<double>();
     } else if (key == "control_variance_window") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1 && v.get<int64_t>() % 2 == 1, "an odd integer >= 1"));
+      GAPS_RETURN_IF_ERROR(
+          need(v.is_number_integer() && v.get<int64_t>() >= 1 && v.get<int64_t>() % 2 == 1, "an odd integer >= 1"));
       o.depth_control.variance_window = v.get<int64_t>();
     } else if (key == "steps" || key == "batch_size") {
       GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
@@ -108,12 +122,16 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     } else if (std::optional<absl::Status> inpaint = parse_inpaint_option(key, v, o)) {
       GAPS_RETURN_IF_ERROR(*inpaint);
     } else {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "unknown sdxl option '", key, "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
-          "cuda_graphs, controlnet, control_min_alpha, control_variance_window, control_max_relative_variance, ip_adapter, "
-          "image_encoder, ip_adapter_scale, depth_anything, depth_cache, lora_steps, lora_rank, lora_lr, lora_save, lora, "
-          "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, inpaint_uncovered_fraction, "
-          "inpaint_dilation"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown sdxl option '", key,
+                       "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
+                       "cuda_graphs, controlnet, control_min_alpha, control_variance_window, "
+                       "control_max_relative_variance, ip_adapter, "
+                       "image_encoder, ip_adapter_scale, depth_anything, depth_cache, lora_steps, lora_rank, lora_lr, "
+                       "lora_save, lora, "
+                       "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, "
+                       "inpaint_uncovered_fraction, "
+                       "inpaint_dilation"));
     }
   }
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
@@ -145,15 +163,17 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   } catch (const std::exception&) {
     return option_error("device", absl::StrCat("'", options.device, "' is not a device (cpu, cuda, cuda:N)"));
   }
-  if (device.is_cuda() && !at::hasCUDA()) return option_error("device", "CUDA requested but no CUDA device is available");
+  if (device.is_cuda() && !at::hasCUDA())
+    return option_error("device", "CUDA requested but no CUDA device is available");
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
   auto pipeline = sdxl::SdxlPipeline::load(
       options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant,
                                              options.controlnet, options.ip_adapter, options.image_encoder});
   if (!pipeline.ok()) {
-    return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options.weights,
-                                                               " is not a usable SDXL model: ", pipeline.status().message()));
+    return absl::Status(
+        pipeline.status().code(),
+        absl::StrCat("sdxl backend: ", options.weights, " is not a usable SDXL model: ", pipeline.status().message()));
   }
   if (!options.lora.empty()) {
     if (absl::Status s = (*pipeline)->load_lora(options.lora); !s.ok()) {
@@ -164,7 +184,8 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (!options.depth_anything.empty()) {
     auto model = depth::DepthAnything::load(options.depth_anything);
     if (!model.ok()) {
-      return absl::Status(model.status().code(), absl::StrCat("sdxl option 'depth_anything': ", model.status().message()));
+      return absl::Status(model.status().code(),
+                          absl::StrCat("sdxl option 'depth_anything': ", model.status().message()));
     }
     generator->depth_model_ = *std::move(model);
   }
@@ -180,10 +201,11 @@ std::string SdxlGenerator::name() const {
 
 std::string SdxlGenerator::weights_identity() const {
   std::string out = absl::StrCat("sdxl=", options_.weights);
-  const std::pair<const char*, const std::string*> parts[] = {
-      {"controlnet", &options_.controlnet}, {"ip_adapter", &options_.ip_adapter},
-      {"image_encoder", &options_.image_encoder}, {"lora", &options_.lora},
-      {"depth_anything", &options_.depth_anything}};
+  const std::pair<const char*, const std::string*> parts[] = {{"controlnet", &options_.controlnet},
+                                                              {"ip_adapter", &options_.ip_adapter},
+                                                              {"image_encoder", &options_.image_encoder},
+                                                              {"lora", &options_.lora},
+                                                              {"depth_anything", &options_.depth_anything}};
   for (const auto& [component, path] : parts)
     if (!path->empty()) absl::StrAppend(&out, "\n", component, "=", *path);
   if (!options_.inpaint.empty())
@@ -207,8 +229,8 @@ absl::StatusOr<at::Tensor> SdxlGenerator::view_disparity(const at::Tensor& image
   const at::Tensor pixels = image.to(at::kCPU, at::kFloat).clamp(0, 1).contiguous();
   // Keyed by the depth model and the pixels: the same view misses nothing, a changed one shares nothing.
   const std::string model_key = absl::StrFormat("model-%016x", fnv1a(options_.depth_anything));
-  const std::string view_key = absl::StrFormat(
-      "%dx%d-%016x", pixels.size(0), pixels.size(1), fnv1a(pixels.const_data_ptr(), pixels.nbytes()));
+  const std::string view_key =
+      absl::StrFormat("%dx%d-%016x", pixels.size(0), pixels.size(1), fnv1a(pixels.const_data_ptr(), pixels.nbytes()));
   auto disparity = depth_cache_.get_or_compute(model_key, view_key, pixels.size(0), pixels.size(1),
                                                [&] { return depth_model_->estimate_depth(pixels); });
   if (!disparity.ok()) {
@@ -230,7 +252,8 @@ absl::StatusOr<at::Tensor> SdxlGenerator::training_control_image(const Reference
     return absl::InvalidArgumentError(absl::StrCat(
         "sdxl adapt: view ", index, " needs render_depth and render_alpha of its image's size (ControlNet)"));
   }
-  GAPS_ASSIGN_OR_RETURN(DepthControl control, depth_control_image(v.render_depth, v.render_alpha, options_.depth_control));
+  GAPS_ASSIGN_OR_RETURN(DepthControl control,
+                        depth_control_image(v.render_depth, v.render_alpha, options_.depth_control));
   return control.image;
 }
 
@@ -242,8 +265,8 @@ absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) 
     const ReferenceView& v = views[i];
     if (v.image.size(0) != height || v.image.size(1) != width) {
       return absl::InvalidArgumentError(absl::StrCat("sdxl adapt: LoRA training needs views of one size; view ", i,
-                                                     " is ", v.image.size(0), "x", v.image.size(1), ", view 0 ",
-                                                     height, "x", width));
+                                                     " is ", v.image.size(0), "x", v.image.size(1), ", view 0 ", height,
+                                                     "x", width));
     }
     images.push_back(at::replication_pad2d(v.image.to(at::kFloat).clamp(0, 1).permute({2, 0, 1}).unsqueeze(0), pad));
     if (pipeline_->controlnet()) {
@@ -280,8 +303,8 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       const at::Tensor& alpha = requests[i].render_alpha;
       const auto hw = rgb.sizes().slice(0, 2);
       if (!depth.defined() || !alpha.defined() || depth.sizes() != hw || alpha.sizes() != hw) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("sdxl generate: request ", i, " needs render_depth and render_alpha of the render's size (ControlNet)"));
+        return absl::InvalidArgumentError(absl::StrCat(
+            "sdxl generate: request ", i, " needs render_depth and render_alpha of the render's size (ControlNet)"));
       }
       if (!std::isfinite(requests[i].control_scale)) {
         return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " control_scale is not finite"));
@@ -289,12 +312,13 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
     }
     if (!options_.inpaint.empty() &&
         (!requests[i].render_depth.defined() || requests[i].render_depth.sizes() != rgb.sizes().slice(0, 2))) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("sdxl generate: request ", i, " needs render_depth of the render's size (two-stage inpainting)"));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "sdxl generate: request ", i, " needs render_depth of the render's size (two-stage inpainting)"));
     }
     const double strength = requests[i].strength;
     if (!(strength >= 0.0 && strength <= 1.0)) {
-      return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " strength ", strength, " outside [0, 1]"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("sdxl generate: request ", i, " strength ", strength, " outside [0, 1]"));
     }
     const auto run_steps = static_cast<int64_t>(options_.steps * strength);
     if (run_steps < 1) {
@@ -319,14 +343,16 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
         const std::vector<int64_t> pad{0, padded_w - width, 0, padded_h - height};
         images.push_back(at::replication_pad2d(chw, pad));
         if (pipeline_->controlnet()) {
-          GAPS_ASSIGN_OR_RETURN(DepthControl control, depth_control_image(r.render_depth, r.render_alpha, options_.depth_control));
+          GAPS_ASSIGN_OR_RETURN(DepthControl control,
+                                depth_control_image(r.render_depth, r.render_alpha, options_.depth_control));
           controls.push_back(at::replication_pad2d(control.image.unsqueeze(0), pad));
           scales.push_back(r.control_scale);
         }
         prompts.push_back(r.prompt.empty() ? options_.prompt : r.prompt);
         seeds.push_back(r.seed);
         // IP-Adapter: the nearest ground-truth view is the image prompt (none for a request without one).
-        if (!options_.ip_adapter.empty()) references.push_back(r.references.empty() ? at::Tensor() : r.references[0].image);
+        if (!options_.ip_adapter.empty())
+          references.push_back(r.references.empty() ? at::Tensor() : r.references[0].image);
       }
       sdxl::Img2ImgParams params;
       params.steps = options_.steps;
@@ -339,11 +365,8 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       if (pipeline_->controlnet()) control = sdxl::ControlInput{at::cat(controls), scales};
       GAPS_ASSIGN_OR_RETURN(at::Tensor out, pipeline_->img2img(at::cat(images), prompts, params, seeds, control));
       for (size_t m = begin; m < end; ++m) {
-        results[members[m]] = out[static_cast<int64_t>(m - begin)]
-                                  .slice(1, 0, height)
-                                  .slice(2, 0, width)
-                                  .permute({1, 2, 0})
-                                  .contiguous();
+        results[members[m]] =
+            out[static_cast<int64_t>(m - begin)].slice(1, 0, height).slice(2, 0, width).permute({1, 2, 0}).contiguous();
       }
     }
   }
@@ -356,12 +379,12 @@ absl::StatusOr<sdxl::InpaintPipeline*> SdxlGenerator::inpaint_pipeline() {
   // dtype and device were checked by create().
   GAPS_ASSIGN_OR_RETURN(const at::ScalarType dtype, parse_dtype(options_.dtype));
   auto pipeline = sdxl::InpaintPipeline::load(
-      options_.inpaint, sdxl::InpaintPipelineOptions{dtype, at::Device(options_.device), options_.inpaint_scheduler,
-                                                     options_.variant});
+      options_.inpaint,
+      sdxl::InpaintPipelineOptions{dtype, at::Device(options_.device), options_.inpaint_scheduler, options_.variant});
   if (!pipeline.ok()) {
-    return absl::Status(pipeline.status().code(), absl::StrCat("sdxl backend: ", options_.inpaint,
-                                                               " is not a usable inpainting model: ",
-                                                               pipeline.status().message()));
+    return absl::Status(pipeline.status().code(),
+                        absl::StrCat("sdxl backend: ", options_.inpaint,
+                                     " is not a usable inpainting model: ", pipeline.status().message()));
   }
   inpaint_ = *std::move(pipeline);
   return inpaint_.get();
@@ -376,9 +399,10 @@ absl::Status SdxlGenerator::inpaint_uncovered(const std::vector<GenerationReques
         r.inpaint.value_or(InpaintSettings{options_.inpaint_depth_threshold, options_.inpaint_uncovered_fraction,
                                            static_cast<int>(options_.inpaint_dilation)});
     if (!std::isfinite(settings.depth_threshold)) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          "sdxl generate: request ", i, " carries no inpaint settings and the inpaint_depth_threshold option (tau_d, "
-          "in render_depth's units) is not set"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("sdxl generate: request ", i,
+                       " carries no inpaint settings and the inpaint_depth_threshold option (tau_d, "
+                       "in render_depth's units) is not set"));
     }
     sdxl::TwoStageOptions two_stage;
     two_stage.depth_threshold = settings.depth_threshold;

@@ -42,9 +42,9 @@ struct SdxlOptions {
   // on the same views reuse them; with a folder they also outlive the process ("" = memory only).
   std::string depth_cache;
   DepthControlOptions depth_control;  // keys control_min_alpha, control_variance_window, control_max_relative_variance
-  std::string ip_adapter;         // IP-Adapter weight file (diffusers single-file layout); "" = none
-  std::string image_encoder;      // its CLIP image encoder folder (transformers); needed with ip_adapter
-  double ip_adapter_scale = 0.5;  // lambda_ip, the scale of the image prompt's attention
+  std::string ip_adapter;             // IP-Adapter weight file (diffusers single-file layout); "" = none
+  std::string image_encoder;          // its CLIP image encoder folder (transformers); needed with ip_adapter
+  double ip_adapter_scale = 0.5;      // lambda_ip, the scale of the image prompt's attention
   // Two-stage generation (eq. two_stage, sdxl/two_stage.h): an SD2 inpainting folder ("" = off), loaded on
   // first need, regenerates the pixels whose render_depth is below tau_d, dilated 15 x 15, in views more
   // than 2% uncovered. A request's InpaintSettings (the trainer sends GapsConfig's) decide tau_d, the

@@ -18,10 +18,9 @@ namespace {
 
 constexpr int kVersion = 1;
 
-
 json camera_json(const Camera& c) {
-  json j = {{"name", c.name}, {"width", c.width}, {"height", c.height}, {"fx", c.fx}, {"fy", c.fy}, {"cx", c.cx},
-            {"cy", c.cy}, {"near", c.near}, {"far", c.far}};
+  json j = {{"name", c.name}, {"width", c.width}, {"height", c.height}, {"fx", c.fx},  {"fy", c.fy},
+            {"cx", c.cx},     {"cy", c.cy},       {"near", c.near},     {"far", c.far}};
   for (int r = 0; r < 3; ++r) {
     for (int k = 0; k < 3; ++k) j["R"].push_back(c.R(r, k));
     j["t"].push_back(c.t(r));
@@ -83,7 +82,8 @@ struct CheckpointAccess {
     Trainer& t = const_cast<Trainer&>(trainer);
     const char* names[] = {"means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"};
     const auto params = t.model_.parameters();
-    for (size_t i = 0; i < params.size(); ++i) GAPS_RETURN_IF_ERROR(files.put(absl::StrCat("model_", names[i]), *params[i]));
+    for (size_t i = 0; i < params.size(); ++i)
+      GAPS_RETURN_IF_ERROR(files.put(absl::StrCat("model_", names[i]), *params[i]));
     state["sh_degree"] = t.model_.sh_degree;
     state["iteration"] = t.iteration_;
     state["view_order"] = t.view_order_;
@@ -153,7 +153,8 @@ struct CheckpointAccess {
     method->log_ = m.at("log");
     method->adapted_ = false;  // the generator may be another process now: adapt it again
     method->uncertainty_history_.clear();
-    for (const auto& e : m.at("uncertainty_history")) method->uncertainty_history_[e.at(0).get<int>()] = e.at(1).get<double>();
+    for (const auto& e : m.at("uncertainty_history"))
+      method->uncertainty_history_[e.at(0).get<int>()] = e.at(1).get<double>();
     method->admitted_.clear();
     for (const auto& a : m.at("admitted")) {
       const int id = a.at("id");

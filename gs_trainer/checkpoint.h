@@ -1,10 +1,10 @@
 #pragma once
 // Training state at a diffusion-phase boundary or where a run was stopped, so an interrupted run resumes where
 // it was: the model, the optimiser's moments and step count, the densification statistics, the view order
-// and seeds, and the method's state (tier, admitted pseudo-views with their weights, uncertainty history, phase log, RNG).
-// A checkpoint is written to a fresh folder and renamed into place, so a crash while writing leaves the
-// previous one intact. Not saved: LibTorch's global RNG (DropGaussian masks), so a resumed run is the
-// uninterrupted one in distribution, not bit for bit.
+// and seeds, and the method's state (tier, admitted pseudo-views with their weights, uncertainty history, phase log,
+// RNG). A checkpoint is written to a fresh folder and renamed into place, so a crash while writing leaves the previous
+// one intact. Not saved: LibTorch's global RNG (DropGaussian masks), so a resumed run is the uninterrupted one in
+// distribution, not bit for bit.
 #include <filesystem>
 
 #include "absl/status/statusor.h"

@@ -8,15 +8,15 @@
 #include <ATen/core/grad_mode.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/train/divergence.h"
-#include "gs_trainer/checkpoint.h"
 #include "common/image_io.h"
-#include "gs_trainer/init/initializer.h"
-#include "gs_trainer/eval/lpips.h"
 #include "common/ply.h"
+#include "common/status_macros.h"
+#include "gs_trainer/checkpoint.h"
+#include "gs_trainer/eval/lpips.h"
+#include "gs_trainer/init/initializer.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/report.h"
-#include "common/status_macros.h"
+#include "gs_trainer/train/divergence.h"
 
 namespace gaps {
 namespace {
@@ -41,8 +41,8 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
                                                                    const std::vector<TrainingView>& train,
                                                                    const std::function<void(const std::string&)>& log) {
   if (o.init_resolution < 0)
-    return absl::InvalidArgumentError(absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ",
-                                                   o.init_resolution));
+    return absl::InvalidArgumentError(
+        absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));
   if (o.init_resolution == 0 || o.init_resolution == o.resolution || train.empty()) return train;
   SceneLoadOptions load;
   load.resolution = o.init_resolution;
@@ -135,8 +135,8 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   j["scene"] = o.scene_dir.string();
   j["config"] = o.config;
   for (const auto& v : r.per_view) {
-    j["per_view"].push_back({{"psnr", v.psnr}, {"ssim", v.ssim},
-                             {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
+    j["per_view"].push_back(
+        {{"psnr", v.psnr}, {"ssim", v.ssim}, {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
   }
   return write_json(o.out_dir / "metrics.json", j);
 }
@@ -144,9 +144,8 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
 }  // namespace
 
 absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& model,
-                                                         const std::vector<TrainingView>& views,
-                                                         double background, const Lpips* lpips,
-                                                         const std::filesystem::path& render_dir) {
+                                                         const std::vector<TrainingView>& views, double background,
+                                                         const Lpips* lpips, const std::filesystem::path& render_dir) {
   at::AutoGradMode no_grad(false);
   std::vector<ImageMetrics> out;
   RenderOptions options;
@@ -156,8 +155,8 @@ absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& mo
     out.push_back(evaluate_image(rgb, v.image, lpips));
     if (!render_dir.empty()) {
       std::filesystem::create_directories(render_dir);
-      GAPS_RETURN_IF_ERROR(write_png(render_dir / (std::filesystem::path(v.camera.name).stem().string() + ".png"),
-                                     rgb.to(at::kCPU)));
+      GAPS_RETURN_IF_ERROR(
+          write_png(render_dir / (std::filesystem::path(v.camera.name).stem().string() + ".png"), rgb.to(at::kCPU)));
     }
   }
   return out;
@@ -217,7 +216,8 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   Trainer::StepFunction step = [&]() -> absl::StatusOr<at::Tensor> { return trainer.step(); };
   if (o.variant != Variant::kVanilla) {
     if (!o.generator)
-      return absl::InvalidArgumentError(absl::StrCat("variant ", variant_name(o.variant), " needs a generator backend"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("variant ", variant_name(o.variant), " needs a generator backend"));
     GapsConfig gaps = o.gaps;
     gaps.n_active = o.n_active > 0 ? o.n_active : (scene.cameras.size() > 100 ? kNActiveMip360 : kNActiveLlff);
     generator.emplace(o.generator);
@@ -240,8 +240,10 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   const Lpips* lpips_model = lpips ? &*lpips : nullptr;
   if (!o.checkpoint_dir.empty()) {
     const absl::StatusOr<int> resumed = load_checkpoint(o.checkpoint_dir, trainer, method ? &*method : nullptr);
-    if (resumed.ok()) log(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
-    else if (!absl::IsNotFound(resumed.status())) return resumed.status();
+    if (resumed.ok())
+      log(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
+    else if (!absl::IsNotFound(resumed.status()))
+      return resumed.status();
   }
   if (o.should_stop) {
     step = [&trainer, &o, inner = std::move(step)]() -> absl::StatusOr<at::Tensor> {
@@ -298,7 +300,8 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
                         evaluate_views(trainer.model(), test, o.config.background, lpips_model,
                                        o.save_renders ? o.out_dir / "renders" : std::filesystem::path()));
   GAPS_ASSIGN_OR_RETURN(result.metrics, average_metrics(result.per_view));
-  if (o.eval_every > 0) result.curve.push_back({o.config.iterations, result.train_seconds, result.metrics, result.num_gaussians});
+  if (o.eval_every > 0)
+    result.curve.push_back({o.config.iterations, result.train_seconds, result.metrics, result.num_gaussians});
   result.peak_memory = memory.read();
   GAPS_RETURN_IF_ERROR(write_metrics(o, result));
   if (o.html_report) GAPS_RETURN_IF_ERROR(write_run_report(o.out_dir, test));

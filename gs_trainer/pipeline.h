@@ -6,8 +6,8 @@
 #include <string>
 
 #include "absl/status/statusor.h"
-#include "gs_trainer/gaps/training.h"
 #include "gs_trainer/eval/metrics.h"
+#include "gs_trainer/gaps/training.h"
 #include "gs_trainer/run_stats.h"
 #include "gs_trainer/scene/scene.h"
 #include "gs_trainer/train/trainer.h"
@@ -16,8 +16,8 @@ namespace gaps {
 
 struct RunOptions {
   std::filesystem::path scene_dir;
-  int views = 3;        // training views (<= 0: every non-test view)
-  int resolution = 8;   // downscale factor
+  int views = 3;       // training views (<= 0: every non-test view)
+  int resolution = 8;  // downscale factor
   std::filesystem::path out_dir;
   // "auto" ("mvs" for forward-facing views, "sparse" for views that surround the scene: auto_init_method),
   // "mvs" (sparse triangulation + plane-sweep stereo from the training views only; falls back to "sparse",
@@ -61,9 +61,9 @@ struct RunResult {
   ImageMetrics metrics;
   std::vector<ImageMetrics> per_view;
   int64_t num_gaussians = 0;
-  int64_t max_gaussians = 0;  // the budget the run trained under (resolved when automatic); 0 = none
-  double train_seconds = 0.0;  // without the evaluations of the curve
-  std::string summary;  // what was loaded
+  int64_t max_gaussians = 0;      // the budget the run trained under (resolved when automatic); 0 = none
+  double train_seconds = 0.0;     // without the evaluations of the curve
+  std::string summary;            // what was loaded
   std::vector<CurvePoint> curve;  // ends with the final evaluation when eval_every > 0
   PeakMemory peak_memory;
   std::optional<double> generator_seconds;  // method variants only
@@ -83,8 +83,8 @@ absl::Status run_init_only(const RunOptions& options, const std::function<void(c
 
 // Evaluates a model on cameras with known images; writes renders to `render_dir` when not empty.
 absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& model,
-                                                         const std::vector<TrainingView>& views,
-                                                         double background, const class Lpips* lpips,
+                                                         const std::vector<TrainingView>& views, double background,
+                                                         const class Lpips* lpips,
                                                          const std::filesystem::path& render_dir);
 
 }  // namespace gaps

@@ -102,7 +102,8 @@ std::string metrics_table(const json& m) {
   };
   std::string html = "<table class=\"metrics\">\n";
   for (const auto& [k, v] : rows) absl::StrAppend(&html, "<tr><th>", escape(k), "</th><td>", escape(v), "</td></tr>\n");
-  if (m.contains("error")) absl::StrAppend(&html, "<tr><th>error</th><td>", escape(m["error"].get<std::string>()), "</td></tr>\n");
+  if (m.contains("error"))
+    absl::StrAppend(&html, "<tr><th>error</th><td>", escape(m["error"].get<std::string>()), "</td></tr>\n");
   return html + "</table>\n";
 }
 
@@ -118,7 +119,9 @@ std::string curve_section(const json& metrics) {
   absl::StrAppend(&html, svg_line_chart("Test PSNR over training time", "training seconds (evaluation excluded)",
                                         "PSNR (dB)", {psnr}));
   absl::StrAppend(&html, svg_line_chart("Gaussians over iterations", "iteration", "Gaussians", {gaussians}));
-  html += "</div>\n<table><tr><th>iteration</th><th>training s</th><th>PSNR</th><th>SSIM</th><th>LPIPS</th><th>Gaussians</th></tr>\n";
+  html +=
+      "</div>\n<table><tr><th>iteration</th><th>training "
+      "s</th><th>PSNR</th><th>SSIM</th><th>LPIPS</th><th>Gaussians</th></tr>\n";
   for (const auto& p : curve)
     absl::StrAppend(&html, "<tr><td>", p["iteration"].get<int>(), "</td><td>", json_number(p["train_seconds"], "%.1f"),
                     "</td><td>", json_number(p["psnr"], "%.2f"), "</td><td>", json_number(p["ssim"], "%.4f"),
@@ -129,7 +132,8 @@ std::string curve_section(const json& metrics) {
 
 absl::StatusOr<std::string> renders_section(const fs::path& out_dir, const std::vector<TrainingView>& test,
                                             const json& metrics) {
-  std::string html = "<table class=\"renders\"><tr><th>view</th><th>ground truth</th><th>render</th><th>PSNR / SSIM</th></tr>\n";
+  std::string html =
+      "<table class=\"renders\"><tr><th>view</th><th>ground truth</th><th>render</th><th>PSNR / SSIM</th></tr>\n";
   const json per_view = metrics.value("per_view", json::array());
   for (size_t i = 0; i < test.size(); ++i) {
     const std::string stem = fs::path(test[i].camera.name).stem().string();
@@ -158,8 +162,8 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
   for (const auto& phase : phases) {
     const int number = phase.value("phase", 0);
     absl::StrAppend(&html, "<h3>Phase ", number, " (iteration ", phase.value("iteration", 0), ", tier ",
-                    phase.value("tier", 0), ", ", phase.value("gaussians", int64_t{0}), " Gaussians): ",
-                    phase.value("admitted", 0), " of ", phase.value("selection", json::array()).size(),
+                    phase.value("tier", 0), ", ", phase.value("gaussians", int64_t{0}),
+                    " Gaussians): ", phase.value("admitted", 0), " of ", phase.value("selection", json::array()).size(),
                     " admitted</h3>\n<div class=\"grid\">\n");
     for (const auto& s : phase.value("selection", json::array())) {
       const bool admitted = s.value("admitted", false);
@@ -169,10 +173,10 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
       if (fs::exists(image)) {
         GAPS_ASSIGN_OR_RETURN(img, thumbnail_file(image, kPseudoThumbnailWidth));
       }
-      absl::StrAppend(&html, "<figure class=\"", admitted ? "admitted" : "rejected", "\">", img, "<figcaption>candidate ",
-                      s.value("id", -1), ", coverage ", json_number(s.value("coverage", json()), "%.2f"), "<br><b>",
-                      admitted ? "admitted" : "rejected", "</b>: ", escape(s.value("reason", "")),
-                      "</figcaption></figure>\n");
+      absl::StrAppend(&html, "<figure class=\"", admitted ? "admitted" : "rejected", "\">", img,
+                      "<figcaption>candidate ", s.value("id", -1), ", coverage ",
+                      json_number(s.value("coverage", json()), "%.2f"), "<br><b>", admitted ? "admitted" : "rejected",
+                      "</b>: ", escape(s.value("reason", "")), "</figcaption></figure>\n");
     }
     html += "</div>\n";
   }
@@ -211,7 +215,8 @@ std::string svg_line_chart(const std::string& title, const std::string& x_label,
   const double pw = kWidth - kLeft - kRight, ph = kHeight - kTop - kBottom;
   const auto px = [&](double x) { return kLeft + (x - x0) / (x1 - x0) * pw; };
   const auto py = [&](double y) { return kTop + (1 - (y - y0) / (y1 - y0)) * ph; };
-  absl::StrAppendFormat(&svg, "<rect x=\"%.1f\" y=\"%.1f\" width=\"%.1f\" height=\"%.1f\" fill=\"none\" stroke=\"#333\"/>\n",
+  absl::StrAppendFormat(&svg,
+                        "<rect x=\"%.1f\" y=\"%.1f\" width=\"%.1f\" height=\"%.1f\" fill=\"none\" stroke=\"#333\"/>\n",
                         kLeft, kTop, pw, ph);
   for (double t : nice_ticks(x0, x1))
     absl::StrAppendFormat(&svg,
@@ -246,7 +251,8 @@ std::string svg_line_chart(const std::string& title, const std::string& x_label,
 absl::Status write_run_report(const fs::path& out_dir, const std::vector<TrainingView>& test_views) {
   GAPS_ASSIGN_OR_RETURN(const std::string text, read_file_bytes(out_dir / "metrics.json", "metrics file"));
   const json metrics = json::parse(text, nullptr, false);
-  if (metrics.is_discarded()) return absl::DataLossError(absl::StrCat((out_dir / "metrics.json").string(), ": not valid JSON"));
+  if (metrics.is_discarded())
+    return absl::DataLossError(absl::StrCat((out_dir / "metrics.json").string(), ": not valid JSON"));
   const std::string title = absl::StrCat("gaps run: ", fs::path(metrics.value("scene", "")).filename().string(), ", ",
                                          metrics.value("views", 0), " views, ", metrics.value("variant", ""));
   std::string html = absl::StrCat("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>", escape(title),

@@ -12,7 +12,9 @@ namespace {
 
 constexpr size_t kAggregate = static_cast<size_t>(c10::CachingAllocator::StatType::AGGREGATE);
 
-nlohmann::json optional_json(const std::optional<double>& v) { return v ? nlohmann::json(*v) : nlohmann::json(nullptr); }
+nlohmann::json optional_json(const std::optional<double>& v) {
+  return v ? nlohmann::json(*v) : nlohmann::json(nullptr);
+}
 
 c10::DeviceIndex cuda_index(const at::Device& device) { return device.has_index() ? device.index() : 0; }
 
@@ -27,9 +29,8 @@ auto timed(double& seconds, F&& f) {
 }  // namespace
 
 void to_json(nlohmann::json& j, const CurvePoint& p) {
-  j = {{"iteration", p.iteration},  {"train_seconds", p.train_seconds},
-       {"psnr", p.metrics.psnr},    {"ssim", p.metrics.ssim},
-       {"lpips", optional_json(p.metrics.lpips)}, {"num_gaussians", p.num_gaussians}};
+  j = {{"iteration", p.iteration}, {"train_seconds", p.train_seconds},        {"psnr", p.metrics.psnr},
+       {"ssim", p.metrics.ssim},   {"lpips", optional_json(p.metrics.lpips)}, {"num_gaussians", p.num_gaussians}};
 }
 
 void to_json(nlohmann::json& j, const PeakMemory& m) {
@@ -44,8 +45,7 @@ PeakMemoryMeter::PeakMemoryMeter(const at::Device& device) : device_(device) {
 PeakMemory PeakMemoryMeter::read() const {
   PeakMemory m;
   if (device_.is_cuda()) {
-    const auto stats =
-        c10::getDeviceAllocator(c10::DeviceType::CUDA)->getDeviceStats(cuda_index(device_));
+    const auto stats = c10::getDeviceAllocator(c10::DeviceType::CUDA)->getDeviceStats(cuda_index(device_));
     m.kind = "cuda_allocator";
     m.bytes = stats.allocated_bytes[kAggregate].peak;
     m.reserved_bytes = stats.reserved_bytes[kAggregate].peak;

@@ -7,8 +7,8 @@
 
 #include <ATen/Device.h>
 #include <nlohmann/json_fwd.hpp>
-#include "gs_trainer/gaps/generator.h"
 #include "gs_trainer/eval/metrics.h"
+#include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
 

@@ -4,15 +4,15 @@
 #include <fstream>
 
 #include <ATen/ATen.h>
-#include <Eigen/Geometry>
 #include <ATen/core/grad_mode.h>
+#include <Eigen/Geometry>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "common/image_io.h"
-#include "gs_trainer/model/render.h"
 #include "common/spherical_harmonics.h"
 #include "common/status_macros.h"
+#include "gs_trainer/model/render.h"
 
 namespace gaps {
 namespace {

@@ -7,8 +7,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "common/image_io.h"
-#include "gs_trainer/scene/scene.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/scene.h"
 
 namespace gaps::rpc {
 
@@ -97,14 +97,18 @@ absl::StatusOr<Camera> decode_camera(const v1::Camera& in, const std::string& wh
     return absl::InvalidArgumentError(absl::StrCat(what, ": pose needs 9 rotation and 3 translation values, got ",
                                                    in.rotation_size(), " and ", in.translation_size()));
   for (double v : in.rotation())
-    if (!std::isfinite(v)) return absl::InvalidArgumentError(absl::StrCat(what, ": pose rotation is not finite (NaN or inf)"));
+    if (!std::isfinite(v))
+      return absl::InvalidArgumentError(absl::StrCat(what, ": pose rotation is not finite (NaN or inf)"));
   for (double v : in.translation())
-    if (!std::isfinite(v)) return absl::InvalidArgumentError(absl::StrCat(what, ": pose translation is not finite (NaN or inf)"));
+    if (!std::isfinite(v))
+      return absl::InvalidArgumentError(absl::StrCat(what, ": pose translation is not finite (NaN or inf)"));
   for (double v : {in.fx(), in.fy(), in.cx(), in.cy(), in.near(), in.far()})
-    if (!std::isfinite(v)) return absl::InvalidArgumentError(absl::StrCat(what, ": intrinsics or bounds are not finite"));
+    if (!std::isfinite(v))
+      return absl::InvalidArgumentError(absl::StrCat(what, ": intrinsics or bounds are not finite"));
   if (in.width() <= 0 || in.height() <= 0 || in.width() > 65536 || in.height() > 65536)
     return absl::InvalidArgumentError(absl::StrCat(what, ": invalid image size ", in.width(), "x", in.height()));
-  if (!(in.fx() > 0 && in.fy() > 0)) return absl::InvalidArgumentError(absl::StrCat(what, ": focal lengths must be positive"));
+  if (!(in.fx() > 0 && in.fy() > 0))
+    return absl::InvalidArgumentError(absl::StrCat(what, ": focal lengths must be positive"));
   Camera c;
   c.name = in.name();
   c.width = in.width();

@@ -62,8 +62,8 @@ absl::Status read_chunked(ReadFn&& read, uint64_t max_bytes, google::protobuf::M
     if (first) {
       total = chunk.total_size();
       if (total > max_bytes)
-        return absl::ResourceExhaustedError(
-            "message of " + std::to_string(total) + " bytes exceeds the limit of " + std::to_string(max_bytes));
+        return absl::ResourceExhaustedError("message of " + std::to_string(total) + " bytes exceeds the limit of " +
+                                            std::to_string(max_bytes));
       bytes.reserve(total);
       first = false;
     }

@@ -17,18 +17,32 @@ nlohmann::json present_fields(const google::protobuf::Message& message) {
     if (f->is_repeated()) {
       nlohmann::json values = nlohmann::json::array();
       for (int i = 0; i < reflection->FieldSize(message, f); ++i)
-        if (f->cpp_type() == FieldDescriptor::CPPTYPE_DOUBLE) values.push_back(reflection->GetRepeatedDouble(message, f, i));
+        if (f->cpp_type() == FieldDescriptor::CPPTYPE_DOUBLE)
+          values.push_back(reflection->GetRepeatedDouble(message, f, i));
       j[f->name()] = values;
       continue;
     }
     switch (f->cpp_type()) {
-      case FieldDescriptor::CPPTYPE_INT32: j[f->name()] = reflection->GetInt32(message, f); break;
-      case FieldDescriptor::CPPTYPE_INT64: j[f->name()] = reflection->GetInt64(message, f); break;
-      case FieldDescriptor::CPPTYPE_UINT64: j[f->name()] = reflection->GetUInt64(message, f); break;
-      case FieldDescriptor::CPPTYPE_DOUBLE: j[f->name()] = reflection->GetDouble(message, f); break;
-      case FieldDescriptor::CPPTYPE_BOOL: j[f->name()] = reflection->GetBool(message, f); break;
-      case FieldDescriptor::CPPTYPE_STRING: j[f->name()] = reflection->GetString(message, f); break;
-      default: break;  // the hyperparameter messages use none of the other types
+      case FieldDescriptor::CPPTYPE_INT32:
+        j[f->name()] = reflection->GetInt32(message, f);
+        break;
+      case FieldDescriptor::CPPTYPE_INT64:
+        j[f->name()] = reflection->GetInt64(message, f);
+        break;
+      case FieldDescriptor::CPPTYPE_UINT64:
+        j[f->name()] = reflection->GetUInt64(message, f);
+        break;
+      case FieldDescriptor::CPPTYPE_DOUBLE:
+        j[f->name()] = reflection->GetDouble(message, f);
+        break;
+      case FieldDescriptor::CPPTYPE_BOOL:
+        j[f->name()] = reflection->GetBool(message, f);
+        break;
+      case FieldDescriptor::CPPTYPE_STRING:
+        j[f->name()] = reflection->GetString(message, f);
+        break;
+      default:
+        break;  // the hyperparameter messages use none of the other types
     }
   }
   return j;
@@ -42,7 +56,9 @@ absl::Status set_fields(const nlohmann::json& object, google::protobuf::Message*
     const FieldDescriptor* f = descriptor->FindFieldByName(it.key());
     if (f == nullptr) return absl::InvalidArgumentError(absl::StrCat("unknown option '", it.key(), "'"));
     const nlohmann::json& v = it.value();
-    const auto wrong = [&] { return absl::InvalidArgumentError(absl::StrCat("option '", it.key(), "' has the wrong type")); };
+    const auto wrong = [&] {
+      return absl::InvalidArgumentError(absl::StrCat("option '", it.key(), "' has the wrong type"));
+    };
     if (f->is_repeated()) {
       if (!v.is_array() || f->cpp_type() != FieldDescriptor::CPPTYPE_DOUBLE) return wrong();
       reflection->ClearField(message, f);

@@ -33,7 +33,7 @@ namespace {
 
 // All three fields or none.
 absl::StatusOr<std::optional<InpaintSettings>> decode_inpaint_settings(const v1::PoseConstraints& p,
-                                                                      const std::string& what) {
+                                                                       const std::string& what) {
   const int given = p.has_inpaint_depth_threshold() + p.has_inpaint_uncovered_fraction() + p.has_inpaint_dilation();
   if (given == 0) return std::nullopt;
   if (given != 3) {
@@ -87,14 +87,18 @@ absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1:
     GenerationRequest q;
     GAPS_ASSIGN_OR_RETURN(q.camera, decode_camera(p.camera(), absl::StrCat(what, " camera")));
     const int64_t h = q.camera.height, w = q.camera.width;
-    GAPS_ASSIGN_OR_RETURN(q.render_rgb, decode_tensor_shaped(p.render_rgb(), {h, w, 3}, absl::StrCat(what, " render_rgb")));
-    GAPS_ASSIGN_OR_RETURN(q.render_depth, decode_tensor_shaped(p.render_depth(), {h, w}, absl::StrCat(what, " render_depth")));
-    GAPS_ASSIGN_OR_RETURN(q.render_alpha, decode_tensor_shaped(p.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha")));
+    GAPS_ASSIGN_OR_RETURN(q.render_rgb,
+                          decode_tensor_shaped(p.render_rgb(), {h, w, 3}, absl::StrCat(what, " render_rgb")));
+    GAPS_ASSIGN_OR_RETURN(q.render_depth,
+                          decode_tensor_shaped(p.render_depth(), {h, w}, absl::StrCat(what, " render_depth")));
+    GAPS_ASSIGN_OR_RETURN(q.render_alpha,
+                          decode_tensor_shaped(p.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha")));
     for (double v : {p.coverage(), p.strength(), p.control_scale(), p.ip_scale()})
       if (!std::isfinite(v)) return absl::InvalidArgumentError(absl::StrCat(what, ": non-finite control value"));
     // The Generator seam carries neither yet; refusing beats silently ignoring what the caller asked for.
     if (p.ip_scale() != 0.0 || p.has_inpaint_mask())
-      return absl::UnimplementedError(absl::StrCat(what, ": ip_scale and inpaint_mask are not supported by this worker's backends"));
+      return absl::UnimplementedError(
+          absl::StrCat(what, ": ip_scale and inpaint_mask are not supported by this worker's backends"));
     q.coverage = p.coverage();
     q.strength = p.strength();
     q.control_scale = p.control_scale();
@@ -103,8 +107,8 @@ absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1:
     GAPS_ASSIGN_OR_RETURN(q.inpaint, decode_inpaint_settings(p, what));
     for (int r : p.reference_order()) {
       if (r < 0 || r >= static_cast<int>(references.size()))
-        return absl::InvalidArgumentError(absl::StrCat(what, ": reference index ", r, " out of range (",
-                                                       references.size(), " references)"));
+        return absl::InvalidArgumentError(
+            absl::StrCat(what, ": reference index ", r, " out of range (", references.size(), " references)"));
       q.references.push_back(references[r]);
     }
     requests.push_back(std::move(q));

@@ -2,8 +2,8 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/init/initializer.h"
 #include "common/status_macros.h"
+#include "gs_trainer/init/initializer.h"
 #include "rpc/config_codec.h"
 
 namespace gaps {
@@ -21,7 +21,8 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
   } else if (is_init_method(init)) {
     o.init = init;
   } else {
-    return absl::InvalidArgumentError(absl::StrCat("config: unknown init '", init, "' (auto, mvs, sparse, random, points)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("config: unknown init '", init, "' (auto, mvs, sparse, random, points)"));
   }
   if (c.random_points() < 0) return absl::InvalidArgumentError("config: random_points must not be negative");
   if (c.random_points() > 0) o.random_points = c.random_points();

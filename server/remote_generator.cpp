@@ -4,8 +4,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "grpc/health/v1/health.grpc.pb.h"
 #include "common/status_macros.h"
+#include "grpc/health/v1/health.grpc.pb.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
 
@@ -76,7 +76,8 @@ absl::Status RemoteGenerator::probe(Worker& w) {
   info_context.set_deadline(std::chrono::system_clock::now() + options_.probe_timeout);
   rpc::attach_token(info_context, options_.security.token);
   v1::WorkerInfo info;
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(w.stub->GetInfo(&info_context, v1::GetInfoRequest(), &info), w.address + " GetInfo"));
+  GAPS_RETURN_IF_ERROR(
+      rpc::from_grpc(w.stub->GetInfo(&info_context, v1::GetInfoRequest(), &info), w.address + " GetInfo"));
   std::lock_guard<std::mutex> lock(name_mutex_);
   backend_version_ = info.backend_version();
   return absl::OkStatus();
@@ -125,7 +126,7 @@ absl::Status RemoteGenerator::adapt_on(Worker& w) {
 }
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, const v1::GenerateBatch& batch,
-                                                                      size_t count) {
+                                                                     size_t count) {
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
@@ -140,11 +141,13 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
   rpc::write_chunked(*to_send, [&](const v1::Chunk& c) { return stream->Write(c); });
   stream->WritesDone();
   v1::GenerateResult result;
-  const absl::Status read = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
+  const absl::Status read =
+      rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " Generate"));
   GAPS_RETURN_IF_ERROR(read);
   if (static_cast<size_t>(result.images_size()) != count)
-    return absl::InternalError(absl::StrCat(w.address, " returned ", result.images_size(), " images for ", count, " poses"));
+    return absl::InternalError(
+        absl::StrCat(w.address, " returned ", result.images_size(), " images for ", count, " poses"));
   std::vector<at::Tensor> images;
   for (int k = 0; k < result.images_size(); ++k) {
     const auto& pose = batch.poses(k).camera();
@@ -188,8 +191,8 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
   std::vector<std::string> reasons;
   for (const auto& w : workers_)
     reasons.push_back(absl::StrCat(w->address, ": ", w->last_error.empty() ? "not reached" : w->last_error));
-  return absl::UnavailableError(absl::StrCat("no diffusion worker answered after ", options_.max_rounds,
-                                             " rounds (", absl::StrJoin(reasons, "; "), ")"));
+  return absl::UnavailableError(absl::StrCat("no diffusion worker answered after ", options_.max_rounds, " rounds (",
+                                             absl::StrJoin(reasons, "; "), ")"));
 }
 
 }  // namespace gaps

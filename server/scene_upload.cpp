@@ -7,8 +7,8 @@
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/ply.h"
-#include "gs_trainer/scene/scene.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/scene.h"
 #include "rpc/codec.h"
 #include "server/job_config.h"
 
@@ -36,8 +36,8 @@ nlohmann::json frame_json(const Camera& c, const std::string& file) {
   nlohmann::json m = nlohmann::json::array();
   for (int r = 0; r < 3; ++r) m.push_back({c2w(r, 0), c2w(r, 1), c2w(r, 2), centre(r)});
   m.push_back({0.0, 0.0, 0.0, 1.0});
-  return {{"file_path", file}, {"transform_matrix", m}, {"fl_x", c.fx}, {"fl_y", c.fy},
-          {"cx", c.cx},        {"cy", c.cy},           {"w", c.width},  {"h", c.height}};
+  return {{"file_path", file}, {"transform_matrix", m}, {"fl_x", c.fx}, {"fl_y", c.fy}, {"cx", c.cx},
+          {"cy", c.cy},        {"w", c.width},          {"h", c.height}};
 }
 
 }  // namespace
@@ -47,10 +47,12 @@ absl::Status write_uploaded_scene(const SceneUpload& upload, const fs::path& sce
   const int cameras = spec.cameras_size(), images = static_cast<int>(upload.images.size());
   if (cameras == 0) return absl::InvalidArgumentError("the upload has no cameras");
   if (cameras != images)
-    return absl::InvalidArgumentError(absl::StrCat("camera count mismatch: ", cameras, " cameras for ", images, " images"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("camera count mismatch: ", cameras, " cameras for ", images, " images"));
   GAPS_RETURN_IF_ERROR(invalid(run_options_from_proto(spec.config(), spec.has_points(), "").status()));
   if (auto split = benchmark_split(cameras, spec.config().views()); !split.ok())
-    return absl::InvalidArgumentError(absl::StrCat("config: views ", spec.config().views(), ": ", split.status().message()));
+    return absl::InvalidArgumentError(
+        absl::StrCat("config: views ", spec.config().views(), ": ", split.status().message()));
 
   std::vector<Camera> decoded;
   std::set<std::string> names;
@@ -119,7 +121,8 @@ absl::Status UploadAssembler::add(const v1::FileChunk& chunk) {
 
 absl::Status UploadAssembler::finish() const {
   if (complete_images_ != static_cast<int>(upload_->images.size()))
-    return absl::InvalidArgumentError(absl::StrCat("image ", upload_->images.size() - 1, " is incomplete (no last chunk)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("image ", upload_->images.size() - 1, " is incomplete (no last chunk)"));
   if (upload_->spec.has_points() && !points_complete_)
     return absl::InvalidArgumentError("the announced point cloud is missing or incomplete");
   return absl::OkStatus();

@@ -27,7 +27,8 @@ ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
 ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
-ABSL_FLAG(std::string, tls_client_ca, "", "CA certificate that must have signed every client's certificate (mutual TLS)");
+ABSL_FLAG(std::string, tls_client_ca, "",
+          "CA certificate that must have signed every client's certificate (mutual TLS)");
 ABSL_FLAG(std::string, worker_token_file, "", "token sent to the workers (default: the trainer's own token)");
 ABSL_FLAG(std::string, worker_tls_ca, "", "CA certificate of the workers' TLS (default: plaintext)");
 ABSL_FLAG(std::string, worker_tls_server_name, "", "name the workers' certificates are checked against");
@@ -75,8 +76,9 @@ int main(int argc, char** argv) {
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
     options.workers.addresses.emplace_back(a);
-  options.workers.security = {worker_token, absl::GetFlag(FLAGS_worker_tls_ca), absl::GetFlag(FLAGS_worker_tls_server_name),
-                              absl::GetFlag(FLAGS_worker_tls_cert), absl::GetFlag(FLAGS_worker_tls_key)};
+  options.workers.security = {worker_token, absl::GetFlag(FLAGS_worker_tls_ca),
+                              absl::GetFlag(FLAGS_worker_tls_server_name), absl::GetFlag(FLAGS_worker_tls_cert),
+                              absl::GetFlag(FLAGS_worker_tls_key)};
   options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));
   options.workers.max_rounds = absl::GetFlag(FLAGS_worker_rounds);
   auto service = gaps::TrainerService::create(options);

@@ -11,11 +11,11 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "gs_trainer/model/gaussians.h"
 #include "common/io_util.h"
-#include "gs_trainer/pipeline.h"
-#include "gs_trainer/model/render.h"
 #include "common/status_macros.h"
+#include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/model/render.h"
+#include "gs_trainer/pipeline.h"
 #include "rpc/codec.h"
 #include "rpc/security.h"
 #include "server/job_config.h"
@@ -70,7 +70,6 @@ std::vector<JobStore::Artifact> list_artifacts(const fs::path& out_dir) {
   return out;
 }
 
-
 }  // namespace
 
 TrainerService::TrainerService(TrainerServiceOptions options, std::unique_ptr<JobStore> store)
@@ -101,8 +100,10 @@ absl::Status TrainerService::start() {
         job.set_state(v1::QUEUED);
         GAPS_RETURN_IF_ERROR(store_->update(job));
         v1::JobEvent e = event_for(job.job_id());
-        e.set_log(absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from "
-                               "the start without one (resume ", job.resumes(), ")"));
+        e.set_log(
+            absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from "
+                         "the start without one (resume ",
+                         job.resumes(), ")"));
         publish(e);
       }
       enqueue(job.job_id());
@@ -134,7 +135,8 @@ void TrainerService::enqueue(const std::string& job_id) {
 
 void TrainerService::publish(v1::JobEvent event) {
   const absl::StatusOr<int64_t> seq = store_->append_event(event);
-  if (!seq.ok()) std::cerr << "gaps-trainer: cannot record an event of " << event.job_id() << ": " << seq.status() << "\n";
+  if (!seq.ok())
+    std::cerr << "gaps-trainer: cannot record an event of " << event.job_id() << ": " << seq.status() << "\n";
   events_changed_.notify_all();
 }
 
@@ -178,9 +180,12 @@ void TrainerService::run_job(const std::string& job_id) {
   (void)store_->set_artifacts(job_id, artifacts);
   (void)store_->update(final_status);
   v1::JobEvent done = event_for(job_id);
-  if (final_status.state() == v1::SUCCEEDED) *done.mutable_finished() = final_status;
-  else if (final_status.state() == v1::CANCELLED) *done.mutable_cancelled() = final_status;
-  else *done.mutable_failed() = final_status;
+  if (final_status.state() == v1::SUCCEEDED)
+    *done.mutable_finished() = final_status;
+  else if (final_status.state() == v1::CANCELLED)
+    *done.mutable_cancelled() = final_status;
+  else
+    *done.mutable_failed() = final_status;
   publish(done);
   std::lock_guard<std::mutex> lock(mutex_);
   cancel_flags_.erase(job_id);
@@ -196,7 +201,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
   };
   absl::StatusOr<v1::JobSpec> spec = store_->spec(job_id);
   if (!spec.ok()) return fail(spec.status());
-  absl::StatusOr<RunOptions> options = run_options_from_proto(spec->config(), spec->has_points(), dir / "scene" / "points.ply");
+  absl::StatusOr<RunOptions> options =
+      run_options_from_proto(spec->config(), spec->has_points(), dir / "scene" / "points.ply");
   if (!options.ok()) return fail(options.status());
   RunOptions& o = *options;
   o.scene_dir = dir / "scene";
@@ -206,8 +212,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
   std::unique_ptr<RemoteGenerator> generator;
   if (o.variant != Variant::kVanilla) {
     if (options_.workers.addresses.empty())
-      return fail(absl::FailedPreconditionError(absl::StrCat("variant ", variant_name(o.variant),
-                                                             " needs diffusion workers (start the trainer with --workers)")));
+      return fail(absl::FailedPreconditionError(absl::StrCat(
+          "variant ", variant_name(o.variant), " needs diffusion workers (start the trainer with --workers)")));
     WorkerPoolOptions pool = options_.workers;
     pool.scene_id = job_id;
     absl::StatusOr<std::unique_ptr<RemoteGenerator>> made = RemoteGenerator::create(pool);
@@ -224,8 +230,10 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
   o.should_stop = [&] { return cancelled.load() || stop_training_.load(); };
   o.on_phase = [&](const std::string& what, const nlohmann::json& entry) {
     v1::JobEvent e = event_for(job_id);
-    if (what == "started") *e.mutable_phase_started() = phase_event(entry);
-    else *e.mutable_phase_finished() = phase_event(entry);
+    if (what == "started")
+      *e.mutable_phase_started() = phase_event(entry);
+    else
+      *e.mutable_phase_finished() = phase_event(entry);
     publish(e);
     if (what == "skipped") {
       v1::JobEvent warning = event_for(job_id);
@@ -284,7 +292,8 @@ grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::Serve
   upload.spec = part.spec();
   UploadAssembler assembler(&upload, options_.max_upload_bytes);
   while (reader->Read(&part)) {
-    if (!part.has_file()) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only file chunks may follow the JobSpec");
+    if (!part.has_file())
+      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only file chunks may follow the JobSpec");
     if (auto st = assembler.add(part.file()); !st.ok()) return rpc::to_grpc(st);
   }
   if (auto st = assembler.finish(); !st.ok()) return rpc::to_grpc(st);
@@ -355,8 +364,9 @@ grpc::Status TrainerService::CancelJob(grpc::ServerContext* context, const v1::C
   absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
   if (!job.ok()) return rpc::to_grpc(job.status());
   if (terminal(job->state()))
-    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                        absl::StrCat("job ", request->job_id(), " already ended (", v1::JobState_Name(job->state()), ")"));
+    return grpc::Status(
+        grpc::StatusCode::FAILED_PRECONDITION,
+        absl::StrCat("job ", request->job_id(), " already ended (", v1::JobState_Name(job->state()), ")"));
   bool queued = false;
   {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -395,7 +405,8 @@ grpc::Status TrainerService::FetchArtifacts(grpc::ServerContext* context, const 
   const fs::path out = job_dir(request->job_id()) / "out";
   for (const auto& a : *artifacts) {
     std::ifstream file(out / a.path, std::ios::binary);
-    if (!file) return grpc::Status(grpc::StatusCode::DATA_LOSS, absl::StrCat("artifact ", a.path, " is missing on disk"));
+    if (!file)
+      return grpc::Status(grpc::StatusCode::DATA_LOSS, absl::StrCat("artifact ", a.path, " is missing on disk"));
     std::string buffer(rpc::kChunkBytes, '\0');
     do {
       file.read(buffer.data(), buffer.size());
@@ -415,7 +426,8 @@ grpc::Status TrainerService::RenderView(grpc::ServerContext* context, const v1::
   absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
   if (!job.ok()) return rpc::to_grpc(job.status());
   if (job->state() != v1::SUCCEEDED)
-    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, absl::StrCat("job ", request->job_id(), " has no finished model"));
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                        absl::StrCat("job ", request->job_id(), " has no finished model"));
   absl::StatusOr<Camera> camera = rpc::decode_camera(request->camera(), "camera");
   if (!camera.ok()) return rpc::to_grpc(camera.status());
   absl::StatusOr<GaussianModel> model = load_gaussians_ply(job_dir(request->job_id()) / "out" / "point_cloud.ply");

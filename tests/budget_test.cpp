@@ -6,8 +6,8 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/train/budget.h"
 #include "gs_trainer/eval/image_stats.h"
+#include "gs_trainer/train/budget.h"
 #include "gs_trainer/train/trainer.h"
 #include "tests/synthetic_run.h"
 #include "tests/test_util.h"

@@ -6,8 +6,8 @@
 #include <string>
 
 #include <ATen/ATen.h>
-#include <Eigen/Geometry>
 #include <gtest/gtest.h>
+#include <Eigen/Geometry>
 
 #include "tests/test_util.h"
 
@@ -71,7 +71,6 @@ std::string points_bin() {
   return b.s;
 }
 
-
 void expect_models_equal(const ColmapModel& a, const ColmapModel& b) {
   ASSERT_EQ(a.cameras.size(), b.cameras.size());
   for (const auto& [id, cam] : a.cameras) {
@@ -107,7 +106,6 @@ void expect_models_equal(const ColmapModel& a, const ColmapModel& b) {
 
 class ColmapTest : public test::TempDirTest {
  protected:
-
   fs::path write_bin_model(const fs::path& relative) {
     write(relative / "cameras.bin", cameras_bin());
     write(relative / "images.bin", images_bin());
@@ -120,11 +118,10 @@ class ColmapTest : public test::TempDirTest {
     fs::create_directories(dir_ / folder);
     const at::Tensor x = at::linspace(0, 1, width).view({1, width, 1});
     const at::Tensor y = at::linspace(0, 1, height).view({height, 1, 1});
-    const at::Tensor image = at::cat({x.expand({height, width, 1}), y.expand({height, width, 1}),
-                                      (x * y).expand({height, width, 1})}, 2);
+    const at::Tensor image =
+        at::cat({x.expand({height, width, 1}), y.expand({height, width, 1}), (x * y).expand({height, width, 1})}, 2);
     for (const std::string& name : names) ASSERT_TRUE(write_png(dir_ / folder / name, image).ok());
   }
-
 };
 
 TEST_F(ColmapTest, ReadsHandWrittenBinaryModel) {

@@ -9,9 +9,9 @@
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
+#include "common/safetensors.h"
 #include "diffusion_worker/depth/depth_cache.h"
 #include "diffusion_worker/sdxl/model_folder.h"
-#include "common/safetensors.h"
 #include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
 
@@ -148,10 +148,10 @@ TEST(DepthAnythingLoadTest, MissingMisshapedAndUnexpectedTensorsAreNamed) {
   weights["head.conv4.weight"] = at::zeros({1});
   const auto model = from_config(model_json("config.json"), std::move(weights));
   ASSERT_FALSE(model.ok());
-  EXPECT_TRUE(contains_all(std::string(model.status().message()),
-                           {"test weights", "1 missing: neck.convs.2.weight [8, 24, 3, 3]",
-                            "1 mis-shaped: head.conv3.bias (checkpoint [2], config expects [1])",
-                            "1 unexpected: head.conv4.weight"}));
+  EXPECT_TRUE(contains_all(
+      std::string(model.status().message()),
+      {"test weights", "1 missing: neck.convs.2.weight [8, 24, 3, 3]",
+       "1 mis-shaped: head.conv3.bias (checkpoint [2], config expects [1])", "1 unexpected: head.conv4.weight"}));
 }
 
 class DepthAnythingFolderTest : public test::TempDirTest {};
@@ -351,7 +351,8 @@ TEST_F(DepthCacheTest, RefusesBadIdsFailedAndMisSizedComputations) {
   EXPECT_FALSE(cache.get_or_compute("../x", "v", 2, 3, counting(&calls, map)).ok());
   EXPECT_EQ(calls, 0);
 
-  const auto failed = cache.get_or_compute("fern", "v", 2, 3, [] { return absl::StatusOr<at::Tensor>(absl::InternalError("no model")); });
+  const auto failed = cache.get_or_compute("fern", "v", 2, 3,
+                                           [] { return absl::StatusOr<at::Tensor>(absl::InternalError("no model")); });
   ASSERT_FALSE(failed.ok());
   EXPECT_EQ(failed.status().message(), "no model");
   const auto mis_sized = cache.get_or_compute("fern", "v", 4, 3, counting(&calls, map));

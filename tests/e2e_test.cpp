@@ -24,7 +24,8 @@ struct Recorded {
 
 Recorded run(RunOptions o) {
   Recorded r;
-  auto result = run_pipeline(o, [&](const TrainProgress& p) { r.progress.push_back(p); }, [](const std::string&) {});
+  auto result = run_pipeline(
+      o, [&](const TrainProgress& p) { r.progress.push_back(p); }, [](const std::string&) {});
   EXPECT_TRUE(result.ok()) << result.status();
   if (result.ok()) r.result = *result;
   return r;
@@ -34,8 +35,8 @@ void expect_outputs(const std::filesystem::path& out, int test_views) {
   std::ifstream f(out / "metrics.json");
   ASSERT_TRUE(f.good());
   const auto j = nlohmann::json::parse(f);
-  for (const char* key : {"psnr", "ssim", "lpips", "num_gaussians", "train_seconds", "iterations", "views",
-                          "device", "seed"})
+  for (const char* key :
+       {"psnr", "ssim", "lpips", "num_gaussians", "train_seconds", "iterations", "views", "device", "seed"})
     EXPECT_TRUE(j.contains(key)) << key;
   EXPECT_TRUE(j["lpips"].is_null()) << "no LPIPS backbone was given, so LPIPS must be null";
   EXPECT_EQ(j.value("init_method", ""), "random");  // both runs below start from random points

@@ -34,7 +34,8 @@ TEST(Admission, AcceptsCoveredConsistentViews) {
 
 TEST(Admission, RejectsLowCoverage) {
   const GapsConfig c;
-  const AdmissionDecision d = admit_pseudo_view(flat(2, 2, 0.25), flat(2, 2, 0.125), at::full({2, 2}, 0.125, kDouble), c);
+  const AdmissionDecision d =
+      admit_pseudo_view(flat(2, 2, 0.25), flat(2, 2, 0.125), at::full({2, 2}, 0.125, kDouble), c);
   EXPECT_FALSE(d.admitted);
   EXPECT_TRUE(contains(d.reason, "coverage")) << d.reason;
   EXPECT_FALSE(contains(d.reason, "consistency")) << d.reason;
@@ -91,10 +92,10 @@ TEST(Uncertainty, ConfidenceWeight) {
   const at::Tensor alpha = at::tensor({1.0, 0.5, 1.0, 0.0}, kDouble).view({2, 2});
   const at::Tensor w = confidence_weight(alpha, expected_u(), c);
   // max u = 1: w = α (1 - 0.7 u / (1 + 1e-6)).
-  EXPECT_NEAR(w[0][0].item<double>(), 1.0, 1e-12);                             // u = 0
-  EXPECT_NEAR(w[0][1].item<double>(), 0.5 * (1 - 0.35 / 1.000001), 1e-12);     // ≈ 0.325
-  EXPECT_NEAR(w[1][0].item<double>(), 1.0 * (1 - 0.175 / 1.000001), 1e-12);    // ≈ 0.825
-  EXPECT_NEAR(w[1][1].item<double>(), 0.0, 1e-12);                             // no coverage
+  EXPECT_NEAR(w[0][0].item<double>(), 1.0, 1e-12);                           // u = 0
+  EXPECT_NEAR(w[0][1].item<double>(), 0.5 * (1 - 0.35 / 1.000001), 1e-12);   // ≈ 0.325
+  EXPECT_NEAR(w[1][0].item<double>(), 1.0 * (1 - 0.175 / 1.000001), 1e-12);  // ≈ 0.825
+  EXPECT_NEAR(w[1][1].item<double>(), 0.0, 1e-12);                           // no coverage
   EXPECT_NEAR(w[0][1].item<double>(), 0.325, 1e-6);
   EXPECT_NEAR(w[1][0].item<double>(), 0.825, 1e-6);
   // Where the residual is largest the weight is (1 - λ_u) of the alpha, never negative.

@@ -12,10 +12,10 @@
 #include <Eigen/Geometry>
 #include <nlohmann/json.hpp>
 
+#include "gs_trainer/eval/image_stats.h"
 #include "gs_trainer/gaps/config.h"
 #include "gs_trainer/gaps/pose.h"
 #include "gs_trainer/gaps/scores.h"
-#include "gs_trainer/eval/image_stats.h"
 
 namespace gaps {
 namespace {
@@ -91,10 +91,12 @@ TEST(GapsConfig, JsonRoundTripAndUnknownKeyIsAnError) {
 TEST(GapsConfig, InvalidTiersAreRejected) {
   // Tier 1 must contain tier 0.
   EXPECT_THROW((nlohmann::json({{"tier_alpha_min", nlohmann::json::array({0.0, 0.1})},
-                                              {"tier_alpha_max", nlohmann::json::array({1.0, 1.2})}}).get<GapsConfig>()),
+                                {"tier_alpha_max", nlohmann::json::array({1.0, 1.2})}})
+                    .get<GapsConfig>()),
                nlohmann::json::other_error);
   // Unequal lengths.
-  EXPECT_THROW((nlohmann::json({{"tier_alpha_min", nlohmann::json::array({0.0})}}).get<GapsConfig>()), nlohmann::json::other_error);
+  EXPECT_THROW((nlohmann::json({{"tier_alpha_min", nlohmann::json::array({0.0})}}).get<GapsConfig>()),
+               nlohmann::json::other_error);
   GapsConfig c;
   c.drop_max = 1.0;  // 1/(1-r) would divide by zero
   EXPECT_FALSE(validate_gaps_config(c).ok());
@@ -304,9 +306,9 @@ TEST(LocalEntropy, TwoLevelCheckerboard) {
   const double log2_9 = 3.169925001442312;
 
   const at::Tensor h = local_entropy_map(grey_image(board), 16);
-  EXPECT_NEAR(h[0][0].item<double>(), 1.0 / log2_9, 1e-9);   // corner
-  EXPECT_NEAR(h[0][2].item<double>(), 1.0 / log2_9, 1e-9);   // edge
-  EXPECT_NEAR(h[1][1].item<double>(), h9 / log2_9, 1e-9);    // interior
+  EXPECT_NEAR(h[0][0].item<double>(), 1.0 / log2_9, 1e-9);  // corner
+  EXPECT_NEAR(h[0][2].item<double>(), 1.0 / log2_9, 1e-9);  // edge
+  EXPECT_NEAR(h[1][1].item<double>(), h9 / log2_9, 1e-9);   // interior
   EXPECT_NEAR(h[2][1].item<double>(), h9 / log2_9, 1e-9);
   EXPECT_NEAR(h.mean().item<double>(), (12 * 1.0 + 4 * h9) / 16 / log2_9, 1e-9);
   // With 2 bins the most a window can hold is 1 bit, so the map is in bits.
@@ -354,7 +356,7 @@ CandidateMeasurements example_measurements() {
 TEST(GapsScore, Novelty) {
   const GapsConfig c;
   EXPECT_DOUBLE_EQ(novelty(0.0, c), 0.0);
-  EXPECT_DOUBLE_EQ(novelty(0.25, c), 0.8);  // 4 · 0.25 / 1.25
+  EXPECT_DOUBLE_EQ(novelty(0.25, c), 0.8);       // 4 · 0.25 / 1.25
   EXPECT_DOUBLE_EQ(novelty(1.0 / 3.0, c), 1.0);  // saturates at d = 1/3
   EXPECT_DOUBLE_EQ(novelty(2.0, c), 1.0);
 }
@@ -423,9 +425,9 @@ TEST(GapsSelection, GreedyRespectsDiversityAndPairCap) {
   GapsConfig c;
   c.n_active = 4;  // two pairs -> cap ceil(4 / 2) = 2
   // Pool positions shuffled against score order 1, 3, 5, 4, 0, 6, 2.
-  const std::vector<Candidate> pool = {
-      candidate_at(3.0, 1), candidate_at(0.0, 0), candidate_at(5.0, 1), candidate_at(0.1, 1),
-      candidate_at(2.0, 0), candidate_at(1.0, 0), candidate_at(4.0, 1)};
+  const std::vector<Candidate> pool = {candidate_at(3.0, 1), candidate_at(0.0, 0), candidate_at(5.0, 1),
+                                       candidate_at(0.1, 1), candidate_at(2.0, 0), candidate_at(1.0, 0),
+                                       candidate_at(4.0, 1)};
   const std::vector<double> scores = {0.5, 0.9, 0.3, 0.8, 0.6, 0.7, 0.4};
   // 1 taken; 3 is 0.1 < 0.15 from 1; 5 taken (pair 0 now full); 4 over the cap; 0 and 6 taken.
   EXPECT_EQ(select_greedy(pool, scores, c), (std::vector<int>{1, 5, 0, 6}));
@@ -493,7 +495,7 @@ TEST(GapsSelection, ExplorationEveryThirdPhase) {
 }
 
 TEST(GapsTiers, UpgradeWhenAdmittedViewsAreCertain) {
-  const GapsConfig c;  // threshold 0.05, three tiers
+  const GapsConfig c;                           // threshold 0.05, three tiers
   EXPECT_EQ(next_tier(0, {0.01, 0.03}, c), 1);  // mean 0.02 < 0.05
   EXPECT_EQ(next_tier(1, {0.04}, c), 2);
   EXPECT_EQ(next_tier(0, {0.04, 0.08}, c), 0);  // mean 0.06

@@ -135,7 +135,8 @@ TEST(GapsOnFern, TwoPhasesWithTheReprojectBackendAdmitAndStayFinite) {
   o.gaps.phase_interval = 40;
   o.n_active = 4;
   std::vector<double> losses;
-  auto r = run_pipeline(o, [&](const TrainProgress& p) { losses.push_back(p.loss); }, [](const std::string&) {});
+  auto r = run_pipeline(
+      o, [&](const TrainProgress& p) { losses.push_back(p.loss); }, [](const std::string&) {});
   ASSERT_TRUE(r.ok()) << r.status();
   for (double l : losses) EXPECT_TRUE(std::isfinite(l));
   EXPECT_TRUE(std::isfinite(r->metrics.psnr));

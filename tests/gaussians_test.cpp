@@ -6,12 +6,12 @@
 #include <unistd.h>
 
 #include <ATen/ATen.h>
-#include <Eigen/Geometry>
 #include <gtest/gtest.h>
+#include <Eigen/Geometry>
 
-#include "gs_trainer/model/gaussians.h"
 #include "common/ply.h"
 #include "common/spherical_harmonics.h"
+#include "gs_trainer/model/gaussians.h"
 
 namespace gaps {
 namespace {
@@ -117,7 +117,8 @@ TEST(GaussiansPly, ErrorsNameTheFileAndProblem) {
   const auto path = temp_path("bad.ply");
   {
     std::ofstream f(path);
-    f << "ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nend_header\n" << "abc";
+    f << "ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nend_header\n"
+      << "abc";
   }
   auto r = load_gaussians_ply(path);
   ASSERT_FALSE(r.ok());

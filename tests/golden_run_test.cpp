@@ -1,7 +1,7 @@
 // Golden output of one short run of the whole method on real data (fern, 3 views, -r 8, 300 iterations on
-// the CPU, seed 0, sparse initialisation, densification every 50 iterations, two diffusion phases with the reproject backend): PSNR, SSIM,
-// Gaussian count, admitted pseudo-views and a hash of the first test render, kept in tests/golden/.
-// Refactorings must leave it bit for bit unchanged on the machine that wrote it; elsewhere (another CPU,
+// the CPU, seed 0, sparse initialisation, densification every 50 iterations, two diffusion phases with the reproject
+// backend): PSNR, SSIM, Gaussian count, admitted pseudo-views and a hash of the first test render, kept in
+// tests/golden/. Refactorings must leave it bit for bit unchanged on the machine that wrote it; elsewhere (another CPU,
 // thread count, compiler or LibTorch) float rounding may differ, so the test then holds the run to loose
 // bounds around the golden values and says that it did.
 // Rewrite the golden file after an intended change of behaviour with GAPS_UPDATE_GOLDEN=1.
@@ -13,10 +13,10 @@
 
 #include <ATen/Parallel.h>
 #include <gtest/gtest.h>
-#include <nlohmann/json.hpp>
 #include <torch/version.h>
-#include "diffusion_worker/backend_registry.h"
+#include <nlohmann/json.hpp>
 #include "common/io_util.h"
+#include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/pipeline.h"
 #include "tests/test_util.h"
 
@@ -42,7 +42,8 @@ std::string machine_fingerprint() {
     if (line.rfind("flags", 0) == 0) flags = line.substr(line.find(':') + 2);
   }
   std::ostringstream s;
-  s << cpu << "; cpu flags " << hex(fnv1a(flags)) << "; threads " << at::get_num_threads() << "; " << __VERSION__ << "; torch " << TORCH_VERSION;
+  s << cpu << "; cpu flags " << hex(fnv1a(flags)) << "; threads " << at::get_num_threads() << "; " << __VERSION__
+    << "; torch " << TORCH_VERSION;
   return s.str();
 }
 
@@ -116,14 +117,14 @@ TEST(GoldenRun, FernThreeViewsFullMethodMatchesTheGoldenFile) {
 
   if (golden["machine"] == machine) {
     // Same machine: identical, bit for bit (JSON keeps doubles exactly).
-    for (const char* key : {"psnr", "ssim", "num_gaussians", "phases", "admitted", "first_render",
-                            "first_render_fnv1a"}) {
+    for (const char* key :
+         {"psnr", "ssim", "num_gaussians", "phases", "admitted", "first_render", "first_render_fnv1a"}) {
       EXPECT_EQ(got[key], golden[key]) << key;
     }
     return;
   }
-  std::cout << "[ golden   ] other machine than the golden file's (" << golden["machine"].get<std::string>()
-            << " vs " << machine << "): loose bounds instead of bit-for-bit equality\n";
+  std::cout << "[ golden   ] other machine than the golden file's (" << golden["machine"].get<std::string>() << " vs "
+            << machine << "): loose bounds instead of bit-for-bit equality\n";
   RecordProperty("golden_comparison", "loose");
   EXPECT_NEAR(got["psnr"].get<double>(), golden["psnr"].get<double>(), 0.5);
   EXPECT_NEAR(got["ssim"].get<double>(), golden["ssim"].get<double>(), 0.03);

@@ -57,21 +57,18 @@ std::string png_bytes(int width, int height, int bit_depth, int color_type, cons
   const size_t row_bytes = samples.size() / height;
   std::string raw;
   for (int y = 0; y < height; ++y) raw += '\0' + samples.substr(y * row_bytes, row_bytes);  // filter type 0
-  const std::string ihdr = be32(width) + be32(height) + static_cast<char>(bit_depth) +
-                           static_cast<char>(color_type) + std::string("\0\0\0", 3);
+  const std::string ihdr = be32(width) + be32(height) + static_cast<char>(bit_depth) + static_cast<char>(color_type) +
+                           std::string("\0\0\0", 3);
   return std::string("\x89PNG\r\n\x1a\n", 8) + chunk("IHDR", ihdr) + chunk("IDAT", zlib_stored(raw)) +
          chunk("IEND", "");
 }
 
-
 class ImageIoTest : public test::TempDirTest {
  protected:
-
   static void expect_names(const absl::Status& status, const fs::path& path) {
     EXPECT_FALSE(status.ok());
     EXPECT_NE(status.message().find(path.string()), absl::string_view::npos) << status;
   }
-
 };
 
 TEST_F(ImageIoTest, WritePngThenReadRoundTrips) {

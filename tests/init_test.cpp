@@ -4,30 +4,29 @@
 
 #include <chrono>
 #include <cmath>
-#include <iostream>
 #include <filesystem>
+#include <iostream>
 #include <random>
 #include <string>
 #include <vector>
 
 #include <ATen/ATen.h>
-#include <Eigen/Dense>
 #include <gtest/gtest.h>
 #include <unistd.h>
+#include <Eigen/Dense>
 
-#include "gs_trainer/scene/colmap.h"
+#include "common/io_util.h"
+#include "common/ply.h"
 #include "gs_trainer/init/plane_sweep.h"
 #include "gs_trainer/init/sparse.h"
-#include "common/io_util.h"
 #include "gs_trainer/pipeline.h"
-#include "common/ply.h"
+#include "gs_trainer/scene/colmap.h"
 #include "tests/test_util.h"
 
 namespace gaps {
 namespace {
 
 namespace fs = std::filesystem;
-
 
 // OpenCV-convention camera at `centre` looking at `target` (world y points down, like the image's).
 Camera look_at(const std::string& name, const Eigen::Vector3d& centre, const Eigen::Vector3d& target, int width,
@@ -389,9 +388,14 @@ TEST(AutoInitialisation, ViewingDirectionSpreadIsTheLargestPairwiseAngle) {
 // The benchmark scenes: fern is forward-facing, bonsai's training views surround the tree.
 TEST(AutoInitialisation, FernTakesMvsAndBonsaiTakesSparse) {
   const fs::path data(GAPS_DATA_DIR);
-  const struct { const char* path; int views; const char* method; } cases[] = {
-      {"llff/fern", 3, "mvs"}, {"llff/fern", 9, "mvs"}, {"mipnerf360/bonsai", 12, "sparse"},
-      {"mipnerf360/bonsai", 24, "sparse"}};
+  const struct {
+    const char* path;
+    int views;
+    const char* method;
+  } cases[] = {{"llff/fern", 3, "mvs"},
+               {"llff/fern", 9, "mvs"},
+               {"mipnerf360/bonsai", 12, "sparse"},
+               {"mipnerf360/bonsai", 24, "sparse"}};
   for (const auto& c : cases) {
     if (!fs::exists(data / c.path)) GTEST_SKIP() << "no benchmark data at " << data / c.path;
     SceneLoadOptions load;

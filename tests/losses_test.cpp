@@ -120,8 +120,7 @@ TEST(Ssim, ConstantShiftLeavesOnlyLuminanceTermInInterior) {
     for (int x = 5; x < w - 5; ++x) {
       for (int c = 0; c < 3; ++c) {
         const double mu = local_mean(pred, y, x, c);
-        const double expected =
-            (2 * mu * (mu + shift) + kC1) / (mu * mu + (mu + shift) * (mu + shift) + kC1);
+        const double expected = (2 * mu * (mu + shift) + kC1) / (mu * mu + (mu + shift) * (mu + shift) + kC1);
         ASSERT_NEAR(m[y][x][c], expected, 1e-12) << y << "," << x << "," << c;
       }
     }
@@ -142,8 +141,7 @@ std::pair<int, std::string> run_command(const std::string& command) {
 
 void write_raw(const std::filesystem::path& path, const at::Tensor& t) {
   at::Tensor c = t.contiguous();
-  std::ofstream(path, std::ios::binary)
-      .write(static_cast<const char*>(c.data_ptr()), c.numel() * c.element_size());
+  std::ofstream(path, std::ios::binary).write(static_cast<const char*>(c.data_ptr()), c.numel() * c.element_size());
 }
 
 at::Tensor read_raw_double(const std::filesystem::path& path, at::IntArrayRef shape) {
@@ -153,7 +151,6 @@ at::Tensor read_raw_double(const std::filesystem::path& path, at::IntArrayRef sh
   EXPECT_EQ(in.gcount(), static_cast<std::streamsize>(t.numel() * sizeof(double))) << path;
   return t;
 }
-
 
 TEST(Ssim, MatchesOriginal3dgsPythonImplementation) {
   ASSERT_TRUE(std::filesystem::exists(GAPS_PYTHON))
@@ -167,10 +164,9 @@ TEST(Ssim, MatchesOriginal3dgsPythonImplementation) {
   write_raw(dir / "pred.f64", pred);
   write_raw(dir / "gt.f64", gt);
   const std::string command = std::string(GAPS_PYTHON) + " " + GAPS_TEST_SCRIPTS_DIR +
-                              "/scripts/ssim_reference.py --pred " + (dir / "pred.f64").string() +
-                              " --gt " + (dir / "gt.f64").string() + " --shape " +
-                              std::to_string(h) + " " + std::to_string(w) + " 3 --out " +
-                              (dir / "map.f64").string();
+                              "/scripts/ssim_reference.py --pred " + (dir / "pred.f64").string() + " --gt " +
+                              (dir / "gt.f64").string() + " --shape " + std::to_string(h) + " " + std::to_string(w) +
+                              " 3 --out " + (dir / "map.f64").string();
   auto [rc, output] = run_command(command);
   ASSERT_EQ(rc, 0) << command << "\n" << output;
   at::Tensor expected = read_raw_double(dir / "map.f64", {h, w, 3});
@@ -219,8 +215,8 @@ TEST(WeightedPhotometricLoss, WeightsEachPixel) {
         dssim += wt[y][x] * (1 - m[y][x][c]);
       }
   const double n = h * w * 3;
-  EXPECT_NEAR(gaps::weighted_photometric_loss(pred, gt, weight, 0.25).item<double>(),
-              0.75 * l1 / n + 0.25 * dssim / n, 1e-14);
+  EXPECT_NEAR(gaps::weighted_photometric_loss(pred, gt, weight, 0.25).item<double>(), 0.75 * l1 / n + 0.25 * dssim / n,
+              1e-14);
 }
 
 // ---- gradients ----
@@ -228,8 +224,8 @@ TEST(WeightedPhotometricLoss, WeightsEachPixel) {
 // d loss / d pred by autograd and by central differences, on every 5th element (5 is coprime to
 // the 3 channels and the image widths, so rows, columns and channels are all sampled; float64
 // convolutions on the CPU are slow enough that all elements would take seconds per test).
-void expect_gradient_matches_finite_differences(
-    const std::function<at::Tensor(const at::Tensor&)>& loss, const at::Tensor& pred0) {
+void expect_gradient_matches_finite_differences(const std::function<at::Tensor(const at::Tensor&)>& loss,
+                                                const at::Tensor& pred0) {
   at::Tensor pred = pred0.clone().requires_grad_(true);
   loss(pred).backward();
   at::Tensor analytic = pred.grad();
@@ -262,9 +258,8 @@ TEST(Gradients, SsimMatchesFiniteDifferences) {
 
 TEST(Gradients, PhotometricLossMatchesFiniteDifferences) {
   at::Tensor gt = random_image(12, 13, 15);
-  expect_gradient_matches_finite_differences(
-      [&](const at::Tensor& p) { return gaps::photometric_loss(p, gt, 0.2); },
-      random_image(12, 13, 16));
+  expect_gradient_matches_finite_differences([&](const at::Tensor& p) { return gaps::photometric_loss(p, gt, 0.2); },
+                                             random_image(12, 13, 16));
 }
 
 TEST(Gradients, WeightedPhotometricLossMatchesFiniteDifferences) {

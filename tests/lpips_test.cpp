@@ -21,8 +21,8 @@
 #include <utility>
 #include <vector>
 
-#include "gs_trainer/eval/metrics.h"
 #include "common/torch_pickle.h"
+#include "gs_trainer/eval/metrics.h"
 
 #include "common/io_util.h"
 
@@ -32,8 +32,8 @@ namespace {
 const std::string kLinWeights = std::string(GAPS_DATA_DIR) + "/lpips/vgg.pth";
 
 // The LPIPS v0.1 linear weights come with the benchmark data (GAPS_DATA_DIR), which is never committed.
-#define REQUIRE_LIN_WEIGHTS()                                                       \
-  if (access(kLinWeights.c_str(), R_OK) != 0)                                       \
+#define REQUIRE_LIN_WEIGHTS()                 \
+  if (access(kLinWeights.c_str(), R_OK) != 0) \
   GTEST_SKIP() << kLinWeights << " is missing (benchmark data not found at GAPS_DATA_DIR)"
 
 // Exit status of tests/scripts/lpips_reference.py when a Python module it needs is missing.
@@ -45,7 +45,6 @@ std::string make_temp_dir(const std::string& stem) {
   std::string pattern = "/tmp/" + stem + "_XXXXXX";
   return mkdtemp(pattern.data()) != nullptr ? pattern : std::string();
 }
-
 
 std::string read_file(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
@@ -176,8 +175,8 @@ TEST(TorchPickle, StorageSizeMismatchIsReported) {
   write_file(dir.file("count.pth"), bytes);
   auto dict = load_torch_state_dict(dir.file("count.pth"));
   ASSERT_FALSE(dict.ok());
-  const std::string expected = std::to_string(wrong) + " elements in the data section, " +
-                               std::to_string(count) + " in the pickle";
+  const std::string expected =
+      std::to_string(wrong) + " elements in the data section, " + std::to_string(count) + " in the pickle";
   EXPECT_TRUE(contains(dict.status().message(), expected)) << dict.status();
 }
 
@@ -194,23 +193,20 @@ class PythonFixtures : public ::testing::Test {
       return;
     }
     if (access(GAPS_PYTHON, X_OK) != 0) {
-      error_ =
-          std::string("GAPS_PYTHON (") + GAPS_PYTHON +
-          ") is not an executable; run scripts/setup.sh (it installs torch, torchvision, lpips)";
+      error_ = std::string("GAPS_PYTHON (") + GAPS_PYTHON +
+               ") is not an executable; run scripts/setup.sh (it installs torch, torchvision, lpips)";
       return;
     }
     dir_ = make_temp_dir("gaps_lpips_fixtures");
     const std::string command = std::string(GAPS_PYTHON) + " " + GAPS_TEST_SCRIPTS_DIR +
-                                "/scripts/lpips_reference.py --out " + dir_ + " --lin " +
-                                kLinWeights;
+                                "/scripts/lpips_reference.py --out " + dir_ + " --lin " + kLinWeights;
     auto [rc, output] = run_command(command);
     if (rc == kMissingPythonModule) {
       skip_ = "the reference needs Python modules that " + std::string(GAPS_PYTHON) + " lacks: " + output;
       return;
     }
     if (rc != 0) {
-      error_ =
-          "fixture script failed (exit " + std::to_string(rc) + "): " + command + "\n" + output;
+      error_ = "fixture script failed (exit " + std::to_string(rc) + "): " + command + "\n" + output;
       return;
     }
     manifest_ = nlohmann::json::parse(read_file(dir_ + "/manifest.json"));
@@ -254,8 +250,8 @@ nlohmann::json PythonFixtures::manifest_;
 using TorchPickleFixtures = PythonFixtures;
 using LpipsParity = PythonFixtures;
 
-void expect_tensor(const std::map<std::string, at::Tensor>& dict, const std::string& key,
-                   const at::Tensor& expected, const std::string& file) {
+void expect_tensor(const std::map<std::string, at::Tensor>& dict, const std::string& key, const at::Tensor& expected,
+                   const std::string& file) {
   ASSERT_EQ(dict.count(key), 1u) << key << " in " << file;
   const at::Tensor& t = dict.at(key);
   EXPECT_EQ(t.scalar_type(), expected.scalar_type()) << key << " in " << file;
@@ -280,8 +276,7 @@ TEST_F(TorchPickleFixtures, ReadsViewsSharedStoragesAndDtypes) {
       {"scalar", at::scalar_tensor(2.5, at::kFloat)},
       {"empty", at::zeros({0, 3}, at::kFloat)},
       {"channels_last", at::arange(24, at::kFloat).reshape({1, 2, 3, 4})}};
-  for (const char* file :
-       {"protocol2_zip", "protocol2_legacy", "protocol4_zip", "protocol4_legacy"}) {
+  for (const char* file : {"protocol2_zip", "protocol2_legacy", "protocol4_zip", "protocol4_legacy"}) {
     const std::string name = manifest_["pickles"][file].get<std::string>();
     auto dict = load_torch_state_dict(path(name));
     ASSERT_TRUE(dict.ok()) << dict.status();
@@ -297,8 +292,7 @@ TEST_F(TorchPickleFixtures, NonTensorEntryIsNamed) {
   const std::string file = path(manifest_["pickles"]["not_state_dict"].get<std::string>());
   auto dict = load_torch_state_dict(file);
   ASSERT_FALSE(dict.ok());
-  EXPECT_TRUE(contains(dict.status().message(), "entry 'epoch' is not a tensor (found int)"))
-      << dict.status();
+  EXPECT_TRUE(contains(dict.status().message(), "entry 'epoch' is not a tensor (found int)")) << dict.status();
 }
 
 TEST_F(TorchPickleFixtures, ZipAndLegacyBackbonesAgreeAndTruncationsFail) {
@@ -326,8 +320,7 @@ TEST_F(TorchPickleFixtures, ZipAndLegacyBackbonesAgreeAndTruncationsFail) {
   }
 }
 
-class LpipsParityByFormat : public PythonFixtures,
-                            public ::testing::WithParamInterface<const char*> {};
+class LpipsParityByFormat : public PythonFixtures, public ::testing::WithParamInterface<const char*> {};
 
 TEST_P(LpipsParityByFormat, MatchesPythonLpipsOnRandomBackbone) {
   Lpips lpips = load_lpips(GetParam());
@@ -335,8 +328,7 @@ TEST_P(LpipsParityByFormat, MatchesPythonLpipsOnRandomBackbone) {
   ASSERT_GE(manifest_["pairs"].size(), 4u);
   for (const nlohmann::json& pair : manifest_["pairs"]) {
     const double expected = pair["distance"].get<double>();
-    const double actual =
-        lpips.distance(read_image(pair, "a"), read_image(pair, "b")).item<double>();
+    const double actual = lpips.distance(read_image(pair, "a"), read_image(pair, "b")).item<double>();
     EXPECT_NEAR(actual, expected, 1e-5 * std::abs(expected) + 1e-9)
         << pair["height"] << "x" << pair["width"] << " pair from the " << GetParam() << " file";
   }
@@ -390,18 +382,14 @@ TEST_F(LpipsParity, BrokenBackbonesNameTheKey) {
     auto lpips = Lpips::load(kLinWeights, file);
     ASSERT_FALSE(lpips.ok()) << kind;
     EXPECT_EQ(lpips.status().code(), absl::StatusCode::kInvalidArgument) << lpips.status();
-    EXPECT_TRUE(contains(lpips.status().message(), bad["key"].get<std::string>()))
-        << lpips.status();
+    EXPECT_TRUE(contains(lpips.status().message(), bad["key"].get<std::string>())) << lpips.status();
     EXPECT_TRUE(contains(lpips.status().message(), file)) << lpips.status();
   }
-  auto shape = Lpips::load(kLinWeights,
-                           path(manifest_["bad_backbones"]["shape"]["file"].get<std::string>()));
-  EXPECT_TRUE(contains(shape.status().message(), "[256,128,5,5], expected [256,128,3,3]"))
-      << shape.status();
+  auto shape = Lpips::load(kLinWeights, path(manifest_["bad_backbones"]["shape"]["file"].get<std::string>()));
+  EXPECT_TRUE(contains(shape.status().message(), "[256,128,5,5], expected [256,128,3,3]")) << shape.status();
   // A backbone given as the linear-weights file: the first lin key is missing.
   auto swapped = Lpips::load(backbone("zip"), backbone("zip"));
-  EXPECT_TRUE(contains(swapped.status().message(), "missing key lin0.model.1.weight"))
-      << swapped.status();
+  EXPECT_TRUE(contains(swapped.status().message(), "missing key lin0.model.1.weight")) << swapped.status();
   auto absent = Lpips::load(kLinWeights, path("no_such_backbone.pth"));
   EXPECT_EQ(absent.status().code(), absl::StatusCode::kNotFound) << absent.status();
 }

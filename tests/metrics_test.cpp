@@ -60,8 +60,7 @@ TEST(SsimMetric, EqualsTrainingSsimOnClampedImages) {
   at::Tensor pred = 0.7 * gt + 0.3 * random_image(24, 20, 7);
   EXPECT_NEAR(ssim_metric(pred, gt), gaps::ssim(pred, gt).item<double>(), 1e-7);
   at::Tensor out_of_range = pred * 1.6 - 0.3;
-  EXPECT_NEAR(ssim_metric(out_of_range, gt),
-              gaps::ssim(out_of_range.clamp(0, 1), gt).item<double>(), 1e-7);
+  EXPECT_NEAR(ssim_metric(out_of_range, gt), gaps::ssim(out_of_range.clamp(0, 1), gt).item<double>(), 1e-7);
   EXPECT_NE(ssim_metric(out_of_range, gt), gaps::ssim(out_of_range, gt).item<double>());
 }
 

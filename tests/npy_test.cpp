@@ -41,10 +41,8 @@ std::string dict(const std::string& descr, const std::string& shape, bool fortra
   return "{'descr': '" + descr + "', 'fortran_order': " + (fortran ? "True" : "False") + ", 'shape': " + shape + ", }";
 }
 
-
 class NpyTest : public test::TempDirTest {
  protected:
-
 };
 
 TEST_F(NpyTest, ReadsFloat64Version1) {

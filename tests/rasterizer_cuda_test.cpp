@@ -19,13 +19,13 @@
 #include <vector>
 
 #include <ATen/ATen.h>
-#include <Eigen/Geometry>
 #include <gtest/gtest.h>
+#include <Eigen/Geometry>
 
 #include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/model/render.h"
 #include "gs_trainer/raster/rasterize_backend.h"
 #include "gs_trainer/raster/rasterizer.h"
-#include "gs_trainer/model/render.h"
 #include "gs_trainer/scene/scene.h"
 
 namespace gaps {
@@ -115,8 +115,7 @@ RandomScene make_scene(const SceneSpec& spec) {
     for (int c = 0; c < 3; ++c) s.viewmat[r][c] = R(r, c);
   s.viewmat[0][3] = 0.05;
   s.viewmat[2][3] = 0.3;
-  s.K = {0.9 * spec.width, 0.9 * spec.width, 0.5 * spec.width + 0.7, 0.5 * spec.height - 0.4, spec.width,
-         spec.height};
+  s.K = {0.9 * spec.width, 0.9 * spec.width, 0.5 * spec.width + 0.7, 0.5 * spec.height - 0.4, spec.width, spec.height};
   return s;
 }
 
@@ -145,13 +144,15 @@ SceneResult render_with_grads(const RandomScene& scene, const at::Device& device
   const int64_t n = s.means.size(0);
   at::Tensor sink = with_sink ? at::zeros({n, 2}, s.means.options()) : at::Tensor();
   auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
-  auto out = rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width,
-                                 s.K.height, sink);
+  auto out =
+      rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width, s.K.height, sink);
   ((out.features * r1.to(device, dtype)).sum() + (out.alpha * r2.to(device, dtype)).sum()).backward();
   auto host = [](const at::Tensor& t) { return t.detach().cpu().to(at::kDouble); };
   SceneResult r{host(out.features), host(out.alpha), {}};
-  r.grads = {{"means", host(s.means.grad())},         {"quats", host(s.quats.grad())},
-             {"scales", host(s.scales.grad())},       {"opacities", host(s.opacities.grad())},
+  r.grads = {{"means", host(s.means.grad())},
+             {"quats", host(s.quats.grad())},
+             {"scales", host(s.scales.grad())},
+             {"opacities", host(s.opacities.grad())},
              {"features", host(s.features.grad())}};
   if (with_sink) r.grads.push_back({"means2d_abs (sink)", host(sink)});
   return r;
@@ -190,8 +191,8 @@ TEST(RasterizerCuda, ProjectionAndTileListsMatchCpuExactly) {
   expect_close("projection depths", pg.depths, pc.depths, 1e-6, 1e-6);
 
   // Binning the same projection on both devices: identical lists, entry for entry.
-  const auto bc = backend::bin_tiles_cpu(pc.means2d, pc.conics, cpu.opacities, pc.radii, pc.depths, cpu.K.width,
-                                         cpu.K.height);
+  const auto bc =
+      backend::bin_tiles_cpu(pc.means2d, pc.conics, cpu.opacities, pc.radii, pc.depths, cpu.K.width, cpu.K.height);
   const auto bg = backend::bin_tiles_cuda(pc.means2d.to(kCuda), pc.conics.to(kCuda), gpu.opacities, pc.radii.to(kCuda),
                                           pc.depths.to(kCuda), cpu.K.width, cpu.K.height);
   EXPECT_TRUE(at::equal(bg.gaussian_ids.cpu(), bc.gaussian_ids)) << "tile lists";
@@ -305,8 +306,7 @@ TEST(RasterizerCuda, ForwardIsDeterministic) {
   const RandomScene s = to(make_scene(kWide), kCuda, at::kFloat);
   auto render_once = [&] {
     auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
-    return rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width,
-                               s.K.height);
+    return rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width, s.K.height);
   };
   const auto a = render_once(), b = render_once();
   EXPECT_TRUE(at::equal(a.features, b.features));
@@ -321,8 +321,8 @@ TEST(RasterizerCuda, NothingVisibleGivesEmptyImageAndZeroGradients) {
   s.means.requires_grad_(true);
   s.opacities.requires_grad_(true);
   auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
-  auto out = rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width,
-                                 s.K.height);
+  auto out =
+      rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width, s.K.height);
   EXPECT_EQ(out.features.abs().max().item<float>(), 0.f);
   EXPECT_EQ(out.alpha.abs().max().item<float>(), 0.f);
   (out.features.sum() + out.alpha.sum()).backward();
@@ -355,8 +355,7 @@ FernResult render_fern(const GaussianModel& cpu_model, const Camera& camera, con
   RenderOptions options;
   options.means2d_abs_sink = at::zeros({model.size(), 2}, model.means.options());
   const RenderOutput out = render(model, camera, options);
-  ((out.rgb * r_rgb.to(device)).sum() + (out.depth * r_depth.to(device)).sum() +
-   (out.alpha * r_alpha.to(device)).sum())
+  ((out.rgb * r_rgb.to(device)).sum() + (out.depth * r_depth.to(device)).sum() + (out.alpha * r_alpha.to(device)).sum())
       .backward();
   auto host = [](const at::Tensor& t) { return t.detach().cpu().to(at::kDouble); };
   FernResult r{host(out.rgb), host(out.depth), host(out.alpha), {}};
@@ -407,9 +406,7 @@ class RasterizerCudaFern : public ::testing::Test {
   GaussianModel model_;
 };
 
-TEST_F(RasterizerCudaFern, RandomInitialisationMatchesCpu) {
-  compare_fern("fern 20k init", model_, camera_);
-}
+TEST_F(RasterizerCudaFern, RandomInitialisationMatchesCpu) { compare_fern("fern 20k init", model_, camera_); }
 
 // Nearly opaque Gaussians: most pixels saturate, so early termination and the alpha clamp dominate.
 TEST_F(RasterizerCudaFern, OpaqueGaussiansMatchCpu) {

@@ -6,8 +6,8 @@
 #include <vector>
 
 #include <ATen/ATen.h>
-#include <Eigen/Dense>
 #include <gtest/gtest.h>
+#include <Eigen/Dense>
 
 #include "gs_trainer/raster/rasterize_backend.h"
 #include "gs_trainer/raster/rasterizer.h"
@@ -57,7 +57,11 @@ Reference reference_render(const RandomScene& s) {
     for (int c = 0; c < 3; ++c) Wr(r, c) = vd[r][c].item<double>();
     t(r) = vd[r][3].item<double>();
   }
-  struct G2 { double z, mx, my; Eigen::Matrix2d conic; double radius; };
+  struct G2 {
+    double z, mx, my;
+    Eigen::Matrix2d conic;
+    double radius;
+  };
   std::vector<G2> gs(n);
   for (int i = 0; i < n; ++i) {
     Eigen::Vector3d mu(md[i][0].item<double>(), md[i][1].item<double>(), md[i][2].item<double>());
@@ -105,8 +109,7 @@ Reference reference_render(const RandomScene& s) {
 
 RasterizedImage render(const RandomScene& s) {
   auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
-  return rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width,
-                             s.K.height);
+  return rasterize_gaussians(p.means2d, p.conics, s.opacities, s.features, p.depths, p.radii, s.K.width, s.K.height);
 }
 
 TEST(Rasterizer, ForwardMatchesSlowReference) {
@@ -123,7 +126,7 @@ TEST(Rasterizer, ForwardMatchesSlowReference) {
 // (tile, Gaussian) pairs than their 3-sigma squares.
 TEST(Rasterizer, OpacityAwareTilesLoseNoContribution) {
   auto s = make_scene(150, 64, 48, at::kDouble, 13);
-  s.opacities = at::rand({150}, at::kDouble) * 0.05 + 0.0035;  // 0.9 to 13.6 times the 1/255 threshold
+  s.opacities = at::rand({150}, at::kDouble) * 0.05 + 0.0035;      // 0.9 to 13.6 times the 1/255 threshold
   s.scales = s.scales * at::tensor({1.0, 0.2, 0.6}, at::kDouble);  // elongated
   const auto out = render(s);
   const auto ref = reference_render(s);
@@ -140,8 +143,7 @@ TEST(Rasterizer, OpacityAwareTilesLoseNoContribution) {
 TEST(Rasterizer, FloatMatchesDouble) {
   const auto sd = make_scene(200, 64, 48, at::kDouble, 11);
   RandomScene sf = sd;
-  for (auto* t : {&sf.means, &sf.quats, &sf.scales, &sf.opacities, &sf.features, &sf.viewmat})
-    *t = t->to(at::kFloat);
+  for (auto* t : {&sf.means, &sf.quats, &sf.scales, &sf.opacities, &sf.features, &sf.viewmat}) *t = t->to(at::kFloat);
   const auto a = render(sd), b = render(sf);
   EXPECT_LT((a.features - b.features.to(at::kDouble)).abs().max().item<double>(), 1e-4);
   EXPECT_LT((a.alpha - b.alpha.to(at::kDouble)).abs().max().item<double>(), 1e-4);
@@ -214,9 +216,15 @@ void check_gradient(RandomScene s, at::Tensor RandomScene::*param, const char* n
   EXPECT_LT(max_err, 1e-5 * std::max(1.0, max_ref)) << name << " analytic vs finite differences";
 }
 
-TEST(RasterizerGradients, Means) { check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::means, "means"); }
-TEST(RasterizerGradients, Quats) { check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::quats, "quats"); }
-TEST(RasterizerGradients, Scales) { check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::scales, "scales"); }
+TEST(RasterizerGradients, Means) {
+  check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::means, "means");
+}
+TEST(RasterizerGradients, Quats) {
+  check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::quats, "quats");
+}
+TEST(RasterizerGradients, Scales) {
+  check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::scales, "scales");
+}
 TEST(RasterizerGradients, Opacities) {
   check_gradient(make_scene(12, 29, 23, at::kDouble, 5), &RandomScene::opacities, "opacities");
 }

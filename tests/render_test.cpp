@@ -3,11 +3,11 @@
 #include <cmath>
 
 #include <ATen/ATen.h>
-#include <Eigen/Geometry>
 #include <gtest/gtest.h>
+#include <Eigen/Geometry>
 
-#include "gs_trainer/raster/rasterizer.h"
 #include "gs_trainer/model/render.h"
+#include "gs_trainer/raster/rasterizer.h"
 
 namespace gaps {
 namespace {

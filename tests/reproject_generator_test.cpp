@@ -352,8 +352,7 @@ TEST(ReprojectGeneratorTest, RejectsBadInputsNamingTheProblem) {
   const ReferenceView ref = view_of(cam, textured_plane());
   ReprojectGenerator generator;
   auto expect_error = [&](GenerationRequest q, const std::vector<std::string>& words) {
-    absl::StatusOr<std::vector<at::Tensor>> r =
-        generator.generate({empty_render_request(cam, {ref}), std::move(q)});
+    absl::StatusOr<std::vector<at::Tensor>> r = generator.generate({empty_render_request(cam, {ref}), std::move(q)});
     ASSERT_FALSE(r.ok());
     EXPECT_EQ(r.status().code(), absl::StatusCode::kInvalidArgument);
     for (const std::string& w : words) EXPECT_TRUE(contains(r.status(), w)) << r.status() << " lacks " << w;
@@ -409,8 +408,8 @@ TEST(ReprojectGeneratorTest, RegistryBuildsBackendsByName) {
   EXPECT_TRUE(contains(g.status(), "'flux'")) << g.status();
   EXPECT_TRUE(contains(g.status(), "known: reproject, sdxl")) << g.status();
 
-  EXPECT_TRUE(contains(make_generator("reproject", R"({"footprint": 2})").status(),
-                       "unknown reproject option 'footprint'"));
+  EXPECT_TRUE(
+      contains(make_generator("reproject", R"({"footprint": 2})").status(), "unknown reproject option 'footprint'"));
   EXPECT_TRUE(contains(make_generator("reproject", R"({"splat_footprint": 1.5})").status(), "integer"));
   EXPECT_TRUE(contains(make_generator("reproject", R"({"inpaint_dilation": 14})").status(), "odd"));
   EXPECT_TRUE(contains(make_generator("reproject", "{not json").status(), "JSON object"));

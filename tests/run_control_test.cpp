@@ -74,7 +74,8 @@ TEST_F(RunControlTest, UnreachableGeneratorSkipsPhasesAndTrainingCompletes) {
     EXPECT_EQ(seen[2 * phase].first, "started");
     EXPECT_EQ(seen[2 * phase + 1].first, "skipped");
     EXPECT_EQ(seen[2 * phase + 1].second["phase"], phase);
-    EXPECT_NE(seen[2 * phase + 1].second["skip_reason"].get<std::string>().find("no diffusion worker"), std::string::npos);
+    EXPECT_NE(seen[2 * phase + 1].second["skip_reason"].get<std::string>().find("no diffusion worker"),
+              std::string::npos);
   }
   std::ifstream f(dir_ / "out" / "phases.json");
   const auto phases = nlohmann::json::parse(f);
@@ -95,7 +96,8 @@ TEST_F(RunControlTest, ShouldStopCancelsAndKeepsTheModel) {
   int polls = 0;
   o.should_stop = [&] { return ++polls > 25; };
   int last_iteration = 0;
-  auto r = run_pipeline(o, [&](const TrainProgress& p) { last_iteration = p.iteration; }, [](const std::string&) {});
+  auto r = run_pipeline(
+      o, [&](const TrainProgress& p) { last_iteration = p.iteration; }, [](const std::string&) {});
   ASSERT_FALSE(r.ok());
   EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled);
   EXPECT_LE(last_iteration, 25);
@@ -120,8 +122,9 @@ TEST_F(RunControlTest, AStoppedRunResumesFromWhereItStopped) {
   o.should_stop = nullptr;
   std::vector<std::string> log;
   std::vector<int> reported;
-  auto resumed = run_pipeline(o, [&](const TrainProgress& p) { reported.push_back(p.iteration); },
-                              [&](const std::string& line) { log.push_back(line); });
+  auto resumed = run_pipeline(
+      o, [&](const TrainProgress& p) { reported.push_back(p.iteration); },
+      [&](const std::string& line) { log.push_back(line); });
   ASSERT_TRUE(resumed.ok()) << resumed.status();
   EXPECT_NE(std::find(log.begin(), log.end(), "resumed from the checkpoint at iteration 45"), log.end());
   ASSERT_FALSE(reported.empty());

@@ -11,10 +11,10 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/train/divergence.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/report.h"
 #include "gs_trainer/synthetic.h"
+#include "gs_trainer/train/divergence.h"
 #include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 

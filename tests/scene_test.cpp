@@ -8,11 +8,11 @@
 #include <vector>
 
 #include <ATen/ATen.h>
-#include <Eigen/Dense>
 #include <gtest/gtest.h>
+#include <Eigen/Dense>
 
-#include "tests/test_util.h"
 #include <nlohmann/json.hpp>
+#include "tests/test_util.h"
 
 #include "common/image_io.h"
 #include "common/npy.h"
@@ -23,7 +23,6 @@ namespace {
 namespace fs = std::filesystem;
 
 constexpr double kPi = 3.14159265358979323846;
-
 
 bool contains(const absl::Status& status, const std::string& text) {
   return status.message().find(text) != absl::string_view::npos;
@@ -452,8 +451,8 @@ TEST_F(SyntheticSceneTest, NerfstudioTransforms) {
   write_images("images", 2, kWidth, kHeight);
   write_images("images_2", 2, kWidth / 2, kHeight / 2);
   // OpenGL camera-to-world: identity rotation at (0, 0, 5) looks down -z, towards the origin.
-  nlohmann::json doc = {{"fl_x", 30.0}, {"fl_y", 31.0}, {"cx", 7.5}, {"cy", 6.5}, {"w", kWidth}, {"h", kHeight},
-                        {"k1", 0.0}, {"camera_model", "OPENCV"}};
+  nlohmann::json doc = {{"fl_x", 30.0}, {"fl_y", 31.0}, {"cx", 7.5}, {"cy", 6.5},
+                        {"w", kWidth},  {"h", kHeight}, {"k1", 0.0}, {"camera_model", "OPENCV"}};
   const nlohmann::json identity_at_z5 = {{1, 0, 0, 0}, {0, 1, 0, 0}, {0, 0, 1, 5}, {0, 0, 0, 1}};
   const nlohmann::json rotated = {{0, 0, 1, 5}, {0, 1, 0, 0}, {-1, 0, 0, 0}, {0, 0, 0, 1}};  // at +x, facing -x
   doc["frames"] = {{{"file_path", "images/img1.png"}, {"transform_matrix", rotated}, {"fl_x", 40.0}},

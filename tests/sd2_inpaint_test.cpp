@@ -51,12 +51,24 @@ TEST(Sd2InpaintTest, ReadsSd2UNetConfig) {
 // The UNet options of stabilityai/stable-diffusion-2-inpainting at full size: the tensors it asks for.
 TEST(Sd2InpaintTest, Sd2InpaintingUNetConfigAtFullSize) {
   const nlohmann::json j = {
-      {"_class_name", "UNet2DConditionModel"}, {"act_fn", "silu"}, {"attention_head_dim", {5, 10, 20, 20}},
-      {"block_out_channels", {320, 640, 1280, 1280}}, {"center_input_sample", false}, {"cross_attention_dim", 1024},
+      {"_class_name", "UNet2DConditionModel"},
+      {"act_fn", "silu"},
+      {"attention_head_dim", {5, 10, 20, 20}},
+      {"block_out_channels", {320, 640, 1280, 1280}},
+      {"center_input_sample", false},
+      {"cross_attention_dim", 1024},
       {"down_block_types", {"CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"}},
-      {"downsample_padding", 1}, {"dual_cross_attention", false}, {"flip_sin_to_cos", true}, {"freq_shift", 0},
-      {"in_channels", 9}, {"layers_per_block", 2}, {"mid_block_scale_factor", 1}, {"norm_eps", 1e-05},
-      {"norm_num_groups", 32}, {"out_channels", 4}, {"sample_size", 64},
+      {"downsample_padding", 1},
+      {"dual_cross_attention", false},
+      {"flip_sin_to_cos", true},
+      {"freq_shift", 0},
+      {"in_channels", 9},
+      {"layers_per_block", 2},
+      {"mid_block_scale_factor", 1},
+      {"norm_eps", 1e-05},
+      {"norm_num_groups", 32},
+      {"out_channels", 4},
+      {"sample_size", 64},
       {"up_block_types", {"UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"}},
       {"use_linear_projection", true}};
   auto config = UNetConfig::from_json(j);
@@ -84,10 +96,16 @@ TEST(Sd2InpaintTest, Sd2InpaintingUNetConfigAtFullSize) {
 }
 
 TEST(Sd2InpaintTest, RejectsUnsupportedUNetOptionsByName) {
-  for (const auto& [key, value] : std::vector<std::pair<std::string, nlohmann::json>>{
-           {"dual_cross_attention", true}, {"num_class_embeds", 10}, {"act_fn", "gelu"},
-           {"center_input_sample", true}, {"mid_block_scale_factor", 2}, {"attention_type", "gated"},
-           {"conv_in_kernel", 5}, {"time_embedding_act_fn", "silu"}, {"resnet_out_scale_factor", 2.0}}) {
+  for (const auto& [key, value] :
+       std::vector<std::pair<std::string, nlohmann::json>>{{"dual_cross_attention", true},
+                                                           {"num_class_embeds", 10},
+                                                           {"act_fn", "gelu"},
+                                                           {"center_input_sample", true},
+                                                           {"mid_block_scale_factor", 2},
+                                                           {"attention_type", "gated"},
+                                                           {"conv_in_kernel", 5},
+                                                           {"time_embedding_act_fn", "silu"},
+                                                           {"resnet_out_scale_factor", 2.0}}) {
     nlohmann::json j = unet_json();
     j[key] = value;
     auto config = UNetConfig::from_json(j);
@@ -188,7 +206,8 @@ TEST_F(Sd2InpaintPipelineTest, PartialStrengthMatchesDiffusers) {
 TEST_F(Sd2InpaintPipelineTest, OneSeedPerImageMatchesDiffusersGeneratorList) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "seed_list", inpaint_setup()["runs"]["seed_list"]["seeds"].get<std::vector<uint64_t>>());
+  expect_run_matches(*pipeline, "seed_list",
+                     inpaint_setup()["runs"]["seed_list"]["seeds"].get<std::vector<uint64_t>>());
 }
 
 TEST_F(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
@@ -201,7 +220,8 @@ TEST_F(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
     InpaintParams params;
     params.steps = 2;
     params.guidance_scale = inpaint_setup()["guidance_scale"].get<double>();
-    auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), prompts(), params, {inpaint_setup()["seed"].get<uint64_t>()});
+    auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), prompts(), params,
+                                    {inpaint_setup()["seed"].get<uint64_t>()});
     ASSERT_TRUE(out.ok()) << out.status();
     test::expect_close(*out, ref.at("out"), tolerance, "half-precision inpainting");
   }
@@ -220,7 +240,8 @@ TEST_F(Sd2InpaintPipelineTest, RejectsBadRequests) {
     EXPECT_FALSE(out.ok());
     return out.ok() ? std::string() : std::string(out.status().message());
   };
-  EXPECT_TRUE(test::contains_all(error(images, at::zeros({2, 16, 16}), {"x"}, params, {1}), {"masks", "B x 1 x H x W"}));
+  EXPECT_TRUE(
+      test::contains_all(error(images, at::zeros({2, 16, 16}), {"x"}, params, {1}), {"masks", "B x 1 x H x W"}));
   EXPECT_TRUE(test::contains_all(error(images, at::zeros({1, 1, 16, 16}), {"x"}, params, {1}), {"masks"}));
   EXPECT_TRUE(test::contains_all(error(at::rand({1, 3, 15, 16}), at::zeros({1, 1, 15, 16}), {"x"}, params, {1}),
                                  {"not a multiple of"}));

@@ -54,7 +54,8 @@ void check_text_encoder(const std::string& component, bool with_projection) {
   const ModelFolder f = folder();
   auto config = ClipTextConfig::from_json(*f.read_json(component));
   ASSERT_TRUE(config.ok()) << config.status();
-  auto encoder = ClipTextEncoder::load(*config, with_projection, *f.read_weights(component), at::TensorOptions(), component);
+  auto encoder =
+      ClipTextEncoder::load(*config, with_projection, *f.read_weights(component), at::TensorOptions(), component);
   ASSERT_TRUE(encoder.ok()) << encoder.status();
   const TensorMap ref = test::sdxl_reference(component);
   const ClipTextOutput out = encoder->forward(ref.at("input_ids"));
@@ -73,7 +74,8 @@ TEST(ClipTextEncoderTest, MatchesCLIPTextModelWithProjection) { check_text_encod
 TEST(ClipTextEncoderTest, ProjectionWithoutItsWeightIsAnError) {
   const ModelFolder f = folder();
   auto config = ClipTextConfig::from_json(*f.read_json("text_encoder"));
-  auto encoder = ClipTextEncoder::load(*config, true, *f.read_weights("text_encoder"), at::TensorOptions(), "text_encoder");
+  auto encoder =
+      ClipTextEncoder::load(*config, true, *f.read_weights("text_encoder"), at::TensorOptions(), "text_encoder");
   ASSERT_FALSE(encoder.ok());
   EXPECT_TRUE(test::contains_all(std::string(encoder.status().message()), {"text_projection.weight"}));
 }
@@ -113,7 +115,8 @@ TEST(WeightSpecsTest, ListExactlyTheCheckpointsTensors) {
   const ModelFolder f = folder();
   const auto matches = [](const std::vector<TensorSpec>& specs, const TensorMap& checkpoint, const std::string& what) {
     TensorMap weights;  // transformers writes CLIPTextModelWithProjection's tower under "text_model."
-    for (const auto& [name, t] : checkpoint) weights.emplace(name.rfind("text_model.", 0) == 0 ? name.substr(11) : name, t);
+    for (const auto& [name, t] : checkpoint)
+      weights.emplace(name.rfind("text_model.", 0) == 0 ? name.substr(11) : name, t);
     EXPECT_EQ(specs.size(), weights.size()) << what;
     for (const auto& spec : specs) {
       ASSERT_TRUE(weights.count(spec.name)) << what << ": " << spec.name;

@@ -52,7 +52,8 @@ TEST(ControlNetTest, ResidualsMatchDiffusers) {
   }
   expect_close(out.mid, ref.at("mid"), kTolerance, "mid residual");
   // The scale multiplies every residual (per batch entry): scale 0 gives zeros.
-  const sdxl::ControlNetResiduals off = net->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), at::zeros({2}));
+  const sdxl::ControlNetResiduals off =
+      net->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), at::zeros({2}));
   EXPECT_EQ(off.mid.abs().max().item<double>(), 0.0);
 }
 
@@ -124,7 +125,8 @@ TEST(ControlNetPipelineTest, RunsOnTheGpuInHalfPrecisionAndFromCudaGraphs) {
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   const ControlledRun run = controlled_run();
   const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
-  const sdxl::ControlInput control{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}};
+  const sdxl::ControlInput control{run.ref.at("control_image"),
+                                   {run.setup["controlnet_conditioning_scale"].get<double>()}};
   auto out = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
   ASSERT_TRUE(out.ok()) << out.status();
   // float16 follows the float32 reference within its rounding (as in sdxl_pipeline_test).
@@ -158,9 +160,11 @@ TEST(ControlNetPipelineTest, RejectsControlItCannotUse) {
   auto pipeline = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), options);
   ASSERT_TRUE(pipeline.ok());
   const at::Tensor image = run.ref.at("image");
-  EXPECT_FALSE((*pipeline)->img2img(image, {"a"}, run.params, {1}, sdxl::ControlInput{image.slice(2, 0, 16), {1.0}}).ok());
+  EXPECT_FALSE(
+      (*pipeline)->img2img(image, {"a"}, run.params, {1}, sdxl::ControlInput{image.slice(2, 0, 16), {1.0}}).ok());
   EXPECT_FALSE((*pipeline)->img2img(image, {"a"}, run.params, {1}, sdxl::ControlInput{image, {1.0, 1.0, 1.0}}).ok());
-  EXPECT_FALSE((*pipeline)->img2img(image, {"a"}, run.params, {1}, sdxl::ControlInput{image.slice(1, 0, 1), {1.0}}).ok());
+  EXPECT_FALSE(
+      (*pipeline)->img2img(image, {"a"}, run.params, {1}, sdxl::ControlInput{image.slice(1, 0, 1), {1.0}}).ok());
 
   // A folder that is not a ControlNetModel is refused at load, naming the component.
   options.controlnet = test::sdxl_model_dir() + "/unet";
@@ -184,7 +188,10 @@ TEST_F(ControlNetComponentTest, LoadsTheControlNetComponentOfAPipelineFolder) {
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   ASSERT_NE((*pipeline)->controlnet(), nullptr);
   const TensorMap ref = controlnet_reference("controlnet");
-  expect_close((*pipeline)->controlnet()->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale")).mid,
+  expect_close((*pipeline)
+                   ->controlnet()
+                   ->forward(test::recorded_unet_inputs(ref), ref.at("controlnet_cond"), ref.at("conditioning_scale"))
+                   .mid,
                ref.at("mid"), kTolerance, "mid residual of the folder's ControlNet");
 
   index["controlnet"] = {"diffusers", "ControlNetXSAdapter"};
@@ -225,8 +232,9 @@ TEST_F(ControlNetLoadingTest, MissingMisshapedAndExtraTensorsAreNamed) {
   TensorMap misshaped = weights_;
   misshaped["controlnet_mid_block.weight"] = at::zeros({32, 16, 1, 1});
   misshaped["controlnet_cond_embedding.conv_in.weight"] = at::zeros({8, 1, 3, 3});
-  EXPECT_TRUE(contains_all(load_error(misshaped), {"controlnet_mid_block.weight (checkpoint [32, 16, 1, 1]",
-                                                   "controlnet_cond_embedding.conv_in.weight (checkpoint [8, 1, 3, 3]"}));
+  EXPECT_TRUE(
+      contains_all(load_error(misshaped), {"controlnet_mid_block.weight (checkpoint [32, 16, 1, 1]",
+                                           "controlnet_cond_embedding.conv_in.weight (checkpoint [8, 1, 3, 3]"}));
   TensorMap extra = weights_;
   extra["controlnet_down_blocks.6.weight"] = at::zeros({32, 32, 1, 1});
   EXPECT_TRUE(contains_all(load_error(extra), {"controlnet_down_blocks.6.weight"}));
@@ -235,7 +243,8 @@ TEST_F(ControlNetLoadingTest, MissingMisshapedAndExtraTensorsAreNamed) {
 TEST_F(ControlNetLoadingTest, UnsupportedConfigsAndMismatchedUNetsAreErrors) {
   nlohmann::json pooled = json_;
   pooled["global_pool_conditions"] = true;
-  EXPECT_TRUE(contains_all(std::string(sdxl::ControlNetConfig::from_json(pooled).status().message()), {"global_pool_conditions"}));
+  EXPECT_TRUE(contains_all(std::string(sdxl::ControlNetConfig::from_json(pooled).status().message()),
+                           {"global_pool_conditions"}));
   nlohmann::json order = json_;
   order["controlnet_conditioning_channel_order"] = "gbr";
   EXPECT_FALSE(sdxl::ControlNetConfig::from_json(order).ok());
@@ -247,7 +256,8 @@ TEST_F(ControlNetLoadingTest, UnsupportedConfigsAndMismatchedUNetsAreErrors) {
   EXPECT_TRUE(net->check_compatible(unet).ok());
   unet.block_out_channels = {16, 64};
   unet.cross_attention_dim = 32;
-  EXPECT_TRUE(contains_all(std::string(net->check_compatible(unet).message()), {"block_out_channels", "cross_attention_dim"}));
+  EXPECT_TRUE(
+      contains_all(std::string(net->check_compatible(unet).message()), {"block_out_channels", "cross_attention_dim"}));
 }
 
 // --- The depth conditioning image, by hand.
@@ -332,8 +342,8 @@ TEST(DepthControlTest, DisparityNormalisedToItsRange) {
 }
 
 TEST(SdxlControlNetGeneratorTest, ConditionsEachRequestOnItsDepth) {
-  const std::string options = "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"controlnet\": \"" + controlnet_dir() +
-                              "\", \"steps\": 4, \"prompt\": \"a fern\"}";
+  const std::string options = "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"controlnet\": \"" +
+                              controlnet_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"}";
   auto generator = make_generator("sdxl", options);
   ASSERT_TRUE(generator.ok()) << generator.status();
   EXPECT_EQ((*generator)->name(), "sdxl 1 controlnet");
@@ -356,7 +366,8 @@ TEST(SdxlControlNetGeneratorTest, ConditionsEachRequestOnItsDepth) {
   ASSERT_TRUE(direct.ok()) << direct.status();
   expect_close((*images)[1], (*direct)[0].permute({1, 2, 0}), 1e-5, "generator vs pipeline with ControlNet");
   // Scale 0 is the unconditioned backend's image.
-  auto plain = make_generator("sdxl", "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"}");
+  auto plain =
+      make_generator("sdxl", "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"}");
   ASSERT_TRUE(plain.ok());
   requests[1].control_scale = 0.0;
   auto zero = (*generator)->generate({requests[1]});
@@ -368,8 +379,9 @@ TEST(SdxlControlNetGeneratorTest, ConditionsEachRequestOnItsDepth) {
   // A request without depth cannot be conditioned.
   requests[0].render_depth = at::Tensor();
   EXPECT_TRUE(contains_all(std::string((*generator)->generate({requests[0]}).status().message()), {"render_depth"}));
-  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", "{\"weights\": \"x\", \"control_variance_window\": 4}").status().message()),
-                           {"control_variance_window"}));
+  EXPECT_TRUE(contains_all(
+      std::string(make_generator("sdxl", "{\"weights\": \"x\", \"control_variance_window\": 4}").status().message()),
+      {"control_variance_window"}));
 }
 
 }  // namespace

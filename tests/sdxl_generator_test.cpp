@@ -59,8 +59,7 @@ TEST(SdxlGeneratorTest, RegisteredAndGeneratesAtEachRequestsStrength) {
   // And equals the pipeline's img2img on the padded render.
   auto pipeline = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), sdxl::PipelineOptions{});
   ASSERT_TRUE(pipeline.ok());
-  const at::Tensor padded =
-      at::replication_pad2d(requests[1].render_rgb.permute({2, 0, 1}).unsqueeze(0), {0, 0, 0, 1});
+  const at::Tensor padded = at::replication_pad2d(requests[1].render_rgb.permute({2, 0, 1}).unsqueeze(0), {0, 0, 0, 1});
   sdxl::Img2ImgParams params;
   params.steps = 4;
   params.strength = 0.5;
@@ -75,23 +74,33 @@ TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {
   EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", "").status().message()), {"weights"}));
   EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", R"({"weights": "x", "stepz": 3})").status().message()),
                            {"unknown sdxl option 'stepz'"}));
-  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"dtype\": \"int8\"")).status().message()),
-                           {"dtype"}));
-  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"dtype\": \"float16\"")).status().message()),
-                           {"float32"}));
+  EXPECT_TRUE(contains_all(
+      std::string(
+          make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"dtype\": \"int8\"")).status().message()),
+      {"dtype"}));
+  EXPECT_TRUE(contains_all(
+      std::string(
+          make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"dtype\": \"float16\"")).status().message()),
+      {"float32"}));
 
-  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"cuda_graphs\": true")).status().message()),
-                           {"CUDA"}));
+  EXPECT_TRUE(contains_all(
+      std::string(
+          make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"cuda_graphs\": true")).status().message()),
+      {"CUDA"}));
 
-  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"variant\": \"fp16\"")).status().message()),
-                           {"no fp16 *.safetensors weights"}));
+  EXPECT_TRUE(contains_all(
+      std::string(
+          make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"variant\": \"fp16\"")).status().message()),
+      {"no fp16 *.safetensors weights"}));
 
   const auto missing = make_generator("sdxl", options_json((dir_ / "absent").string()));
   EXPECT_TRUE(contains_all(std::string(missing.status().message()), {"not a usable SDXL model", "does not exist"}));
 
-  write("model/model_index.json", R"({"_class_name": "StableDiffusionPipeline", "unet": ["diffusers", "UNet2DConditionModel"]})");
+  write("model/model_index.json",
+        R"({"_class_name": "StableDiffusionPipeline", "unet": ["diffusers", "UNet2DConditionModel"]})");
   const auto partial = make_generator("sdxl", options_json((dir_ / "model").string()));
-  EXPECT_TRUE(contains_all(std::string(partial.status().message()), {"not a usable SDXL model", "lists no component 'vae'"}));
+  EXPECT_TRUE(
+      contains_all(std::string(partial.status().message()), {"not a usable SDXL model", "lists no component 'vae'"}));
 
   // A copy of the tiny model whose UNet weights lost a tensor.
   for (const auto& entry : std::filesystem::recursive_directory_iterator(test::sdxl_model_dir())) {
@@ -115,8 +124,9 @@ TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {
   nlohmann::json index = nlohmann::json::parse(index_in);
   index["requires_aesthetics_score"] = true;
   write("copy/model_index.json", index.dump());
-  EXPECT_TRUE(contains_all(std::string(make_generator("sdxl", options_json((dir_ / "copy").string())).status().message()),
-                           {"aesthetic-score"}));
+  EXPECT_TRUE(
+      contains_all(std::string(make_generator("sdxl", options_json((dir_ / "copy").string())).status().message()),
+                   {"aesthetic-score"}));
 }
 
 }  // namespace

@@ -59,7 +59,8 @@ TEST(ClipVisionEncoderTest, MatchesCLIPImageProcessorAndCLIPVisionModelWithProje
   ASSERT_TRUE(embeds.ok()) << embeds.status();
   expect_close(*embeds, ref.at("image_embeds"), kTolerance, "image_embeds");
   const at::Tensor pixels = at::cat({*encoder->preprocess(ref.at("image_0")), *encoder->preprocess(ref.at("image_1"))});
-  expect_close(encoder->forward(pixels).last_hidden_state, ref.at("last_hidden_state"), kTolerance, "last_hidden_state");
+  expect_close(encoder->forward(pixels).last_hidden_state, ref.at("last_hidden_state"), kTolerance,
+               "last_hidden_state");
   EXPECT_FALSE(encoder->preprocess(at::rand({8, 8})).ok());
 }
 
@@ -247,7 +248,8 @@ TEST(IpAdapterPipelineTest, RejectsInconsistentOptionsAndRequests) {
 
 // The `sdxl` backend with an IP-Adapter: the nearest reference view of each request is its image prompt.
 TEST(SdxlGeneratorIpAdapterTest, NearestReferenceViewIsTheImagePrompt) {
-  const std::string ip = ", \"ip_adapter\": \"" + ip_weights() + "\", \"image_encoder\": \"" + image_encoder_dir() + "\"";
+  const std::string ip =
+      ", \"ip_adapter\": \"" + ip_weights() + "\", \"image_encoder\": \"" + image_encoder_dir() + "\"";
   const std::string base = "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"";
   auto generator = make_generator("sdxl", base + ip + ", \"ip_adapter_scale\": 0.7}");
   ASSERT_TRUE(generator.ok()) << generator.status();

@@ -2,8 +2,8 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/safetensors.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/weights.h"
 #include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
@@ -65,7 +65,9 @@ TEST(WeightLoaderTest, NamesMissingMisshapedAndUnexpectedTensors) {
   w.take("c", {7});
   const absl::Status s = w.finish();
   ASSERT_FALSE(s.ok());
-  EXPECT_TRUE(contains_all(std::string(s.message()), {"unit (test)", "1 missing: c [7]", "b (checkpoint [4], config expects [5])", "1 unexpected: extra.weight"}));
+  EXPECT_TRUE(contains_all(
+      std::string(s.message()),
+      {"unit (test)", "1 missing: c [7]", "b (checkpoint [4], config expects [5])", "1 unexpected: extra.weight"}));
 }
 
 TEST(WeightLoaderTest, ConvertsToTheRequestedDtype) {

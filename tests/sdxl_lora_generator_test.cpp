@@ -22,7 +22,9 @@ std::string options_json(const std::string& extra) {
   return "{\"weights\": \"" + test::sdxl_model_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"" + extra + "}";
 }
 
-std::string controlnet_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_controlnet_tiny/controlnet"; }
+std::string controlnet_dir() {
+  return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_controlnet_tiny/controlnet";
+}
 
 std::vector<ReferenceView> views(int64_t count, int64_t h, int64_t w) {
   std::vector<ReferenceView> out(count);
@@ -94,8 +96,8 @@ TEST_F(SdxlLoraGeneratorTest, DepthAnythingGivesTheTrainingViewsTheirDepth) {
   ASSERT_TRUE(estimated.ok()) << estimated.status();
   EXPECT_EQ((*rendered)->name(), "sdxl 1 controlnet lora-depth:rendered");
   EXPECT_EQ((*estimated)->name(), "sdxl 1 controlnet lora-depth:depth-anything");
-  EXPECT_EQ((*estimated)->weights_identity(), "sdxl=" + test::sdxl_model_dir() + "\ncontrolnet=" + controlnet_dir() +
-                                                  "\ndepth_anything=" + depth_model);
+  EXPECT_EQ((*estimated)->weights_identity(),
+            "sdxl=" + test::sdxl_model_dir() + "\ncontrolnet=" + controlnet_dir() + "\ndepth_anything=" + depth_model);
   std::vector<ReferenceView> gt = views(2, 12, 8);
   ASSERT_TRUE((*rendered)->adapt(gt).ok());
   for (auto& v : gt) v.render_depth = v.render_alpha = at::Tensor();  // not needed with Depth-Anything
@@ -142,9 +144,9 @@ TEST_F(SdxlLoraGeneratorTest, AdaptsWithTheIpAdapterLoadedAndGeneratesWithBoth) 
 // views miss, and a generator with the same depth_cache folder reads them instead of computing them.
 TEST_F(SdxlLoraGeneratorTest, DepthAnythingMapsOfTheViewsAreCached) {
   const std::string depth_model = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/depth_anything_tiny/model";
-  const std::string json = options_json(", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 1, " +
-                                        "\"depth_anything\": \"" + depth_model + "\", \"depth_cache\": \"" +
-                                        (dir_ / "depth").string() + "\"");
+  const std::string json =
+      options_json(", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 1, " + "\"depth_anything\": \"" +
+                   depth_model + "\", \"depth_cache\": \"" + (dir_ / "depth").string() + "\"");
   auto options = parse_sdxl_options(json);
   ASSERT_TRUE(options.ok()) << options.status();
   auto generator = SdxlGenerator::create(*options);
@@ -179,8 +181,8 @@ TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {
   EXPECT_TRUE(contains_all(error(", \"lora_lr\": 0"), {"lora_lr"}));
   EXPECT_TRUE(contains_all(error(", \"lora_steps\": 2, \"lora\": \"x.safetensors\""), {"lora", "not both"}));
   EXPECT_TRUE(contains_all(error(", \"lora_steps\": 2, \"depth_anything\": \"d\""), {"depth_anything", "controlnet"}));
-  EXPECT_TRUE(contains_all(error(", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_steps\": 2, \"depth_anything\": \"" +
-                                 (dir_ / "absent").string() + "\""),
+  EXPECT_TRUE(contains_all(error(", \"controlnet\": \"" + controlnet_dir() +
+                                 "\", \"lora_steps\": 2, \"depth_anything\": \"" + (dir_ / "absent").string() + "\""),
                            {"depth_anything", "absent"}));
   EXPECT_TRUE(contains_all(error(", \"lora\": \"" + (dir_ / "absent.safetensors").string() + "\""),
                            {"lora", "absent.safetensors"}));

@@ -80,7 +80,8 @@ double check_loss_and_gradients(const std::string& reference, const sdxl::Contro
   loss->backward();
   double scale = 0, diff = 0;
   for (const auto& a : lora->adapters()) {
-    for (const auto& [suffix, tensor] : {std::pair<std::string, at::Tensor>{".lora_A.weight", a.down}, {".lora_B.weight", a.up}}) {
+    for (const auto& [suffix, tensor] :
+         {std::pair<std::string, at::Tensor>{".lora_A.weight", a.down}, {".lora_B.weight", a.up}}) {
       const at::Tensor expected = ref.at("grad." + a.module + suffix);
       EXPECT_TRUE(tensor.grad().defined()) << a.module << suffix;
       scale = std::max(scale, expected.abs().max().item<double>());
@@ -98,8 +99,9 @@ TEST(LoraTrainingTest, LossAndGradientsMatchTorch) {
 }
 
 TEST(LoraTrainingTest, LossAndGradientsWithControlNetResidualsMatchTorch) {
-  auto controlnet = sdxl::ControlNet::load_folder(std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_controlnet_tiny/controlnet",
-                                                  at::TensorOptions().dtype(at::kFloat));
+  auto controlnet =
+      sdxl::ControlNet::load_folder(std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_controlnet_tiny/controlnet",
+                                    at::TensorOptions().dtype(at::kFloat));
   ASSERT_TRUE(controlnet.ok()) << controlnet.status();
   const double diff = check_loss_and_gradients("train_step_controlled", &*controlnet);
   RecordProperty("max_gradient_abs_diff", absl::StrCat(diff));

@@ -50,7 +50,8 @@ TEST(SdxlPipelineTest, Img2ImgWithDdimAndDpmSolverMatchesDiffusers) {
     params.strength = 0.5;
     params.steps = 6;
     params.guidance_scale = 5.0;
-    auto out = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+    auto out =
+        (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
     ASSERT_TRUE(out.ok()) << out.status();
     test::expect_close(*out, ref.at("out"), 1e-4, std::string("img2img with ") + kind);
   }
@@ -80,13 +81,15 @@ TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
     const TensorMap ref = test::sdxl_reference("img2img");
     Img2ImgParams params;
     params.steps = 4;
-    auto out = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+    auto out =
+        (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
     ASSERT_TRUE(out.ok()) << out.status();
     test::expect_close(*out, ref.at("out"), tolerance, "half-precision img2img output");
     // Replaying captured UNet graphs gives the eager result.
     ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
     for (int run = 0; run < 2; ++run) {  // capture, then replay the captured graph
-      auto graphed = (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+      auto graphed =
+          (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
       ASSERT_TRUE(graphed.ok()) << graphed.status();
       test::expect_close(*graphed, *out, 1e-3, "img2img with CUDA graphs");
     }

@@ -19,7 +19,7 @@ namespace {
 constexpr double kTolerance = 1e-5;
 
 nlohmann::json config_json(const std::string& class_name, const std::string& spacing) {
-  return {{"_class_name", class_name}, {"beta_start", 0.00085},     {"beta_end", 0.012},
+  return {{"_class_name", class_name},        {"beta_start", 0.00085},       {"beta_end", 0.012},
           {"beta_schedule", "scaled_linear"}, {"num_train_timesteps", 1000}, {"steps_offset", 1},
           {"timestep_spacing", spacing}};
 }
@@ -44,7 +44,8 @@ TEST_P(SchedulerParityTest, ScheduleAndTwoStepsMatchDiffusers) {
   test::expect_close(timesteps, ref.at(key + "_timesteps"), 1e-6, key + " timesteps");
   const at::Tensor& x = ref.at("x");
   if (std::string(c.kind) == "euler") {
-    test::expect_close((*scheduler)->scale_model_input(x, 0), ref.at(key + "_scaled_input"), kTolerance, key + " scaled input");
+    test::expect_close((*scheduler)->scale_model_input(x, 0), ref.at(key + "_scaled_input"), kTolerance,
+                       key + " scaled input");
   }
   const at::Tensor step1 = (*scheduler)->step(ref.at("eps"), 0, x);
   test::expect_close(step1, ref.at(key + "_step1"), kTolerance, key + " step 1");
@@ -57,9 +58,7 @@ INSTANTIATE_TEST_SUITE_P(
     ::testing::Combine(::testing::Values(Case{"euler", "EulerDiscreteScheduler"}, Case{"ddim", "DDIMScheduler"},
                                          Case{"dpmpp2m", "DPMSolverMultistepScheduler"}),
                        ::testing::Values("leading", "trailing", "linspace")),
-    [](const auto& info) {
-      return std::string(std::get<0>(info.param).kind) + "_" + std::get<1>(info.param);
-    });
+    [](const auto& info) { return std::string(std::get<0>(info.param).kind) + "_" + std::get<1>(info.param); });
 
 // PNDM (skip_prk_steps, SD2's scheduler) against diffusers' PNDMScheduler (tests/fixtures/pndm, made by
 // tests/scripts/make_pndm_fixtures.py): the schedule of 5 steps (the second timestep repeated) and all 6
@@ -96,7 +95,8 @@ TEST_P(PndmParityTest, ScheduleAndEveryStepMatchDiffusers) {
   at::Tensor sample = ref.at("x");
   for (int64_t k = 0; k < 6; ++k) {
     sample = scheduler->step(ref.at("eps" + std::to_string(k)), k, sample);
-    test::expect_close(sample, ref.at(key + "_step" + std::to_string(k)), kTolerance, key + " step " + std::to_string(k));
+    test::expect_close(sample, ref.at(key + "_step" + std::to_string(k)), kTolerance,
+                       key + " step " + std::to_string(k));
   }
 }
 
@@ -112,7 +112,8 @@ TEST(SchedulerTest, PndmAddNoiseAndItsOptions) {
   ASSERT_NE(scheduler, nullptr);
   scheduler->set_timesteps(5);
   EXPECT_FLOAT_EQ(scheduler->timesteps()[2], ref.at("noisy_timestep").item<float>());
-  test::expect_close(scheduler->add_noise(ref.at("x"), ref.at("noise"), 2), ref.at("noisy"), kTolerance, "noisy latents");
+  test::expect_close(scheduler->add_noise(ref.at("x"), ref.at("noise"), 2), ref.at("noisy"), kTolerance,
+                     "noisy latents");
   const at::Tensor first = scheduler->step(ref.at("eps0"), 0, ref.at("x"));
   EXPECT_THROW(scheduler->step(ref.at("eps1"), 2, first), c10::Error) << "steps run in order";
 
@@ -132,9 +133,10 @@ TEST(SchedulerTest, PndmAddNoiseAndItsOptions) {
 // A config without timestep_spacing takes the chosen scheduler's diffusers default: DDIM's is leading,
 // Euler's and DPM-Solver's linspace.
 TEST(SchedulerTest, MissingSpacingTakesTheSchedulersDiffusersDefault) {
-  for (const auto& [class_name, spacing] : std::vector<std::pair<std::string, std::string>>{
-           {"DDIMScheduler", "leading"}, {"EulerDiscreteScheduler", "linspace"},
-           {"DPMSolverMultistepScheduler", "linspace"}}) {
+  for (const auto& [class_name, spacing] :
+       std::vector<std::pair<std::string, std::string>>{{"DDIMScheduler", "leading"},
+                                                        {"EulerDiscreteScheduler", "linspace"},
+                                                        {"DPMSolverMultistepScheduler", "linspace"}}) {
     nlohmann::json j = config_json(class_name, "leading");
     j.erase("timestep_spacing");
     auto config = SchedulerConfig::from_json(j);
@@ -151,7 +153,8 @@ TEST(SchedulerTest, EulerAddNoiseMatchesDiffusersAtTheStartStep) {
   auto scheduler = make_scheduler(*SchedulerConfig::from_json(config_json("EulerDiscreteScheduler", "leading")));
   (*scheduler)->set_timesteps(4);
   EXPECT_FLOAT_EQ((*scheduler)->timesteps()[2], ref.at("timestep").item<float>());
-  test::expect_close((*scheduler)->add_noise(ref.at("x"), ref.at("noise"), 2), ref.at("noisy"), kTolerance, "noisy latents");
+  test::expect_close((*scheduler)->add_noise(ref.at("x"), ref.at("noise"), 2), ref.at("noisy"), kTolerance,
+                     "noisy latents");
 }
 
 TEST(SchedulerTest, UnsupportedOptionsAreErrors) {

@@ -36,7 +36,8 @@ inline ::testing::AssertionResult contains_all(const std::string& text, std::ini
 }
 
 // max |actual - expected| <= tolerance * max(1, max |expected|).
-inline void expect_close(const at::Tensor& actual, const at::Tensor& expected, double tolerance, const std::string& what) {
+inline void expect_close(const at::Tensor& actual, const at::Tensor& expected, double tolerance,
+                         const std::string& what) {
   ASSERT_TRUE(actual.defined()) << what;
   ASSERT_EQ(actual.sizes(), expected.sizes()) << what;
   const at::Tensor a = actual.to(at::kCPU, at::kDouble), e = expected.to(at::kCPU, at::kDouble);

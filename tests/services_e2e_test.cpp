@@ -19,8 +19,8 @@
 #include <nlohmann/json.hpp>
 
 #include "client/remote_client.h"
-#include "gs_trainer/model/gaussians.h"
 #include "common/image_io.h"
+#include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
 #include "tests/test_util.h"
@@ -115,9 +115,19 @@ struct Services : test::TempDirTest {
   }
 
   std::unique_ptr<Process> start_trainer(const std::vector<std::string>& extra = {}) {
-    std::vector<std::string> argv = {GAPS_TRAINER_BIN, "--listen", "127.0.0.1:0", "--data_dir", (dir_ / "data").string(),
-                                     "--device", "cpu", "--token_file", (dir_ / "token").string(),
-                                     "--workers", "127.0.0.1:" + std::to_string(worker_port), "--worker_rounds", "2"};
+    std::vector<std::string> argv = {GAPS_TRAINER_BIN,
+                                     "--listen",
+                                     "127.0.0.1:0",
+                                     "--data_dir",
+                                     (dir_ / "data").string(),
+                                     "--device",
+                                     "cpu",
+                                     "--token_file",
+                                     (dir_ / "token").string(),
+                                     "--workers",
+                                     "127.0.0.1:" + std::to_string(worker_port),
+                                     "--worker_rounds",
+                                     "2"};
     argv.insert(argv.end(), extra.begin(), extra.end());
     auto p = std::make_unique<Process>(argv, dir_ / ("trainer" + std::to_string(trainer_starts++) + ".log"));
     trainer_port = p->wait_for_port();
@@ -125,7 +135,8 @@ struct Services : test::TempDirTest {
   }
 
   client::TrainerClient connect(const std::string& token = "e2e-secret-token", const std::string& ca = "") {
-    auto c = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {token, ca, ca.empty() ? "" : "localhost"});
+    auto c = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port),
+                                            {token, ca, ca.empty() ? "" : "localhost"});
     EXPECT_TRUE(c.ok());
     return std::move(*c);
   }
@@ -182,9 +193,10 @@ TEST_F(Services, FernThreeViewsThroughTlsWithTokenEndToEnd) {
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
   if (!have_openssl()) GTEST_SKIP() << "openssl not found: no test certificate can be made";
-  const std::string make_cert = "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=localhost "
-                                "-addext subjectAltName=DNS:localhost -keyout " + (dir_ / "key.pem").string() +
-                                " -out " + (dir_ / "cert.pem").string() + " > /dev/null 2>&1";
+  const std::string make_cert =
+      "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=localhost "
+      "-addext subjectAltName=DNS:localhost -keyout " +
+      (dir_ / "key.pem").string() + " -out " + (dir_ / "cert.pem").string() + " > /dev/null 2>&1";
   ASSERT_EQ(std::system(make_cert.c_str()), 0);
   auto worker = start_worker();
   ASSERT_GT(worker_port, 0) << worker->log_text();
@@ -322,7 +334,8 @@ TEST_F(Services, KilledTrainerResumesItsJobFromTheCheckpointAfterRestart) {
   auto final_status = client.watch(job_id, [&](const v1::JobEvent& e) {
     count(e, seen);
     if (e.has_log() && e.log() == "resumed from the checkpoint at iteration 29") resumed = true;
-    if (resumed && e.has_progress() && first_progress_after_resume < 0) first_progress_after_resume = e.progress().iteration();
+    if (resumed && e.has_progress() && first_progress_after_resume < 0)
+      first_progress_after_resume = e.progress().iteration();
   });
   ASSERT_TRUE(final_status.ok()) << final_status.status() << "\n" << trainer->log_text();
   EXPECT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
@@ -408,11 +421,12 @@ TEST_F(Services, CommandLineSubmitWatchListFetch) {
   auto trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
   synthetic_scene();
-  const std::string common = " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " +
-                             (dir_ / "token").string();
+  const std::string common =
+      " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " + (dir_ / "token").string();
   const std::string gaps = GAPS_CLI_BIN;
-  auto [code, out] = run_command(gaps + " submit " + (dir_ / "synthetic").string() +
-                                 " --views 3 --resolution 1 --iterations 40 --init random --random-points 500" + common);
+  auto [code, out] =
+      run_command(gaps + " submit " + (dir_ / "synthetic").string() +
+                  " --views 3 --resolution 1 --iterations 40 --init random --random-points 500" + common);
   ASSERT_EQ(code, 0) << out;
   std::smatch m;
   ASSERT_TRUE(std::regex_search(out, m, std::regex("job-[0-9a-f]+"))) << out;

@@ -6,17 +6,17 @@
 #include <thread>
 
 #include <ATen/ATen.h>
-#include <Eigen/Geometry>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <gtest/gtest.h>
+#include <Eigen/Geometry>
 
 #include "client/remote_client.h"
-#include "diffusion_worker/backend_registry.h"
-#include "diffusion_worker/service/worker_service.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/ply.h"
+#include "diffusion_worker/backend_registry.h"
+#include "diffusion_worker/service/worker_service.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/codec.h"
 #include "rpc/config_codec.h"
@@ -149,10 +149,12 @@ TEST(Codec, InpaintSettingsTravelWithThePose) {
 TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   v1::TrainConfig config;
   ASSERT_TRUE(rpc::set_fields({{"iterations", 123}, {"lambda_dssim", 0.3}}, config.mutable_training()).ok());
-  ASSERT_TRUE(rpc::set_fields({{"warmup_iterations", 40}, {"tier_alpha_min", {0.0, -0.1}}, {"tier_alpha_max", {1.0, 1.1}}},
-                              config.mutable_gaps())
-                  .ok());
-  EXPECT_EQ(rpc::set_fields({{"no_such_option", 1}}, config.mutable_training()).code(), absl::StatusCode::kInvalidArgument);
+  ASSERT_TRUE(
+      rpc::set_fields({{"warmup_iterations", 40}, {"tier_alpha_min", {0.0, -0.1}}, {"tier_alpha_max", {1.0, 1.1}}},
+                      config.mutable_gaps())
+          .ok());
+  EXPECT_EQ(rpc::set_fields({{"no_such_option", 1}}, config.mutable_training()).code(),
+            absl::StatusCode::kInvalidArgument);
   config.set_views(3);
   auto o = run_options_from_proto(config, false, "");
   ASSERT_TRUE(o.ok()) << o.status();
@@ -328,15 +330,15 @@ TEST_F(MutualTls, OnlyClientsWithACertificateSignedByTheClientCaGetIn) {
     return run("openssl req -newkey rsa:2048 -nodes -subj /CN=" + name + " -keyout " + d + name + ".key -out " + d +
                name + ".csr") &&
            run("printf '" + ext + "' > " + d + name + ".ext") &&
-           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d + "ca.key -CAcreateserial -days 1 -out " +
-               d + name + ".pem -extfile " + d + name + ".ext");
+           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d +
+               "ca.key -CAcreateserial -days 1 -out " + d + name + ".pem -extfile " + d + name + ".ext");
   };
-  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d + "ca.key -out " + d +
-                  "ca.pem"));
+  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d +
+                  "ca.key -out " + d + "ca.pem"));
   ASSERT_TRUE(sign("localhost", "subjectAltName=DNS:localhost\\nextendedKeyUsage=serverAuth"));
   ASSERT_TRUE(sign("client", "extendedKeyUsage=clientAuth"));
-  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " + d +
-                  "rogue.pem"));
+  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " +
+                  d + "rogue.pem"));
 
   auto credentials = rpc::server_credentials({"", d + "localhost.pem", d + "localhost.key", d + "ca.pem"});
   ASSERT_TRUE(credentials.ok()) << credentials.status();
@@ -357,7 +359,8 @@ TEST_F(MutualTls, OnlyClientsWithACertificateSignedByTheClientCaGetIn) {
   };
   EXPECT_TRUE(get_info({"", d + "ca.pem", "localhost", d + "client.pem", d + "client.key"}).ok());
   EXPECT_FALSE(get_info({"", d + "ca.pem", "localhost"}).ok()) << "no client certificate";
-  EXPECT_FALSE(get_info({"", d + "ca.pem", "localhost", d + "rogue.pem", d + "rogue.key"}).ok()) << "unsigned certificate";
+  EXPECT_FALSE(get_info({"", d + "ca.pem", "localhost", d + "rogue.pem", d + "rogue.key"}).ok())
+      << "unsigned certificate";
   EXPECT_FALSE(get_info({}).ok()) << "plaintext";
   // Half-given settings are errors that say what is missing.
   EXPECT_EQ(rpc::server_credentials({"", "", "", d + "ca.pem"}).status().code(), absl::StatusCode::kInvalidArgument);

@@ -7,8 +7,8 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
-#include "gs_trainer/raster/rasterizer.h"
 #include "common/spherical_harmonics.h"
+#include "gs_trainer/raster/rasterizer.h"
 
 namespace gaps {
 namespace {

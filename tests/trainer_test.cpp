@@ -6,10 +6,10 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include "gs_trainer/train/adam.h"
-#include "gs_trainer/scene/camera.h"
-#include "gs_trainer/train/densify.h"
 #include "gs_trainer/model/render.h"
+#include "gs_trainer/scene/camera.h"
+#include "gs_trainer/train/adam.h"
+#include "gs_trainer/train/densify.h"
 #include "gs_trainer/train/train_config.h"
 #include "gs_trainer/train/trainer.h"
 
@@ -182,7 +182,7 @@ TEST_F(DensifyFixture, GrowthStopsExactlyAtTheBudgetPreferringLargerGradients) {
   // 4 + 1 clone = 5 (the budget), then the transparent one is pruned.
   EXPECT_EQ(density.densify_and_prune(model, adam, 600, 0), 4);
   at::AutoGradMode no_grad(false);
-  EXPECT_EQ(((model.means - means_before[0]).norm(2, {1}) < 1e-6).sum().item<int64_t>(), 2);  // cloned
+  EXPECT_EQ(((model.means - means_before[0]).norm(2, {1}) < 1e-6).sum().item<int64_t>(), 2);      // cloned
   EXPECT_EQ((at::abs(at::exp(model.log_scales).amax(1) - 0.5) < 1e-5).sum().item<int64_t>(), 1);  // not split
 }
 

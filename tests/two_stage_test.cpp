@@ -45,7 +45,8 @@ TEST(TwoStageTest, CompositesPerEquationTwoStage) {
   const at::Tensor stage1 = at::full({1, 3, 1, 3}, 0.2f), stage2 = at::full({1, 3, 1, 3}, 0.9f);
   const at::Tensor mask = at::tensor({1.0f, 0.0f, 0.25f}).view({1, 1, 1, 3});
   const at::Tensor out = composite_two_stage(stage1, stage2, mask);
-  const at::Tensor expected = at::tensor({0.9f, 0.2f, 0.25f * 0.9f + 0.75f * 0.2f}).view({1, 1, 1, 3}).expand({1, 3, 1, 3});
+  const at::Tensor expected =
+      at::tensor({0.9f, 0.2f, 0.25f * 0.9f + 0.75f * 0.2f}).view({1, 1, 1, 3}).expand({1, 3, 1, 3});
   EXPECT_TRUE(at::allclose(out, expected, 0, 1e-7));
 }
 
@@ -75,7 +76,7 @@ TEST_F(TwoStageGenerateTest, InpaintsOnlyViewsAboveTwoPercentAndKeepsCoveredPixe
   at::Generator g = at::make_generator<at::CPUGeneratorImpl>(5);
   const at::Tensor stage1 = at::rand({2, 3, 50, 50}, g);
   at::Tensor depth = at::full({2, 50, 50}, 2.0f);
-  depth[0].slice(0, 5, 10).slice(1, 0, 10).fill_(0);   // 5 x 10 = 50 pixels
+  depth[0].slice(0, 5, 10).slice(1, 0, 10).fill_(0);    // 5 x 10 = 50 pixels
   depth[1].slice(0, 10, 17).slice(1, 20, 27).fill_(0);  // 7 x 7 = 49 pixels
   depth[1][30][40] = 0.49f;
   depth[1][45][3] = 0.1f;
@@ -94,8 +95,10 @@ TEST_F(TwoStageGenerateTest, InpaintsOnlyViewsAboveTwoPercentAndKeepsCoveredPixe
   ASSERT_TRUE(stage2.ok()) << stage2.status();
   const at::Tensor inside = mask[0][0] > 0.5;
   const at::Tensor out = result->images[1];
-  EXPECT_TRUE(at::equal(out.masked_select(inside.expand({3, 50, 50})), (*stage2)[0].masked_select(inside.expand({3, 50, 50}))));
-  EXPECT_TRUE(at::equal(out.masked_select(~inside.expand({3, 50, 50})), stage1[1].masked_select(~inside.expand({3, 50, 50}))));
+  EXPECT_TRUE(
+      at::equal(out.masked_select(inside.expand({3, 50, 50})), (*stage2)[0].masked_select(inside.expand({3, 50, 50}))));
+  EXPECT_TRUE(
+      at::equal(out.masked_select(~inside.expand({3, 50, 50})), stage1[1].masked_select(~inside.expand({3, 50, 50}))));
   EXPECT_GT((out - stage1[1]).abs().max().item<double>(), 1e-3);  // the inpainting changed something
 }
 
@@ -130,7 +133,6 @@ TEST_F(TwoStageGenerateTest, RejectsBadInputs) {
   EXPECT_TRUE(test::contains_all(message(stage1, at::zeros({1, 8, 8}), {1}, o), {"dilation_kernel"}));
   EXPECT_EQ(calls_, 0);
 }
-
 
 // The `sdxl` backend with two-stage inpainting.
 std::string backend_options(const std::string& inpaint_extra) {
@@ -174,9 +176,10 @@ TEST(TwoStageBackendTest, DepthThresholdFromTheRequestOrTheOption) {
 TEST(TwoStageBackendTest, InpaintsTheUncoveredPixelsOfTheImg2ImgResult) {
   auto plain = make_generator("sdxl", backend_options(""));
   ASSERT_TRUE(plain.ok()) << plain.status();
-  auto two_stage = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
-                                                          "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2, "
-                                                          "\"inpaint_dilation\": 15, \"inpaint_uncovered_fraction\": 0.02"));
+  auto two_stage =
+      make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
+                                             "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2, "
+                                             "\"inpaint_dilation\": 15, \"inpaint_uncovered_fraction\": 0.02"));
   ASSERT_TRUE(two_stage.ok()) << two_stage.status();
   // 23 x 20 (padded to 24 x 20 for both models), 16 of 460 pixels uncovered.
   at::Tensor depth = at::ones({23, 20});
@@ -199,7 +202,8 @@ TEST(TwoStageBackendTest, InpaintsTheUncoveredPixelsOfTheImg2ImgResult) {
   ASSERT_EQ(direct->inpainted, (std::vector<bool>{true}));
   test::expect_close((*out)[0], direct->images[0].permute({1, 2, 0}), 1e-5, "backend vs two_stage_generate");
   // Inside the dilated mask (rows and columns 0-12) the inpainting changed the image; outside it is kept.
-  const at::Tensor inside = (*out)[0].slice(0, 0, 13).slice(1, 0, 13), before = (*stage1)[0].slice(0, 0, 13).slice(1, 0, 13);
+  const at::Tensor inside = (*out)[0].slice(0, 0, 13).slice(1, 0, 13),
+                   before = (*stage1)[0].slice(0, 0, 13).slice(1, 0, 13);
   EXPECT_GT((inside - before).abs().max().item<double>(), 1e-3);
   EXPECT_TRUE(at::equal((*out)[0].slice(0, 13), (*stage1)[0].slice(0, 13)));
   EXPECT_TRUE(at::equal((*out)[0].slice(1, 13), (*stage1)[0].slice(1, 13)));
@@ -208,8 +212,9 @@ TEST(TwoStageBackendTest, InpaintsTheUncoveredPixelsOfTheImg2ImgResult) {
 // A request's InpaintSettings replace the options: here 16 of 460 pixels (3.5%) are uncovered at tau_d 0.5.
 TEST(TwoStageBackendTest, TheRequestsSettingsReachTheTwoStagePass) {
   auto plain = make_generator("sdxl", backend_options(""));
-  auto two_stage = make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
-                                                          "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2"));
+  auto two_stage =
+      make_generator("sdxl", backend_options(", \"inpaint\": \"" + inpaint_model_dir() +
+                                             "\", \"inpaint_depth_threshold\": 0.5, \"inpaint_steps\": 2"));
   ASSERT_TRUE(plain.ok()) << plain.status();
   ASSERT_TRUE(two_stage.ok()) << two_stage.status();
   at::Tensor depth = at::ones({23, 20});
@@ -239,8 +244,9 @@ TEST(TwoStageBackendTest, TheRequestsSettingsReachTheTwoStagePass) {
   ASSERT_TRUE(direct.ok()) << direct.status();
   test::expect_close(small, direct->images[0].permute({1, 2, 0}), 1e-5, "backend with the request's dilation");
   EXPECT_TRUE(at::equal(small.slice(0, 7), (*stage1)[0].slice(0, 7)));
-  EXPECT_GT((small.slice(0, 1, 7).slice(1, 1, 7) - (*stage1)[0].slice(0, 1, 7).slice(1, 1, 7)).abs().max().item<double>(),
-            1e-3);
+  EXPECT_GT(
+      (small.slice(0, 1, 7).slice(1, 1, 7) - (*stage1)[0].slice(0, 1, 7).slice(1, 1, 7)).abs().max().item<double>(),
+      1e-3);
 }
 
 TEST(TwoStageBackendTest, LoadsTheInpaintingModelOnlyWhenAViewNeedsIt) {
@@ -257,7 +263,8 @@ TEST(TwoStageBackendTest, LoadsTheInpaintingModelOnlyWhenAViewNeedsIt) {
   EXPECT_TRUE(at::equal((*kept)[0], (*reference)[0]));
   auto uncovered = (*generator)->generate({request_with_depth(at::zeros({12, 8}), 3)});
   ASSERT_FALSE(uncovered.ok());
-  EXPECT_TRUE(test::contains_all(std::string(uncovered.status().message()), {"/nonexistent/sd2-inpainting", "inpainting"}));
+  EXPECT_TRUE(
+      test::contains_all(std::string(uncovered.status().message()), {"/nonexistent/sd2-inpainting", "inpainting"}));
   GenerationRequest no_depth = covered;
   no_depth.render_depth = at::Tensor();
   auto refused = (*generator)->generate({no_depth});

@@ -7,8 +7,8 @@
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::depth {
 namespace {
@@ -19,14 +19,19 @@ using sdxl::join_name;
 // The backbone transformers builds when config.json has no backbone_config (DepthAnythingConfig's
 // sub-config defaults, Depth-Anything-Small's).
 nlohmann::json default_backbone_config() {
-  return {{"model_type", "dinov2"}, {"image_size", 518}, {"hidden_size", 384}, {"num_attention_heads", 6},
-          {"out_indices", {9, 10, 11, 12}}, {"reshape_hidden_states", false}};
+  return {{"model_type", "dinov2"},
+          {"image_size", 518},
+          {"hidden_size", 384},
+          {"num_attention_heads", 6},
+          {"out_indices", {9, 10, 11, 12}},
+          {"reshape_hidden_states", false}};
 }
 
 absl::Status refuse_named_backbone(const nlohmann::json& j) {
   if (j.contains("backbone") && !j["backbone"].is_null()) {
-    return absl::UnimplementedError(absl::StrCat("Depth-Anything config: backbone ", j["backbone"].dump(),
-                                                 " (a backbone by checkpoint name) is not supported; give backbone_config"));
+    return absl::UnimplementedError(
+        absl::StrCat("Depth-Anything config: backbone ", j["backbone"].dump(),
+                     " (a backbone by checkpoint name) is not supported; give backbone_config"));
   }
   GAPS_ASSIGN_OR_RETURN(const bool timm, config_value<bool>(j, "use_timm_backbone", false));
   if (timm) return absl::UnimplementedError("Depth-Anything config: use_timm_backbone is not supported");
@@ -77,7 +82,8 @@ absl::StatusOr<DepthAnythingConfig> DepthAnythingConfig::from_json(const nlohman
   if (has_backbone && !j["backbone_config"].is_object()) {
     return absl::InvalidArgumentError("Depth-Anything config: backbone_config is not a JSON object");
   }
-  GAPS_ASSIGN_OR_RETURN(c.backbone, Dinov2Config::from_json(has_backbone ? j["backbone_config"] : default_backbone_config()));
+  GAPS_ASSIGN_OR_RETURN(c.backbone,
+                        Dinov2Config::from_json(has_backbone ? j["backbone_config"] : default_backbone_config()));
   if (c.backbone.num_channels != 3) {
     return absl::UnimplementedError(absl::StrCat("Depth-Anything config: backbone_config.num_channels ",
                                                  c.backbone.num_channels, " is not supported (RGB input)"));
@@ -98,7 +104,8 @@ absl::StatusOr<DepthAnythingConfig> DepthAnythingConfig::from_json(const nlohman
   GAPS_ASSIGN_OR_RETURN(c.head_hidden_size, config_value<int64_t>(j, "head_hidden_size", c.head_hidden_size));
   GAPS_ASSIGN_OR_RETURN(c.reassemble_factors,
                         config_value<std::vector<double>>(j, "reassemble_factors", c.reassemble_factors));
-  GAPS_ASSIGN_OR_RETURN(c.neck_hidden_sizes, config_value<std::vector<int64_t>>(j, "neck_hidden_sizes", c.neck_hidden_sizes));
+  GAPS_ASSIGN_OR_RETURN(c.neck_hidden_sizes,
+                        config_value<std::vector<int64_t>>(j, "neck_hidden_sizes", c.neck_hidden_sizes));
   GAPS_ASSIGN_OR_RETURN(c.max_depth, config_value<double>(j, "max_depth", c.max_depth));
   GAPS_ASSIGN_OR_RETURN(const std::string type, config_value<std::string>(j, "depth_estimation_type", "relative"));
   if (type != "relative" && type != "metric") {
@@ -111,9 +118,9 @@ absl::StatusOr<DepthAnythingConfig> DepthAnythingConfig::from_json(const nlohman
                                                  " differs from the backbone's ", c.backbone.patch_size));
   }
   if (c.reassemble_hidden_size != c.backbone.hidden_size) {
-    return absl::InvalidArgumentError(absl::StrCat("Depth-Anything config: reassemble_hidden_size ",
-                                                   c.reassemble_hidden_size, " differs from the backbone's hidden_size ",
-                                                   c.backbone.hidden_size));
+    return absl::InvalidArgumentError(
+        absl::StrCat("Depth-Anything config: reassemble_hidden_size ", c.reassemble_hidden_size,
+                     " differs from the backbone's hidden_size ", c.backbone.hidden_size));
   }
   GAPS_RETURN_IF_ERROR(check_neck(c));
   return c;
@@ -201,12 +208,12 @@ at::Tensor DepthAnything::ResidualUnit::operator()(const at::Tensor& x) const {
 at::Tensor DepthAnything::reassemble(const Reassemble& layer, const at::Tensor& tokens, int64_t grid_height,
                                      int64_t grid_width) const {
   const at::Tensor patches = tokens.slice(1, 1);  // the CLS token is dropped (readout "ignore")
-  const at::Tensor map = patches.reshape({patches.size(0), grid_height, grid_width, patches.size(2)})
-                             .permute({0, 3, 1, 2})
-                             .contiguous();
+  const at::Tensor map =
+      patches.reshape({patches.size(0), grid_height, grid_width, patches.size(2)}).permute({0, 3, 1, 2}).contiguous();
   const at::Tensor projected = layer.projection(map);
   if (layer.factor_up > 1) {
-    return at::conv_transpose2d(projected, layer.upsample_weight, layer.upsample_bias, {layer.factor_up, layer.factor_up});
+    return at::conv_transpose2d(projected, layer.upsample_weight, layer.upsample_bias,
+                                {layer.factor_up, layer.factor_up});
   }
   return layer.factor_down > 1 ? layer.downsample(projected) : projected;
 }

@@ -73,8 +73,7 @@ class DepthAnything {
                              sdxl::WeightLoader& w);
   at::Tensor reassemble(const Reassemble& layer, const at::Tensor& tokens, int64_t grid_height,
                         int64_t grid_width) const;
-  at::Tensor fuse(const Fusion& layer, const at::Tensor& fused, const at::Tensor& feature,
-                  at::IntArrayRef size) const;
+  at::Tensor fuse(const Fusion& layer, const at::Tensor& fused, const at::Tensor& feature, at::IntArrayRef size) const;
   at::Tensor head(const at::Tensor& features, int64_t grid_height, int64_t grid_width) const;
 
   explicit DepthAnything(const DepthProcessorConfig& processor) : processor_(processor) {}

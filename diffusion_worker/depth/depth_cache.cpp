@@ -32,7 +32,9 @@ bool has_size(const at::Tensor& map, int64_t height, int64_t width) {
 absl::Status store(const fs::path& path, const at::Tensor& map) {
   std::error_code ec;
   fs::create_directories(path.parent_path(), ec);
-  if (ec) return absl::InternalError(absl::StrCat("depth cache: cannot create ", path.parent_path().string(), ": ", ec.message()));
+  if (ec)
+    return absl::InternalError(
+        absl::StrCat("depth cache: cannot create ", path.parent_path().string(), ": ", ec.message()));
   const fs::path partial = fs::path(path).concat(".partial");
   GAPS_RETURN_IF_ERROR(write_npy(partial, map));
   fs::rename(partial, path, ec);
@@ -52,8 +54,8 @@ absl::StatusOr<std::optional<at::Tensor>> DepthCache::read_stored(const std::str
   return std::optional<at::Tensor>(array.data.to(at::kFloat));
 }
 
-absl::StatusOr<at::Tensor> DepthCache::get_or_compute(const std::string& scene, const std::string& view,
-                                                      int64_t height, int64_t width, const Compute& compute) {
+absl::StatusOr<at::Tensor> DepthCache::get_or_compute(const std::string& scene, const std::string& view, int64_t height,
+                                                      int64_t width, const Compute& compute) {
   GAPS_RETURN_IF_ERROR(check_key_part("scene", scene));
   GAPS_RETURN_IF_ERROR(check_key_part("view", view));
   std::lock_guard<std::mutex> lock(mutex_);
@@ -69,8 +71,8 @@ absl::StatusOr<at::Tensor> DepthCache::get_or_compute(const std::string& scene, 
   GAPS_ASSIGN_OR_RETURN(at::Tensor map, compute());
   ++computed_;
   if (!map.defined() || !has_size(map, height, width)) {
-    return absl::InternalError(absl::StrCat("depth cache: the depth computed for ", scene, "/", view, " is not ",
-                                            height, " x ", width));
+    return absl::InternalError(
+        absl::StrCat("depth cache: the depth computed for ", scene, "/", view, " is not ", height, " x ", width));
   }
   map = map.to(at::kCPU, at::kFloat).contiguous();
   if (!path.empty()) GAPS_RETURN_IF_ERROR(store(path, map));

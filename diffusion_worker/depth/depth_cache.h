@@ -33,7 +33,7 @@ class DepthCache {
   // Drops the scene's maps from memory (the folder keeps them).
   void forget_scene(const std::string& scene);
 
-  int64_t computed() const { return computed_; }    // compute() calls so far
+  int64_t computed() const { return computed_; }      // compute() calls so far
   int64_t disk_reads() const { return disk_reads_; }  // maps read from the folder so far
   const std::string& folder() const { return folder_; }
 

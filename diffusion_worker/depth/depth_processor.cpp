@@ -6,8 +6,8 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::depth {
 namespace {
@@ -28,8 +28,8 @@ absl::StatusOr<std::array<float, 3>> per_channel(const nlohmann::json& config, c
   if (value.is_array() && value.size() == 3 && value[0].is_number() && value[1].is_number() && value[2].is_number()) {
     return std::array<float, 3>{value[0].get<float>(), value[1].get<float>(), value[2].get<float>()};
   }
-  return absl::InvalidArgumentError(absl::StrCat("preprocessor config: ", key, " ", value.dump(),
-                                                 " is not one value or three"));
+  return absl::InvalidArgumentError(
+      absl::StrCat("preprocessor config: ", key, " ", value.dump(), " is not one value or three"));
 }
 
 absl::Status refuse_if_set(const nlohmann::json& config, const std::string& key, const std::string& why) {
@@ -48,10 +48,11 @@ int64_t nearest_multiple(double value, int64_t multiple) {
 
 absl::StatusOr<DepthProcessorConfig> DepthProcessorConfig::from_json(const nlohmann::json& j) {
   DepthProcessorConfig c;
-  GAPS_ASSIGN_OR_RETURN(const std::string type, config_value<std::string>(j, "image_processor_type", "DPTImageProcessor"));
+  GAPS_ASSIGN_OR_RETURN(const std::string type,
+                        config_value<std::string>(j, "image_processor_type", "DPTImageProcessor"));
   if (type != "DPTImageProcessor" && type != "DPTImageProcessorFast") {
-    return absl::UnimplementedError(absl::StrCat("preprocessor config: image_processor_type '", type,
-                                                 "' is not supported (DPTImageProcessor)"));
+    return absl::UnimplementedError(
+        absl::StrCat("preprocessor config: image_processor_type '", type, "' is not supported (DPTImageProcessor)"));
   }
   GAPS_ASSIGN_OR_RETURN(c.do_resize, config_value<bool>(j, "do_resize", c.do_resize));
   GAPS_ASSIGN_OR_RETURN(c.do_rescale, config_value<bool>(j, "do_rescale", c.do_rescale));
@@ -78,7 +79,8 @@ absl::StatusOr<DepthProcessorConfig> DepthProcessorConfig::from_json(const nlohm
   GAPS_RETURN_IF_ERROR(refuse_if_set(j, "do_pad", "inputs are resized to the model's multiple instead"));
   GAPS_RETURN_IF_ERROR(refuse_if_set(j, "do_center_crop", "the depth must cover the whole image"));
   if (c.height <= 0 || c.width <= 0 || c.ensure_multiple_of <= 0 || c.rescale_factor <= 0) {
-    return absl::InvalidArgumentError("preprocessor config: size, ensure_multiple_of and rescale_factor must be positive");
+    return absl::InvalidArgumentError(
+        "preprocessor config: size, ensure_multiple_of and rescale_factor must be positive");
   }
   for (const float s : c.image_std) {
     if (!(s > 0)) return absl::InvalidArgumentError("preprocessor config: image_std must be positive");

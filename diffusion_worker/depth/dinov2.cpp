@@ -9,8 +9,8 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_replace.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::depth {
 namespace {
@@ -84,15 +84,18 @@ absl::StatusOr<Dinov2Config> Dinov2Config::from_json(const nlohmann::json& j) {
   GAPS_ASSIGN_OR_RETURN(c.patch_size, square_size(j, "patch_size", c.patch_size));
   GAPS_ASSIGN_OR_RETURN(const std::string hidden_act, config_value<std::string>(j, "hidden_act", "gelu"));
   if (hidden_act != "gelu") {
-    return absl::UnimplementedError(absl::StrCat("DINOv2 config: hidden_act '", hidden_act, "' is not supported (gelu)"));
+    return absl::UnimplementedError(
+        absl::StrCat("DINOv2 config: hidden_act '", hidden_act, "' is not supported (gelu)"));
   }
   GAPS_ASSIGN_OR_RETURN(const bool swiglu, config_value<bool>(j, "use_swiglu_ffn", false));
-  if (swiglu) return absl::UnimplementedError("DINOv2 config: use_swiglu_ffn is not supported (the MLP is fc1-gelu-fc2)");
+  if (swiglu)
+    return absl::UnimplementedError("DINOv2 config: use_swiglu_ffn is not supported (the MLP is fc1-gelu-fc2)");
   if (c.hidden_size <= 0 || c.num_attention_heads <= 0 || c.hidden_size % c.num_attention_heads != 0) {
     return absl::InvalidArgumentError("DINOv2 config: hidden_size must be a positive multiple of num_attention_heads");
   }
   if (c.num_hidden_layers <= 0 || c.patch_size <= 0 || c.image_size < c.patch_size || c.mlp_hidden_size() <= 0) {
-    return absl::InvalidArgumentError("DINOv2 config: num_hidden_layers, patch_size, image_size or mlp_ratio out of range");
+    return absl::InvalidArgumentError(
+        "DINOv2 config: num_hidden_layers, patch_size, image_size or mlp_ratio out of range");
   }
   GAPS_ASSIGN_OR_RETURN(c.out_indices, stage_indices(j, c.num_hidden_layers));
   return c;

@@ -2,8 +2,8 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 
@@ -45,8 +45,8 @@ at::Tensor ClipEncoder::activation(const at::Tensor& x) const {
 
 at::Tensor ClipEncoder::layer_forward(const Layer& l, const at::Tensor& x, bool causal) const {
   const at::Tensor h = l.layer_norm1(x);
-  at::Tensor out = x + l.out_proj(multi_head_attention(l.q_proj(h), l.k_proj(h), l.v_proj(h),
-                                                       config_.num_attention_heads, causal));
+  at::Tensor out =
+      x + l.out_proj(multi_head_attention(l.q_proj(h), l.k_proj(h), l.v_proj(h), config_.num_attention_heads, causal));
   return out + l.fc2(activation(l.fc1(l.layer_norm2(out))));
 }
 

@@ -5,8 +5,8 @@
 #include <ATen/ATen.h>
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 
@@ -55,7 +55,8 @@ absl::StatusOr<ClipTextEncoder> ClipTextEncoder::build(const ClipTextConfig& c, 
   e.final_layer_norm_ = LayerNorm::load(w, "final_layer_norm", d, c.layer_norm_eps);
   e.with_projection_ = with_projection;
   if (with_projection) {
-    if (c.projection_dim <= 0) return absl::InvalidArgumentError(absl::StrCat(source, ": projection_dim missing from the config"));
+    if (c.projection_dim <= 0)
+      return absl::InvalidArgumentError(absl::StrCat(source, ": projection_dim missing from the config"));
     e.text_projection_ = Linear::load(w, "text_projection", d, c.projection_dim, /*with_bias=*/false);
   }
   return e;
@@ -68,8 +69,8 @@ ClipTextOutput ClipTextEncoder::forward(const at::Tensor& input_ids) const {
   ClipTextOutput out;
   out.last_hidden_state = final_layer_norm_(encoder_.forward(x, /*causal=*/true, &out.penultimate));
   // The pooled token: the first end-of-text token (the legacy eos id 2 meant "highest id" instead).
-  const at::Tensor eos_pos = config_.eos_token_id == 2 ? ids.argmax(-1)
-                                                       : (ids == config_.eos_token_id).to(at::kInt).argmax(-1);
+  const at::Tensor eos_pos =
+      config_.eos_token_id == 2 ? ids.argmax(-1) : (ids == config_.eos_token_id).to(at::kInt).argmax(-1);
   const at::Tensor flat_index = at::arange(ids.size(0), ids.options()) * t + eos_pos.to(at::kLong);
   out.pooled = out.last_hidden_state.reshape({-1, out.last_hidden_state.size(2)}).index_select(0, flat_index);
   if (with_projection_) out.text_embeds = text_projection_(out.pooled);

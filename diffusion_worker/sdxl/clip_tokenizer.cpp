@@ -8,8 +8,8 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -109,9 +109,11 @@ absl::StatusOr<ClipTokenizer> ClipTokenizer::load(const std::string& folder) {
   ClipTokenizer tok;
   tok.byte_symbols_ = byte_symbols();
   GAPS_ASSIGN_OR_RETURN(nlohmann::json vocab, read_json_file((dir / "vocab.json").string()));
-  if (!vocab.is_object() || vocab.empty()) return absl::InvalidArgumentError(absl::StrCat(folder, "/vocab.json is not a token -> id object"));
+  if (!vocab.is_object() || vocab.empty())
+    return absl::InvalidArgumentError(absl::StrCat(folder, "/vocab.json is not a token -> id object"));
   for (const auto& [token, id] : vocab.items()) {
-    if (!id.is_number_integer()) return absl::InvalidArgumentError(absl::StrCat(folder, "/vocab.json: id of '", token, "' is not an integer"));
+    if (!id.is_number_integer())
+      return absl::InvalidArgumentError(absl::StrCat(folder, "/vocab.json: id of '", token, "' is not an integer"));
     tok.vocab_.emplace(token, id.get<int64_t>());
   }
   std::ifstream merges(dir / "merges.txt");
@@ -123,14 +125,16 @@ absl::StatusOr<ClipTokenizer> ClipTokenizer::load(const std::string& folder) {
     if (line.empty() || (line_number == 1 && line.rfind("#version", 0) == 0)) continue;
     const size_t space = line.find(' ');
     if (space == std::string::npos || line.find(' ', space + 1) != std::string::npos) {
-      return absl::InvalidArgumentError(absl::StrCat(folder, "/merges.txt line ", line_number, " is not 'a b': ", line));
+      return absl::InvalidArgumentError(
+          absl::StrCat(folder, "/merges.txt line ", line_number, " is not 'a b': ", line));
     }
     tok.merge_ranks_.emplace(std::make_pair(line.substr(0, space), line.substr(space + 1)), rank++);
   }
   std::string pad = "<|endoftext|>";
   if (std::filesystem::exists(dir / "tokenizer_config.json")) {
     GAPS_ASSIGN_OR_RETURN(nlohmann::json config, read_json_file((dir / "tokenizer_config.json").string()));
-    if (config.contains("pad_token") && !token_string(config["pad_token"]).empty()) pad = token_string(config["pad_token"]);
+    if (config.contains("pad_token") && !token_string(config["pad_token"]).empty())
+      pad = token_string(config["pad_token"]);
     if (config.contains("model_max_length") && config["model_max_length"].is_number_integer() &&
         config["model_max_length"].get<int64_t>() < 100000) {
       tok.model_max_length_ = config["model_max_length"].get<int64_t>();
@@ -138,7 +142,8 @@ absl::StatusOr<ClipTokenizer> ClipTokenizer::load(const std::string& folder) {
   }
   const auto id_of = [&](const std::string& token) -> absl::StatusOr<int64_t> {
     const auto it = tok.vocab_.find(token);
-    if (it == tok.vocab_.end()) return absl::InvalidArgumentError(absl::StrCat(folder, "/vocab.json lacks the token ", token));
+    if (it == tok.vocab_.end())
+      return absl::InvalidArgumentError(absl::StrCat(folder, "/vocab.json lacks the token ", token));
     return it->second;
   };
   GAPS_ASSIGN_OR_RETURN(tok.bos_id_, id_of("<|startoftext|>"));
@@ -197,7 +202,8 @@ std::vector<int64_t> ClipTokenizer::tokenize(const std::string& text) const {
   while (i < text.size()) {
     const std::pair<std::string, int64_t>* match = nullptr;
     for (const auto& special : special_tokens_) {
-      if (text.compare(i, special.first.size(), special.first) == 0 && (match == nullptr || special.first.size() > match->first.size())) {
+      if (text.compare(i, special.first.size(), special.first) == 0 &&
+          (match == nullptr || special.first.size() > match->first.size())) {
         match = &special;
       }
     }

@@ -4,8 +4,8 @@
 //
 // Text is whitespace-collapsed and lower-cased, split by CLIP's pattern (contractions, letter runs,
 // single digits, other-symbol runs), each piece byte-encoded, given the "</w>" end-of-word mark and
-// merged by rank; the special tokens (start, end, pad) are cut out of the raw text first. Exact for ASCII text; beyond ASCII, lower-casing and Unicode normalisation are not
-// applied and every non-ASCII code point counts as a letter.
+// merged by rank; the special tokens (start, end, pad) are cut out of the raw text first. Exact for ASCII text; beyond
+// ASCII, lower-casing and Unicode normalisation are not applied and every non-ASCII code point counts as a letter.
 #include <map>
 #include <string>
 #include <unordered_map>

@@ -5,8 +5,8 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -75,11 +75,10 @@ absl::StatusOr<ClipVisionEncoder> ClipVisionEncoder::build(const ClipVisionConfi
 ClipVisionOutput ClipVisionEncoder::forward(const at::Tensor& pixel_values) const {
   const at::Tensor pixels = pixel_values.to(patch_embedding_.device(), patch_embedding_.scalar_type());
   const int64_t batch = pixels.size(0), d = config_.hidden_size;
-  const at::Tensor patches = at::conv2d(pixels, patch_embedding_, {}, {config_.patch_size, config_.patch_size})
-                                 .flatten(2)
-                                 .transpose(1, 2);
-  at::Tensor x = at::cat({class_embedding_.view({1, 1, d}).expand({batch, 1, d}), patches}, 1) +
-                 position_embedding_.unsqueeze(0);
+  const at::Tensor patches =
+      at::conv2d(pixels, patch_embedding_, {}, {config_.patch_size, config_.patch_size}).flatten(2).transpose(1, 2);
+  at::Tensor x =
+      at::cat({class_embedding_.view({1, 1, d}).expand({batch, 1, d}), patches}, 1) + position_embedding_.unsqueeze(0);
   ClipVisionOutput out;
   out.last_hidden_state = encoder_.forward(pre_layernorm_(x), /*causal=*/false);
   out.pooled = post_layernorm_(out.last_hidden_state.select(1, 0));

@@ -6,8 +6,8 @@
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 
@@ -15,19 +15,22 @@ absl::StatusOr<ControlNetConfig> ControlNetConfig::from_json(const nlohmann::jso
   ControlNetConfig c;
   GAPS_ASSIGN_OR_RETURN(c.unet, UNetConfig::from_json(j, /*with_up_blocks=*/false));
   GAPS_ASSIGN_OR_RETURN(c.conditioning_channels, config_value<int64_t>(j, "conditioning_channels", 3));
-  GAPS_ASSIGN_OR_RETURN(c.conditioning_embedding_out_channels,
-                        config_value<std::vector<int64_t>>(j, "conditioning_embedding_out_channels", {16, 32, 96, 256}));
+  GAPS_ASSIGN_OR_RETURN(
+      c.conditioning_embedding_out_channels,
+      config_value<std::vector<int64_t>>(j, "conditioning_embedding_out_channels", {16, 32, 96, 256}));
   if (c.conditioning_embedding_out_channels.empty() || c.conditioning_channels < 1) {
     return absl::InvalidArgumentError("ControlNet config: conditioning_embedding_out_channels must not be empty");
   }
   GAPS_ASSIGN_OR_RETURN(auto order, config_value<std::string>(j, "controlnet_conditioning_channel_order", "rgb"));
   if (order != "rgb" && order != "bgr") {
-    return absl::InvalidArgumentError("ControlNet config: controlnet_conditioning_channel_order '" + order + "' is not rgb or bgr");
+    return absl::InvalidArgumentError("ControlNet config: controlnet_conditioning_channel_order '" + order +
+                                      "' is not rgb or bgr");
   }
   c.bgr = order == "bgr";
   GAPS_ASSIGN_OR_RETURN(auto global_pool, config_value<bool>(j, "global_pool_conditions", false));
   if (global_pool) {
-    return absl::UnimplementedError("ControlNet config: global_pool_conditions (shuffle-style ControlNets) is not supported");
+    return absl::UnimplementedError(
+        "ControlNet config: global_pool_conditions (shuffle-style ControlNets) is not supported");
   }
   GAPS_ASSIGN_OR_RETURN(auto act, config_value<std::string>(j, "act_fn", "silu"));
   if (act != "silu") return absl::UnimplementedError("ControlNet config: act_fn '" + act + "' is not supported");
@@ -101,8 +104,9 @@ absl::Status ControlNet::check_compatible(const UNetConfig& u) const {
 
 ControlNetResiduals ControlNet::forward(const UNetInputs& in, const at::Tensor& image, const at::Tensor& scale) const {
   const int64_t f = config_.downscale();
-  TORCH_CHECK(image.dim() == 4 && image.size(0) == in.sample.size(0) && image.size(1) == config_.conditioning_channels &&
-                  image.size(2) == in.sample.size(2) * f && image.size(3) == in.sample.size(3) * f,
+  TORCH_CHECK(image.dim() == 4 && image.size(0) == in.sample.size(0) &&
+                  image.size(1) == config_.conditioning_channels && image.size(2) == in.sample.size(2) * f &&
+                  image.size(3) == in.sample.size(3) * f,
               "ControlNet: conditioning image ", image.sizes(), " does not fit latents ", in.sample.sizes(), " (needs ",
               config_.conditioning_channels, " channels at ", f, "x the latent size)");
   at::Tensor e = at::silu(cond_in_(config_.bgr ? image.flip({1}) : image));

@@ -7,8 +7,8 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <c10/core/InferenceMode.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -69,50 +69,58 @@ std::vector<std::string> per_image(const std::vector<std::string>& texts, int64_
 absl::StatusOr<std::unique_ptr<InpaintPipeline>> InpaintPipeline::load(const std::string& root,
                                                                        const InpaintPipelineOptions& options) {
   GAPS_ASSIGN_OR_RETURN(ModelFolder folder, ModelFolder::open(root));
-  for (const auto& [component, cls] : std::vector<std::pair<std::string, std::string>>{
-           {"unet", "UNet2DConditionModel"}, {"vae", "AutoencoderKL"}, {"text_encoder", "CLIPTextModel"},
-           {"tokenizer", "CLIPTokenizer"}}) {
+  for (const auto& [component, cls] :
+       std::vector<std::pair<std::string, std::string>>{{"unet", "UNet2DConditionModel"},
+                                                        {"vae", "AutoencoderKL"},
+                                                        {"text_encoder", "CLIPTextModel"},
+                                                        {"tokenizer", "CLIPTokenizer"}}) {
     GAPS_RETURN_IF_ERROR(expect_class(folder, component, cls));
   }
   auto p = std::make_unique<InpaintPipeline>();
   p->options_ = options;
   const at::TensorOptions model_options = at::TensorOptions().dtype(options.dtype).device(options.device);
 
-  GAPS_ASSIGN_OR_RETURN(auto scheduler_json, in_component("scheduler", folder.read_json("scheduler", "scheduler_config.json")));
+  GAPS_ASSIGN_OR_RETURN(auto scheduler_json,
+                        in_component("scheduler", folder.read_json("scheduler", "scheduler_config.json")));
   GAPS_ASSIGN_OR_RETURN(p->scheduler_config_,
                         in_component("scheduler", SchedulerConfig::from_json(scheduler_json, options.scheduler)));
-  GAPS_ASSIGN_OR_RETURN(p->tokenizer_, in_component("tokenizer", ClipTokenizer::load(folder.component_dir("tokenizer"))));
+  GAPS_ASSIGN_OR_RETURN(p->tokenizer_,
+                        in_component("tokenizer", ClipTokenizer::load(folder.component_dir("tokenizer"))));
 
   GAPS_ASSIGN_OR_RETURN(auto text_json, in_component("text_encoder", folder.read_json("text_encoder")));
   GAPS_ASSIGN_OR_RETURN(auto text_config, in_component("text_encoder", ClipTextConfig::from_json(text_json)));
-  GAPS_ASSIGN_OR_RETURN(auto text_weights, in_component("text_encoder", folder.read_weights("text_encoder", options.variant)));
-  GAPS_ASSIGN_OR_RETURN(p->text_encoder_,
-                        in_component("text_encoder", ClipTextEncoder::load(text_config, false, std::move(text_weights),
-                                                                           model_options, folder.component_dir("text_encoder"))));
+  GAPS_ASSIGN_OR_RETURN(auto text_weights,
+                        in_component("text_encoder", folder.read_weights("text_encoder", options.variant)));
+  GAPS_ASSIGN_OR_RETURN(
+      p->text_encoder_,
+      in_component("text_encoder", ClipTextEncoder::load(text_config, false, std::move(text_weights), model_options,
+                                                         folder.component_dir("text_encoder"))));
 
   GAPS_ASSIGN_OR_RETURN(auto vae_json, in_component("vae", folder.read_json("vae")));
   GAPS_ASSIGN_OR_RETURN(auto vae_config, in_component("vae", VaeConfig::from_json(vae_json)));
   GAPS_ASSIGN_OR_RETURN(auto vae_weights, in_component("vae", folder.read_weights("vae", options.variant)));
   const bool upcast = vae_json.value("force_upcast", true);
-  GAPS_ASSIGN_OR_RETURN(p->vae_, in_component("vae", AutoencoderKL::load(vae_config, std::move(vae_weights),
-                                                                        upcast ? model_options.dtype(at::kFloat) : model_options,
-                                                                        folder.component_dir("vae"))));
+  GAPS_ASSIGN_OR_RETURN(
+      p->vae_, in_component("vae", AutoencoderKL::load(vae_config, std::move(vae_weights),
+                                                       upcast ? model_options.dtype(at::kFloat) : model_options,
+                                                       folder.component_dir("vae"))));
 
   GAPS_ASSIGN_OR_RETURN(auto unet_json, in_component("unet", folder.read_json("unet")));
   GAPS_ASSIGN_OR_RETURN(auto unet_config, in_component("unet", UNetConfig::from_json(unet_json)));
   const int64_t latent_channels = vae_config.latent_channels;
   if (unet_config.in_channels != 2 * latent_channels + 1 || unet_config.out_channels != latent_channels ||
       unet_config.cross_attention_dim != text_config.hidden_size || !unet_config.addition_embed_type.empty()) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        root, ": the UNet is not an inpainting UNet for this VAE and text encoder (needs in_channels ",
-        2 * latent_channels + 1, " = latents, mask and masked-image latents; out_channels ", latent_channels,
-        "; cross_attention_dim ", text_config.hidden_size, "; no addition_embed_type); it has in_channels ",
-        unet_config.in_channels, ", out_channels ", unet_config.out_channels, ", cross_attention_dim ",
-        unet_config.cross_attention_dim));
+    return absl::InvalidArgumentError(
+        absl::StrCat(root, ": the UNet is not an inpainting UNet for this VAE and text encoder (needs in_channels ",
+                     2 * latent_channels + 1, " = latents, mask and masked-image latents; out_channels ",
+                     latent_channels, "; cross_attention_dim ", text_config.hidden_size,
+                     "; no addition_embed_type); it has in_channels ", unet_config.in_channels, ", out_channels ",
+                     unet_config.out_channels, ", cross_attention_dim ", unet_config.cross_attention_dim));
   }
   GAPS_ASSIGN_OR_RETURN(auto unet_weights, in_component("unet", folder.read_weights("unet", options.variant)));
-  GAPS_ASSIGN_OR_RETURN(p->unet_, in_component("unet", UNet2DCondition::load(unet_config, std::move(unet_weights),
-                                                                            model_options, folder.component_dir("unet"))));
+  GAPS_ASSIGN_OR_RETURN(p->unet_,
+                        in_component("unet", UNet2DCondition::load(unet_config, std::move(unet_weights), model_options,
+                                                                   folder.component_dir("unet"))));
   return p;
 }
 
@@ -146,7 +154,8 @@ absl::Status InpaintPipeline::check_inputs(const at::Tensor& images, const at::T
                                                    " x 1 x ", height, " x ", width, ")"));
   }
   if (height % f != 0 || width % f != 0) {
-    return absl::InvalidArgumentError(absl::StrCat("inpaint: image size ", height, "x", width, " is not a multiple of ", f));
+    return absl::InvalidArgumentError(
+        absl::StrCat("inpaint: image size ", height, "x", width, " is not a multiple of ", f));
   }
   const auto one_or_batch = [batch](size_t n) { return n == 1 || static_cast<int64_t>(n) == batch; };
   if (!one_or_batch(prompts.size())) return absl::InvalidArgumentError("inpaint: give one prompt, or one per image");
@@ -158,15 +167,15 @@ absl::Status InpaintPipeline::check_inputs(const at::Tensor& images, const at::T
     return absl::InvalidArgumentError("inpaint: strength must be in (0, 1] and steps >= 1");
   }
   if (static_cast<int64_t>(params.steps * params.strength) < 1) {
-    return absl::InvalidArgumentError(absl::StrCat("inpaint: strength ", params.strength, " with ", params.steps,
-                                                   " steps leaves no step to run"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("inpaint: strength ", params.strength, " with ", params.steps, " steps leaves no step to run"));
   }
   return absl::OkStatus();
 }
 
 absl::StatusOr<at::Tensor> InpaintPipeline::inpaint(const at::Tensor& images, const at::Tensor& masks,
-                                                    const std::vector<std::string>& prompts, const InpaintParams& params,
-                                                    const std::vector<uint64_t>& seeds) {
+                                                    const std::vector<std::string>& prompts,
+                                                    const InpaintParams& params, const std::vector<uint64_t>& seeds) {
   GAPS_RETURN_IF_ERROR(check_inputs(images, masks, prompts, params, seeds));
   const int64_t batch = images.size(0), f = latent_factor();
   GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
@@ -183,7 +192,9 @@ absl::StatusOr<at::Tensor> InpaintPipeline::inpaint(const at::Tensor& images, co
     const at::Tensor mask = (masks.to(at::kFloat) >= 0.5).to(at::kFloat);
     const at::Tensor image = images.to(at::kFloat) * 2 - 1;
     const at::Tensor masked_image = image * (mask < 0.5);
-    const auto moments = [&](const at::Tensor& x) { return vae_->encode_moments(x.to(options_.device, vae_->dtype())); };
+    const auto moments = [&](const at::Tensor& x) {
+      return vae_->encode_moments(x.to(options_.device, vae_->dtype()));
+    };
     const double scaling = vae_->config().scaling_factor;
     // The draws in diffusers' order: image latents (strength < 1 only), noise, masked-image latents.
     SeededDraws draws(seeds);
@@ -191,7 +202,8 @@ absl::StatusOr<at::Tensor> InpaintPipeline::inpaint(const at::Tensor& images, co
     if (!from_noise) image_latents = draws.sample_latents(*vae_, moments(image)).to(at::kCPU, at::kFloat) * scaling;
     const int64_t lh = images.size(2) / f, lw = images.size(3) / f;
     const at::Tensor noise = draws.randn({batch, vae_->config().latent_channels, lh, lw});
-    at::Tensor latents = from_noise ? noise * scheduler->init_noise_sigma() : scheduler->add_noise(image_latents, noise, start);
+    at::Tensor latents =
+        from_noise ? noise * scheduler->init_noise_sigma() : scheduler->add_noise(image_latents, noise, start);
     const at::Tensor masked_latents = draws.sample_latents(*vae_, moments(masked_image)).to(model_options) * scaling;
     const at::Tensor latent_mask = at::upsample_nearest2d(mask, {lh, lw}).to(model_options);
 

@@ -80,7 +80,8 @@ const at::Tensor& ImagePrompt::scales() const {
   return current_ != nullptr ? current_->scales : kNone;
 }
 
-at::Tensor DecoupledCrossAttention::operator()(const Attention& attn, const at::Tensor& x, const at::Tensor& context) const {
+at::Tensor DecoupledCrossAttention::operator()(const Attention& attn, const at::Tensor& x,
+                                               const at::Tensor& context) const {
   if (prompt_->text_only()) return attn.to_out(attn.attend(attn.to_q(x), attn.to_k(context), attn.to_v(context)));
   const at::Tensor& tokens = prompt_->tokens();
   TORCH_CHECK(tokens.defined(), "IP-Adapter: the UNet ran without an image prompt (set_image_prompt)");
@@ -103,9 +104,10 @@ absl::StatusOr<std::unique_ptr<IpAdapter>> IpAdapter::load(TensorMap weights, UN
   for (const char* other : {"image_proj.latents", "image_proj.proj.0.weight", "image_proj.proj.3.weight",
                             "image_proj.perceiver_resampler.proj_in.weight"}) {
     if (weights.count(other)) {
-      return absl::UnimplementedError(absl::StrCat(source, ": holds ", other,
-                                                   ", an IP-Adapter Plus / Full Face / FaceID checkpoint; only the "
-                                                   "plain IP-Adapter (image_proj.proj + image_proj.norm) is supported"));
+      return absl::UnimplementedError(
+          absl::StrCat(source, ": holds ", other,
+                       ", an IP-Adapter Plus / Full Face / FaceID checkpoint; only the "
+                       "plain IP-Adapter (image_proj.proj + image_proj.norm) is supported"));
     }
   }
   const auto layers = cross_attention_layers(unet);
@@ -116,7 +118,8 @@ absl::StatusOr<std::unique_ptr<IpAdapter>> IpAdapter::load(TensorMap weights, UN
   }
   const auto proj = weights.find("image_proj.proj.weight");
   if (proj == weights.end() || proj->second.dim() != 2) {
-    return absl::InvalidArgumentError(absl::StrCat(source, ": image_proj.proj.weight (tokens x cross_attention_dim, "
+    return absl::InvalidArgumentError(absl::StrCat(source,
+                                                   ": image_proj.proj.weight (tokens x cross_attention_dim, "
                                                    "image embedding size) is missing or not a matrix"));
   }
   const int64_t cross = unet.config().cross_attention_dim, embed_dim = proj->second.size(1);

@@ -36,7 +36,10 @@ class ImagePrompt {
   void set(const at::Tensor& tokens, const at::Tensor& scales);
   // No image prompt until the next set(): the layers attend to the text alone, as the UNet without the
   // adapter does (LoRA training, which adapts the text-conditioned UNet; see SdxlPipeline::train_lora).
-  void set_text_only() { current_ = nullptr; text_only_ = true; }
+  void set_text_only() {
+    current_ = nullptr;
+    text_only_ = true;
+  }
   bool text_only() const { return text_only_; }
   const at::Tensor& tokens() const;  // undefined before the first set()
   const at::Tensor& scales() const;  // B x 1 x 1

@@ -21,8 +21,8 @@ at::Tensor Linear::operator()(const at::Tensor& x) const {
   return y + (low_rank * lora_scale).to(y.scalar_type());
 }
 
-Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel,
-                    int64_t stride, int64_t padding, bool with_bias) {
+Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel, int64_t stride,
+                    int64_t padding, bool with_bias) {
   Conv2d c;
   c.weight = w.take(join_name(prefix, "weight"), {out, in, kernel, kernel});
   if (with_bias) c.bias = w.take(join_name(prefix, "bias"), {out});
@@ -123,13 +123,15 @@ at::Tensor timestep_features(const at::Tensor& timesteps, int64_t dim, bool flip
   const at::Tensor exponent =
       at::arange(0, half, timesteps.options().dtype(at::kFloat)) * (-std::log(10000.0)) / (half - freq_shift);
   const at::Tensor args = timesteps.to(at::kFloat).unsqueeze(1) * at::exp(exponent).unsqueeze(0);
-  at::Tensor emb = flip_sin_to_cos ? at::cat({at::cos(args), at::sin(args)}, -1) : at::cat({at::sin(args), at::cos(args)}, -1);
+  at::Tensor emb =
+      flip_sin_to_cos ? at::cat({at::cos(args), at::sin(args)}, -1) : at::cat({at::sin(args), at::cos(args)}, -1);
   if (dim % 2 == 1) emb = at::constant_pad_nd(emb, {0, 1}, 0);
   return emb;
 }
 
 TimestepEmbedding TimestepEmbedding::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t dim) {
-  return {Linear::load(w, join_name(prefix, "linear_1"), in, dim), Linear::load(w, join_name(prefix, "linear_2"), dim, dim)};
+  return {Linear::load(w, join_name(prefix, "linear_1"), in, dim),
+          Linear::load(w, join_name(prefix, "linear_2"), dim, dim)};
 }
 
 at::Tensor TimestepEmbedding::operator()(const at::Tensor& x) const { return linear_2(at::silu(linear_1(x))); }

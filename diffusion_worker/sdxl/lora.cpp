@@ -105,7 +105,8 @@ std::string shape_text(at::IntArrayRef shape) { return absl::StrCat("[", absl::S
 }  // namespace
 
 absl::StatusOr<UNetLora> UNetLora::create(UNet2DCondition& unet, const LoraConfig& config, uint64_t seed) {
-  if (config.rank <= 0) return absl::InvalidArgumentError(absl::StrCat("LoRA rank must be positive, got ", config.rank));
+  if (config.rank <= 0)
+    return absl::InvalidArgumentError(absl::StrCat("LoRA rank must be positive, got ", config.rank));
   if (config.targets.empty()) return absl::InvalidArgumentError("LoRA needs at least one target projection");
   for (const auto& target : config.targets) {
     if (std::find(std::begin(kProjections), std::end(kProjections), target) == std::end(kProjections)) {
@@ -191,7 +192,8 @@ absl::StatusOr<UNetLora> UNetLora::from_tensors(const TensorMap& tensors, const 
   if (!problems.empty()) {
     return absl::InvalidArgumentError(absl::StrCat("LoRA file ", source, ": ", absl::StrJoin(problems, "; ")));
   }
-  if (lora.adapters_.empty()) return absl::InvalidArgumentError(absl::StrCat("LoRA file ", source, " holds no adapters"));
+  if (lora.adapters_.empty())
+    return absl::InvalidArgumentError(absl::StrCat("LoRA file ", source, " holds no adapters"));
   lora.attach_to(unet);
   return lora;
 }

@@ -31,9 +31,9 @@ struct LoraConfig {
 class UNetLora {
  public:
   struct Adapter {
-    std::string module;    // diffusers name of the adapted Linear
-    at::Tensor down, up;   // r x in, out x r, float32; shared with the UNet's Linear while attached
-    double alpha = 0;      // scale = alpha / rank
+    std::string module;   // diffusers name of the adapted Linear
+    at::Tensor down, up;  // r x in, out x r, float32; shared with the UNet's Linear while attached
+    double alpha = 0;     // scale = alpha / rank
     double scale() const { return alpha / static_cast<double>(down.size(0)); }
   };
 

@@ -47,12 +47,14 @@ absl::Status LoraTrainer::check(const LoraTrainingData& data) const {
     return absl::FailedPreconditionError("LoRA training cannot run inside InferenceMode (it needs autograd)");
   }
   if (!data.latents.defined() || data.latents.dim() != 4) {
-    return absl::InvalidArgumentError(absl::StrCat("LoRA training: latents must be N x C x h x w, got ",
-                                                   shape_text(data.latents)));
+    return absl::InvalidArgumentError(
+        absl::StrCat("LoRA training: latents must be N x C x h x w, got ", shape_text(data.latents)));
   }
   const int64_t n = data.latents.size(0);
-  for (const auto& [name, t] : {std::pair<const char*, const at::Tensor&>{"encoder_hidden_states", data.encoder_hidden_states},
-                                {"text_embeds", data.text_embeds}, {"time_ids", data.time_ids}}) {
+  for (const auto& [name, t] :
+       {std::pair<const char*, const at::Tensor&>{"encoder_hidden_states", data.encoder_hidden_states},
+        {"text_embeds", data.text_embeds},
+        {"time_ids", data.time_ids}}) {
     if (!t.defined() || t.size(0) != n) {
       return absl::InvalidArgumentError(
           absl::StrCat("LoRA training: ", name, " needs one entry per view (", n, "), got ", shape_text(t)));
@@ -89,8 +91,8 @@ absl::StatusOr<at::Tensor> LoraTrainer::loss(const LoraTrainingData& data, const
     in.time_ids = data.time_ids;
     if (controlnet_ != nullptr) {
       at::NoGradGuard frozen;
-      ControlNetResiduals residuals = controlnet_->forward(
-          in, data.control_images, at::full({1}, data.conditioning_scale, x0.options()));
+      ControlNetResiduals residuals =
+          controlnet_->forward(in, data.control_images, at::full({1}, data.conditioning_scale, x0.options()));
       in.down_block_residuals = std::move(residuals.down);
       in.mid_block_residual = std::move(residuals.mid);
     }
@@ -107,8 +109,8 @@ absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const Den
   try {
     value->backward();
   } catch (const c10::Error& e) {
-    return absl::InternalError(absl::StrCat("LoRA training backward failed (inference-mode weights?): ",
-                                            e.what_without_backtrace()));
+    return absl::InternalError(
+        absl::StrCat("LoRA training backward failed (inference-mode weights?): ", e.what_without_backtrace()));
   }
   // torch.optim.Adam's update, on the adapters only.
   at::NoGradGuard no_grad;

@@ -19,7 +19,7 @@ struct LoraTrainingOptions {
   int64_t steps = 50;
   double learning_rate = 1e-4;
   double beta1 = 0.9, beta2 = 0.999, epsilon = 1e-8;  // Adam (torch.optim.Adam's defaults)
-  uint64_t seed = 0;                                   // draws of timesteps and noise
+  uint64_t seed = 0;                                  // draws of timesteps and noise
 };
 
 // The ground-truth views, one batch entry each.

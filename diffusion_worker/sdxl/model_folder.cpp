@@ -28,7 +28,8 @@ absl::StatusOr<ModelFolder> ModelFolder::open(const std::string& root) {
   ModelFolder folder;
   folder.root_ = root;
   GAPS_ASSIGN_OR_RETURN(folder.index_, read_json_file((std::filesystem::path(root) / "model_index.json").string()));
-  if (!folder.index_.is_object()) return absl::InvalidArgumentError(absl::StrCat(root, "/model_index.json is not a JSON object"));
+  if (!folder.index_.is_object())
+    return absl::InvalidArgumentError(absl::StrCat(root, "/model_index.json is not a JSON object"));
   return folder;
 }
 
@@ -42,8 +43,8 @@ absl::StatusOr<std::string> ModelFolder::component_class(const std::string& comp
   }
   const auto& entry = index_[component];
   if (!entry.is_array() || entry.size() != 2 || !entry[1].is_string()) {
-    return absl::InvalidArgumentError(absl::StrCat(root_, "/model_index.json: component '", component,
-                                                   "' is not [library, class]: ", entry.dump()));
+    return absl::InvalidArgumentError(
+        absl::StrCat(root_, "/model_index.json: component '", component, "' is not [library, class]: ", entry.dump()));
   }
   return entry[1].get<std::string>();
 }
@@ -68,7 +69,8 @@ absl::StatusOr<TensorMap> read_folder_weights(const std::string& dir, const std:
   }
   if (ec) return absl::NotFoundError(absl::StrCat("cannot list ", dir, ": ", ec.message()));
   if (files.empty()) {
-    return absl::NotFoundError(absl::StrCat("no ", variant.empty() ? "" : variant + " ", "*.safetensors weights in ", dir));
+    return absl::NotFoundError(
+        absl::StrCat("no ", variant.empty() ? "" : variant + " ", "*.safetensors weights in ", dir));
   }
   std::sort(files.begin(), files.end());
   TensorMap all;

@@ -12,8 +12,8 @@
 #include <ATen/core/grad_mode.h>
 #include <c10/core/InferenceMode.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAEvent.h>
@@ -76,7 +76,8 @@ struct UNetGraphs {
     e.inputs.encoder_hidden_states.copy_(in.encoder_hidden_states);
     e.inputs.text_embeds.copy_(in.text_embeds);
     e.inputs.time_ids.copy_(in.time_ids);
-    for (size_t i = 0; i < in.down_block_residuals.size(); ++i) e.inputs.down_block_residuals[i].copy_(in.down_block_residuals[i]);
+    for (size_t i = 0; i < in.down_block_residuals.size(); ++i)
+      e.inputs.down_block_residuals[i].copy_(in.down_block_residuals[i]);
     if (in.mid_block_residual.defined()) e.inputs.mid_block_residual.copy_(in.mid_block_residual);
     e.graph.replay();
     return e.output.clone();
@@ -96,8 +97,8 @@ absl::Status in_component(const std::string& component, const absl::Status& stat
 absl::Status expect_class(const ModelFolder& folder, const std::string& component, const std::string& expected) {
   GAPS_ASSIGN_OR_RETURN(std::string cls, folder.component_class(component));
   if (cls != expected) {
-    return absl::InvalidArgumentError(absl::StrCat(folder.root(), ": component '", component, "' is ", cls,
-                                                   ", an SDXL pipeline needs ", expected));
+    return absl::InvalidArgumentError(
+        absl::StrCat(folder.root(), ": component '", component, "' is ", cls, ", an SDXL pipeline needs ", expected));
   }
   return absl::OkStatus();
 }
@@ -113,19 +114,24 @@ at::Tensor token_tensor(const ClipTokenizer& tok, const std::vector<std::string>
 
 }  // namespace
 
-absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::string& root, const PipelineOptions& options) {
+absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::string& root,
+                                                                 const PipelineOptions& options) {
   GAPS_ASSIGN_OR_RETURN(ModelFolder folder, ModelFolder::open(root));
-  for (const auto& [component, cls] : std::vector<std::pair<std::string, std::string>>{
-           {"unet", "UNet2DConditionModel"}, {"vae", "AutoencoderKL"}, {"text_encoder", "CLIPTextModel"},
-           {"text_encoder_2", "CLIPTextModelWithProjection"}, {"tokenizer", "CLIPTokenizer"},
-           {"tokenizer_2", "CLIPTokenizer"}}) {
+  for (const auto& [component, cls] :
+       std::vector<std::pair<std::string, std::string>>{{"unet", "UNet2DConditionModel"},
+                                                        {"vae", "AutoencoderKL"},
+                                                        {"text_encoder", "CLIPTextModel"},
+                                                        {"text_encoder_2", "CLIPTextModelWithProjection"},
+                                                        {"tokenizer", "CLIPTokenizer"},
+                                                        {"tokenizer_2", "CLIPTokenizer"}}) {
     GAPS_RETURN_IF_ERROR(expect_class(folder, component, cls));
   }
   auto p = std::make_unique<SdxlPipeline>();
   p->options_ = options;
   GAPS_RETURN_IF_ERROR(p->set_cuda_graphs(options.cuda_graphs));
   if (folder.index().value("requires_aesthetics_score", false)) {
-    return absl::UnimplementedError(absl::StrCat(root, ": aesthetic-score conditioning (the SDXL refiner) is not supported"));
+    return absl::UnimplementedError(
+        absl::StrCat(root, ": aesthetic-score conditioning (the SDXL refiner) is not supported"));
   }
   if (folder.index().contains("force_zeros_for_empty_prompt")) {
     p->force_zeros_for_empty_prompt_ = folder.index()["force_zeros_for_empty_prompt"].get<bool>();
@@ -148,7 +154,8 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     GAPS_RETURN_IF_ERROR(in_component(name, config.status()));
     auto weights = folder.read_weights(name, options.variant);
     GAPS_RETURN_IF_ERROR(in_component(name, weights.status()));
-    auto encoder = ClipTextEncoder::load(*config, projection, *std::move(weights), model_options, folder.component_dir(name));
+    auto encoder =
+        ClipTextEncoder::load(*config, projection, *std::move(weights), model_options, folder.component_dir(name));
     GAPS_RETURN_IF_ERROR(in_component(name, encoder.status()));
     (projection ? p->text_encoder_2_ : p->text_encoder_) = *std::move(encoder);
   }
@@ -180,8 +187,9 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     const bool upcast = json->value("force_upcast", true);
     auto weights = folder.read_weights("vae", options.variant);
     GAPS_RETURN_IF_ERROR(in_component("vae", weights.status()));
-    auto vae = AutoencoderKL::load(*config, *std::move(weights), upcast ? model_options.dtype(at::kFloat) : model_options,
-                                   folder.component_dir("vae"));
+    auto vae =
+        AutoencoderKL::load(*config, *std::move(weights), upcast ? model_options.dtype(at::kFloat) : model_options,
+                            folder.component_dir("vae"));
     GAPS_RETURN_IF_ERROR(in_component("vae", vae.status()));
     p->vae_ = *std::move(vae);
   }
@@ -197,8 +205,9 @@ absl::Status SdxlPipeline::load_controlnet(const ModelFolder& folder) {
     dir = folder.component_dir("controlnet");
   }
   if (dir.empty()) return absl::OkStatus();
-  GAPS_ASSIGN_OR_RETURN(ControlNet net, ControlNet::load_folder(dir, at::TensorOptions().dtype(options_.dtype).device(options_.device),
-                                                                options_.variant));
+  GAPS_ASSIGN_OR_RETURN(ControlNet net,
+                        ControlNet::load_folder(dir, at::TensorOptions().dtype(options_.dtype).device(options_.device),
+                                                options_.variant));
   if (absl::Status fits = net.check_compatible(unet_->config()); !fits.ok()) {
     return absl::Status(fits.code(), absl::StrCat(dir, ": ", fits.message()));
   }
@@ -211,7 +220,8 @@ absl::Status SdxlPipeline::load_controlnet(const ModelFolder& folder) {
 }
 
 absl::Status SdxlPipeline::check_control(const ControlInput& control, const at::Tensor& images) const {
-  if (!controlnet_) return absl::FailedPreconditionError("img2img: a control image was given but no ControlNet is loaded");
+  if (!controlnet_)
+    return absl::FailedPreconditionError("img2img: a control image was given but no ControlNet is loaded");
   const int64_t channels = controlnet_->config().conditioning_channels;
   const at::Tensor& c = control.image;
   if (!c.defined() || c.dim() != 4 || c.size(0) != images.size(0) || c.size(1) != channels ||
@@ -239,9 +249,9 @@ absl::Status SdxlPipeline::load_ip_adapter(at::TensorOptions model_options) {
   auto adapter = IpAdapter::load(options_.ip_adapter, *unet_, model_options);
   GAPS_RETURN_IF_ERROR(in_component("ip_adapter", adapter.status()));
   if ((*adapter)->image_embed_dim() != encoder->config().projection_dim) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        options_.ip_adapter, " projects image embeddings of size ", (*adapter)->image_embed_dim(), ", the image encoder ",
-        options_.image_encoder, " makes ", encoder->config().projection_dim));
+    return absl::InvalidArgumentError(
+        absl::StrCat(options_.ip_adapter, " projects image embeddings of size ", (*adapter)->image_embed_dim(),
+                     ", the image encoder ", options_.image_encoder, " makes ", encoder->config().projection_dim));
   }
   image_encoder_ = *std::move(encoder);
   ip_adapter_ = *std::move(adapter);
@@ -252,7 +262,8 @@ absl::Status SdxlPipeline::set_image_prompts(const Img2ImgParams& params, int64_
   const auto& refs = params.reference_images;
   const bool any = std::any_of(refs.begin(), refs.end(), [](const at::Tensor& r) { return r.defined(); });
   if (!ip_adapter_) {
-    if (any) return absl::FailedPreconditionError("img2img: reference images need a pipeline loaded with an IP-Adapter");
+    if (any)
+      return absl::FailedPreconditionError("img2img: reference images need a pipeline loaded with an IP-Adapter");
     return absl::OkStatus();
   }
   const auto& scales = params.ip_adapter_scales;
@@ -276,7 +287,8 @@ absl::Status SdxlPipeline::set_image_prompts(const Img2ImgParams& params, int64_
   }
   if (!images.empty()) {
     auto encoded = image_encoder_->embed(images);
-    if (!encoded.ok()) return absl::InvalidArgumentError(absl::StrCat("img2img reference image: ", encoded.status().message()));
+    if (!encoded.ok())
+      return absl::InvalidArgumentError(absl::StrCat("img2img reference image: ", encoded.status().message()));
     embeds.index_copy_(0, at::tensor(with_reference, at::kLong).to(options_.device), encoded->to(model_options));
   }
   at::Tensor tokens = ip_adapter_->project(embeds);
@@ -342,10 +354,12 @@ std::pair<at::Tensor, at::Tensor> draw_latent_and_noise(at::IntArrayRef shape, c
 absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const std::vector<std::string>& prompts,
                                                  const Img2ImgParams& params, const std::vector<uint64_t>& seeds,
                                                  const std::optional<ControlInput>& control) {
-  if (images.dim() != 4 || images.size(1) != 3) return absl::InvalidArgumentError("img2img: images must be B x 3 x H x W");
+  if (images.dim() != 4 || images.size(1) != 3)
+    return absl::InvalidArgumentError("img2img: images must be B x 3 x H x W");
   const int64_t batch = images.size(0), height = images.size(2), width = images.size(3), f = latent_factor();
   if (height % f != 0 || width % f != 0) {
-    return absl::InvalidArgumentError(absl::StrCat("img2img: image size ", height, "x", width, " is not a multiple of ", f));
+    return absl::InvalidArgumentError(
+        absl::StrCat("img2img: image size ", height, "x", width, " is not a multiple of ", f));
   }
   if (prompts.size() != 1 && static_cast<int64_t>(prompts.size()) != batch) {
     return absl::InvalidArgumentError("img2img: give one prompt, or one per image");
@@ -360,8 +374,8 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
   // diffusers' get_timesteps: the last int(steps * strength) steps of the schedule.
   const int64_t run_steps = std::min<int64_t>(static_cast<int64_t>(params.steps * params.strength), params.steps);
   if (run_steps < 1) {
-    return absl::InvalidArgumentError(absl::StrCat("img2img: strength ", params.strength, " with ", params.steps,
-                                                   " steps leaves no step to run"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("img2img: strength ", params.strength, " with ", params.steps, " steps leaves no step to run"));
   }
   GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
   scheduler->set_timesteps(params.steps);
@@ -397,9 +411,9 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
   in.encoder_hidden_states = cond.context;
   in.text_embeds = cond.pooled;
   if (cfg) {
-    const PromptEmbeddings uncond =
-        force_zeros_for_empty_prompt_ ? PromptEmbeddings{at::zeros_like(cond.context), at::zeros_like(cond.pooled)}
-                                      : encode_prompts(std::vector<std::string>(prompts.size(), ""));
+    const PromptEmbeddings uncond = force_zeros_for_empty_prompt_
+                                        ? PromptEmbeddings{at::zeros_like(cond.context), at::zeros_like(cond.pooled)}
+                                        : encode_prompts(std::vector<std::string>(prompts.size(), ""));
     in.encoder_hidden_states = at::cat({uncond.context, cond.context});
     in.text_embeds = at::cat({uncond.pooled, cond.pooled});
   }
@@ -463,10 +477,12 @@ absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& i
                                                              const std::optional<ControlInput>& control,
                                                              const LoraConfig& config,
                                                              const LoraTrainingOptions& options) {
-  if (images.dim() != 4 || images.size(1) != 3) return absl::InvalidArgumentError("LoRA training: images must be B x 3 x H x W");
+  if (images.dim() != 4 || images.size(1) != 3)
+    return absl::InvalidArgumentError("LoRA training: images must be B x 3 x H x W");
   const int64_t batch = images.size(0), height = images.size(2), width = images.size(3), f = latent_factor();
   if (height % f != 0 || width % f != 0) {
-    return absl::InvalidArgumentError(absl::StrCat("LoRA training: image size ", height, "x", width, " is not a multiple of ", f));
+    return absl::InvalidArgumentError(
+        absl::StrCat("LoRA training: image size ", height, "x", width, " is not a multiple of ", f));
   }
   if (prompts.size() != 1 && static_cast<int64_t>(prompts.size()) != batch) {
     return absl::InvalidArgumentError("LoRA training: give one prompt, or one per image");
@@ -489,7 +505,8 @@ absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& i
     data.encoder_hidden_states = cond.context;
     data.text_embeds = cond.pooled;
     const auto h = static_cast<float>(height), w = static_cast<float>(width);
-    data.time_ids = at::tensor(std::vector<float>{h, w, 0.0f, 0.0f, h, w}).view({1, 6}).expand({batch, 6}).to(model_options);
+    data.time_ids =
+        at::tensor(std::vector<float>{h, w, 0.0f, 0.0f, h, w}).view({1, 6}).expand({batch, 6}).to(model_options);
     if (control) {
       data.control_images = control->image.to(model_options);
       data.conditioning_scale = control->scales[0];

@@ -7,11 +7,11 @@
 #include <ATen/ATen.h>
 #include <ATen/CPUGeneratorImpl.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/clip_text_encoder.h"
 #include "common/safetensors.h"
+#include "common/status_macros.h"
+#include "diffusion_worker/sdxl/clip_text_encoder.h"
 #include "diffusion_worker/sdxl/unet.h"
 #include "diffusion_worker/sdxl/vae.h"
-#include "common/status_macros.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -80,9 +80,12 @@ absl::Status write_tokenizer(const std::filesystem::path& dir, const std::string
   vocab["<|endoftext|>"] = vocab_size - 1;
   GAPS_RETURN_IF_ERROR(write_json(dir / "vocab.json", vocab));
   std::ofstream(dir / "merges.txt") << "#version: 0.2\n";
-  return write_json(dir / "tokenizer_config.json",
-                    {{"bos_token", "<|startoftext|>"}, {"eos_token", "<|endoftext|>"}, {"unk_token", "<|endoftext|>"},
-                     {"pad_token", pad}, {"model_max_length", 77}, {"tokenizer_class", "CLIPTokenizer"}});
+  return write_json(dir / "tokenizer_config.json", {{"bos_token", "<|startoftext|>"},
+                                                    {"eos_token", "<|endoftext|>"},
+                                                    {"unk_token", "<|endoftext|>"},
+                                                    {"pad_token", pad},
+                                                    {"model_max_length", 77},
+                                                    {"tokenizer_class", "CLIPTokenizer"}});
 }
 
 }  // namespace
@@ -90,71 +93,82 @@ absl::Status write_tokenizer(const std::filesystem::path& dir, const std::string
 SdxlConfigs SdxlConfigs::base() {
   SdxlConfigs c;
   c.unet = {{"_class_name", "UNet2DConditionModel"},
-          {"act_fn", "silu"},
-          {"addition_embed_type", "text_time"},
-          {"addition_embed_type_num_heads", 64},
-          {"addition_time_embed_dim", 256},
-          {"attention_head_dim", {5, 10, 20}},
-          {"block_out_channels", {320, 640, 1280}},
-          {"center_input_sample", false},
-          {"class_embed_type", nullptr},
-          {"cross_attention_dim", 2048},
-          {"down_block_types", {"DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"}},
-          {"downsample_padding", 1},
-          {"flip_sin_to_cos", true},
-          {"freq_shift", 0},
-          {"in_channels", 4},
-          {"layers_per_block", 2},
-          {"mid_block_type", "UNetMidBlock2DCrossAttn"},
-          {"norm_eps", 1e-5},
-          {"norm_num_groups", 32},
-          {"out_channels", 4},
-          {"projection_class_embeddings_input_dim", 2816},
-          {"resnet_time_scale_shift", "default"},
-          {"sample_size", 128},
-          {"time_embedding_type", "positional"},
-          {"transformer_layers_per_block", {1, 2, 10}},
-          {"up_block_types", {"CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"}},
-          {"upcast_attention", nullptr},
-          {"use_linear_projection", true}};
+            {"act_fn", "silu"},
+            {"addition_embed_type", "text_time"},
+            {"addition_embed_type_num_heads", 64},
+            {"addition_time_embed_dim", 256},
+            {"attention_head_dim", {5, 10, 20}},
+            {"block_out_channels", {320, 640, 1280}},
+            {"center_input_sample", false},
+            {"class_embed_type", nullptr},
+            {"cross_attention_dim", 2048},
+            {"down_block_types", {"DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"}},
+            {"downsample_padding", 1},
+            {"flip_sin_to_cos", true},
+            {"freq_shift", 0},
+            {"in_channels", 4},
+            {"layers_per_block", 2},
+            {"mid_block_type", "UNetMidBlock2DCrossAttn"},
+            {"norm_eps", 1e-5},
+            {"norm_num_groups", 32},
+            {"out_channels", 4},
+            {"projection_class_embeddings_input_dim", 2816},
+            {"resnet_time_scale_shift", "default"},
+            {"sample_size", 128},
+            {"time_embedding_type", "positional"},
+            {"transformer_layers_per_block", {1, 2, 10}},
+            {"up_block_types", {"CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"}},
+            {"upcast_attention", nullptr},
+            {"use_linear_projection", true}};
   c.vae = {{"_class_name", "AutoencoderKL"},
-          {"act_fn", "silu"},
-          {"block_out_channels", {128, 256, 512, 512}},
-          {"down_block_types", std::vector<std::string>(4, "DownEncoderBlock2D")},
-          {"up_block_types", std::vector<std::string>(4, "UpDecoderBlock2D")},
-          {"force_upcast", true},
-          {"in_channels", 3},
-          {"out_channels", 3},
-          {"latent_channels", 4},
-          {"layers_per_block", 2},
-          {"norm_num_groups", 32},
-          {"sample_size", 1024},
-          {"scaling_factor", 0.13025}};
+           {"act_fn", "silu"},
+           {"block_out_channels", {128, 256, 512, 512}},
+           {"down_block_types", std::vector<std::string>(4, "DownEncoderBlock2D")},
+           {"up_block_types", std::vector<std::string>(4, "UpDecoderBlock2D")},
+           {"force_upcast", true},
+           {"in_channels", 3},
+           {"out_channels", 3},
+           {"latent_channels", 4},
+           {"layers_per_block", 2},
+           {"norm_num_groups", 32},
+           {"sample_size", 1024},
+           {"scaling_factor", 0.13025}};
   for (bool second : {false, true}) {
-    (second ? c.text_encoder_2 : c.text_encoder) = {{"architectures", {second ? "CLIPTextModelWithProjection" : "CLIPTextModel"}},
-          {"model_type", "clip_text_model"},
-          {"attention_dropout", 0.0},
-          {"bos_token_id", 0},
-          {"eos_token_id", 2},
-          {"pad_token_id", 1},
-          {"hidden_act", second ? "gelu" : "quick_gelu"},
-          {"hidden_size", second ? 1280 : 768},
-          {"intermediate_size", second ? 5120 : 3072},
-          {"initializer_factor", 1.0},
-          {"initializer_range", 0.02},
-          {"layer_norm_eps", 1e-5},
-          {"max_position_embeddings", 77},
-          {"num_attention_heads", second ? 20 : 12},
-          {"num_hidden_layers", second ? 32 : 12},
-          {"projection_dim", second ? 1280 : 768},
-          {"vocab_size", 49408},
-          {"torch_dtype", "float16"}};
+    (second ? c.text_encoder_2 : c.text_encoder) = {
+        {"architectures", {second ? "CLIPTextModelWithProjection" : "CLIPTextModel"}},
+        {"model_type", "clip_text_model"},
+        {"attention_dropout", 0.0},
+        {"bos_token_id", 0},
+        {"eos_token_id", 2},
+        {"pad_token_id", 1},
+        {"hidden_act", second ? "gelu" : "quick_gelu"},
+        {"hidden_size", second ? 1280 : 768},
+        {"intermediate_size", second ? 5120 : 3072},
+        {"initializer_factor", 1.0},
+        {"initializer_range", 0.02},
+        {"layer_norm_eps", 1e-5},
+        {"max_position_embeddings", 77},
+        {"num_attention_heads", second ? 20 : 12},
+        {"num_hidden_layers", second ? 32 : 12},
+        {"projection_dim", second ? 1280 : 768},
+        {"vocab_size", 49408},
+        {"torch_dtype", "float16"}};
   }
-  c.scheduler = {{"_class_name", "EulerDiscreteScheduler"}, {"beta_end", 0.012},       {"beta_schedule", "scaled_linear"},
-          {"beta_start", 0.00085},                  {"clip_sample", false},    {"interpolation_type", "linear"},
-          {"num_train_timesteps", 1000},            {"prediction_type", "epsilon"}, {"sample_max_value", 1.0},
-          {"set_alpha_to_one", false},              {"skip_prk_steps", true},  {"steps_offset", 1},
-          {"timestep_spacing", "leading"},          {"trained_betas", nullptr}, {"use_karras_sigmas", false}};
+  c.scheduler = {{"_class_name", "EulerDiscreteScheduler"},
+                 {"beta_end", 0.012},
+                 {"beta_schedule", "scaled_linear"},
+                 {"beta_start", 0.00085},
+                 {"clip_sample", false},
+                 {"interpolation_type", "linear"},
+                 {"num_train_timesteps", 1000},
+                 {"prediction_type", "epsilon"},
+                 {"sample_max_value", 1.0},
+                 {"set_alpha_to_one", false},
+                 {"skip_prk_steps", true},
+                 {"steps_offset", 1},
+                 {"timestep_spacing", "leading"},
+                 {"trained_betas", nullptr},
+                 {"use_karras_sigmas", false}};
   return c;
 }
 
@@ -171,20 +185,20 @@ absl::Status write_random_sdxl_model(const std::string& folder, const SdxlConfig
     return absl::InvalidArgumentError(absl::StrCat("random SDXL model: unknown dtype ", dtype_name));
   }
   const std::filesystem::path root(folder);
-  GAPS_RETURN_IF_ERROR(write_json(
-      root / "model_index.json",
-      {{"_class_name", "StableDiffusionXLImg2ImgPipeline"},
-       {"force_zeros_for_empty_prompt", true},
-       {"requires_aesthetics_score", false},
-       {"scheduler", {"diffusers", "EulerDiscreteScheduler"}},
-       {"text_encoder", {"transformers", "CLIPTextModel"}},
-       {"text_encoder_2", {"transformers", "CLIPTextModelWithProjection"}},
-       {"tokenizer", {"transformers", "CLIPTokenizer"}},
-       {"tokenizer_2", {"transformers", "CLIPTokenizer"}},
-       {"unet", {"diffusers", "UNet2DConditionModel"}},
-       {"vae", {"diffusers", "AutoencoderKL"}}}));
+  GAPS_RETURN_IF_ERROR(
+      write_json(root / "model_index.json", {{"_class_name", "StableDiffusionXLImg2ImgPipeline"},
+                                             {"force_zeros_for_empty_prompt", true},
+                                             {"requires_aesthetics_score", false},
+                                             {"scheduler", {"diffusers", "EulerDiscreteScheduler"}},
+                                             {"text_encoder", {"transformers", "CLIPTextModel"}},
+                                             {"text_encoder_2", {"transformers", "CLIPTextModelWithProjection"}},
+                                             {"tokenizer", {"transformers", "CLIPTokenizer"}},
+                                             {"tokenizer_2", {"transformers", "CLIPTokenizer"}},
+                                             {"unet", {"diffusers", "UNet2DConditionModel"}},
+                                             {"vae", {"diffusers", "AutoencoderKL"}}}));
   GAPS_RETURN_IF_ERROR(write_json(root / "scheduler" / "scheduler_config.json", configs.scheduler));
-  GAPS_RETURN_IF_ERROR(write_tokenizer(root / "tokenizer", "<|endoftext|>", configs.text_encoder.value("vocab_size", 49408)));
+  GAPS_RETURN_IF_ERROR(
+      write_tokenizer(root / "tokenizer", "<|endoftext|>", configs.text_encoder.value("vocab_size", 49408)));
   GAPS_RETURN_IF_ERROR(write_tokenizer(root / "tokenizer_2", "!", configs.text_encoder_2.value("vocab_size", 49408)));
 
   at::Generator generator = at::make_generator<at::CPUGeneratorImpl>(seed);

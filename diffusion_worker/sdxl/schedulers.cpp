@@ -5,8 +5,8 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -215,7 +215,8 @@ class Pndm final : public TimestepScheduler {
     const float abar = abar_at(alphas_cumprod_, t);
     const float abar_prev = abar_target(prev);
     const float sample_coeff = std::pow(abar_prev / abar, 0.5f);
-    const float denominator = abar * std::pow(1.0f - abar_prev, 0.5f) + std::pow(abar * (1.0f - abar) * abar_prev, 0.5f);
+    const float denominator =
+        abar * std::pow(1.0f - abar_prev, 0.5f) + std::pow(abar * (1.0f - abar) * abar_prev, 0.5f);
     return sample_coeff * x - (abar_prev - abar) * direction / denominator;
   }
   std::vector<at::Tensor> outputs_;  // the last (up to) 4 model outputs
@@ -240,7 +241,8 @@ absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json&
   } else if (class_name == "PNDMScheduler") {
     c.kind = "pndm";
   } else {
-    return absl::UnimplementedError(absl::StrCat("scheduler ", class_name, " is not supported (euler, ddim, dpmpp2m, pndm are)"));
+    return absl::UnimplementedError(
+        absl::StrCat("scheduler ", class_name, " is not supported (euler, ddim, dpmpp2m, pndm are)"));
   }
   if (c.kind != "euler" && c.kind != "ddim" && c.kind != "dpmpp2m" && c.kind != "pndm") {
     return absl::InvalidArgumentError(absl::StrCat("unknown scheduler '", c.kind, "' (euler, ddim, dpmpp2m, pndm)"));
@@ -251,8 +253,9 @@ absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json&
   GAPS_ASSIGN_OR_RETURN(c.beta_start, config_value<double>(j, "beta_start", 0.0001));
   GAPS_ASSIGN_OR_RETURN(c.beta_end, config_value<double>(j, "beta_end", 0.02));
   GAPS_ASSIGN_OR_RETURN(c.beta_schedule, config_value<std::string>(j, "beta_schedule", "linear"));
-  GAPS_ASSIGN_OR_RETURN(c.timestep_spacing, config_value<std::string>(j, "timestep_spacing",
-                                                                         pndm || c.kind == "ddim" ? "leading" : "linspace"));
+  GAPS_ASSIGN_OR_RETURN(
+      c.timestep_spacing,
+      config_value<std::string>(j, "timestep_spacing", pndm || c.kind == "ddim" ? "leading" : "linspace"));
   // Keys a config lacks take the chosen scheduler's diffusers defaults (as from_config does).
   GAPS_ASSIGN_OR_RETURN(c.clip_sample, config_value<bool>(j, "clip_sample", c.kind == "ddim"));
   GAPS_ASSIGN_OR_RETURN(c.set_alpha_to_one, config_value<bool>(j, "set_alpha_to_one", !pndm));
@@ -261,14 +264,16 @@ absl::StatusOr<SchedulerConfig> SchedulerConfig::from_json(const nlohmann::json&
     GAPS_ASSIGN_OR_RETURN(const bool skip_prk, config_value<bool>(j, "skip_prk_steps", false));
     if (!skip_prk) {
       return absl::UnimplementedError(
-          "PNDM is implemented with skip_prk_steps true only (PLMS steps, as Stable Diffusion's scheduler configs set)");
+          "PNDM is implemented with skip_prk_steps true only (PLMS steps, as Stable Diffusion's scheduler configs "
+          "set)");
     }
   }
   if (c.beta_schedule != "scaled_linear" && c.beta_schedule != "linear") {
     return absl::UnimplementedError(absl::StrCat("beta_schedule ", c.beta_schedule, " is not supported"));
   }
   if (c.timestep_spacing != "leading" && c.timestep_spacing != "trailing" && c.timestep_spacing != "linspace") {
-    return absl::InvalidArgumentError(absl::StrCat("timestep_spacing ", c.timestep_spacing, " is not one of leading, trailing, linspace"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("timestep_spacing ", c.timestep_spacing, " is not one of leading, trailing, linspace"));
   }
   GAPS_ASSIGN_OR_RETURN(auto prediction, config_value<std::string>(j, "prediction_type", "epsilon"));
   if (prediction != "epsilon") return absl::UnimplementedError("prediction_type " + prediction + " is not supported");
@@ -313,7 +318,8 @@ std::vector<double> Scheduler::spaced_timesteps(int64_t n, bool one_extra_for_dp
   } else if (config_.timestep_spacing == "leading") {
     const int64_t points = one_extra_for_dpm ? n + 1 : n;
     const int64_t ratio = train / points;
-    for (int64_t i = points - 1; i >= (one_extra_for_dpm ? 1 : 0); --i) t.push_back(static_cast<double>(i * ratio + config_.steps_offset));
+    for (int64_t i = points - 1; i >= (one_extra_for_dpm ? 1 : 0); --i)
+      t.push_back(static_cast<double>(i * ratio + config_.steps_offset));
   } else {
     const double ratio = static_cast<double>(train) / n;
     for (int64_t i = 0; i < n; ++i) t.push_back(std::nearbyint(train - i * ratio) - 1);

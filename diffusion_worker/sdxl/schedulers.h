@@ -1,7 +1,8 @@
 #pragma once
 // The noise schedulers of diffusers that SDXL pipelines use: Euler discrete (SDXL's default), DDIM
-// (eta 0), DPM-Solver++ (2M, midpoint) and PNDM with skip_prk_steps (PLMS; Stable Diffusion 2's), with diffusers' timestep spacings ("leading", "trailing",
-// "linspace"), epsilon prediction, and the noising of img2img's start latents.
+// (eta 0), DPM-Solver++ (2M, midpoint) and PNDM with skip_prk_steps (PLMS; Stable Diffusion 2's), with diffusers'
+// timestep spacings ("leading", "trailing", "linspace"), epsilon prediction, and the noising of img2img's start
+// latents.
 //
 // Steps are addressed by index into timesteps() (not by timestep value), so img2img starts at an index.
 #include <memory>
@@ -19,9 +20,9 @@ struct SchedulerConfig {
   int64_t num_train_timesteps = 1000, steps_offset = 1;
   double beta_start = 0.00085, beta_end = 0.012;
   std::string beta_schedule = "scaled_linear";  // or "linear"
-  std::string timestep_spacing = "leading";      // "leading" | "trailing" | "linspace"
-  bool clip_sample = false;      // DDIM only
-  bool set_alpha_to_one = false; // DDIM and PNDM: the last step's target
+  std::string timestep_spacing = "leading";     // "leading" | "trailing" | "linspace"
+  bool clip_sample = false;                     // DDIM only
+  bool set_alpha_to_one = false;                // DDIM and PNDM: the last step's target
   // From a diffusers scheduler_config.json; its _class_name picks the kind unless kind_override is set.
   // Options this implementation lacks (Karras sigmas, v-prediction, thresholding, ...) are an error.
   static absl::StatusOr<SchedulerConfig> from_json(const nlohmann::json& config, const std::string& kind_override = "");
@@ -52,7 +53,7 @@ class Scheduler {
   std::vector<double> spaced_timesteps(int64_t n, bool one_extra_for_dpm) const;
 
   SchedulerConfig config_;
-  at::Tensor alphas_cumprod_;               // float32, num_train_timesteps
+  at::Tensor alphas_cumprod_;  // float32, num_train_timesteps
   std::vector<float> timesteps_;
 };
 

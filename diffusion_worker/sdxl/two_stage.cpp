@@ -37,12 +37,13 @@ absl::Status check_two_stage_inputs(const at::Tensor& stage1, const at::Tensor& 
     return absl::InvalidArgumentError("two-stage generation: the stage-1 images must be B x 3 x H x W");
   }
   const int64_t b = stage1.size(0), h = stage1.size(2), w = stage1.size(3);
-  const bool depth_ok = depth.defined() && ((depth.dim() == 3 && depth.size(0) == b && depth.size(1) == h && depth.size(2) == w) ||
-                                            (depth.dim() == 4 && depth.size(0) == b && depth.size(1) == 1 &&
-                                             depth.size(2) == h && depth.size(3) == w));
+  const bool depth_ok =
+      depth.defined() &&
+      ((depth.dim() == 3 && depth.size(0) == b && depth.size(1) == h && depth.size(2) == w) ||
+       (depth.dim() == 4 && depth.size(0) == b && depth.size(1) == 1 && depth.size(2) == h && depth.size(3) == w));
   if (!depth_ok) {
-    return absl::InvalidArgumentError(absl::StrCat("two-stage generation: the depth must be ", b, " x [1 x] ", h, " x ", w,
-                                                   " like the stage-1 images"));
+    return absl::InvalidArgumentError(absl::StrCat("two-stage generation: the depth must be ", b, " x [1 x] ", h, " x ",
+                                                   w, " like the stage-1 images"));
   }
   if (!std::isfinite(o.depth_threshold)) {
     return absl::InvalidArgumentError("two-stage generation: depth_threshold (tau_d) must be set to a finite value");
@@ -56,7 +57,8 @@ absl::Status check_two_stage_inputs(const at::Tensor& stage1, const at::Tensor& 
   if (prompts.size() != 1 && static_cast<int64_t>(prompts.size()) != b) {
     return absl::InvalidArgumentError("two-stage generation: give one prompt, or one per view");
   }
-  if (static_cast<int64_t>(seeds.size()) != b) return absl::InvalidArgumentError("two-stage generation: give one seed per view");
+  if (static_cast<int64_t>(seeds.size()) != b)
+    return absl::InvalidArgumentError("two-stage generation: give one seed per view");
   return absl::OkStatus();
 }
 
@@ -91,9 +93,9 @@ absl::StatusOr<TwoStageResult> two_stage_generate(const at::Tensor& stage1, cons
   // (replicated) and crop its output back; the fraction and the composite use the view's own pixels.
   const int64_t f = inpainter->latent_factor(), h = selected.size(2), w = selected.size(3);
   const std::vector<int64_t> pad{0, (w + f - 1) / f * f - w, 0, (h + f - 1) / f * f - h};
-  GAPS_ASSIGN_OR_RETURN(at::Tensor stage2, inpainter->inpaint(at::replication_pad2d(selected, pad),
-                                                              at::replication_pad2d(masks, pad), view_prompts,
-                                                              options.inpaint, view_seeds));
+  GAPS_ASSIGN_OR_RETURN(at::Tensor stage2,
+                        inpainter->inpaint(at::replication_pad2d(selected, pad), at::replication_pad2d(masks, pad),
+                                           view_prompts, options.inpaint, view_seeds));
   stage2 = stage2.slice(2, 0, h).slice(3, 0, w);
   result.images.index_copy_(0, index, composite_two_stage(selected, stage2, masks));
   return result;

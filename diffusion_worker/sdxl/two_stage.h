@@ -33,9 +33,9 @@ at::Tensor dilate_mask(const at::Tensor& mask, int64_t kernel);
 at::Tensor composite_two_stage(const at::Tensor& stage1, const at::Tensor& stage2, const at::Tensor& mask);
 
 struct TwoStageResult {
-  at::Tensor images;                 // B x 3 x H x W in [0, 1]
-  std::vector<double> uncovered;     // per view, before dilation
-  std::vector<bool> inpainted;       // per view: uncovered > min_uncovered_fraction
+  at::Tensor images;              // B x 3 x H x W in [0, 1]
+  std::vector<double> uncovered;  // per view, before dilation
+  std::vector<bool> inpainted;    // per view: uncovered > min_uncovered_fraction
 };
 
 // Gets the inpainting pipeline; called only when some view needs the second stage (so it may load lazily).

@@ -4,8 +4,8 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -19,7 +19,8 @@ absl::StatusOr<std::vector<int64_t>> per_block(const nlohmann::json& j, const st
   if (j[key].is_number_integer()) return std::vector<int64_t>(blocks, j[key].get<int64_t>());
   GAPS_ASSIGN_OR_RETURN(auto list, config_value<std::vector<int64_t>>(j, key, {}));
   if (list.size() != blocks) {
-    return absl::InvalidArgumentError(absl::StrCat("UNet config: ", key, " has ", list.size(), " entries for ", blocks, " blocks"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("UNet config: ", key, " has ", list.size(), " entries for ", blocks, " blocks"));
   }
   return list;
 }
@@ -29,20 +30,28 @@ bool has_cross_attention(const std::string& block_type) { return block_type.rfin
 // Options of diffusers' UNet2DConditionModel this implementation does not have: each must be absent, null or
 // at its default value (the value that SD 1.x/2.x and SDXL checkpoints use), else loading fails naming it.
 absl::Status reject_unsupported_options(const nlohmann::json& j) {
-  const std::vector<std::pair<std::string, nlohmann::json>> defaults = {
-      {"act_fn", "silu"}, {"center_input_sample", false}, {"dual_cross_attention", false},
-      {"mid_block_scale_factor", 1}, {"downsample_padding", 1}, {"attention_type", "default"},
-      {"resnet_skip_time_act", false}, {"resnet_out_scale_factor", 1}, {"conv_in_kernel", 3},
-      {"conv_out_kernel", 3}, {"class_embeddings_concat", false}, {"mid_block_only_cross_attention", false}};
+  const std::vector<std::pair<std::string, nlohmann::json>> defaults = {{"act_fn", "silu"},
+                                                                        {"center_input_sample", false},
+                                                                        {"dual_cross_attention", false},
+                                                                        {"mid_block_scale_factor", 1},
+                                                                        {"downsample_padding", 1},
+                                                                        {"attention_type", "default"},
+                                                                        {"resnet_skip_time_act", false},
+                                                                        {"resnet_out_scale_factor", 1},
+                                                                        {"conv_in_kernel", 3},
+                                                                        {"conv_out_kernel", 3},
+                                                                        {"class_embeddings_concat", false},
+                                                                        {"mid_block_only_cross_attention", false}};
   for (const auto& [key, value] : defaults) {
     if (j.contains(key) && !j[key].is_null() && j[key] != value) {
-      return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " = ", j[key].dump(), " is not supported (only ",
-                                                   value.dump(), ")"));
+      return absl::UnimplementedError(
+          absl::StrCat("UNet config: ", key, " = ", j[key].dump(), " is not supported (only ", value.dump(), ")"));
     }
   }
-  for (const char* key : {"num_class_embeds", "cross_attention_norm", "time_embedding_act_fn", "timestep_post_act",
-                          "encoder_hid_dim"}) {
-    if (j.contains(key) && !j[key].is_null()) return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " is not supported"));
+  for (const char* key :
+       {"num_class_embeds", "cross_attention_norm", "time_embedding_act_fn", "timestep_post_act", "encoder_hid_dim"}) {
+    if (j.contains(key) && !j[key].is_null())
+      return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " is not supported"));
   }
   return absl::OkStatus();
 }
@@ -77,14 +86,17 @@ absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool w
     return absl::InvalidArgumentError("UNet config: block_out_channels, down_block_types and up_block_types disagree");
   }
   for (const auto& t : c.down_block_types) {
-    if (t != "DownBlock2D" && t != "CrossAttnDownBlock2D") return absl::UnimplementedError("UNet down block type " + t + " is not supported");
+    if (t != "DownBlock2D" && t != "CrossAttnDownBlock2D")
+      return absl::UnimplementedError("UNet down block type " + t + " is not supported");
   }
   for (const auto& t : c.up_block_types) {
-    if (t != "UpBlock2D" && t != "CrossAttnUpBlock2D") return absl::UnimplementedError("UNet up block type " + t + " is not supported");
+    if (t != "UpBlock2D" && t != "CrossAttnUpBlock2D")
+      return absl::UnimplementedError("UNet up block type " + t + " is not supported");
   }
   // diffusers reads attention_head_dim as the number of heads when num_attention_heads is absent.
   const std::string heads_key = j.contains("num_attention_heads") && !j["num_attention_heads"].is_null()
-                                    ? "num_attention_heads" : "attention_head_dim";
+                                    ? "num_attention_heads"
+                                    : "attention_head_dim";
   GAPS_ASSIGN_OR_RETURN(c.num_attention_heads, per_block(j, heads_key, n, std::vector<int64_t>(n, 8)));
   GAPS_ASSIGN_OR_RETURN(c.transformer_layers_per_block,
                         per_block(j, "transformer_layers_per_block", n, std::vector<int64_t>(n, 1)));
@@ -92,12 +104,14 @@ absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool w
   GAPS_ASSIGN_OR_RETURN(c.reverse_transformer_layers_per_block,
                         per_block(j, "reverse_transformer_layers_per_block", n, reversed));
   GAPS_ASSIGN_OR_RETURN(auto mid_type, config_value<std::string>(j, "mid_block_type", "UNetMidBlock2DCrossAttn"));
-  if (mid_type != "UNetMidBlock2DCrossAttn") return absl::UnimplementedError("UNet mid block type " + mid_type + " is not supported");
+  if (mid_type != "UNetMidBlock2DCrossAttn")
+    return absl::UnimplementedError("UNet mid block type " + mid_type + " is not supported");
   if (!c.addition_embed_type.empty() && c.addition_embed_type != "text_time") {
     return absl::UnimplementedError("UNet addition_embed_type " + c.addition_embed_type + " is not supported");
   }
   for (const char* key : {"class_embed_type", "encoder_hid_dim_type", "time_cond_proj_dim", "time_embedding_dim"}) {
-    if (j.contains(key) && !j[key].is_null()) return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " is not supported"));
+    if (j.contains(key) && !j[key].is_null())
+      return absl::UnimplementedError(absl::StrCat("UNet config: ", key, " is not supported"));
   }
   GAPS_ASSIGN_OR_RETURN(auto scale_shift, config_value<std::string>(j, "resnet_time_scale_shift", "default"));
   GAPS_ASSIGN_OR_RETURN(auto time_embedding_type, config_value<std::string>(j, "time_embedding_type", "positional"));
@@ -128,7 +142,8 @@ UNet2DCondition::Transformer2D UNet2DCondition::load_transformer(WeightLoader& w
   const int64_t dim_head = channels / heads, inner = 4 * channels;
   for (int64_t i = 0; i < layers; ++i) {
     const std::string p = absl::StrCat(prefix, ".transformer_blocks.", i);
-    t.blocks.push_back({LayerNorm::load(w, p + ".norm1", channels, 1e-5), LayerNorm::load(w, p + ".norm2", channels, 1e-5),
+    t.blocks.push_back({LayerNorm::load(w, p + ".norm1", channels, 1e-5),
+                        LayerNorm::load(w, p + ".norm2", channels, 1e-5),
                         LayerNorm::load(w, p + ".norm3", channels, 1e-5),
                         Attention::load(w, p + ".attn1", channels, channels, heads, dim_head, false),
                         Attention::load(w, p + ".attn2", channels, c.cross_attention_dim, heads, dim_head, false),
@@ -178,10 +193,11 @@ absl::StatusOr<UNet2DCondition> UNet2DCondition::build(const UNetConfig& c, Weig
     const std::string p = absl::StrCat("down_blocks.", i);
     Block b;
     for (int64_t r = 0; r < c.layers_per_block; ++r) {
-      b.resnets.push_back(ResnetBlock::load(w, absl::StrCat(p, ".resnets.", r), r == 0 ? in : ch[i], ch[i], temb, g, c.norm_eps));
+      b.resnets.push_back(
+          ResnetBlock::load(w, absl::StrCat(p, ".resnets.", r), r == 0 ? in : ch[i], ch[i], temb, g, c.norm_eps));
       if (has_cross_attention(c.down_block_types[i])) {
-        b.attentions.push_back(u.load_transformer(w, absl::StrCat(p, ".attentions.", r), ch[i], c.num_attention_heads[i],
-                                                  c.transformer_layers_per_block[i]));
+        b.attentions.push_back(u.load_transformer(w, absl::StrCat(p, ".attentions.", r), ch[i],
+                                                  c.num_attention_heads[i], c.transformer_layers_per_block[i]));
       }
     }
     if (i + 1 < n) b.down = Downsample::load(w, p + ".downsamplers.0", ch[i], false);
@@ -217,7 +233,8 @@ absl::StatusOr<UNet2DCondition> UNet2DCondition::build(const UNetConfig& c, Weig
   return u;
 }
 
-at::Tensor UNet2DCondition::block_forward(const TransformerBlock& b, const at::Tensor& x, const at::Tensor& context) const {
+at::Tensor UNet2DCondition::block_forward(const TransformerBlock& b, const at::Tensor& x,
+                                          const at::Tensor& context) const {
   const at::Tensor n1 = b.norm1(x);
   at::Tensor h = x + b.attn1(n1, n1);
   h = h + b.attn2(b.norm2(h), context);
@@ -225,7 +242,8 @@ at::Tensor UNet2DCondition::block_forward(const TransformerBlock& b, const at::T
   return h + b.ff_out(parts[0] * at::gelu(parts[1]));
 }
 
-at::Tensor UNet2DCondition::transformer_forward(const Transformer2D& t, const at::Tensor& x, const at::Tensor& context) const {
+at::Tensor UNet2DCondition::transformer_forward(const Transformer2D& t, const at::Tensor& x,
+                                                const at::Tensor& context) const {
   const int64_t b = x.size(0), c = x.size(1), h = x.size(2), w = x.size(3);
   at::Tensor y = t.norm(x);
   if (!config_.use_linear_projection) y = t.proj_in_conv(y);
@@ -242,7 +260,8 @@ at::Tensor UNet2DCondition::embedding(const UNetInputs& in, int64_t batch) const
   at::Tensor t = in.timestep.to(in.sample.device());
   if (t.dim() == 0) t = t.unsqueeze(0);
   t = t.expand({batch});
-  const at::Tensor features = timestep_features(t, config_.block_out_channels[0], config_.flip_sin_to_cos, config_.freq_shift);
+  const at::Tensor features =
+      timestep_features(t, config_.block_out_channels[0], config_.flip_sin_to_cos, config_.freq_shift);
   at::Tensor emb = time_embedding_(features.to(in.sample.scalar_type()));
   if (config_.addition_embed_type == "text_time") {
     const at::Tensor time_ids = in.time_ids.to(in.sample.device()).reshape({-1});
@@ -307,9 +326,11 @@ void UNet2DCondition::for_each_attention(const std::function<void(const std::str
       visit(absl::StrCat(t.name, ".transformer_blocks.", i, ".attn2"), t.blocks[i].attn2);
     }
   };
-  for (auto& b : down_) for (auto& t : b.attentions) visit_transformer(t);
+  for (auto& b : down_)
+    for (auto& t : b.attentions) visit_transformer(t);
   visit_transformer(mid_attention_);
-  for (auto& b : up_) for (auto& t : b.attentions) visit_transformer(t);
+  for (auto& b : up_)
+    for (auto& t : b.attentions) visit_transformer(t);
 }
 
 }  // namespace gaps::sdxl

@@ -4,8 +4,8 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "diffusion_worker/sdxl/model_folder.h"
 #include "common/status_macros.h"
+#include "diffusion_worker/sdxl/model_folder.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -27,10 +27,12 @@ absl::StatusOr<VaeConfig> VaeConfig::from_json(const nlohmann::json& j) {
   GAPS_ASSIGN_OR_RETURN(auto down, config_value<std::vector<std::string>>(j, "down_block_types", {}));
   GAPS_ASSIGN_OR_RETURN(auto up, config_value<std::vector<std::string>>(j, "up_block_types", {}));
   for (const auto& t : down) {
-    if (t != "DownEncoderBlock2D") return absl::UnimplementedError(absl::StrCat("VAE down block type ", t, " is not supported"));
+    if (t != "DownEncoderBlock2D")
+      return absl::UnimplementedError(absl::StrCat("VAE down block type ", t, " is not supported"));
   }
   for (const auto& t : up) {
-    if (t != "UpDecoderBlock2D") return absl::UnimplementedError(absl::StrCat("VAE up block type ", t, " is not supported"));
+    if (t != "UpDecoderBlock2D")
+      return absl::UnimplementedError(absl::StrCat("VAE up block type ", t, " is not supported"));
   }
   if (c.block_out_channels.empty() || down.size() != c.block_out_channels.size() || up.size() != down.size()) {
     return absl::InvalidArgumentError("VAE config: block_out_channels, down_block_types and up_block_types disagree");
@@ -97,11 +99,12 @@ AutoencoderKL AutoencoderKL::build(const VaeConfig& c, WeightLoader& w) {
     const std::string p = absl::StrCat("encoder.down_blocks.", i);
     std::vector<ResnetBlock> resnets;
     for (int64_t r = 0; r < c.layers_per_block; ++r) {
-      resnets.push_back(ResnetBlock::load(w, absl::StrCat(p, ".resnets.", r), r == 0 ? in : ch[i], ch[i], 0, g, kVaeEps));
+      resnets.push_back(
+          ResnetBlock::load(w, absl::StrCat(p, ".resnets.", r), r == 0 ? in : ch[i], ch[i], 0, g, kVaeEps));
     }
     vae.enc_resnets.push_back(std::move(resnets));
-    vae.enc_down.push_back(i + 1 < n ? std::optional<Downsample>(Downsample::load(w, p + ".downsamplers.0", ch[i], true))
-                                     : std::nullopt);
+    vae.enc_down.push_back(
+        i + 1 < n ? std::optional<Downsample>(Downsample::load(w, p + ".downsamplers.0", ch[i], true)) : std::nullopt);
     in = ch[i];
   }
   vae.enc_mid = VaeMidBlock::load(w, "encoder.mid_block", ch.back(), g, c.mid_block_add_attention);
@@ -121,7 +124,8 @@ AutoencoderKL AutoencoderKL::build(const VaeConfig& c, WeightLoader& w) {
       resnets.push_back(ResnetBlock::load(w, absl::StrCat(p, ".resnets.", r), r == 0 ? prev : out, out, 0, g, kVaeEps));
     }
     vae.dec_resnets.push_back(std::move(resnets));
-    vae.dec_up.push_back(i + 1 < n ? std::optional<Upsample>(Upsample::load(w, p + ".upsamplers.0", out)) : std::nullopt);
+    vae.dec_up.push_back(i + 1 < n ? std::optional<Upsample>(Upsample::load(w, p + ".upsamplers.0", out))
+                                   : std::nullopt);
     prev = out;
   }
   vae.dec_norm_out = GroupNorm::load(w, "decoder.conv_norm_out", g, ch[0], kVaeEps);
@@ -144,8 +148,8 @@ at::Tensor AutoencoderKL::sample_latents(const at::Tensor& moments, std::optiona
   const auto parts = moments.chunk(2, 1);
   const at::Tensor std = at::exp(0.5 * at::clamp(parts[1], -30.0, 20.0));
   // Drawn on the CPU in float32 like diffusers' randn_tensor, so a seed gives the same latents anywhere.
-  const at::Tensor noise = at::randn(parts[0].sizes(), generator, at::TensorOptions().dtype(at::kFloat))
-                               .to(moments.options());
+  const at::Tensor noise =
+      at::randn(parts[0].sizes(), generator, at::TensorOptions().dtype(at::kFloat)).to(moments.options());
   return parts[0] + std * noise;
 }
 

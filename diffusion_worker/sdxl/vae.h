@@ -31,7 +31,8 @@ struct VaeAttention {
 struct VaeMidBlock {
   ResnetBlock resnet_in, resnet_out;
   std::optional<VaeAttention> attention;
-  static VaeMidBlock load(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t groups, bool with_attention);
+  static VaeMidBlock load(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t groups,
+                          bool with_attention);
   at::Tensor operator()(const at::Tensor& x) const;
 };
 

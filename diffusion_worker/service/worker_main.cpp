@@ -5,9 +5,9 @@
 #include <iostream>
 #include <thread>
 
-#include <nlohmann/json.hpp>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/flags/usage.h"
@@ -26,7 +26,8 @@ ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
 ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
-ABSL_FLAG(std::string, tls_client_ca, "", "CA certificate that must have signed every client's certificate (mutual TLS)");
+ABSL_FLAG(std::string, tls_client_ca, "",
+          "CA certificate that must have signed every client's certificate (mutual TLS)");
 
 namespace {
 
@@ -42,7 +43,8 @@ int fail(const std::string& message) {
 // that option, such as reproject, then refuses it by name instead of silently computing elsewhere.
 std::string options_with_device(const std::string& options_json, const std::string& device, std::string* error) {
   if (device == "cpu") return options_json;
-  nlohmann::json options = options_json.empty() ? nlohmann::json::object() : nlohmann::json::parse(options_json, nullptr, false);
+  nlohmann::json options =
+      options_json.empty() ? nlohmann::json::object() : nlohmann::json::parse(options_json, nullptr, false);
   if (!options.is_object()) {
     *error = "--backend_options is not a JSON object";
     return "";
@@ -82,7 +84,8 @@ int main(int argc, char** argv) {
   options.queue_capacity = absl::GetFlag(FLAGS_queue_capacity);
   options.max_request_bytes = absl::GetFlag(FLAGS_max_request_mb) << 20;
   options.token = *token;
-  if (options.max_batch <= 0 || options.queue_capacity < 0) return fail("--max_batch must be positive, --queue_capacity >= 0");
+  if (options.max_batch <= 0 || options.queue_capacity < 0)
+    return fail("--max_batch must be positive, --queue_capacity >= 0");
   gaps::WorkerService service(std::move(*generator), options);
 
   grpc::EnableDefaultHealthCheckService(true);
@@ -97,8 +100,9 @@ int main(int argc, char** argv) {
   std::signal(SIGTERM, on_signal);
   std::signal(SIGINT, on_signal);
   // The resolved port, so a caller that asked for port 0 learns which one it got.
-  std::cout << "gaps-worker: serving backend " << backend << " on port " << port << (security.tls_cert.empty() ? "" : " (TLS)")
-            << (security.token.empty() ? "" : " (token required)") << std::endl;
+  std::cout << "gaps-worker: serving backend " << backend << " on port " << port
+            << (security.tls_cert.empty() ? "" : " (TLS)") << (security.token.empty() ? "" : " (token required)")
+            << std::endl;
   while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;

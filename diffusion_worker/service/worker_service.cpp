@@ -70,9 +70,9 @@ WorkerService::WorkerService(std::unique_ptr<Generator> generator, WorkerService
 grpc::Status WorkerService::wait_for_backend(grpc::ServerContext* context, std::unique_ptr<BackendTurn>* turn) {
   std::unique_lock<std::mutex> lock(mutex_);
   if (backend_busy_ && waiting_ >= options_.queue_capacity)
-    return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                        absl::StrCat("worker queue full (", waiting_, " calls waiting, capacity ",
-                                     options_.queue_capacity, ")"));
+    return grpc::Status(
+        grpc::StatusCode::RESOURCE_EXHAUSTED,
+        absl::StrCat("worker queue full (", waiting_, " calls waiting, capacity ", options_.queue_capacity, ")"));
   ++waiting_;
   const auto deadline = context->deadline();
   while (backend_busy_) {
@@ -120,8 +120,8 @@ grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetI
   info->set_device_memory_total(memory.total);
   info->set_device_memory_free(memory.free);
   info->set_weights_identity(generator_->weights_identity());
-  for (const char* c : {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale",
-                        "prompt", "seed"})
+  for (const char* c :
+       {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale", "prompt", "seed"})
     info->add_supported_constraints(c);
   return grpc::Status::OK;
 }
@@ -163,16 +163,19 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
-grpc::Status WorkerService::Generate(grpc::ServerContext* context, grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) {
+grpc::Status WorkerService::Generate(grpc::ServerContext* context,
+                                     grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   v1::GenerateBatch batch;
   if (auto st = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, options_.max_request_bytes, &batch);
       !st.ok())
     return rpc::to_grpc(st);
-  if (batch.poses_size() == 0) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "Generate needs at least one pose");
+  if (batch.poses_size() == 0)
+    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "Generate needs at least one pose");
   if (batch.poses_size() > options_.max_batch)
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                        absl::StrCat(batch.poses_size(), " poses exceed this worker's max batch of ", options_.max_batch));
+    return grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat(batch.poses_size(), " poses exceed this worker's max batch of ", options_.max_batch));
   auto requests = rpc::decode_generation_batch(batch);
   if (!requests.ok()) return rpc::to_grpc(requests.status());
   std::unique_ptr<BackendTurn> turn;
@@ -196,7 +199,8 @@ grpc::Status WorkerService::ReleaseScene(grpc::ServerContext* context, const v1:
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   std::lock_guard<std::mutex> lock(mutex_);
   if (scenes_.erase(request->scene_handle()) == 0)
-    return grpc::Status(grpc::StatusCode::NOT_FOUND, absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));
+    return grpc::Status(grpc::StatusCode::NOT_FOUND,
+                        absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));
   return grpc::Status::OK;
 }
 

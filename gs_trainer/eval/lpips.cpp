@@ -57,10 +57,8 @@ std::vector<ExpectedTensor> lin_layout() {
 
 // Checks `dict` against `layout` (keys with an `ignored_prefix` are skipped) and returns the
 // tensors in layout order as float32.
-absl::StatusOr<std::vector<at::Tensor>> take_tensors(const StateDict& dict,
-                                                     const std::vector<ExpectedTensor>& layout,
-                                                     const std::string& ignored_prefix,
-                                                     const std::string& path) {
+absl::StatusOr<std::vector<at::Tensor>> take_tensors(const StateDict& dict, const std::vector<ExpectedTensor>& layout,
+                                                     const std::string& ignored_prefix, const std::string& path) {
   std::set<std::string> expected;
   std::vector<at::Tensor> out;
   for (const ExpectedTensor& e : layout) {
@@ -76,8 +74,7 @@ absl::StatusOr<std::vector<at::Tensor>> take_tensors(const StateDict& dict,
                                                      absl::StrJoin(e.shape, ","), "]"));
     }
     if (!at::isFloatingType(t.scalar_type())) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("'", path, "': key ", e.key, " is not a floating-point tensor"));
+      return absl::InvalidArgumentError(absl::StrCat("'", path, "': key ", e.key, " is not a floating-point tensor"));
     }
     out.push_back(t.to(at::kFloat));
   }
@@ -92,10 +89,9 @@ absl::StatusOr<std::vector<at::Tensor>> take_tensors(const StateDict& dict,
 
 // HxWx3 in [0, 1] -> 1x3xHxW scaled as lpips does: [0,1] -> [-1,1], then (x - shift) / scale.
 at::Tensor scale_input(const at::Tensor& image) {
-  TORCH_CHECK(image.dim() == 3 && image.size(2) == 3, "LPIPS expects HxWx3 images, got ",
+  TORCH_CHECK(image.dim() == 3 && image.size(2) == 3, "LPIPS expects HxWx3 images, got ", image.sizes());
+  TORCH_CHECK(image.size(0) >= 16 && image.size(1) >= 16, "LPIPS-VGG needs images of at least 16x16 pixels, got ",
               image.sizes());
-  TORCH_CHECK(image.size(0) >= 16 && image.size(1) >= 16,
-              "LPIPS-VGG needs images of at least 16x16 pixels, got ", image.sizes());
   at::Tensor x = image.to(at::kFloat).permute({2, 0, 1}).unsqueeze(0) * 2.0 - 1.0;
   const auto options = x.options();
   at::Tensor shift = at::tensor(at::ArrayRef<double>(kShift, 3), options).view({1, 3, 1, 1});
@@ -110,16 +106,13 @@ at::Tensor unit_normalise(const at::Tensor& features) {
 
 }  // namespace
 
-absl::StatusOr<Lpips> Lpips::load(const std::string& lin_weights_path,
-                                  const std::string& backbone_path) {
+absl::StatusOr<Lpips> Lpips::load(const std::string& lin_weights_path, const std::string& backbone_path) {
   GAPS_ASSIGN_OR_RETURN(StateDict lin_dict, load_torch_state_dict(lin_weights_path));
-  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> lins,
-                        take_tensors(lin_dict, lin_layout(), "", lin_weights_path));
+  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> lins, take_tensors(lin_dict, lin_layout(), "", lin_weights_path));
   GAPS_ASSIGN_OR_RETURN(StateDict backbone_dict, load_torch_state_dict(backbone_path));
   // The classification head of the full torchvision model plays no part in LPIPS.
-  GAPS_ASSIGN_OR_RETURN(
-      std::vector<at::Tensor> backbone,
-      take_tensors(backbone_dict, backbone_layout(), "classifier.", backbone_path));
+  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> backbone,
+                        take_tensors(backbone_dict, backbone_layout(), "classifier.", backbone_path));
   Lpips lpips;
   lpips.lins_ = std::move(lins);
   for (size_t i = 0; i < backbone.size(); i += 2) {
@@ -154,8 +147,7 @@ std::vector<at::Tensor> Lpips::features(const at::Tensor& x, const c10::Device& 
 }
 
 at::Tensor Lpips::distance(const at::Tensor& pred, const at::Tensor& gt) const {
-  TORCH_CHECK(pred.sizes() == gt.sizes(), "LPIPS inputs differ in shape: ", pred.sizes(), " vs ",
-              gt.sizes());
+  TORCH_CHECK(pred.sizes() == gt.sizes(), "LPIPS inputs differ in shape: ", pred.sizes(), " vs ", gt.sizes());
   TORCH_CHECK(pred.device() == gt.device(), "LPIPS inputs are on different devices");
   const c10::Device device = pred.device();
   // Both images go through VGG as one batch of two.

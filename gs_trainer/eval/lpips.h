@@ -24,8 +24,7 @@ class Lpips {
   // backbone_path: a VGG16 state dict as torchvision writes it (vgg16-397923af.pth: keys
   //   features.N.weight/bias; the classifier.* keys of the full model are ignored), zip or legacy.
   // A missing key, an unexpected key or a wrong shape is an error that names the key and the file.
-  static absl::StatusOr<Lpips> load(const std::string& lin_weights_path,
-                                    const std::string& backbone_path);
+  static absl::StatusOr<Lpips> load(const std::string& lin_weights_path, const std::string& backbone_path);
 
   // LPIPS distance between two HxWx3 images with values in [0, 1] (H, W >= 16: VGG pools four
   // times before the last tap). Returns a scalar float32 tensor on the inputs' device; it is

@@ -8,8 +8,8 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/raster/losses.h"
 #include "gs_trainer/eval/lpips.h"
+#include "gs_trainer/raster/losses.h"
 
 namespace gaps {
 namespace {
@@ -20,8 +20,7 @@ at::Tensor clamp01(const at::Tensor& image) { return image.clamp(0.0, 1.0); }
 
 double psnr(const at::Tensor& pred, const at::Tensor& gt) {
   at::NoGradGuard no_grad;
-  TORCH_CHECK(pred.sizes() == gt.sizes(), "PSNR inputs differ in shape: ", pred.sizes(), " vs ",
-              gt.sizes());
+  TORCH_CHECK(pred.sizes() == gt.sizes(), "PSNR inputs differ in shape: ", pred.sizes(), " vs ", gt.sizes());
   // float64 so that the MSE of near-identical images is not dominated by rounding.
   at::Tensor diff = clamp01(pred).to(at::kDouble) - clamp01(gt).to(at::kDouble);
   const double mse = diff.pow(2).mean().item<double>();
@@ -50,9 +49,8 @@ absl::StatusOr<ImageMetrics> average_metrics(const std::vector<ImageMetrics>& vi
   double lpips_sum = 0.0;
   for (size_t i = 0; i < views.size(); ++i) {
     if (views[i].lpips.has_value() != with_lpips) {
-      return absl::InvalidArgumentError(absl::StrCat("average_metrics: view ", i,
-                                                     (with_lpips ? " lacks" : " has"),
-                                                     " an LPIPS value unlike view 0"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("average_metrics: view ", i, (with_lpips ? " lacks" : " has"), " an LPIPS value unlike view 0"));
     }
     mean.psnr += views[i].psnr;
     mean.ssim += views[i].ssim;

@@ -25,8 +25,7 @@ double psnr(const at::Tensor& pred, const at::Tensor& gt);
 double ssim_metric(const at::Tensor& pred, const at::Tensor& gt);
 
 // PSNR and SSIM, plus LPIPS when `lpips` is given.
-ImageMetrics evaluate_image(const at::Tensor& pred, const at::Tensor& gt,
-                            const Lpips* lpips = nullptr);
+ImageMetrics evaluate_image(const at::Tensor& pred, const at::Tensor& gt, const Lpips* lpips = nullptr);
 
 // Per-view average (the papers average per-image PSNR, not the PSNR of the pooled MSE). LPIPS is
 // averaged when every view has it. Errors: no views; LPIPS present for some views only (that means

@@ -58,16 +58,16 @@ AdmissionDecision decide_admission(double mean_alpha, double mean_residual, cons
   return d;
 }
 
-AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered,
-                                    const at::Tensor& alpha, const GapsConfig& c) {
+AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered, const at::Tensor& alpha,
+                                    const GapsConfig& c) {
   const double mean_residual = uncertainty_map(hallucinated, rendered).to(at::kDouble).mean().item<double>();
   const double mean_alpha = alpha.to(at::kDouble).mean().item<double>();
   AdmissionDecision d = decide_admission(mean_alpha, mean_residual, c);
   if (c.admit_min_structure <= 0) return d;
   d.structure = ssim_metric(hallucinated.to(at::kFloat), rendered.to(at::kFloat));
   const bool structured = *d.structure >= c.admit_min_structure;
-  const std::string reason = absl::StrFormat("SSIM to the render %.4f %s %.4g", *d.structure,
-                                             structured ? ">=" : "<", c.admit_min_structure);
+  const std::string reason =
+      absl::StrFormat("SSIM to the render %.4f %s %.4g", *d.structure, structured ? ">=" : "<", c.admit_min_structure);
   if (structured) {
     d.reason += d.admitted ? ", " + reason : "";
   } else {
@@ -78,8 +78,8 @@ AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Te
 }
 
 at::Tensor confidence_weight(const at::Tensor& alpha, const at::Tensor& uncertainty, const GapsConfig& c) {
-  TORCH_CHECK(alpha.sizes() == uncertainty.sizes(), "alpha ", alpha.sizes(), " and uncertainty ",
-              uncertainty.sizes(), " must have one shape");
+  TORCH_CHECK(alpha.sizes() == uncertainty.sizes(), "alpha ", alpha.sizes(), " and uncertainty ", uncertainty.sizes(),
+              " must have one shape");
   const at::Tensor max_u = uncertainty.max();
   return alpha * (1.0 - c.uncertainty_lambda * uncertainty / (max_u + c.uncertainty_eps));
 }

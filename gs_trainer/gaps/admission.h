@@ -23,18 +23,18 @@ double uncertainty_variance(const at::Tensor& uncertainty);
 
 struct AdmissionDecision {
   bool admitted = false;
-  double mean_alpha = 0;     // ᾱ_v of the full-fidelity render
-  double mean_residual = 0;  // mean |I_hall - I_GS| over pixels and channels
+  double mean_alpha = 0;            // ᾱ_v of the full-fidelity render
+  double mean_residual = 0;         // mean |I_hall - I_GS| over pixels and channels
   std::optional<double> structure;  // SSIM(I_hall, I_GS), when admit_min_structure > 0
-  std::string reason;        // which criterion passed or failed, with the numbers
+  std::string reason;               // which criterion passed or failed, with the numbers
 };
 
 // Dual-criterion admission (sec. 3.6): ᾱ_v >= admit_min_alpha and mean residual < admit_max_residual;
 // admit_pseudo_view adds the structure guard SSIM >= admit_min_structure (see gaps_config.h).
 // Rejected views stay in the candidate pool (the caller keeps them; nothing here removes them).
 AdmissionDecision decide_admission(double mean_alpha, double mean_residual, const GapsConfig& c);
-AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered,
-                                    const at::Tensor& alpha, const GapsConfig& c);
+AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered, const at::Tensor& alpha,
+                                    const GapsConfig& c);
 
 // eq:confidence_weight: w(p) = α(p) (1 - λ_u u(p) / (max u + ε)). alpha and u are H×W.
 at::Tensor confidence_weight(const at::Tensor& alpha, const at::Tensor& uncertainty, const GapsConfig& c);
@@ -52,7 +52,8 @@ double drop_ratio(int iteration, int total_iterations, int64_t num_gaussians, co
 // eq:dropgaussian: an N-vector m_i / (1 - r), m_i ~ Bernoulli(1 - r), to multiply the opacities by.
 // E[scale] = 1, so renders stay unbiased. r must be in [0, 1). `options` picks dtype and device (the
 // generator must live on that device); the default is float32 on the CPU.
-at::Tensor drop_gaussian_scale(int64_t num_gaussians, double ratio, std::optional<at::Generator> generator = std::nullopt,
+at::Tensor drop_gaussian_scale(int64_t num_gaussians, double ratio,
+                               std::optional<at::Generator> generator = std::nullopt,
                                const at::TensorOptions& options = at::TensorOptions());
 
 // eq:adaptive_strength: σ(v) = σ_max - coverage (σ_max - σ_min), coverage clamped to [0, 1].

@@ -18,8 +18,8 @@ inline constexpr int kNActiveMip360 = 24;
 struct GapsConfig {
   // --- Schedule (sec. 3.2). A diffusion phase runs at every iteration t >= warmup with
   // (t - warmup) % phase_interval == 0; the total budget T is TrainConfig::iterations.
-  int warmup_iterations = 1000;  // T_w
-  int phase_interval = 500;      // ΔT
+  int warmup_iterations = 1000;      // T_w
+  int phase_interval = 500;          // ΔT
   double pseudo_probability = 0.25;  // p_pseudo: chance an iteration trains on an admitted pseudo-view
 
   // --- Candidate pool (sec. 3.4, eq:slerp).
@@ -53,7 +53,7 @@ struct GapsConfig {
   double w_entropy = 0.2;   // w_e on the normalised 3x3 local entropy
   double w_novelty = 0.6;   // w_n on η = min(1, novelty_gain * d / (1 + d))
   double novelty_gain = 4.0;
-  int entropy_bins = 16;  // (open) greyscale quantisation levels of the local entropy
+  int entropy_bins = 16;    // (open) greyscale quantisation levels of the local entropy
   double gamma_hist = 0.7;  // γ: C_gen = (1 - γ) C_model + γ C_hist
   // C_model = w_init C_init + w_ref C_ref. (open) equal weights.
   double w_init = 0.5;
@@ -68,8 +68,8 @@ struct GapsConfig {
   double hist_variance_scale = 0.3;  // C_hist = 1 - min(1, σ̄² / scale)
 
   // --- Selection (sec. 3.4 greedy selection, sec. 3.6 forced exploration).
-  double diversity_radius = 0.15;  // d_div, in pose distance
-  int exploration_period = 3;      // k_new: every k_new-th diffusion phase explores
+  double diversity_radius = 0.15;      // d_div, in pose distance
+  int exploration_period = 3;          // k_new: every k_new-th diffusion phase explores
   double exploration_fraction = 0.25;  // ρ_new: ceil(ρ_new * |selection|) slots go to never-admitted views
 
   // --- Admission and pseudo loss (sec. 3.6).
@@ -79,23 +79,23 @@ struct GapsConfig {
   // residual against a render is about 1/3); noise has an SSIM near 0 with any render, while a generation
   // anchored on the render keeps its structure. Low on purpose: it only rejects images without structure.
   double admit_min_structure = 0.1;
-  double uncertainty_lambda = 0.7;  // λ_u (eq:confidence_weight)
-  double uncertainty_eps = 1e-6;    // ε (eq:confidence_weight)
-  double extrap_kappa = 2.0;        // κ (eq:extrap_decay)
-  double pseudo_loss_weight = 0.35; // w_PLW (eq:pseudo_loss)
+  double uncertainty_lambda = 0.7;   // λ_u (eq:confidence_weight)
+  double uncertainty_eps = 1e-6;     // ε (eq:confidence_weight)
+  double extrap_kappa = 2.0;         // κ (eq:extrap_decay)
+  double pseudo_loss_weight = 0.35;  // w_PLW (eq:pseudo_loss)
 
   // --- Density-adaptive DropGaussian (eq:drop_ratio, eq:dropgaussian).
-  double drop_max = 0.2;            // r_max
-  double drop_n_ref = 200000;       // N_thr
+  double drop_max = 0.2;       // r_max
+  double drop_n_ref = 200000;  // N_thr
 
   // --- Generation controls (sec. 3.3), consumed by the diffusion side.
-  double strength_max = 0.85;       // σ_max (eq:adaptive_strength)
-  double strength_min = 0.3;        // σ_min
-  double cn_scale = 1.0;            // s̄_cn (eq:adaptive_cn)
-  double cn_coverage = 0.3;         // τ_clip
-  double ip_adapter_scale = 0.5;    // λ_ip (eq:ipadapter)
-  int lora_rank = 4;                // r (eq:lora)
-  int lora_steps = 50;              // LoRA steps in the first diffusion phase
+  double strength_max = 0.85;     // σ_max (eq:adaptive_strength)
+  double strength_min = 0.3;      // σ_min
+  double cn_scale = 1.0;          // s̄_cn (eq:adaptive_cn)
+  double cn_coverage = 0.3;       // τ_clip
+  double ip_adapter_scale = 0.5;  // λ_ip (eq:ipadapter)
+  int lora_rank = 4;              // r (eq:lora)
+  int lora_steps = 50;            // LoRA steps in the first diffusion phase
   // Two-stage generation (eq:two_stage), sent with every generation request (GenerationRequest::inpaint).
   double inpaint_uncovered_fraction = InpaintSettings{}.uncovered_fraction;  // > 2% uncovered: SD2 inpainting
   int inpaint_dilation = InpaintSettings{}.dilation;  // dilation kernel of the inpainting mask (odd)

@@ -26,9 +26,9 @@ struct ReferenceView {
 // render_depth is below depth_threshold (tau_d), dilated by a dilation x dilation square, in views with
 // more than uncovered_fraction of them. The trainer sends GapsConfig's values with every request.
 struct InpaintSettings {
-  double depth_threshold = 0.01;    // tau_d, in render_depth's units (not given by the paper)
-  double uncovered_fraction = 0.02; // the paper's 2%
-  int dilation = 15;                // the paper's 15 x 15 kernel (odd)
+  double depth_threshold = 0.01;     // tau_d, in render_depth's units (not given by the paper)
+  double uncovered_fraction = 0.02;  // the paper's 2%
+  int dilation = 15;                 // the paper's 15 x 15 kernel (odd)
 };
 
 // OK, or an InvalidArgument naming the first field out of range (the GapsConfig / proto field names).
@@ -42,13 +42,13 @@ inline absl::Status check_inpaint_settings(const InpaintSettings& s) {
 }
 
 struct GenerationRequest {
-  Camera camera;            // the pseudo pose
-  at::Tensor render_rgb;    // H x W x 3 full-fidelity render at the pose (no DropGaussian), CPU
-  at::Tensor render_depth;  // H x W, eq. depth_render (divide by alpha for the expected distance)
-  at::Tensor render_alpha;  // H x W
-  double coverage = 0.0;    // fraction of covered pixels
-  double strength = 0.0;    // img2img strength sigma(v), eq. adaptive_strength
-  double control_scale = 0.0;  // s_cn(v), eq. adaptive_cn
+  Camera camera;                          // the pseudo pose
+  at::Tensor render_rgb;                  // H x W x 3 full-fidelity render at the pose (no DropGaussian), CPU
+  at::Tensor render_depth;                // H x W, eq. depth_render (divide by alpha for the expected distance)
+  at::Tensor render_alpha;                // H x W
+  double coverage = 0.0;                  // fraction of covered pixels
+  double strength = 0.0;                  // img2img strength sigma(v), eq. adaptive_strength
+  double control_scale = 0.0;             // s_cn(v), eq. adaptive_cn
   std::vector<ReferenceView> references;  // nearest GT views by pose distance, nearest first
   std::string prompt;
   uint64_t seed = 0;

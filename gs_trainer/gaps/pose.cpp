@@ -5,8 +5,8 @@
 #include <limits>
 #include <utility>
 
-#include <Eigen/Geometry>
 #include <absl/strings/str_format.h>
+#include <Eigen/Geometry>
 
 namespace gaps {
 
@@ -37,9 +37,7 @@ void set_intrinsics(Camera& out, const Camera& a, const Camera& b, double alpha,
   out.cy = lerp(a.cy, bs.cy, alpha);
 }
 
-bool is_training_pose(double alpha) {
-  return std::abs(alpha) < kAlphaEps || std::abs(alpha - 1.0) < kAlphaEps;
-}
+bool is_training_pose(double alpha) { return std::abs(alpha) < kAlphaEps || std::abs(alpha - 1.0) < kAlphaEps; }
 
 }  // namespace
 
@@ -108,8 +106,7 @@ Candidate make_candidate(const std::vector<Camera>& cameras, int i, int j, doubl
 
 }  // namespace
 
-std::vector<Candidate> build_candidate_pool(const std::vector<Camera>& cameras, const GapsConfig& c,
-                                            int max_tier) {
+std::vector<Candidate> build_candidate_pool(const std::vector<Camera>& cameras, const GapsConfig& c, int max_tier) {
   if (max_tier < 0) max_tier = c.num_tiers() - 1;
   const std::vector<double> grid = alpha_grid(c);
   std::vector<Candidate> pool;

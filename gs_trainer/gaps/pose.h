@@ -4,8 +4,8 @@
 // pool built from every training pair with progressive α tiers.
 #include <vector>
 
-#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/gaps/config.h"
+#include "gs_trainer/scene/camera.h"
 
 namespace gaps {
 
@@ -31,12 +31,12 @@ Camera interpolate_camera(const Camera& a, const Camera& b, double alpha, bool i
 // One candidate pseudo-view pose of the pool.
 struct Candidate {
   Camera camera;
-  int id = -1;          // stable: the index on the full (last-tier) grid, whatever max_tier was used
-  int pair_index = -1;  // index of the pair (i, j), i < j, in lexicographic order
-  int i = -1, j = -1;   // training-camera indices of the pair
-  double alpha = 0;     // position along the pair's geodesic (eq:slerp)
-  double d_extrap = 0;  // extrapolation_distance(alpha)
-  int tier = 0;         // smallest tier whose α range contains alpha
+  int id = -1;                   // stable: the index on the full (last-tier) grid, whatever max_tier was used
+  int pair_index = -1;           // index of the pair (i, j), i < j, in lexicographic order
+  int i = -1, j = -1;            // training-camera indices of the pair
+  double alpha = 0;              // position along the pair's geodesic (eq:slerp)
+  double d_extrap = 0;           // extrapolation_distance(alpha)
+  int tier = 0;                  // smallest tier whose α range contains alpha
   bool admitted_before = false;  // set by the caller once a pseudo-view at this pose was admitted
 };
 
@@ -46,7 +46,6 @@ int alpha_tier(double alpha, const GapsConfig& c);
 // Candidates for every pair of `cameras` on the grid α = k * alpha_step within the tiers up to max_tier
 // (-1: all), with d_extrap <= max_extrap. α = 0 and α = 1 are left out: they are the training cameras.
 // Order: pair-major, α ascending; ids index the full grid so they agree between calls.
-std::vector<Candidate> build_candidate_pool(const std::vector<Camera>& cameras, const GapsConfig& c,
-                                            int max_tier = -1);
+std::vector<Candidate> build_candidate_pool(const std::vector<Camera>& cameras, const GapsConfig& c, int max_tier = -1);
 
 }  // namespace gaps

@@ -83,11 +83,11 @@ double rms_contrast(const at::Tensor& image) { return rms_contrast_tensor(image)
 
 CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& alpha, double d_min_supervised,
                                      double d_min_gt, std::optional<double> history, const GapsConfig& c) {
-  const at::Tensor stats = at::stack({as_floating(alpha).mean().to(at::kDouble),
-                                      local_entropy_map(image, c.entropy_bins).mean().to(at::kDouble),
-                                      coverage_fraction_tensor(alpha, c.coverage_alpha_threshold),
-                                      rms_contrast_tensor(image)})
-                               .cpu();
+  const at::Tensor stats =
+      at::stack({as_floating(alpha).mean().to(at::kDouble),
+                 local_entropy_map(image, c.entropy_bins).mean().to(at::kDouble),
+                 coverage_fraction_tensor(alpha, c.coverage_alpha_threshold), rms_contrast_tensor(image)})
+          .cpu();
   const double* v = stats.data_ptr<double>();
   CandidateMeasurements m;
   m.mean_alpha = v[0];
@@ -100,9 +100,7 @@ CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& 
   return m;
 }
 
-double novelty(double d_min, const GapsConfig& c) {
-  return std::min(1.0, c.novelty_gain * d_min / (1.0 + d_min));
-}
+double novelty(double d_min, const GapsConfig& c) { return std::min(1.0, c.novelty_gain * d_min / (1.0 + d_min)); }
 
 double recon_informativeness(const CandidateMeasurements& m, const GapsConfig& c) {
   return c.w_sparsity * (1.0 - m.mean_alpha) + c.w_entropy * m.entropy_mean +
@@ -114,9 +112,7 @@ double initial_confidence(const CandidateMeasurements& m, const GapsConfig& c) {
   return c.init_coverage_weight * m.coverage + (1.0 - c.init_coverage_weight) * contrast;
 }
 
-double reference_confidence(double d_min_gt, const GapsConfig& c) {
-  return std::exp(-d_min_gt / c.ref_distance_scale);
-}
+double reference_confidence(double d_min_gt, const GapsConfig& c) { return std::exp(-d_min_gt / c.ref_distance_scale); }
 
 double model_confidence(const CandidateMeasurements& m, const GapsConfig& c) {
   return c.w_init * initial_confidence(m, c) + c.w_ref * reference_confidence(m.d_min_gt, c);
@@ -138,8 +134,7 @@ double annealed_beta(int iteration, int total_iterations, const GapsConfig& c) {
   return c.beta_start + (c.beta_end - c.beta_start) * progress;
 }
 
-ScoreTerms score_candidate(const CandidateMeasurements& m, int iteration, int total_iterations,
-                           const GapsConfig& c) {
+ScoreTerms score_candidate(const CandidateMeasurements& m, int iteration, int total_iterations, const GapsConfig& c) {
   ScoreTerms s;
   s.i_recon = recon_informativeness(m, c);
   s.c_model = model_confidence(m, c);
@@ -190,8 +185,8 @@ std::vector<int> force_exploration(const std::vector<Candidate>& pool, const std
   return out;
 }
 
-std::vector<int> select_for_phase(const std::vector<Candidate>& pool, const std::vector<double>& scores,
-                                  int phase, const GapsConfig& c) {
+std::vector<int> select_for_phase(const std::vector<Candidate>& pool, const std::vector<double>& scores, int phase,
+                                  const GapsConfig& c) {
   std::vector<int> selected = select_greedy(pool, scores, c);
   return is_exploration_phase(phase, c) ? force_exploration(pool, scores, selected, c) : selected;
 }

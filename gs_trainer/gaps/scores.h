@@ -29,10 +29,10 @@ double rms_contrast(const at::Tensor& image);
 
 // Everything a candidate's score needs.
 struct CandidateMeasurements {
-  double mean_alpha = 0;     // ᾱ_v (eq:i_recon)
-  double entropy_mean = 0;   // H_v, mean of local_entropy_map
-  double coverage = 0;       // coverage_fraction(alpha, coverage_alpha_threshold)
-  double contrast = 0;       // rms_contrast of the render
+  double mean_alpha = 0;        // ᾱ_v (eq:i_recon)
+  double entropy_mean = 0;      // H_v, mean of local_entropy_map
+  double coverage = 0;          // coverage_fraction(alpha, coverage_alpha_threshold)
+  double contrast = 0;          // rms_contrast of the render
   double d_min_supervised = 0;  // min pose distance to the supervised views (GT and admitted pseudo): η
   double d_min_gt = 0;          // min pose distance to the ground-truth views: C_ref
   // Mean over prior phases of the view's uncertainty variance (uncertainty_variance in gaps_admission.h);
@@ -69,8 +69,7 @@ struct ScoreTerms {
   double i_recon = 0, c_model = 0, c_gen = 0, beta = 0, score = 0;
 };
 // score = I_recon · C_gen^β (eq:gaps_score), with its terms for logging.
-ScoreTerms score_candidate(const CandidateMeasurements& m, int iteration, int total_iterations,
-                           const GapsConfig& c);
+ScoreTerms score_candidate(const CandidateMeasurements& m, int iteration, int total_iterations, const GapsConfig& c);
 
 // ---- Selection. Indices are positions in `pool`; scores[k] belongs to pool[k].
 
@@ -94,8 +93,8 @@ std::vector<int> force_exploration(const std::vector<Candidate>& pool, const std
                                    const std::vector<int>& selected, const GapsConfig& c);
 
 // One diffusion phase's selection: select_greedy, then force_exploration on exploration phases.
-std::vector<int> select_for_phase(const std::vector<Candidate>& pool, const std::vector<double>& scores,
-                                  int phase, const GapsConfig& c);
+std::vector<int> select_for_phase(const std::vector<Candidate>& pool, const std::vector<double>& scores, int phase,
+                                  const GapsConfig& c);
 
 // Progressive tiers (sec. 3.4): the next phase's tier. Upgrades by one when at least tier_min_admitted
 // views are admitted and the mean of their uncertainty variances is below tier_upgrade_variance.

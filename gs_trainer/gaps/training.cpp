@@ -8,10 +8,10 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "common/image_io.h"
+#include "common/status_macros.h"
 #include "gs_trainer/gaps/admission.h"
 #include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/model/render.h"
-#include "common/status_macros.h"
 
 namespace gaps {
 
@@ -26,10 +26,14 @@ absl::StatusOr<Variant> parse_variant(const std::string& name) {
 
 std::string variant_name(Variant v) {
   switch (v) {
-    case Variant::kVanilla: return "vanilla";
-    case Variant::kFull: return "full";
-    case Variant::kNoGaps: return "no-gaps";
-    case Variant::kNoDropGaussian: return "no-dropgaussian";
+    case Variant::kVanilla:
+      return "vanilla";
+    case Variant::kFull:
+      return "full";
+    case Variant::kNoGaps:
+      return "no-gaps";
+    case Variant::kNoDropGaussian:
+      return "no-dropgaussian";
   }
   return "?";
 }
@@ -105,7 +109,10 @@ absl::Status GapsTraining::run_phase(int phase) {
   at::AutoGradMode no_grad(false);
   const GaussianModel& model = trainer_.model();
   const int t = trainer_.iteration(), T = trainer_.config().iterations;
-  nlohmann::json entry = {{"phase", phase}, {"iteration", t}, {"tier", tier_}, {"gaussians", model.size()},
+  nlohmann::json entry = {{"phase", phase},
+                          {"iteration", t},
+                          {"tier", tier_},
+                          {"gaussians", model.size()},
                           {"drop_ratio", drop_ratio(t, T, model.size(), config_)},
                           {"beta", annealed_beta(t, T, config_)}};
   if (variant_ == Variant::kNoGaps && phase > 0) return absl::OkStatus();  // generated once, never refreshed
@@ -146,14 +153,18 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
     for (auto& c : pool) {
       c.admitted_before = admitted_.count(c.id) > 0;
       const RenderOutput r = render(model, c.camera);
-      const auto history = uncertainty_history_.count(c.id) ? std::optional<double>(uncertainty_history_[c.id])
-                                                            : std::nullopt;
+      const auto history =
+          uncertainty_history_.count(c.id) ? std::optional<double>(uncertainty_history_[c.id]) : std::nullopt;
       const auto m = measure_render(r.rgb.clamp(0, 1), r.alpha, min_pose_distance(c.camera, supervised),
                                     min_pose_distance(c.camera, gt_cameras_), history, config_);
       const ScoreTerms s = score_candidate(m, t, T, config_);
       scores.push_back(s.score);
-      entry["candidates"].push_back({{"id", c.id}, {"pair", {c.i, c.j}}, {"alpha", c.alpha},
-                                     {"i_recon", s.i_recon}, {"c_gen", s.c_gen}, {"score", s.score}});
+      entry["candidates"].push_back({{"id", c.id},
+                                     {"pair", {c.i, c.j}},
+                                     {"alpha", c.alpha},
+                                     {"i_recon", s.i_recon},
+                                     {"c_gen", s.c_gen},
+                                     {"score", s.score}});
     }
     for (int k : select_for_phase(pool, scores, phase, config_)) chosen.push_back(pool[k]);
   }
@@ -167,8 +178,7 @@ absl::Status GapsTraining::save_for_inspection(int phase, int id, bool admitted,
   return write_png(dir / absl::StrFormat("cand_%03d_%s.png", id, admitted ? "admitted" : "rejected"), image);
 }
 
-absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate,
-                                              nlohmann::json& entry) {
+absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry) {
   const GaussianModel& model = trainer_.model();
   std::vector<GenerationRequest> requests;
   std::vector<RenderOutput> renders;
@@ -200,9 +210,12 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     const AdmissionDecision d = admit_pseudo_view(image, rendered, alpha, config_);
     const bool admit = !gate || d.admitted;
     const at::Tensor u = uncertainty_map(image, rendered);
-    entry["selection"].push_back({{"id", chosen[k].id}, {"pair", {chosen[k].i, chosen[k].j}},
-                                  {"alpha", chosen[k].alpha}, {"coverage", requests[k].coverage},
-                                  {"strength", requests[k].strength}, {"admitted", admit},
+    entry["selection"].push_back({{"id", chosen[k].id},
+                                  {"pair", {chosen[k].i, chosen[k].j}},
+                                  {"alpha", chosen[k].alpha},
+                                  {"coverage", requests[k].coverage},
+                                  {"strength", requests[k].strength},
+                                  {"admitted", admit},
                                   {"reason", gate ? d.reason : "no admission gate (no-gaps)"}});
     GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
     if (!admit) continue;
@@ -216,9 +229,9 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   }
   entry["admitted"] = admitted_variances.size();
   entry["mean_uncertainty_variance"] =
-      admitted_variances.empty() ? 0.0
-                                 : std::accumulate(admitted_variances.begin(), admitted_variances.end(), 0.0) /
-                                       admitted_variances.size();
+      admitted_variances.empty()
+          ? 0.0
+          : std::accumulate(admitted_variances.begin(), admitted_variances.end(), 0.0) / admitted_variances.size();
   if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
   return absl::OkStatus();
 }

@@ -12,11 +12,11 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
-#include "gs_trainer/scene/colmap.h"
-#include "gs_trainer/scene/bounds.h"
 #include "common/io_util.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/bounds.h"
+#include "gs_trainer/scene/colmap.h"
 
 namespace gaps {
 namespace {
@@ -25,7 +25,6 @@ namespace fs = std::filesystem;
 
 // Bumped whenever an algorithm or default changes what a method produces, so stale caches are not reused.
 constexpr char kCacheVersion[] = "init-v2";
-
 
 std::string scene_name(const std::vector<Camera>& cameras) {
   // image_path is <scene>/<images folder>/<file>; synthetic cameras may have none.
@@ -256,9 +255,10 @@ absl::StatusOr<InitResult> run_initialization(const std::string& method, const s
   if (method != "auto") return cached_or_computed(method, train_cameras, train_images, opts);
   const std::string chosen = auto_init_method(train_cameras);
   GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed(chosen, train_cameras, train_images, opts));
-  r.notes.insert(r.notes.begin(),
-                 absl::StrFormat("auto: %s (viewing directions span %.0f degrees; over %.0f the views surround the scene)",
-                                 chosen, viewing_direction_spread_degrees(train_cameras), kSurroundingViewsDegrees));
+  r.notes.insert(
+      r.notes.begin(),
+      absl::StrFormat("auto: %s (viewing directions span %.0f degrees; over %.0f the views surround the scene)", chosen,
+                      viewing_direction_spread_degrees(train_cameras), kSurroundingViewsDegrees));
   return r;
 }
 

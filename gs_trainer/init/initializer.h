@@ -16,9 +16,9 @@
 #include <ATen/Tensor.h>
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
-#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/init/plane_sweep.h"
 #include "gs_trainer/init/sparse.h"
+#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/scene/scene.h"
 
 namespace gaps {

@@ -9,8 +9,8 @@
 
 #include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
-#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/init/sparse.h"
+#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/scene/scene.h"
 
 namespace gaps {

@@ -373,10 +373,17 @@ absl::StatusOr<SparseResult> sparse_reconstruct(const std::vector<Camera>& camer
     for (const auto& [v, k] : track) obs.push_back({v, features[v].xy[k]});
     TriangulatedPoint p;
     switch (triangulate_track(cameras, obs, options, &p)) {
-      case TrackVerdict::kCheirality: ++stats.rejected_cheirality; continue;
-      case TrackVerdict::kReprojection: ++stats.rejected_reprojection; continue;
-      case TrackVerdict::kAngle: ++stats.rejected_angle; continue;
-      case TrackVerdict::kKept: break;
+      case TrackVerdict::kCheirality:
+        ++stats.rejected_cheirality;
+        continue;
+      case TrackVerdict::kReprojection:
+        ++stats.rejected_reprojection;
+        continue;
+      case TrackVerdict::kAngle:
+        ++stats.rejected_angle;
+        continue;
+      case TrackVerdict::kKept:
+        break;
     }
     const Eigen::Vector3f colour = mean_colour(pixels, p.observations);
     for (int c = 0; c < 3; ++c) {

@@ -6,8 +6,8 @@
 
 #include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
-#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/scene/bounds.h"
+#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/scene/scene.h"
 
 namespace gaps {

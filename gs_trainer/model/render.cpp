@@ -27,9 +27,8 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
 
   at::Tensor opacities = model.opacities();
   if (options.opacity_scale.defined()) opacities = opacities * options.opacity_scale;
-  const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, colour_and_distance,
-                                          proj.depths, proj.radii, camera.width, camera.height,
-                                          options.means2d_abs_sink);
+  const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, colour_and_distance, proj.depths,
+                                          proj.radii, camera.width, camera.height, options.means2d_abs_sink);
   RenderOutput out;
   out.rgb = raster.features.narrow(2, 0, 3);
   if (options.background.defined())

@@ -3,15 +3,15 @@
 // distance from the camera centre) and alpha, plus what densification needs.
 #include <ATen/Tensor.h>
 
-#include "gs_trainer/scene/camera.h"
 #include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/scene/camera.h"
 
 namespace gaps {
 
 struct RenderOptions {
-  at::Tensor background;       // 3 values composited behind the Gaussians; undefined = black
-  at::Tensor opacity_scale;    // N multiplicative opacity factors (e.g. DropGaussian's mask); undefined = 1
-  at::Tensor means2d_abs_sink; // N x 2, receives absolute 2D-mean gradients in backward (optional)
+  at::Tensor background;        // 3 values composited behind the Gaussians; undefined = black
+  at::Tensor opacity_scale;     // N multiplicative opacity factors (e.g. DropGaussian's mask); undefined = 1
+  at::Tensor means2d_abs_sink;  // N x 2, receives absolute 2D-mean gradients in backward (optional)
 };
 
 struct RenderOutput {

@@ -14,8 +14,8 @@ using torch::autograd::Variable;
 
 void check_pair(const at::Tensor& pred, const at::Tensor& gt) {
   TORCH_CHECK(pred.dim() == 3, "expected an HxWxC image, got shape ", pred.sizes());
-  TORCH_CHECK(pred.sizes() == gt.sizes(), "prediction ", pred.sizes(), " and ground truth ",
-              gt.sizes(), " differ in shape");
+  TORCH_CHECK(pred.sizes() == gt.sizes(), "prediction ", pred.sizes(), " and ground truth ", gt.sizes(),
+              " differ in shape");
 }
 
 // The map is differentiated with respect to the prediction only: the target of a loss is data.
@@ -60,17 +60,15 @@ at::Tensor ssim_map(const at::Tensor& pred, const at::Tensor& gt) {
   return SsimMapFunction::apply(pred, gt)[0];
 }
 
-at::Tensor ssim(const at::Tensor& pred, const at::Tensor& gt) {
-  return gaps::ssim_map(pred, gt).mean();
-}
+at::Tensor ssim(const at::Tensor& pred, const at::Tensor& gt) { return gaps::ssim_map(pred, gt).mean(); }
 
 at::Tensor photometric_loss(const at::Tensor& pred, const at::Tensor& gt, double lambda) {
   // Qualified: argument-dependent lookup would also find at::l1_loss.
   return (1.0 - lambda) * gaps::l1_loss(pred, gt) + lambda * (1.0 - gaps::ssim(pred, gt));
 }
 
-at::Tensor weighted_photometric_loss(const at::Tensor& pred, const at::Tensor& gt,
-                                     const at::Tensor& weight, double lambda) {
+at::Tensor weighted_photometric_loss(const at::Tensor& pred, const at::Tensor& gt, const at::Tensor& weight,
+                                     double lambda) {
   check_pair(pred, gt);
   TORCH_CHECK(weight.dim() == 2 && weight.size(0) == pred.size(0) && weight.size(1) == pred.size(1),
               "weight must be HxW = ", pred.size(0), "x", pred.size(1), ", got ", weight.sizes());

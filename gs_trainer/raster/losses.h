@@ -26,7 +26,7 @@ at::Tensor photometric_loss(const at::Tensor& pred, const at::Tensor& gt, double
 // Per-pixel weighted variant (e.g. confidence-weighted pseudo views); `weight` is HxW, broadcast
 // over channels:  (1 - lambda) * mean(w * |pred - gt|) + lambda * mean(w * (1 - ssim_map)). With w
 // == 1 it equals photometric_loss.
-at::Tensor weighted_photometric_loss(const at::Tensor& pred, const at::Tensor& gt,
-                                     const at::Tensor& weight, double lambda = 0.2);
+at::Tensor weighted_photometric_loss(const at::Tensor& pred, const at::Tensor& gt, const at::Tensor& weight,
+                                     double lambda = 0.2);
 
 }  // namespace gaps

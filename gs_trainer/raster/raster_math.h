@@ -17,52 +17,72 @@ namespace gaps::raster {
 
 constexpr int kTileSize = 16;
 constexpr double kLowPass = 0.3;
-constexpr double kNearPlane = 0.2;        // Gaussians closer than this (camera z) are culled
-constexpr double kMaxAlpha = 0.99;        // per-Gaussian alpha clamp
-constexpr double kMinAlpha = 1.0 / 255.0; // contributions below this are skipped
-constexpr double kMinTransmittance = 1e-4; // compositing stops before T falls below this
-constexpr double kFrustumSlack = 0.3;      // projected means are clamped this far (in image widths) outside
+constexpr double kNearPlane = 0.2;          // Gaussians closer than this (camera z) are culled
+constexpr double kMaxAlpha = 0.99;          // per-Gaussian alpha clamp
+constexpr double kMinAlpha = 1.0 / 255.0;   // contributions below this are skipped
+constexpr double kMinTransmittance = 1e-4;  // compositing stops before T falls below this
+constexpr double kFrustumSlack = 0.3;       // projected means are clamped this far (in image widths) outside
 
-template <typename T> struct Vec2 { T x, y; };
-template <typename T> struct Vec3 { T x, y, z; };
-template <typename T> struct Mat3 {
+template <typename T>
+struct Vec2 {
+  T x, y;
+};
+template <typename T>
+struct Vec3 {
+  T x, y, z;
+};
+template <typename T>
+struct Mat3 {
   T m[3][3];
   GAPS_HD T operator()(int r, int c) const { return m[r][c]; }
   GAPS_HD T& operator()(int r, int c) { return m[r][c]; }
 };
 // Symmetric 2x2 as (a, b, c) = [[a, b], [b, c]].
-template <typename T> struct Sym2 { T a, b, c; };
+template <typename T>
+struct Sym2 {
+  T a, b, c;
+};
 
-template <typename T> GAPS_HD Mat3<T> matmul(const Mat3<T>& A, const Mat3<T>& B) {
+template <typename T>
+GAPS_HD Mat3<T> matmul(const Mat3<T>& A, const Mat3<T>& B) {
   Mat3<T> C;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) C(i, j) = A(i, 0) * B(0, j) + A(i, 1) * B(1, j) + A(i, 2) * B(2, j);
   return C;
 }
-template <typename T> GAPS_HD Mat3<T> transpose(const Mat3<T>& A) {
+template <typename T>
+GAPS_HD Mat3<T> transpose(const Mat3<T>& A) {
   Mat3<T> C;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) C(i, j) = A(j, i);
   return C;
 }
 
-template <typename T> GAPS_HD Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
+template <typename T>
+GAPS_HD Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
   Mat3<T> R;
-  R(0, 0) = 1 - 2 * (y * y + z * z); R(0, 1) = 2 * (x * y - w * z);     R(0, 2) = 2 * (x * z + w * y);
-  R(1, 0) = 2 * (x * y + w * z);     R(1, 1) = 1 - 2 * (x * x + z * z); R(1, 2) = 2 * (y * z - w * x);
-  R(2, 0) = 2 * (x * z - w * y);     R(2, 1) = 2 * (y * z + w * x);     R(2, 2) = 1 - 2 * (x * x + y * y);
+  R(0, 0) = 1 - 2 * (y * y + z * z);
+  R(0, 1) = 2 * (x * y - w * z);
+  R(0, 2) = 2 * (x * z + w * y);
+  R(1, 0) = 2 * (x * y + w * z);
+  R(1, 1) = 1 - 2 * (x * x + z * z);
+  R(1, 2) = 2 * (y * z - w * x);
+  R(2, 0) = 2 * (x * z - w * y);
+  R(2, 1) = 2 * (y * z + w * x);
+  R(2, 2) = 1 - 2 * (x * x + y * y);
   return R;
 }
 
 // dL/d(w,x,y,z) of a *unit* quaternion from dL/dR.
-template <typename T> GAPS_HD void quat_to_rotmat_vjp(T w, T x, T y, T z, const Mat3<T>& G, T out[4]) {
+template <typename T>
+GAPS_HD void quat_to_rotmat_vjp(T w, T x, T y, T z, const Mat3<T>& G, T out[4]) {
   out[0] = 2 * (-z * G(0, 1) + y * G(0, 2) + z * G(1, 0) - x * G(1, 2) - y * G(2, 0) + x * G(2, 1));
-  out[1] = 2 * (y * G(0, 1) + z * G(0, 2) + y * G(1, 0) - 2 * x * G(1, 1) - w * G(1, 2) + z * G(2, 0) +
-                w * G(2, 1) - 2 * x * G(2, 2));
-  out[2] = 2 * (-2 * y * G(0, 0) + x * G(0, 1) + w * G(0, 2) + x * G(1, 0) + z * G(1, 2) - w * G(2, 0) +
-                z * G(2, 1) - 2 * y * G(2, 2));
-  out[3] = 2 * (-2 * z * G(0, 0) - w * G(0, 1) + x * G(0, 2) + w * G(1, 0) - 2 * z * G(1, 1) +
-                y * G(1, 2) + x * G(2, 0) + y * G(2, 1));
+  out[1] = 2 * (y * G(0, 1) + z * G(0, 2) + y * G(1, 0) - 2 * x * G(1, 1) - w * G(1, 2) + z * G(2, 0) + w * G(2, 1) -
+                2 * x * G(2, 2));
+  out[2] = 2 * (-2 * y * G(0, 0) + x * G(0, 1) + w * G(0, 2) + x * G(1, 0) + z * G(1, 2) - w * G(2, 0) + z * G(2, 1) -
+                2 * y * G(2, 2));
+  out[3] = 2 * (-2 * z * G(0, 0) - w * G(0, 1) + x * G(0, 2) + w * G(1, 0) - 2 * z * G(1, 1) + y * G(1, 2) +
+                x * G(2, 0) + y * G(2, 1));
 }
 
 struct Intrinsics {
@@ -71,22 +91,24 @@ struct Intrinsics {
 };
 
 // Everything the forward projection of one Gaussian produces.
-template <typename T> struct Projected {
+template <typename T>
+struct Projected {
   bool visible;
   Vec2<T> mean2d;
   Sym2<T> conic;
-  T depth;   // camera-space z, the sort key
+  T depth;  // camera-space z, the sort key
   int radius;
 };
 
 // The state the backward pass recomputes instead of storing.
-template <typename T> struct ProjectionCache {
-  Vec3<T> p;      // camera-space mean
-  Vec2<T> u;      // clamped x/z, y/z used by the Jacobian
+template <typename T>
+struct ProjectionCache {
+  Vec3<T> p;  // camera-space mean
+  Vec2<T> u;  // clamped x/z, y/z used by the Jacobian
   bool clamped_x, clamped_y;
-  Mat3<T> R;      // rotation of the (normalised) quaternion
-  Vec3<T> s;      // scales
-  T qn[4];        // normalised quaternion
+  Mat3<T> R;  // rotation of the (normalised) quaternion
+  Vec3<T> s;  // scales
+  T qn[4];    // normalised quaternion
   T qnorm;
   Mat3<T> Sigma;  // 3D covariance
   T J[2][3];
@@ -126,8 +148,12 @@ GAPS_HD bool project_one(const T mean[3], const T quat[4], const T scale[3], con
   c.u.x = ux > lim_x_pos ? lim_x_pos : (ux < -lim_x_neg ? -lim_x_neg : ux);
   c.u.y = uy > lim_y_pos ? lim_y_pos : (uy < -lim_y_neg ? -lim_y_neg : uy);
   const T fx = T(K.fx), fy = T(K.fy), z = c.p.z;
-  c.J[0][0] = fx / z; c.J[0][1] = 0; c.J[0][2] = -fx * c.u.x / z;
-  c.J[1][0] = 0; c.J[1][1] = fy / z; c.J[1][2] = -fy * c.u.y / z;
+  c.J[0][0] = fx / z;
+  c.J[0][1] = 0;
+  c.J[0][2] = -fx * c.u.x / z;
+  c.J[1][0] = 0;
+  c.J[1][1] = fy / z;
+  c.J[1][2] = -fy * c.u.y / z;
   for (int i = 0; i < 2; ++i)
     for (int j = 0; j < 3; ++j) c.Tm[i][j] = c.J[i][0] * W(0, j) + c.J[i][1] * W(1, j) + c.J[i][2] * W(2, j);
   T TS[2][3];
@@ -155,8 +181,7 @@ GAPS_HD Projected<T> finish_projection(const ProjectionCache<T>& c, const Intrin
   out.depth = c.p.z;
   // Cull footprints that touch no tile of the image.
   const T r = T(out.radius);
-  if (out.mean2d.x + r <= 0 || out.mean2d.x - r >= K.width || out.mean2d.y + r <= 0 ||
-      out.mean2d.y - r >= K.height)
+  if (out.mean2d.x + r <= 0 || out.mean2d.x - r >= K.width || out.mean2d.y + r <= 0 || out.mean2d.y - r >= K.height)
     return out;
   out.visible = true;
   return out;
@@ -165,14 +190,13 @@ GAPS_HD Projected<T> finish_projection(const ProjectionCache<T>& c, const Intrin
 // Backward of the projection: from dL/d(mean2d, conic) to dL/d(mean, quat, scale).
 template <typename T>
 GAPS_HD void project_one_vjp(const ProjectionCache<T>& c, const Mat3<T>& W, const Intrinsics& K,
-                             const Vec2<T>& g_mean2d, const Sym2<T>& g_conic, T g_mean[3], T g_quat[4],
-                             T g_scale[3]) {
+                             const Vec2<T>& g_mean2d, const Sym2<T>& g_conic, T g_mean[3], T g_quat[4], T g_scale[3]) {
   const T A = c.cov2d.a, B = c.cov2d.b, C = c.cov2d.c;
   const T det = A * C - B * B, det2 = det * det;
   // conic = (C, -B, A) / det
   const T gA = g_conic.a * (-C * C / det2) + g_conic.b * (B * C / det2) + g_conic.c * (-B * B / det2);
-  const T gB = g_conic.a * (2 * B * C / det2) + g_conic.b * (-(det + 2 * B * B) / det2) +
-               g_conic.c * (2 * A * B / det2);
+  const T gB =
+      g_conic.a * (2 * B * C / det2) + g_conic.b * (-(det + 2 * B * B) / det2) + g_conic.c * (2 * A * B / det2);
   const T gC = g_conic.a * (-B * B / det2) + g_conic.b * (A * B / det2) + g_conic.c * (-A * A / det2);
   // G2 is the symmetric matrix with tr(G2 dSigma2) = dL: the off-diagonal B appears twice.
   const T G2[2][2] = {{gA, gB / 2}, {gB / 2, gC}};
@@ -198,8 +222,14 @@ GAPS_HD void project_one_vjp(const ProjectionCache<T>& c, const Mat3<T>& W, cons
   T gp[3] = {0, 0, 0};
   gp[2] += -fx / z2 * gJ[0][0] - fy / z2 * gJ[1][1] + fx * c.u.x / z2 * gJ[0][2] + fy * c.u.y / z2 * gJ[1][2];
   const T gux = -fx / z * gJ[0][2], guy = -fy / z * gJ[1][2];
-  if (!c.clamped_x) { gp[0] += gux / z; gp[2] += -gux * c.p.x / z2; }
-  if (!c.clamped_y) { gp[1] += guy / z; gp[2] += -guy * c.p.y / z2; }
+  if (!c.clamped_x) {
+    gp[0] += gux / z;
+    gp[2] += -gux * c.p.x / z2;
+  }
+  if (!c.clamped_y) {
+    gp[1] += guy / z;
+    gp[2] += -guy * c.p.y / z2;
+  }
   // mean2d = f * p.xy / z + c.
   gp[0] += g_mean2d.x * fx / z;
   gp[1] += g_mean2d.y * fy / z;
@@ -281,8 +311,8 @@ GAPS_HD T gaussian_power(const Vec2<T>& mean2d, const Sym2<T>& conic, T px, T py
 
 // Opacity-weighted Gaussian value at a pixel centre; returns false when the Gaussian is skipped there.
 template <typename T>
-GAPS_HD bool eval_alpha(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
-                        T& gauss, T& dx, T& dy) {
+GAPS_HD bool eval_alpha(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha, T& gauss, T& dx,
+                        T& dy) {
   const T power = gaussian_power(mean2d, conic, px, py, dx, dy);
   if (power > 0) return false;
   gauss = exp(power);

@@ -54,35 +54,32 @@ ProjectionGrads project_backward_cpu(const at::Tensor& means, const at::Tensor& 
                                      const at::Tensor& g_means2d, const at::Tensor& g_conics);
 // N x 4 per-Gaussian features (SH colour at the view direction, clamped at 0; distance to the centre).
 // sh_dc: N x 1 x 3, sh_rest: N x R x 3 with R >= (degree + 1)^2 - 1.
-at::Tensor shade_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                             int degree, const Centre& centre);
-ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                              int degree, const Centre& centre, const at::Tensor& g_features);
+at::Tensor shade_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                             const Centre& centre);
+ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                              const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                        const at::Tensor& radii, const at::Tensor& depths, int width, int height);
 RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                    const at::Tensor& opacities, const at::Tensor& features, int width, int height);
 RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
-                                   const at::Tensor& opacities, const at::Tensor& features,
-                                   const RasterOutput& forward, const at::Tensor& g_features,
-                                   const at::Tensor& g_alpha);
+                                   const at::Tensor& opacities, const at::Tensor& features, const RasterOutput& forward,
+                                   const at::Tensor& g_features, const at::Tensor& g_alpha);
 
 #if defined(GAPS_CUDA_KERNELS)
 Projection project_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                 const at::Tensor& viewmat, const raster::Intrinsics& K);
 ProjectionGrads project_backward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
-                                      const at::Tensor& viewmat, const raster::Intrinsics& K,
-                                      const at::Tensor& radii, const at::Tensor& g_means2d,
-                                      const at::Tensor& g_conics);
-at::Tensor shade_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                              int degree, const Centre& centre);
-ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                               int degree, const Centre& centre, const at::Tensor& g_features);
+                                      const at::Tensor& viewmat, const raster::Intrinsics& K, const at::Tensor& radii,
+                                      const at::Tensor& g_means2d, const at::Tensor& g_conics);
+at::Tensor shade_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                              const Centre& centre);
+ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                               const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                         const at::Tensor& radii, const at::Tensor& depths, int width, int height);
 RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
-                                    const at::Tensor& opacities, const at::Tensor& features, int width,
-                                    int height);
+                                    const at::Tensor& opacities, const at::Tensor& features, int width, int height);
 // `absolute_grads` = false leaves RasterGrads::means2d_abs undefined and saves its sums.
 RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                     const at::Tensor& opacities, const at::Tensor& features,

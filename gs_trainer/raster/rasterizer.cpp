@@ -70,8 +70,8 @@ class ShadeFunction : public torch::autograd::Function<ShadeFunction> {
 
 class ProjectFunction : public torch::autograd::Function<ProjectFunction> {
  public:
-  static tensor_list forward(AutogradContext* ctx, Variable means, Variable quats, Variable scales,
-                             Variable viewmat, std::vector<double> K) {
+  static tensor_list forward(AutogradContext* ctx, Variable means, Variable quats, Variable scales, Variable viewmat,
+                             std::vector<double> K) {
     const raster::Intrinsics intr{K[0], K[1], K[2], K[3], static_cast<int>(K[4]), static_cast<int>(K[5])};
     backend::Projection p;
     if (means.is_cuda()) {
@@ -127,8 +127,8 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
       bins = backend::bin_tiles_cpu(means2d, conics, opacities, radii, depths, w, h);
       out = backend::rasterize_forward_cpu(bins, means2d, conics, opacities, features, w, h);
     }
-    ctx->save_for_backward({means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_ranges,
-                            out.final_T, out.n_contrib, out.alpha});
+    ctx->save_for_backward({means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_ranges, out.final_T,
+                            out.n_contrib, out.alpha});
     // The sink is an output buffer, not an input of the graph, so it travels outside the saved variables.
     if (abs_sink) ctx->saved_data["abs_sink"] = *abs_sink;
     return {out.features, out.alpha};
@@ -156,8 +156,7 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
       g = backend::rasterize_backward_cpu(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha);
     }
     if (ctx->saved_data.count("abs_sink")) ctx->saved_data["abs_sink"].toTensor().add_(g.means2d_abs);
-    return {g.means2d, g.conics, g.opacities, g.features, Variable(), Variable(), Variable(), Variable(),
-            Variable()};
+    return {g.means2d, g.conics, g.opacities, g.features, Variable(), Variable(), Variable(), Variable(), Variable()};
   }
 };
 
@@ -187,10 +186,9 @@ ProjectedGaussians project_gaussians(const at::Tensor& means, const at::Tensor& 
   return {out[0], out[1], out[2], out[3]};
 }
 
-RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics,
-                                    const at::Tensor& opacities, const at::Tensor& features,
-                                    const at::Tensor& depths, const at::Tensor& radii, int width, int height,
-                                    const at::Tensor& means2d_abs_sink) {
+RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                                    const at::Tensor& features, const at::Tensor& depths, const at::Tensor& radii,
+                                    int width, int height, const at::Tensor& means2d_abs_sink) {
   const int64_t n = means2d.size(0);
   TORCH_CHECK(conics.sizes() == at::IntArrayRef({n, 3}), "conics must be N x 3, got ", conics.sizes());
   TORCH_CHECK(opacities.sizes() == at::IntArrayRef({n}), "opacities must be N, got ", opacities.sizes());

@@ -36,9 +36,8 @@ struct RasterizedImage {
 
 // `means2d_abs_sink`, when defined (N x 2), receives in the backward pass the per-Gaussian sum of absolute
 // per-pixel 2D-mean gradients (the absolute-gradient densification criterion).
-RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics,
-                                    const at::Tensor& opacities, const at::Tensor& features,
-                                    const at::Tensor& depths, const at::Tensor& radii, int width, int height,
-                                    const at::Tensor& means2d_abs_sink = {});
+RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                                    const at::Tensor& features, const at::Tensor& depths, const at::Tensor& radii,
+                                    int width, int height, const at::Tensor& means2d_abs_sink = {});
 
 }  // namespace gaps

@@ -21,7 +21,8 @@ constexpr double kShBasisC3_0 = -0.5900435899266435, kShBasisC3_1 = 2.8906114426
 constexpr double kMinViewDistance = 1e-12;
 
 // The (degree + 1)^2 basis values at unit direction (x, y, z).
-template <typename T> GAPS_HD void sh_basis(int degree, T x, T y, T z, T b[16]) {
+template <typename T>
+GAPS_HD void sh_basis(int degree, T x, T y, T z, T b[16]) {
   b[0] = T(kShBasisC0);
   if (degree < 1) return;
   b[1] = -T(kShBasisC1) * y;
@@ -45,7 +46,8 @@ template <typename T> GAPS_HD void sh_basis(int degree, T x, T y, T z, T b[16]) 
 }
 
 // d(sum_k gb[k] * b[k]) / d(x, y, z) for the basis of sh_basis.
-template <typename T> GAPS_HD void sh_basis_vjp(int degree, T x, T y, T z, const T gb[16], T g[3]) {
+template <typename T>
+GAPS_HD void sh_basis_vjp(int degree, T x, T y, T z, const T gb[16], T g[3]) {
   g[0] = g[1] = g[2] = T(0);
   if (degree < 1) return;
   const T c1 = T(kShBasisC1);
@@ -63,21 +65,23 @@ template <typename T> GAPS_HD void sh_basis_vjp(int degree, T x, T y, T z, const
   const T k0 = T(kShBasisC3_0) * gb[9], k1 = T(kShBasisC3_1) * gb[10], k2 = T(kShBasisC3_2) * gb[11],
           k3 = T(kShBasisC3_3) * gb[12], k4 = T(kShBasisC3_4) * gb[13], k5 = T(kShBasisC3_5) * gb[14],
           k6 = T(kShBasisC3_6) * gb[15];
-  g[0] += k0 * 6 * x * y + k1 * y * z - k2 * 2 * x * y - k3 * 6 * x * z + k4 * (4 * zz - 3 * xx - yy) +
-          k5 * 2 * x * z + k6 * 3 * (xx - yy);
+  g[0] += k0 * 6 * x * y + k1 * y * z - k2 * 2 * x * y - k3 * 6 * x * z + k4 * (4 * zz - 3 * xx - yy) + k5 * 2 * x * z +
+          k6 * 3 * (xx - yy);
   g[1] += k0 * 3 * (xx - yy) + k1 * x * z + k2 * (4 * zz - xx - 3 * yy) - k3 * 6 * y * z - k4 * 2 * x * y -
           k5 * 2 * y * z - k6 * 6 * x * y;
   g[2] += k1 * x * y + k2 * 8 * y * z + k3 * (6 * zz - 3 * xx - 3 * yy) + k4 * 8 * x * z + k5 * (xx - yy);
 }
 
 // The view offset mean - centre, its length and the unit direction.
-template <typename T> struct ViewRay {
+template <typename T>
+struct ViewRay {
   T o[3];
   T dist;
   T inv;  // 1 / max(dist, kMinViewDistance)
 };
 
-template <typename T> GAPS_HD ViewRay<T> view_ray(const T mean[3], const T centre[3]) {
+template <typename T>
+GAPS_HD ViewRay<T> view_ray(const T mean[3], const T centre[3]) {
   ViewRay<T> r;
   for (int k = 0; k < 3; ++k) r.o[k] = mean[k] - centre[k];
   r.dist = sqrt(r.o[0] * r.o[0] + r.o[1] * r.o[1] + r.o[2] * r.o[2]);

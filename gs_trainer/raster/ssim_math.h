@@ -21,14 +21,17 @@ constexpr double kC2 = 0.03 * 0.03;
 constexpr int kMoments = 5;
 constexpr int kPartials = 3;
 
-template <typename T> struct Window {
+template <typename T>
+struct Window {
   T w[kWindow];
 };
 
 // The normalised 1-D Gaussian (the 2-D window is its outer product).
-template <typename T> Window<T> gaussian_window() {
+template <typename T>
+Window<T> gaussian_window() {
   double g[kWindow], sum = 0;
-  for (int i = 0; i < kWindow; ++i) sum += g[i] = std::exp(-double((i - kRadius) * (i - kRadius)) / (2 * kSigma * kSigma));
+  for (int i = 0; i < kWindow; ++i)
+    sum += g[i] = std::exp(-double((i - kRadius) * (i - kRadius)) / (2 * kSigma * kSigma));
   Window<T> out;
   for (int i = 0; i < kWindow; ++i) out.w[i] = T(g[i] / sum);
   return out;
@@ -69,7 +72,8 @@ GAPS_HD void vertical_pass(const T* rows, const Shape& s, const Window<T>& win, 
 }
 
 // S and (dS/dmu_x, dS/dE[x^2], dS/dE[xy]) from the blurred moments.
-template <typename T> GAPS_HD T ssim_value_and_partials(const T m[kMoments], T partials[kPartials]) {
+template <typename T>
+GAPS_HD T ssim_value_and_partials(const T m[kMoments], T partials[kPartials]) {
   const T mu_x = m[0], mu_y = m[1];
   const T mu_xx = mu_x * mu_x, mu_yy = mu_y * mu_y, mu_xy = mu_x * mu_y;
   const T var_x = m[2] - mu_xx, var_y = m[3] - mu_yy, cov = m[4] - mu_xy;
@@ -85,8 +89,8 @@ template <typename T> GAPS_HD T ssim_value_and_partials(const T m[kMoments], T p
 
 // Horizontal pass of g * partials at (y, x, c).
 template <typename T>
-GAPS_HD void horizontal_gradient(const T* partials, const T* g_map, const Shape& s, const Window<T>& win, int y,
-                                 int x, int c, T out[kPartials]) {
+GAPS_HD void horizontal_gradient(const T* partials, const T* g_map, const Shape& s, const Window<T>& win, int y, int x,
+                                 int c, T out[kPartials]) {
   for (int k = 0; k < kPartials; ++k) out[k] = T(0);
   for (int t = 0; t < kWindow; ++t) {
     const int xx = x + t - kRadius;
@@ -98,7 +102,8 @@ GAPS_HD void horizontal_gradient(const T* partials, const T* g_map, const Shape&
 }
 
 // dL/dx at (y, x, c) from the vertically blurred products.
-template <typename T> GAPS_HD T prediction_gradient(const T blurred[kPartials], T x, T y) {
+template <typename T>
+GAPS_HD T prediction_gradient(const T blurred[kPartials], T x, T y) {
   return blurred[0] + 2 * x * blurred[1] + y * blurred[2];
 }
 

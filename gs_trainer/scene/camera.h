@@ -5,8 +5,8 @@
 #include <string>
 #include <vector>
 
-#include <Eigen/Core>
 #include <ATen/Tensor.h>
+#include <Eigen/Core>
 
 namespace gaps {
 

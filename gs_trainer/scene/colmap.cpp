@@ -20,9 +20,17 @@ struct ModelInfo {
 
 // Indexed by COLMAP's numeric model id (colmap/sensor/models.h).
 constexpr ModelInfo kModels[] = {
-    {"SIMPLE_PINHOLE", 3}, {"PINHOLE", 4},      {"SIMPLE_RADIAL", 4},         {"RADIAL", 5},
-    {"OPENCV", 8},         {"OPENCV_FISHEYE", 8}, {"FULL_OPENCV", 12},        {"FOV", 5},
-    {"SIMPLE_RADIAL_FISHEYE", 4}, {"RADIAL_FISHEYE", 5}, {"THIN_PRISM_FISHEYE", 12},
+    {"SIMPLE_PINHOLE", 3},
+    {"PINHOLE", 4},
+    {"SIMPLE_RADIAL", 4},
+    {"RADIAL", 5},
+    {"OPENCV", 8},
+    {"OPENCV_FISHEYE", 8},
+    {"FULL_OPENCV", 12},
+    {"FOV", 5},
+    {"SIMPLE_RADIAL_FISHEYE", 4},
+    {"RADIAL_FISHEYE", 5},
+    {"THIN_PRISM_FISHEYE", 12},
     {"RAD_TAN_THIN_PRISM_FISHEYE", 16},
 };
 
@@ -47,8 +55,8 @@ absl::Status fill_intrinsics(const ColmapCamera& cam, Camera* out) {
   const std::vector<double>& p = cam.params;
   const std::optional<int> expected = colmap_model_num_params(cam.model);
   if (expected && static_cast<int>(p.size()) != *expected)
-    return absl::InvalidArgumentError(absl::StrCat("camera ", cam.id, " (", cam.model, ") has ", p.size(),
-                                                   " parameters, expected ", *expected));
+    return absl::InvalidArgumentError(
+        absl::StrCat("camera ", cam.id, " (", cam.model, ") has ", p.size(), " parameters, expected ", *expected));
   if (cam.model == "SIMPLE_PINHOLE" || cam.model == "SIMPLE_RADIAL" || cam.model == "RADIAL") {
     out->fx = out->fy = p[0];
     out->cx = p[1];
@@ -133,11 +141,11 @@ absl::StatusOr<ColmapModel> read_colmap_model(const fs::path& dir) {
   GAPS_ASSIGN_OR_RETURN(model.cameras, read_colmap_cameras(dir));
   const std::optional<fs::path> images = part_file(dir, "images");
   if (!images) return absl::NotFoundError(absl::StrCat(dir.string(), ": no images.bin or images.txt"));
-  GAPS_ASSIGN_OR_RETURN(model.images, is_bin(*images) ? read_colmap_images_bin(*images)
-                                                      : read_colmap_images_txt(*images));
+  GAPS_ASSIGN_OR_RETURN(model.images,
+                        is_bin(*images) ? read_colmap_images_bin(*images) : read_colmap_images_txt(*images));
   if (const std::optional<fs::path> points = part_file(dir, "points3D")) {
-    GAPS_ASSIGN_OR_RETURN(model.points, is_bin(*points) ? read_colmap_points_bin(*points)
-                                                        : read_colmap_points_txt(*points));
+    GAPS_ASSIGN_OR_RETURN(model.points,
+                          is_bin(*points) ? read_colmap_points_bin(*points) : read_colmap_points_txt(*points));
   }
   return model;
 }

@@ -2,9 +2,9 @@
 #include <cstring>
 
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/scene/colmap.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/colmap.h"
 
 namespace gaps {
 namespace {

@@ -7,9 +7,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
-#include "gs_trainer/scene/colmap.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/colmap.h"
 
 namespace gaps {
 namespace {
@@ -108,9 +108,8 @@ absl::StatusOr<ColmapImage> parse_image(const std::vector<absl::string_view>& f,
 
 absl::StatusOr<ColmapPoint> parse_point(const std::vector<absl::string_view>& f, const LineReader& in) {
   ColmapPoint point;
-  if (f.size() < 8 || (f.size() - 8) % 2 != 0 || !parse(f[0], &point.id) ||
-      !parse_fields(f, 1, 3, point.xyz.data()) || !parse_fields(f, 4, 3, point.rgb.data()) ||
-      !parse(f[7], &point.error))
+  if (f.size() < 8 || (f.size() - 8) % 2 != 0 || !parse(f[0], &point.id) || !parse_fields(f, 1, 3, point.xyz.data()) ||
+      !parse_fields(f, 4, 3, point.rgb.data()) || !parse(f[7], &point.error))
     return in.error("expected POINT3D_ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID POINT2D_IDX) pairs");
   for (size_t i = 8; i < f.size(); i += 2) {
     ColmapTrackElement element;
@@ -140,18 +139,16 @@ std::string cameras_text(const ColmapModel& model) {
 }
 
 std::string images_text(const ColmapModel& model) {
-  std::string out = absl::StrCat("# Image list with two lines of data per image:\n",
-                                 "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n",
-                                 "#   POINTS2D[] as (X, Y, POINT3D_ID)\n",
-                                 "# Number of images: ", model.images.size(), "\n");
+  std::string out = absl::StrCat(
+      "# Image list with two lines of data per image:\n", "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n",
+      "#   POINTS2D[] as (X, Y, POINT3D_ID)\n", "# Number of images: ", model.images.size(), "\n");
   for (const auto& [id, image] : model.images) {
     absl::StrAppend(&out, id);
     for (double q : image.qvec) absl::StrAppend(&out, " ", num(q));
     for (double t : image.tvec) absl::StrAppend(&out, " ", num(t));
     absl::StrAppend(&out, " ", image.camera_id, " ", image.name, "\n");
     for (size_t i = 0; i < image.xys.size(); ++i) {
-      absl::StrAppend(&out, i ? " " : "", num(image.xys[i].x()), " ", num(image.xys[i].y()), " ",
-                      image.point3d_ids[i]);
+      absl::StrAppend(&out, i ? " " : "", num(image.xys[i].x()), " ", num(image.xys[i].y()), " ", image.point3d_ids[i]);
     }
     out += "\n";
   }

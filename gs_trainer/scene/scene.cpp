@@ -9,9 +9,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
-#include "gs_trainer/scene/colmap.h"
 #include "common/image_io.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/colmap.h"
 
 namespace gaps {
 namespace {
@@ -42,9 +42,8 @@ std::vector<int> round_linspace(int stop, int num) {
 
 std::string size_summary(const std::vector<Camera>& cameras) {
   const Camera& first = cameras.front();
-  const bool same = std::all_of(cameras.begin(), cameras.end(), [&](const Camera& c) {
-    return c.width == first.width && c.height == first.height;
-  });
+  const bool same = std::all_of(cameras.begin(), cameras.end(),
+                                [&](const Camera& c) { return c.width == first.width && c.height == first.height; });
   return absl::StrCat(same ? "" : "mixed sizes, first ", first.width, "x", first.height);
 }
 
@@ -59,7 +58,8 @@ std::string bounds_summary(const std::vector<Camera>& cameras) {
 }
 
 std::string camera_summary(const Camera& c) {
-  std::string line = absl::StrFormat("  first camera %s: fx %.3f fy %.3f cx %.3f cy %.3f", c.name, c.fx, c.fy, c.cx, c.cy);
+  std::string line =
+      absl::StrFormat("  first camera %s: fx %.3f fy %.3f cx %.3f cy %.3f", c.name, c.fx, c.fy, c.cx, c.cy);
   if (c.distortion.empty()) return line + ", no distortion\n";
   return absl::StrCat(line, ", distortion [", absl::StrJoin(c.distortion, ", "), "]\n");
 }
@@ -96,7 +96,8 @@ absl::StatusOr<Split> benchmark_split(int num_images, int num_train, int hold) {
   for (int i = 0; i < num_images; ++i) (i % hold == 0 ? split.test : remaining).push_back(i);
   const int m = static_cast<int>(remaining.size());
   if (m == 0)
-    return absl::InvalidArgumentError(absl::StrCat("no training images: all ", num_images, " are test views (hold ", hold, ")"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("no training images: all ", num_images, " are test views (hold ", hold, ")"));
   const int n = num_train <= 0 ? m : num_train;
   if (n > m)
     return absl::InvalidArgumentError(
@@ -106,8 +107,8 @@ absl::StatusOr<Split> benchmark_split(int num_images, int num_train, int hold) {
 }
 
 std::string describe(const Scene& scene, const Split& split) {
-  std::string out = absl::StrCat("scene ", scene.root.string(), " (", scene.format, "): ", scene.cameras.size(),
-                                 " images");
+  std::string out =
+      absl::StrCat("scene ", scene.root.string(), " (", scene.format, "): ", scene.cameras.size(), " images");
   if (scene.cameras.empty()) return out + "\n";
   absl::StrAppend(&out, ", ", size_summary(scene.cameras), "\n");
   absl::StrAppend(&out, "  images from ", scene.cameras.front().image_path.parent_path().string(), "\n");

@@ -16,8 +16,8 @@ namespace gaps {
 
 struct Scene {
   std::filesystem::path root;
-  std::string format;            // "llff", "colmap" or "transforms"
-  std::vector<Camera> cameras;   // every image of the scene, sorted by file name, at the loaded resolution
+  std::string format;           // "llff", "colmap" or "transforms"
+  std::vector<Camera> cameras;  // every image of the scene, sorted by file name, at the loaded resolution
   // Points shipped with the scene (COLMAP points3D). They were usually reconstructed from *all* images,
   // test views included, so the sparse-view protocol must not use them.
   std::optional<PointCloud> points;

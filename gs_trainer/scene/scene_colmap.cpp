@@ -3,10 +3,10 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
+#include "common/status_macros.h"
 #include "gs_trainer/scene/colmap.h"
 #include "gs_trainer/scene/scene.h"
 #include "gs_trainer/scene/scene_internal.h"
-#include "common/status_macros.h"
 
 namespace gaps {
 namespace {
@@ -32,8 +32,8 @@ absl::StatusOr<std::vector<fs::path>> image_files(const std::vector<const Colmap
   if (missing == named.end()) return named;
   absl::StatusOr<std::vector<fs::path>> listed = scene_internal::list_images(dir);
   if (listed.ok() && listed->size() == images.size()) return listed;
-  return absl::NotFoundError(absl::StrCat(missing->string(), ": image file not found (registered in ",
-                                          model_dir.string(), ")"));
+  return absl::NotFoundError(
+      absl::StrCat(missing->string(), ": image file not found (registered in ", model_dir.string(), ")"));
 }
 
 std::optional<PointCloud> point_cloud(const std::vector<ColmapPoint>& points) {
@@ -57,7 +57,8 @@ absl::StatusOr<Camera> full_camera(const ColmapModel& model, const ColmapImage& 
     return absl::InvalidArgumentError(absl::StrCat(model_dir.string(), ": image ", image.name, " refers to camera ",
                                                    image.camera_id, ", which is not in the model"));
   absl::StatusOr<Camera> camera = colmap_to_camera(found->second, image);
-  if (!camera.ok()) return absl::Status(camera.status().code(), absl::StrCat(model_dir.string(), ": ", camera.status().message()));
+  if (!camera.ok())
+    return absl::Status(camera.status().code(), absl::StrCat(model_dir.string(), ": ", camera.status().message()));
   return camera;
 }
 
@@ -67,10 +68,11 @@ absl::StatusOr<Scene> load_colmap_scene(const fs::path& root, const SceneLoadOpt
   GAPS_RETURN_IF_ERROR(scene_internal::check_resolution(options));
   const std::optional<fs::path> model_dir = find_colmap_model(root);
   if (!model_dir)
-    return absl::NotFoundError(absl::StrCat(root.string(), ": no COLMAP model (sparse/0/ or sparse/ with cameras and ",
-                                            "images .bin/.txt)"));
+    return absl::NotFoundError(
+        absl::StrCat(root.string(), ": no COLMAP model (sparse/0/ or sparse/ with cameras and ", "images .bin/.txt)"));
   GAPS_ASSIGN_OR_RETURN(const ColmapModel model, read_colmap_model(*model_dir));
-  if (model.images.empty()) return absl::FailedPreconditionError(absl::StrCat(model_dir->string(), ": no registered images"));
+  if (model.images.empty())
+    return absl::FailedPreconditionError(absl::StrCat(model_dir->string(), ": no registered images"));
   GAPS_ASSIGN_OR_RETURN(const ImageFolder folder, scene_internal::choose_image_folder(root, options));
   const std::vector<const ColmapImage*> images = images_by_name(model);
   GAPS_ASSIGN_OR_RETURN(const std::vector<fs::path> files, image_files(images, folder.dir, *model_dir));

@@ -5,8 +5,8 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "common/image_io.h"
-#include "gs_trainer/scene/scene_internal.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/scene_internal.h"
 
 namespace gaps::scene_internal {
 namespace {
@@ -40,7 +40,8 @@ absl::StatusOr<fs::path> largest_image_folder(const fs::path& root) {
     }
   }
   if (best.empty())
-    return absl::NotFoundError(absl::StrCat(root.string(), ": no image folder (images/ or images_*/ with PNG/JPEG files)"));
+    return absl::NotFoundError(
+        absl::StrCat(root.string(), ": no image folder (images/ or images_*/ with PNG/JPEG files)"));
   return best;
 }
 
@@ -101,8 +102,8 @@ absl::StatusOr<Camera> fit_to_image(const Camera& full, bool native, int resolut
   // For R = 1 "full resolution" means the largest images the scene ships (bonsai has only 800x533).
   if (resolution == 1) return full.resized(width, height);
   return absl::FailedPreconditionError(absl::StrCat(full.image_path.string(), ": image is ", width, "x", height,
-                                                    ", smaller than the ", target_w, "x", target_h,
-                                                    " that resolution ", resolution, " needs"));
+                                                    ", smaller than the ", target_w, "x", target_h, " that resolution ",
+                                                    resolution, " needs"));
 }
 
 void set_camera_to_world(const Eigen::Matrix3d& rotation_c2w, const Eigen::Vector3d& centre, Camera* camera) {

@@ -5,9 +5,9 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "common/npy.h"
+#include "common/status_macros.h"
 #include "gs_trainer/scene/scene.h"
 #include "gs_trainer/scene/scene_internal.h"
-#include "common/status_macros.h"
 
 namespace gaps {
 namespace {
@@ -20,8 +20,8 @@ constexpr int kRowLength = 17;
 absl::StatusOr<at::Tensor> read_poses(const fs::path& file) {
   GAPS_ASSIGN_OR_RETURN(NpyArray array, read_npy(file));
   if (array.shape.size() != 2 || array.shape[1] != kRowLength)
-    return absl::InvalidArgumentError(absl::StrCat(file.string(), ": expected an N x 17 array, got shape (",
-                                                   absl::StrJoin(array.shape, ", "), ")"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(file.string(), ": expected an N x 17 array, got shape (", absl::StrJoin(array.shape, ", "), ")"));
   return array.data;
 }
 
@@ -34,8 +34,8 @@ absl::StatusOr<Camera> camera_from_row(const double* row, const std::string& whe
   const auto column = [row](int c) { return Eigen::Vector3d(row[c], row[5 + c], row[10 + c]); };
   const Eigen::Vector3d hwf = column(4);
   if (hwf[0] < 1 || hwf[1] < 1 || hwf[2] <= 0)
-    return absl::InvalidArgumentError(absl::StrCat(where, ": invalid H, W, focal (", hwf[0], ", ", hwf[1], ", ",
-                                                   hwf[2], ")"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(where, ": invalid H, W, focal (", hwf[0], ", ", hwf[1], ", ", hwf[2], ")"));
   // OpenCV axes: x = right (column 1), y = down (column 0), z = forward (minus column 2).
   Eigen::Matrix3d c2w;
   c2w << column(1), column(0), -column(2);
@@ -55,8 +55,8 @@ absl::StatusOr<Camera> camera_from_row(const double* row, const std::string& whe
 absl::StatusOr<std::vector<fs::path>> matching_images(const fs::path& poses_file, int64_t rows, const fs::path& dir) {
   GAPS_ASSIGN_OR_RETURN(std::vector<fs::path> files, scene_internal::list_images(dir));
   if (static_cast<int64_t>(files.size()) != rows)
-    return absl::FailedPreconditionError(absl::StrCat(poses_file.string(), " has ", rows, " poses but ",
-                                                      dir.string(), " has ", files.size(), " images"));
+    return absl::FailedPreconditionError(absl::StrCat(poses_file.string(), " has ", rows, " poses but ", dir.string(),
+                                                      " has ", files.size(), " images"));
   return files;
 }
 

@@ -8,9 +8,9 @@
 #include "absl/strings/str_cat.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
+#include "common/status_macros.h"
 #include "gs_trainer/scene/scene.h"
 #include "gs_trainer/scene/scene_internal.h"
-#include "common/status_macros.h"
 
 namespace gaps {
 namespace {
@@ -19,8 +19,8 @@ namespace fs = std::filesystem;
 using nlohmann::json;
 using Params = std::map<std::string, double>;
 
-constexpr const char* kNumericKeys[] = {"fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
-                                        "k1", "k2", "k3", "p1", "p2"};
+constexpr const char* kNumericKeys[] = {"fl_x",           "fl_y", "cx", "cy", "w",  "h", "camera_angle_x",
+                                        "camera_angle_y", "k1",   "k2", "k3", "p1", "p2"};
 
 struct Frame {
   std::string file_path;
@@ -31,10 +31,12 @@ struct Frame {
 absl::Status read_params(const json& object, const std::string& where, Params* params) {
   for (const char* key : kNumericKeys) {
     if (!object.contains(key)) continue;
-    if (!object[key].is_number()) return absl::InvalidArgumentError(absl::StrCat(where, ": '", key, "' is not a number"));
+    if (!object[key].is_number())
+      return absl::InvalidArgumentError(absl::StrCat(where, ": '", key, "' is not a number"));
     (*params)[key] = object[key].get<double>();
   }
-  if (object.value("is_fisheye", false)) return absl::UnimplementedError(absl::StrCat(where, ": fisheye cameras are not supported"));
+  if (object.value("is_fisheye", false))
+    return absl::UnimplementedError(absl::StrCat(where, ": fisheye cameras are not supported"));
   const std::string model = object.value("camera_model", std::string("OPENCV"));
   if (model != "OPENCV" && model != "PINHOLE" && model != "SIMPLE_PINHOLE")
     return absl::UnimplementedError(absl::StrCat(where, ": camera_model ", model, " is not supported"));
@@ -48,10 +50,12 @@ absl::StatusOr<Eigen::Matrix4d> read_matrix(const json& frame, const std::string
   Eigen::Matrix4d c2w = Eigen::Matrix4d::Identity();
   for (int r = 0; r < static_cast<int>(m->size()) && r < 4; ++r) {
     const json& row = (*m)[r];
-    if (!row.is_array() || row.size() != 4) return absl::InvalidArgumentError(absl::StrCat(where, ": transform_matrix row ", r, " needs 4 numbers"));
+    if (!row.is_array() || row.size() != 4)
+      return absl::InvalidArgumentError(absl::StrCat(where, ": transform_matrix row ", r, " needs 4 numbers"));
     for (int c = 0; c < 4; ++c) {
       if (!row[c].is_number() || !std::isfinite(row[c].get<double>()))
-        return absl::InvalidArgumentError(absl::StrCat(where, ": transform_matrix has a non-finite or non-numeric entry"));
+        return absl::InvalidArgumentError(
+            absl::StrCat(where, ": transform_matrix has a non-finite or non-numeric entry"));
       c2w(r, c) = row[c].get<double>();
     }
   }
@@ -74,7 +78,8 @@ absl::StatusOr<std::vector<Frame>> read_frames(const json& doc, const fs::path& 
     GAPS_RETURN_IF_ERROR(read_params(f, where, &frame.params));
     frames.push_back(std::move(frame));
   }
-  std::stable_sort(frames.begin(), frames.end(), [](const Frame& a, const Frame& b) { return a.file_path < b.file_path; });
+  std::stable_sort(frames.begin(), frames.end(),
+                   [](const Frame& a, const Frame& b) { return a.file_path < b.file_path; });
   return frames;
 }
 
@@ -101,7 +106,8 @@ ImageSource pick_source(const fs::path& full, const fs::path& base, const SceneL
   std::error_code ec;
   if (!options.images_dir.empty()) return {base / options.images_dir / full.filename(), false};
   if (options.resolution > 1 && full.parent_path().filename() == "images") {
-    const fs::path scaled = full.parent_path().parent_path() / absl::StrCat("images_", options.resolution) / full.filename();
+    const fs::path scaled =
+        full.parent_path().parent_path() / absl::StrCat("images_", options.resolution) / full.filename();
     if (fs::is_regular_file(scaled, ec)) return {scaled, true};
   }
   return {full, false};

@@ -3,8 +3,8 @@
 // A Gaussian is needed where the image changes; flat regions are covered by a few large ones. The measure
 // of change is the views' total variation (the sum over pixels of the grey-level gradient magnitude,
 // intensities in [0, 1], central differences), so the budget is that sum times a density
-// (TrainConfig::gaussians_per_variation; total_variation in eval/image_stats.h). Vanilla 3DGS grows about 7.5 to 11.5 Gaussians per unit of it on fern and
-// bonsai at -r 8 (docs/benchmarks.md, "A model no larger than the scene needs").
+// (TrainConfig::gaussians_per_variation; total_variation in eval/image_stats.h). Vanilla 3DGS grows about 7.5 to 11.5
+// Gaussians per unit of it on fern and bonsai at -r 8 (docs/benchmarks.md, "A model no larger than the scene needs").
 #pragma once
 
 #include <cstdint>

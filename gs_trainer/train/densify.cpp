@@ -46,7 +46,8 @@ GaussianModel split_copies(GaussianModel& model, const at::Tensor& idx, int samp
 at::Tensor within_budget(const at::Tensor& candidates, const at::Tensor& grads, int64_t room) {
   const at::Tensor idx = candidates.nonzero().squeeze(1);
   if (idx.size(0) <= room) return candidates;
-  const at::Tensor order = std::get<1>(grads.index_select(0, idx).sort(/*stable=*/true, /*dim=*/0, /*descending=*/true));
+  const at::Tensor order =
+      std::get<1>(grads.index_select(0, idx).sort(/*stable=*/true, /*dim=*/0, /*descending=*/true));
   at::Tensor kept = at::zeros_like(candidates);
   kept.index_fill_(0, idx.index_select(0, order.narrow(0, 0, room)), true);
   return kept;

@@ -2,8 +2,8 @@
 // Adaptive density control of 3DGS: gradient statistics, clone / split / prune, opacity reset.
 #include <ATen/Tensor.h>
 
-#include "gs_trainer/train/adam.h"
 #include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/train/adam.h"
 #include "gs_trainer/train/train_config.h"
 
 namespace gaps {

@@ -23,8 +23,8 @@ absl::Status DivergenceGuard::observe(int iteration, const at::Tensor& loss, con
   const std::string what = describe_non_finite(model, pending_losses_, first_pending_);
   pending_losses_.clear();
   if (what.empty()) return absl::OkStatus();
-  return absl::AbortedError(absl::StrCat(kDivergencePrefix, iteration, " (", model.size(),
-                                         " Gaussians): non-finite ", what));
+  return absl::AbortedError(
+      absl::StrCat(kDivergencePrefix, iteration, " (", model.size(), " Gaussians): non-finite ", what));
 }
 
 std::string describe_non_finite(const GaussianModel& model, const std::vector<at::Tensor>& losses,
@@ -48,7 +48,8 @@ std::string describe_non_finite(const GaussianModel& model, const std::vector<at
   std::vector<std::string> bad_params;
   for (size_t k = 0; k < params.size(); ++k) {
     const int64_t bad = c[losses.size() + k];
-    if (bad > 0) bad_params.push_back(absl::StrCat(kParameterNames[k], " ", bad, " of ", params[k]->numel(), " values"));
+    if (bad > 0)
+      bad_params.push_back(absl::StrCat(kParameterNames[k], " ", bad, " of ", params[k]->numel(), " values"));
   }
   if (!bad_params.empty()) parts.push_back(absl::StrCat("parameters: ", absl::StrJoin(bad_params, ", ")));
   return absl::StrJoin(parts, "; ");

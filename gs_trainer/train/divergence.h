@@ -21,14 +21,13 @@ class DivergenceGuard {
  private:
   int check_every_;
   int last_iteration_;
-  int first_pending_ = 0;              // iteration of pending_losses_[0]
+  int first_pending_ = 0;  // iteration of pending_losses_[0]
   std::vector<at::Tensor> pending_losses_;
 };
 
 // What is non-finite now: "" when loss and parameters are finite, else e.g.
 // "loss (first at iteration 1234); parameters: log_scales 12 of 900 values, means 3 of 900 values".
-std::string describe_non_finite(const GaussianModel& model, const std::vector<at::Tensor>& losses,
-                                int first_iteration);
+std::string describe_non_finite(const GaussianModel& model, const std::vector<at::Tensor>& losses, int first_iteration);
 
 // The status a DivergenceGuard stops a run with.
 bool is_divergence(const absl::Status& status);

@@ -8,15 +8,14 @@
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
-#include "gs_trainer/train/budget.h"
 #include "gs_trainer/raster/losses.h"
+#include "gs_trainer/train/budget.h"
 
 namespace gaps {
 
 std::vector<double> default_learning_rates(const TrainConfig& c, double extent) {
   // Order of GaussianModel::parameters(): means, log_scales, quats, opacity_logits, sh_dc, sh_rest.
-  return {c.position_lr_init * extent, c.scaling_lr, c.rotation_lr, c.opacity_lr, c.feature_lr,
-          c.feature_lr / 20.0};
+  return {c.position_lr_init * extent, c.scaling_lr, c.rotation_lr, c.opacity_lr, c.feature_lr, c.feature_lr / 20.0};
 }
 
 namespace {
@@ -136,8 +135,8 @@ absl::Status Trainer::run(const std::function<void(const TrainProgress&)>& on_pr
     if (iteration_ % report_every != 0 && iteration_ != config_.iterations) continue;
     const double mean_loss = loss_sum.item<double>() / (iteration_ - last_iteration);
     if (!std::isfinite(mean_loss))
-      return absl::InternalError(absl::StrCat("training diverged: non-finite loss by iteration ", iteration_,
-                                              " (", model_.size(), " Gaussians)"));
+      return absl::InternalError(absl::StrCat("training diverged: non-finite loss by iteration ", iteration_, " (",
+                                              model_.size(), " Gaussians)"));
     const auto now = clock::now();
     TrainProgress p;
     p.iteration = iteration_;

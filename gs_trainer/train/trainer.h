@@ -7,11 +7,11 @@
 
 #include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
-#include "gs_trainer/train/adam.h"
-#include "gs_trainer/scene/camera.h"
-#include "gs_trainer/train/densify.h"
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/model/render.h"
+#include "gs_trainer/scene/camera.h"
+#include "gs_trainer/train/adam.h"
+#include "gs_trainer/train/densify.h"
 #include "gs_trainer/train/train_config.h"
 
 namespace gaps {

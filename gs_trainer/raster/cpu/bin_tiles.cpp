@@ -1,5 +1,6 @@
 // Tile binning on the CPU: every visible Gaussian is listed in each 16x16 tile its footprint touches
-// (raster::tile_rect), and each tile's list is sorted front to back (ties broken by index, so results are deterministic).
+// (raster::tile_rect), and each tile's list is sorted front to back (ties broken by index, so results are
+// deterministic).
 //
 // Instead of sorting every tile's list, the visible Gaussians are sorted once by (depth, index) and then
 // written to their tiles in that order, which leaves every list sorted. The writing is split into
@@ -18,7 +19,8 @@ namespace gaps::backend {
 namespace {
 
 // The visible Gaussians (radius > 0) in (depth, index) order.
-template <typename T> std::vector<int32_t> depth_order(int64_t n, const int32_t* rad, const T* dep) {
+template <typename T>
+std::vector<int32_t> depth_order(int64_t n, const int32_t* rad, const T* dep) {
   struct Key {
     T depth;
     int32_t id;
@@ -52,9 +54,8 @@ TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at:
   auto for_each_entry = [&](int64_t c, auto&& body) {
     for (int64_t j = visible * c / chunks; j < visible * (c + 1) / chunks; ++j) {
       const int32_t i = order[j];
-      const raster::TileRect r = raster::tile_rect<T>({m2[2 * i], m2[2 * i + 1]},
-                                                      {con[3 * i], con[3 * i + 1], con[3 * i + 2]}, op[i],
-                                                      rad[i], tiles_x, tiles_y);
+      const raster::TileRect r = raster::tile_rect<T>(
+          {m2[2 * i], m2[2 * i + 1]}, {con[3 * i], con[3 * i + 1], con[3 * i + 2]}, op[i], rad[i], tiles_x, tiles_y);
       for (int ty = r.y0; ty < r.y1; ++ty)
         for (int tx = r.x0; tx < r.x1; ++tx) body(ty * tiles_x + tx, i);
     }
@@ -81,8 +82,7 @@ TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at:
   at::Tensor ids = at::empty({total}, at::kInt);
   int32_t* idp = ids.data_ptr<int32_t>();
   at::parallel_for(0, chunks, 1, [&](int64_t c_begin, int64_t c_end) {
-    for (int64_t c = c_begin; c < c_end; ++c)
-      for_each_entry(c, [&](int t, int32_t i) { idp[cursor[c][t]++] = i; });
+    for (int64_t c = c_begin; c < c_end; ++c) for_each_entry(c, [&](int t, int32_t i) { idp[cursor[c][t]++] = i; });
   });
   return {ids, ranges};
 }
@@ -93,8 +93,9 @@ TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, cons
                        const at::Tensor& radii, const at::Tensor& depths, int width, int height) {
   TileBins bins;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_tiles_cpu", [&] {
-    bins = bin_impl<scalar_t>(means2d.contiguous(), conics.contiguous(), opacities.to(means2d.scalar_type()).contiguous(),
-                              radii.contiguous(), depths.contiguous(), width, height);
+    bins =
+        bin_impl<scalar_t>(means2d.contiguous(), conics.contiguous(), opacities.to(means2d.scalar_type()).contiguous(),
+                           radii.contiguous(), depths.contiguous(), width, height);
   });
   return bins;
 }

@@ -8,7 +8,8 @@
 
 namespace gaps::backend {
 
-template <typename F> void parallel_for_each_dynamic(int64_t count, const F& body) {
+template <typename F>
+void parallel_for_each_dynamic(int64_t count, const F& body) {
   std::atomic<int64_t> next{0};
   const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), count));
   at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {

@@ -8,7 +8,8 @@
 namespace gaps::backend {
 namespace {
 
-template <typename T> void split_viewmat(const at::Tensor& viewmat, raster::Mat3<T>& W, T t[3]) {
+template <typename T>
+void split_viewmat(const at::Tensor& viewmat, raster::Mat3<T>& W, T t[3]) {
   auto v = viewmat.to(at::kDouble).contiguous();
   auto a = v.accessor<double, 2>();
   for (int r = 0; r < 3; ++r) {
@@ -87,24 +88,23 @@ Projection project_forward_cpu(const at::Tensor& means_in, const at::Tensor& qua
   out.conics = at::zeros({n, 3}, means.options());
   out.depths = at::zeros({n}, means.options());
   out.radii = at::zeros({n}, means.options().dtype(at::kInt));
-  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward_cpu", [&] {
-    project_forward_impl<scalar_t>(means, quats, scales, viewmat, K, out);
-  });
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward_cpu",
+                             [&] { project_forward_impl<scalar_t>(means, quats, scales, viewmat, K, out); });
   return out;
 }
 
 ProjectionGrads project_backward_cpu(const at::Tensor& means_in, const at::Tensor& quats_in,
                                      const at::Tensor& scales_in, const at::Tensor& viewmat,
-                                     const raster::Intrinsics& K, const at::Tensor& radii,
-                                     const at::Tensor& g_means2d, const at::Tensor& g_conics) {
+                                     const raster::Intrinsics& K, const at::Tensor& radii, const at::Tensor& g_means2d,
+                                     const at::Tensor& g_conics) {
   const auto means = means_in.contiguous(), quats = quats_in.contiguous(), scales = scales_in.contiguous();
   ProjectionGrads out;
   out.means = at::zeros_like(means);
   out.quats = at::zeros_like(quats);
   out.scales = at::zeros_like(scales);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward_cpu", [&] {
-    project_backward_impl<scalar_t>(means, quats, scales, viewmat, K, radii.contiguous(),
-                                    g_means2d.contiguous(), g_conics.contiguous(), out);
+    project_backward_impl<scalar_t>(means, quats, scales, viewmat, K, radii.contiguous(), g_means2d.contiguous(),
+                                    g_conics.contiguous(), out);
   });
   return out;
 }

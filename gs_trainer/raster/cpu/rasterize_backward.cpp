@@ -21,9 +21,9 @@
 #include <ATen/Parallel.h>
 
 #include "gs_trainer/raster/cpu/parallel.h"
+#include "gs_trainer/raster/cpu/rasterize_tile.h"
 #include "gs_trainer/raster/cpu/simd.h"
 #include "gs_trainer/raster/rasterize_backend.h"
-#include "gs_trainer/raster/cpu/rasterize_tile.h"
 
 namespace gaps::backend {
 namespace {
@@ -31,7 +31,8 @@ namespace {
 // Per-entry gradient layout: mean2d (2), conic (3), opacity (1), |mean2d| (2), features (C).
 constexpr int kFixed = 8;
 
-template <typename T> struct BackwardArgs {
+template <typename T>
+struct BackwardArgs {
   const int32_t* ids;
   const int32_t* ranges;
   const tile::Splat<T>* splats;
@@ -46,10 +47,13 @@ template <typename T> struct BackwardArgs {
 };
 
 // Hands out the record slots of one tile (see BackwardArgs::records).
-template <typename T> class TileRecords {
+template <typename T>
+class TileRecords {
  public:
   TileRecords(const BackwardArgs<T>& in, int64_t tile)
-      : in_(in), tile_(tile), stride_(1 + kFixed + in.channels),
+      : in_(in),
+        tile_(tile),
+        stride_(1 + kFixed + in.channels),
         front_(in.records + static_cast<int64_t>(in.ranges[2 * tile]) * stride_),
         back_(in.records + static_cast<int64_t>(in.ranges[2 * tile + 1]) * stride_) {}
 
@@ -87,7 +91,8 @@ namespace {
 // out[g] = sum of g's records, in tile order: the order of a sequential index_add_ over the entries
 // (a Gaussian has at most one record per tile). The front records of every tile (Gaussians below
 // `split`) and the back ones are summed by two threads, which write disjoint rows.
-template <typename T> void sum_records_per_gaussian(const BackwardArgs<T>& in, int64_t num_tiles, T* out) {
+template <typename T>
+void sum_records_per_gaussian(const BackwardArgs<T>& in, int64_t num_tiles, T* out) {
   const int values = kFixed + in.channels, stride = 1 + values;
   at::parallel_for(0, 2, 1, [&](int64_t half_begin, int64_t half_end) {
     for (int64_t half = half_begin; half < half_end; ++half) {
@@ -109,7 +114,8 @@ template <typename T> void sum_records_per_gaussian(const BackwardArgs<T>& in, i
 
 // The gradient records of the calling thread's last backward pass: reused rather than allocated per call
 // because they are large (tens of MB) and a fresh allocation costs a page fault per 4 KiB.
-template <typename T> T* record_scratch(int64_t size) {
+template <typename T>
+T* record_scratch(int64_t size) {
   thread_local std::vector<T> scratch;
   if (static_cast<int64_t>(scratch.size()) < size) {
     scratch = std::vector<T>();  // release first: never hold both
@@ -136,8 +142,8 @@ RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means
   at::Tensor per_gaussian = at::zeros({n, kFixed + C}, features.options());
 
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "rasterize_backward_cpu", [&] {
-    const auto splats = tile::make_splats(n, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
-                                          opacities.data_ptr<scalar_t>());
+    const auto splats =
+        tile::make_splats(n, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>());
     const BackwardArgs<scalar_t> in{bins.gaussian_ids.data_ptr<int32_t>(),
                                     bins.tile_ranges.data_ptr<int32_t>(),
                                     splats.data(),
@@ -153,8 +159,7 @@ RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means
                                     record_scratch<scalar_t>(num_entries * (1 + kFixed + C)),
                                     record_counts.data(),
                                     static_cast<int32_t>(n / 2)};
-    const auto kernel = simd::pick_for_isa(&avx512::backward_tile_entry<scalar_t>,
-                                           &avx2::backward_tile_entry<scalar_t>,
+    const auto kernel = simd::pick_for_isa(&avx512::backward_tile_entry<scalar_t>, &avx2::backward_tile_entry<scalar_t>,
                                            &baseline::backward_tile_entry<scalar_t>);
     parallel_for_each_dynamic(num_tiles, [&](int64_t t) { kernel(t, in); });
     sum_records_per_gaussian(in, num_tiles, per_gaussian.data_ptr<scalar_t>());

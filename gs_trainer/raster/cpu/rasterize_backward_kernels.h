@@ -10,11 +10,12 @@ using namespace tile::GAPS_SIMD_NS;
 using tile::kRows;
 
 // The per-pixel state of one tile, one vector per row segment (index ly * kSegments + segment).
-template <typename T> struct BackwardTileState {
+template <typename T>
+struct BackwardTileState {
   static constexpr int kSegs = kSegments<T>, kTileSegs = kRows * kSegs;
-  Vec<T> trans[kTileSegs];      // transmittance in front of the Gaussians walked so far (back to front)
-  Mask<T> contrib[kTileSegs];   // n_contrib of the forward pass (0 outside the image)
-  Vec<T> g_alpha_T[kTileSegs];  // dL/dalpha_out * final_T
+  Vec<T> trans[kTileSegs];             // transmittance in front of the Gaussians walked so far (back to front)
+  Mask<T> contrib[kTileSegs];          // n_contrib of the forward pass (0 outside the image)
+  Vec<T> g_alpha_T[kTileSegs];         // dL/dalpha_out * final_T
   int32_t segment_contrib[kTileSegs];  // max n_contrib over the segment
   int32_t row_contrib[kRows];          // max n_contrib over the row
   int32_t max_contrib = 0;
@@ -48,8 +49,7 @@ template <typename T> struct BackwardTileState {
         trans[i][lane] = in.final_T[pix];
         contrib[i][lane] = in.n_contrib[pix];
         g_alpha_T[i][lane] = in.g_alpha[pix] * in.final_T[pix];
-        for (int ch = 0; ch < C; ++ch)
-          g_out[static_cast<size_t>(ch) * kTileSegs + i][lane] = in.g_feat[pix * C + ch];
+        for (int ch = 0; ch < C; ++ch) g_out[static_cast<size_t>(ch) * kTileSegs + i][lane] = in.g_feat[pix * C + ch];
       }
     }
     for (int ly = 0; ly < kRows; ++ly) {
@@ -67,7 +67,8 @@ template <typename T> struct BackwardTileState {
 };
 
 // One Gaussian's column terms of the gradient, besides those of SplatColumns.
-template <typename T> struct GradColumns {
+template <typename T>
+struct GradColumns {
   Vec<T> a_dx[kSegments<T>], neg_dx[kSegments<T>], neg_half_dx_dx[kSegments<T>];
   GAPS_SIMD_INLINE GradColumns(const tile::Splat<T>& s, const SplatColumns<T>& cols) {
     for (int sg = 0; sg < kSegments<T>; ++sg) {
@@ -80,12 +81,14 @@ template <typename T> struct GradColumns {
 
 // The per-lane sums of one entry's gradient. kChannels: the number of feature channels when known at
 // compile time (the feature sums then live in registers), else 0 (they live in `buffer`).
-template <typename T, int kChannels> struct EntryGrads {
+template <typename T, int kChannels>
+struct EntryGrads {
   Vec<T> mean_x{}, mean_y{}, conic_a{}, conic_b{}, conic_c{}, opacity{}, abs_mean_x{}, abs_mean_y{};
   Vec<T> feat[kChannels] = {};
   EntryGrads(Buffer<T>&, int) {}
 };
-template <typename T> struct EntryGrads<T, 0> {
+template <typename T>
+struct EntryGrads<T, 0> {
   Vec<T> mean_x{}, mean_y{}, conic_a{}, conic_b{}, conic_c{}, opacity{}, abs_mean_x{}, abs_mean_y{};
   Buffer<T>& feat;
   EntryGrads(Buffer<T>& buffer, int channels) : feat(buffer) {
@@ -98,9 +101,8 @@ template <typename T> struct EntryGrads<T, 0> {
 // over channels and the constant factors regrouped (which only changes rounding).
 template <typename T, int kChannels>
 GAPS_SIMD_INLINE void backward_segment(BackwardTileState<T>& st, int i, int sg, const Mask<T>& hit,
-                                       const SegmentAlpha<T>& a, const tile::Splat<T>& s,
-                                       const SplatColumns<T>& cols, const GradColumns<T>& gcols,
-                                       const SplatRow<T>& row, const T* f, int channels,
+                                       const SegmentAlpha<T>& a, const tile::Splat<T>& s, const SplatColumns<T>& cols,
+                                       const GradColumns<T>& gcols, const SplatRow<T>& row, const T* f, int channels,
                                        EntryGrads<T, kChannels>& acc) {
   using V = Vec<T>;
   constexpr int kTileSegs = BackwardTileState<T>::kTileSegs;
@@ -189,11 +191,15 @@ GAPS_SIMD_INLINE void backward_tile(int64_t tile_index, const BackwardArgs<T>& i
 }
 
 // The entry point of this copy; the usual channel counts (colour, colour + depth) are compiled apart.
-template <typename T> void backward_tile_entry(int64_t tile_index, const BackwardArgs<T>& in) {
+template <typename T>
+void backward_tile_entry(int64_t tile_index, const BackwardArgs<T>& in) {
   switch (in.channels) {
-    case 3: return backward_tile<T, 3>(tile_index, in);
-    case 4: return backward_tile<T, 4>(tile_index, in);
-    default: return backward_tile<T, 0>(tile_index, in);
+    case 3:
+      return backward_tile<T, 3>(tile_index, in);
+    case 4:
+      return backward_tile<T, 4>(tile_index, in);
+    default:
+      return backward_tile<T, 0>(tile_index, in);
   }
 }
 

@@ -23,14 +23,15 @@
 #include <ATen/Parallel.h>
 
 #include "gs_trainer/raster/cpu/parallel.h"
+#include "gs_trainer/raster/cpu/rasterize_tile.h"
 #include "gs_trainer/raster/cpu/simd.h"
 #include "gs_trainer/raster/rasterize_backend.h"
-#include "gs_trainer/raster/cpu/rasterize_tile.h"
 
 namespace gaps::backend {
 namespace {
 
-template <typename T> struct ForwardArgs {
+template <typename T>
+struct ForwardArgs {
   const int32_t* ids;
   const int32_t* ranges;
   const tile::Splat<T>* splats;
@@ -63,8 +64,8 @@ RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means
   out.final_T = at::empty({height, width}, opts);
   out.n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "rasterize_forward_cpu", [&] {
-    const auto splats = tile::make_splats(means2d.size(0), means2d.data_ptr<scalar_t>(),
-                                          conics.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>());
+    const auto splats = tile::make_splats(means2d.size(0), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                          opacities.data_ptr<scalar_t>());
     const ForwardArgs<scalar_t> in{bins.gaussian_ids.data_ptr<int32_t>(),
                                    bins.tile_ranges.data_ptr<int32_t>(),
                                    splats.data(),
@@ -77,9 +78,9 @@ RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means
                                    out.alpha.data_ptr<scalar_t>(),
                                    out.final_T.data_ptr<scalar_t>(),
                                    out.n_contrib.data_ptr<int32_t>()};
-    const auto kernel = simd::pick_for_isa(&avx512::composite_tile_entry<scalar_t>,
-                                           &avx2::composite_tile_entry<scalar_t>,
-                                           &baseline::composite_tile_entry<scalar_t>);
+    const auto kernel =
+        simd::pick_for_isa(&avx512::composite_tile_entry<scalar_t>, &avx2::composite_tile_entry<scalar_t>,
+                           &baseline::composite_tile_entry<scalar_t>);
     parallel_for_each_dynamic(bins.tile_ranges.size(0), [&](int64_t t) { kernel(t, in); });
   });
   return out;

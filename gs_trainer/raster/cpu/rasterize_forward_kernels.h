@@ -12,14 +12,15 @@ using tile::kRows;
 // A pixel composites while its transmittance is positive (live pixels keep T >= kMinTransmittance): a
 // saturated pixel, or one outside the image, has trans 0, and its final transmittance is in final_T. This
 // spares a separate "alive" mask (and the compiler's conversions between vector masks and mask registers).
-template <typename T> struct ForwardTileState {
+template <typename T>
+struct ForwardTileState {
   static constexpr int kSegs = kSegments<T>;
   Vec<T> trans[kRows * kSegs];    // transmittance so far; 0 once the pixel stopped
   Vec<T> final_T[kRows * kSegs];  // transmittance of the pixels that stopped
   Mask<T> last[kRows * kSegs];    // n_contrib: tile-list entries walked up to the last contributor
   Buffer<T> acc;                  // accumulated features: acc[ch * kRows * kSegs + segment index]
   bool segment_live[kRows * kSegs];
-  uint32_t live_rows = 0;         // bit per row with any live pixel
+  uint32_t live_rows = 0;  // bit per row with any live pixel
 
   ForwardTileState(const tile::TileRect& r, int channels) : acc(static_cast<size_t>(channels) * kRows * kSegs) {
     for (int ly = 0; ly < kRows; ++ly) {
@@ -52,8 +53,8 @@ template <typename T> struct ForwardTileState {
 
 // Composites one Gaussian (tile-list position `entry`, features f) onto segment i of row ly.
 template <typename T>
-GAPS_SIMD_INLINE void composite_segment(ForwardTileState<T>& st, int ly, int i, const SegmentAlpha<T>& a,
-                                        const T* f, int channels, int32_t entry) {
+GAPS_SIMD_INLINE void composite_segment(ForwardTileState<T>& st, int ly, int i, const SegmentAlpha<T>& a, const T* f,
+                                        int channels, int32_t entry) {
   const Vec<T> trans = st.trans[i];
   const Vec<T> next = trans * (T(1) - a.alpha);
   const Mask<T> hit = a.hit & (trans > T(0));
@@ -69,7 +70,8 @@ GAPS_SIMD_INLINE void composite_segment(ForwardTileState<T>& st, int ly, int i, 
   if (any<T>(stop)) st.stop(ly, i, stop, trans);
 }
 
-template <typename T> GAPS_SIMD_INLINE void composite_tile(int64_t tile_index, const ForwardArgs<T>& in) {
+template <typename T>
+GAPS_SIMD_INLINE void composite_tile(int64_t tile_index, const ForwardArgs<T>& in) {
   constexpr int kSegs = kSegments<T>, W = kWidth<T>;
   const tile::TileRect r = tile::tile_rect(tile_index, in.tiles_x, in.width, in.height);
   const int C = in.channels;
@@ -109,7 +111,8 @@ template <typename T> GAPS_SIMD_INLINE void composite_tile(int64_t tile_index, c
 }
 
 // The entry point of this copy.
-template <typename T> void composite_tile_entry(int64_t tile_index, const ForwardArgs<T>& in) {
+template <typename T>
+void composite_tile_entry(int64_t tile_index, const ForwardArgs<T>& in) {
   composite_tile(tile_index, in);
 }
 

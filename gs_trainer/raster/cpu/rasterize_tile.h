@@ -20,7 +20,8 @@ namespace gaps::backend::tile {
 constexpr int kRows = raster::kTileSize;
 
 // One Gaussian as the tile loops read it, in one cache line (in float).
-template <typename T> struct alignas(16 * sizeof(T)) Splat {
+template <typename T>
+struct alignas(16 * sizeof(T)) Splat {
   T mx, my;   // 2D mean
   T a, b, c;  // conic
   T opacity;
@@ -37,16 +38,18 @@ template <typename T> struct alignas(16 * sizeof(T)) Splat {
 // The powers p where a = opacity * exp(p) is within 1e-6 (relative) of `threshold` as eval_alpha compares
 // it (rounded to T), rounded outwards. Both exps are within a few 1e-7 of exact: beyond the band, a and
 // the threshold compare the same way whichever exp computed a.
-template <typename T> void threshold_band(double threshold, double opacity, T band[2]) {
+template <typename T>
+void threshold_band(double threshold, double opacity, T band[2]) {
   const double p = std::log(double(T(threshold)) / opacity);
   band[0] = std::nextafter(T(p - 1e-6), T(-INFINITY));
   band[1] = std::nextafter(T(p + 1e-6), T(INFINITY));
 }
 
 // Computed in double so that the margins, not rounding, decide how conservative the culling is.
-template <typename T> Splat<T> make_splat(const T* mean2d, const T* conic, T opacity) {
-  Splat<T> s{mean2d[0], mean2d[1], conic[0], conic[1], conic[2], opacity, T(-1), T(0), T(0),
-             {T(NAN), T(NAN)}, {T(NAN), T(NAN)}};
+template <typename T>
+Splat<T> make_splat(const T* mean2d, const T* conic, T opacity) {
+  Splat<T> s{mean2d[0], mean2d[1], conic[0], conic[1],         conic[2],        opacity,
+             T(-1),     T(0),      T(0),     {T(NAN), T(NAN)}, {T(NAN), T(NAN)}};
   const double a = conic[0], b = conic[1], c = conic[2], o = opacity;
   // NaN/inf Gaussians never contributed (the former per-row span test rejected them), and a Gaussian with
   // opacity <= 1/255 cannot reach the threshold anywhere (alpha <= opacity where power <= 0).

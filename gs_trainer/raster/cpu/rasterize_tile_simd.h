@@ -16,10 +16,12 @@ namespace gaps::backend::tile::GAPS_SIMD_NS {
 using simd::GAPS_SIMD_NS::Mask;
 using simd::GAPS_SIMD_NS::Vec;
 
-template <typename T> constexpr int kSegments = kRows / simd::GAPS_SIMD_NS::kWidth<T>;
+template <typename T>
+constexpr int kSegments = kRows / simd::GAPS_SIMD_NS::kWidth<T>;
 
 // Pixel-centre x coordinates of each segment of a tile row starting at x0.
-template <typename T> GAPS_SIMD_INLINE void segment_centres(int x0, Vec<T> (&px)[kSegments<T>]) {
+template <typename T>
+GAPS_SIMD_INLINE void segment_centres(int x0, Vec<T> (&px)[kSegments<T>]) {
   for (int sg = 0; sg < kSegments<T>; ++sg)
     px[sg] = simd::GAPS_SIMD_NS::iota<T>(T(x0 + sg * simd::GAPS_SIMD_NS::kWidth<T>) + T(0.5));
 }
@@ -27,7 +29,8 @@ template <typename T> GAPS_SIMD_INLINE void segment_centres(int x0, Vec<T> (&px)
 // Bit ly set: row ly of tile r has a pixel centre where the Gaussian's alpha may reach kMinAlpha
 // (conservatively, see Splat): the band of the row is widened by one pixel and taken from one pixel
 // nearer to the mean, plus 0.1%.
-template <typename T> GAPS_SIMD_INLINE uint32_t reached_row_bits(const Splat<T>& s, const TileRect& r) {
+template <typename T>
+GAPS_SIMD_INLINE uint32_t reached_row_bits(const Splat<T>& s, const TileRect& r) {
   namespace ops = simd::GAPS_SIMD_NS;
   constexpr int W = ops::kWidth<T>;
   const T x_first = T(r.x0) + T(0.5), x_last = T(r.x0 + r.w) - T(0.5);
@@ -45,7 +48,8 @@ template <typename T> GAPS_SIMD_INLINE uint32_t reached_row_bits(const Splat<T>&
 }
 
 // The column terms dx, a dx dx and b dx of one Gaussian over the tile's columns.
-template <typename T> struct SplatColumns {
+template <typename T>
+struct SplatColumns {
   Vec<T> dx[kSegments<T>], a_dx_dx[kSegments<T>], b_dx[kSegments<T>];
 
   GAPS_SIMD_INLINE SplatColumns(const Splat<T>& s, const Vec<T> (&px)[kSegments<T>]) {
@@ -58,12 +62,14 @@ template <typename T> struct SplatColumns {
 };
 
 // The row terms dy and c dy dy of one Gaussian at pixel-centre row py.
-template <typename T> struct SplatRow {
+template <typename T>
+struct SplatRow {
   T dy, c_dy_dy;
   GAPS_SIMD_INLINE SplatRow(const Splat<T>& s, T py) : dy(s.my - py), c_dy_dy(s.c * dy * dy) {}
 };
 
-template <typename T> struct SegmentAlpha {
+template <typename T>
+struct SegmentAlpha {
   Vec<T> gauss;          // exp(power)
   Vec<T> opacity_gauss;  // opacity * gauss, before the clamp
   Vec<T> alpha;          // min(kMaxAlpha, opacity_gauss)
@@ -86,8 +92,7 @@ __attribute__((noinline, cold)) inline void exact_exp_lanes(const Vec<float>& po
 // Where simd::exp could decide differently from eval_alpha's exp (power in a band around an alpha
 // threshold, see Splat::near_min), recomputes gauss as eval_alpha does.
 template <Exact kExact>
-GAPS_SIMD_INLINE void exact_exp_near_thresholds(const Splat<float>& s, const Vec<float>& power,
-                                                Vec<float>& gauss) {
+GAPS_SIMD_INLINE void exact_exp_near_thresholds(const Splat<float>& s, const Vec<float>& power, Vec<float>& gauss) {
   Mask<float> near = (power >= s.near_min[0]) & (power <= s.near_min[1]);
   if constexpr (kExact == Exact::kSkipAndClamp) near |= (power >= s.near_max[0]) & (power <= s.near_max[1]);
   if (__builtin_expect(simd::GAPS_SIMD_NS::any<float>(near), 0)) {

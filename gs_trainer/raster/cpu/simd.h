@@ -38,11 +38,15 @@ inline Isa best_isa() {
 }
 
 // Picks the copy of a kernel compiled for best_isa().
-template <typename F> F pick_for_isa(F avx512, F avx2, F baseline) {
+template <typename F>
+F pick_for_isa(F avx512, F avx2, F baseline) {
   switch (best_isa()) {
-    case Isa::kAvx512: return avx512;
-    case Isa::kAvx2: return avx2;
-    default: return baseline;
+    case Isa::kAvx512:
+      return avx512;
+    case Isa::kAvx2:
+      return avx2;
+    default:
+      return baseline;
   }
 }
 

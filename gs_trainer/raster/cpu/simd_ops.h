@@ -10,41 +10,54 @@ namespace gaps::simd::GAPS_SIMD_NS {
 
 constexpr int kVectorBytes = GAPS_SIMD_BYTES;
 
-template <typename T> struct Types;
-template <> struct Types<float> {
+template <typename T>
+struct Types;
+template <>
+struct Types<float> {
   typedef float Vec __attribute__((vector_size(kVectorBytes), aligned(kVectorBytes)));
   typedef int32_t Mask __attribute__((vector_size(kVectorBytes), aligned(kVectorBytes)));
 };
-template <> struct Types<double> {
+template <>
+struct Types<double> {
   typedef double Vec __attribute__((vector_size(kVectorBytes), aligned(kVectorBytes)));
   typedef int64_t Mask __attribute__((vector_size(kVectorBytes), aligned(kVectorBytes)));
 };
-template <typename T> using Vec = typename Types<T>::Vec;
-template <typename T> using Mask = typename Types<T>::Mask;
-template <typename T> constexpr int kWidth = kVectorBytes / sizeof(T);  // lanes per vector
+template <typename T>
+using Vec = typename Types<T>::Vec;
+template <typename T>
+using Mask = typename Types<T>::Mask;
+template <typename T>
+constexpr int kWidth = kVectorBytes / sizeof(T);  // lanes per vector
 
-template <typename T> GAPS_SIMD_INLINE Vec<T> splat(T x) { return Vec<T>{} + x; }
+template <typename T>
+GAPS_SIMD_INLINE Vec<T> splat(T x) {
+  return Vec<T>{} + x;
+}
 
 // Lane i holds `start + i`.
-template <typename T> GAPS_SIMD_INLINE Vec<T> iota(T start) {
+template <typename T>
+GAPS_SIMD_INLINE Vec<T> iota(T start) {
   Vec<T> v{};
   for (int i = 0; i < kWidth<T>; ++i) v[i] = start + T(i);
   return v;
 }
 
 // Lanes [0, n) set.
-template <typename T> GAPS_SIMD_INLINE Mask<T> first_lanes(int n) {
+template <typename T>
+GAPS_SIMD_INLINE Mask<T> first_lanes(int n) {
   Mask<T> m{};
   for (int i = 0; i < kWidth<T>; ++i) m[i] = i < n ? -1 : 0;
   return m;
 }
 
-template <typename T> GAPS_SIMD_INLINE Vec<T> select(const Mask<T>& m, const Vec<T>& a, const Vec<T>& b) {
+template <typename T>
+GAPS_SIMD_INLINE Vec<T> select(const Mask<T>& m, const Vec<T>& a, const Vec<T>& b) {
   return m ? a : b;
 }
 
 // True when any lane of the mask is set.
-template <typename T> GAPS_SIMD_INLINE bool any(const Mask<T>& m) {
+template <typename T>
+GAPS_SIMD_INLINE bool any(const Mask<T>& m) {
 #if defined(__x86_64__) && GAPS_SIMD_BYTES == 64
   return _mm512_test_epi32_mask(reinterpret_cast<__m512i>(m), reinterpret_cast<__m512i>(m)) != 0;
 #elif defined(__x86_64__) && GAPS_SIMD_BYTES == 32
@@ -61,16 +74,23 @@ template <typename T> GAPS_SIMD_INLINE bool any(const Mask<T>& m) {
 }
 
 // Bit i set where lane i of the mask is.
-template <typename T> GAPS_SIMD_INLINE uint32_t bits(const Mask<T>& m) {
+template <typename T>
+GAPS_SIMD_INLINE uint32_t bits(const Mask<T>& m) {
 #if defined(__x86_64__) && GAPS_SIMD_BYTES == 64
-  if constexpr (sizeof(T) == 4) return _mm512_movepi32_mask(reinterpret_cast<__m512i>(m));
-  else return _mm512_movepi64_mask(reinterpret_cast<__m512i>(m));
+  if constexpr (sizeof(T) == 4)
+    return _mm512_movepi32_mask(reinterpret_cast<__m512i>(m));
+  else
+    return _mm512_movepi64_mask(reinterpret_cast<__m512i>(m));
 #elif defined(__x86_64__) && GAPS_SIMD_BYTES == 32
-  if constexpr (sizeof(T) == 4) return _mm256_movemask_ps(reinterpret_cast<__m256>(m));
-  else return _mm256_movemask_pd(reinterpret_cast<__m256d>(m));
+  if constexpr (sizeof(T) == 4)
+    return _mm256_movemask_ps(reinterpret_cast<__m256>(m));
+  else
+    return _mm256_movemask_pd(reinterpret_cast<__m256d>(m));
 #elif defined(__x86_64__) && GAPS_SIMD_BYTES == 16
-  if constexpr (sizeof(T) == 4) return _mm_movemask_ps(reinterpret_cast<__m128>(m));
-  else return _mm_movemask_pd(reinterpret_cast<__m128d>(m));
+  if constexpr (sizeof(T) == 4)
+    return _mm_movemask_ps(reinterpret_cast<__m128>(m));
+  else
+    return _mm_movemask_pd(reinterpret_cast<__m128d>(m));
 #else
   uint32_t r = 0;
   for (int i = 0; i < kWidth<T>; ++i) r |= uint32_t(m[i] != 0) << i;
@@ -80,7 +100,8 @@ template <typename T> GAPS_SIMD_INLINE uint32_t bits(const Mask<T>& m) {
 
 // Keeps the compiler from fusing the computation of x into a later multiply-add (FMA contraction), so
 // that x is rounded exactly as written.
-template <typename V> GAPS_SIMD_INLINE void no_contraction(V& x) {
+template <typename V>
+GAPS_SIMD_INLINE void no_contraction(V& x) {
 #if defined(__x86_64__)
   asm("" : "+v"(x));
 #endif
@@ -104,7 +125,8 @@ GAPS_SIMD_INLINE Vec<T> fold_pairs(const Vec<T>& a, const Vec<T>& b, std::intege
 }
 
 // Folds batch[0, kGroup) (groups of kGroup partial sums) down to batch[0] (one sum per lane).
-template <typename T, int kGroup> GAPS_SIMD_INLINE void fold_batch(Vec<T>* batch) {
+template <typename T, int kGroup>
+GAPS_SIMD_INLINE void fold_batch(Vec<T>* batch) {
   if constexpr (kGroup > 1) {
     constexpr auto lanes = std::make_integer_sequence<int, kWidth<T>>();
     for (int k = 0; k < kGroup / 2; ++k) batch[k] = fold_pairs<T, kGroup>(batch[2 * k], batch[2 * k + 1], lanes);
@@ -112,7 +134,8 @@ template <typename T, int kGroup> GAPS_SIMD_INLINE void fold_batch(Vec<T>* batch
   }
 }
 
-template <typename T> GAPS_SIMD_INLINE void sum_lanes(Vec<T>* v, int n, T* out) {
+template <typename T>
+GAPS_SIMD_INLINE void sum_lanes(Vec<T>* v, int n, T* out) {
   constexpr int W = kWidth<T>;
   for (int first = 0; first < n; first += W) {
     Vec<T> batch[W];
@@ -123,7 +146,8 @@ template <typename T> GAPS_SIMD_INLINE void sum_lanes(Vec<T>* v, int n, T* out) 
 }
 
 // |v|: clears the sign bits.
-template <typename T> GAPS_SIMD_INLINE Vec<T> abs(const Vec<T>& v) {
+template <typename T>
+GAPS_SIMD_INLINE Vec<T> abs(const Vec<T>& v) {
   using Lane = typename std::remove_reference_t<decltype(Mask<T>{}[0])>;
   return reinterpret_cast<Vec<T>>(reinterpret_cast<Mask<T>>(v) & ~(Lane(1) << (8 * sizeof(Lane) - 1)));
 }
@@ -155,12 +179,8 @@ GAPS_SIMD_INLINE Vec<float> min(const Vec<float>& a, const Vec<float>& b) {
   return select<float>(a < b, a, b);
 #endif
 }
-GAPS_SIMD_INLINE Vec<double> max(const Vec<double>& a, const Vec<double>& b) {
-  return select<double>(a > b, a, b);
-}
-GAPS_SIMD_INLINE Vec<double> min(const Vec<double>& a, const Vec<double>& b) {
-  return select<double>(a < b, a, b);
-}
+GAPS_SIMD_INLINE Vec<double> max(const Vec<double>& a, const Vec<double>& b) { return select<double>(a > b, a, b); }
+GAPS_SIMD_INLINE Vec<double> min(const Vec<double>& a, const Vec<double>& b) { return select<double>(a < b, a, b); }
 
 // Single precision: Cephes' expf (Cody-Waite range reduction, degree-5 polynomial), within 1 ulp of the
 // correctly rounded exp on [-87, 88] (checked exhaustively for every instruction set; with AVX-512 down to
@@ -241,7 +261,8 @@ GAPS_SIMD_INLINE Vec<float> reciprocal(const Vec<float>& x) {
 
 // A zero-initialised heap array of vectors with their alignment (std::vector would ignore it: GCC drops
 // attributes of template arguments).
-template <typename T> class Buffer {
+template <typename T>
+class Buffer {
  public:
   explicit Buffer(size_t n)
       : data_(static_cast<Vec<T>*>(::operator new(n * sizeof(Vec<T>), std::align_val_t(kVectorBytes)))) {

@@ -14,7 +14,8 @@ ssim::Shape shape_of(const at::Tensor& image) {
 }
 
 // Calls f(y, x, c) for every element, rows split across threads.
-template <typename F> void for_each_element(const ssim::Shape& s, const F& f) {
+template <typename F>
+void for_each_element(const ssim::Shape& s, const F& f) {
   at::parallel_for(0, s.height, 8, [&](int64_t begin, int64_t end) {
     for (int64_t y = begin; y < end; ++y)
       for (int x = 0; x < s.width; ++x)
@@ -22,7 +23,8 @@ template <typename F> void for_each_element(const ssim::Shape& s, const F& f) {
   });
 }
 
-template <typename T> void forward_impl(const at::Tensor& pred, const at::Tensor& gt, SsimForward& out) {
+template <typename T>
+void forward_impl(const at::Tensor& pred, const at::Tensor& gt, SsimForward& out) {
   const ssim::Shape s = shape_of(pred);
   const auto win = ssim::gaussian_window<T>();
   at::Tensor rows = at::empty({s.height, s.width, s.channels, ssim::kMoments}, pred.options());

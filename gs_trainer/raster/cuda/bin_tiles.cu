@@ -29,8 +29,8 @@ __device__ raster::TileRect tiles_of(int64_t i, const float* __restrict__ means2
 }
 
 __global__ void count_tiles_kernel(int64_t n, const float* __restrict__ means2d, const float* __restrict__ conics,
-                                   const float* __restrict__ opacities, const int32_t* __restrict__ radii,
-                                   int tiles_x, int tiles_y, int64_t* __restrict__ counts) {
+                                   const float* __restrict__ opacities, const int32_t* __restrict__ radii, int tiles_x,
+                                   int tiles_y, int64_t* __restrict__ counts) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   int64_t count = 0;
@@ -44,9 +44,8 @@ __global__ void count_tiles_kernel(int64_t n, const float* __restrict__ means2d,
 // Gaussian i writes its pairs at [offsets[i] - count_i, offsets[i]) (offsets is the inclusive scan).
 __global__ void emit_pairs_kernel(int64_t n, const float* __restrict__ means2d, const float* __restrict__ conics,
                                   const float* __restrict__ opacities, const int32_t* __restrict__ radii,
-                                  const float* __restrict__ depths, const int64_t* __restrict__ offsets,
-                                  int tiles_x, int tiles_y, uint64_t* __restrict__ keys,
-                                  int32_t* __restrict__ ids) {
+                                  const float* __restrict__ depths, const int64_t* __restrict__ offsets, int tiles_x,
+                                  int tiles_y, uint64_t* __restrict__ keys, int32_t* __restrict__ ids) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n || radii[i] <= 0) return;
   const raster::TileRect r = tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y);
@@ -68,7 +67,8 @@ __global__ void tile_ranges_kernel(int64_t m, const uint64_t* __restrict__ keys,
   if (k >= m) return;
   const uint32_t tile = static_cast<uint32_t>(keys[k] >> 32);
   if (k == 0 || static_cast<uint32_t>(keys[k - 1] >> 32) != tile) ranges[2 * tile] = static_cast<int32_t>(k);
-  if (k == m - 1 || static_cast<uint32_t>(keys[k + 1] >> 32) != tile) ranges[2 * tile + 1] = static_cast<int32_t>(k + 1);
+  if (k == m - 1 || static_cast<uint32_t>(keys[k + 1] >> 32) != tile)
+    ranges[2 * tile + 1] = static_cast<int32_t>(k + 1);
 }
 
 int blocks_for(int64_t n) { return static_cast<int>((n + kThreads - 1) / kThreads); }
@@ -107,8 +107,8 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_i
   }
   at::Tensor counts = at::empty({n}, opts.dtype(at::kLong));
   count_tiles_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, means2d.data_ptr<float>(), conics.data_ptr<float>(),
-                                                               opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
-                                                               tiles_x, tiles_y, counts.data_ptr<int64_t>());
+                                                             opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
+                                                             tiles_x, tiles_y, counts.data_ptr<int64_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   const at::Tensor offsets = at::cumsum(counts, 0);
   // The one host synchronisation of the pipeline: the number of pairs sizes the sort buffers.
@@ -122,8 +122,7 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_i
   auto* keys_ptr = reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>());
   emit_pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
       n, means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
-      depths.data_ptr<float>(),
-      offsets.data_ptr<int64_t>(), tiles_x, tiles_y, keys_ptr, ids.data_ptr<int32_t>());
+      depths.data_ptr<float>(), offsets.data_ptr<int64_t>(), tiles_x, tiles_y, keys_ptr, ids.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 
   // Only the bits in use are sorted: 32 of depth plus enough for the largest tile id.
@@ -132,12 +131,12 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_i
   const int end_bit = 32 + bit_width(static_cast<uint32_t>(num_tiles - 1));
   size_t temp_bytes = 0;
   C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, keys_ptr, sorted_keys_ptr,
-                                                 ids.data_ptr<int32_t>(), bins.gaussian_ids.data_ptr<int32_t>(),
-                                                 m, 0, end_bit, stream));
+                                                 ids.data_ptr<int32_t>(), bins.gaussian_ids.data_ptr<int32_t>(), m, 0,
+                                                 end_bit, stream));
   at::Tensor temp = at::empty({static_cast<int64_t>(temp_bytes)}, opts.dtype(at::kByte));
   C10_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp.data_ptr(), temp_bytes, keys_ptr, sorted_keys_ptr,
-                                                 ids.data_ptr<int32_t>(), bins.gaussian_ids.data_ptr<int32_t>(),
-                                                 m, 0, end_bit, stream));
+                                                 ids.data_ptr<int32_t>(), bins.gaussian_ids.data_ptr<int32_t>(), m, 0,
+                                                 end_bit, stream));
 
   tile_ranges_kernel<<<blocks_for(m), kThreads, 0, stream>>>(m, sorted_keys_ptr, bins.tile_ranges.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();

@@ -126,8 +126,8 @@ ProjectionGrads project_backward_cuda(const at::Tensor& means_in, const at::Tens
   if (n == 0) return out;
   project_backward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
       n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(), viewmat.data_ptr<float>(), K,
-      radii.data_ptr<int32_t>(), g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(),
-      out.means.data_ptr<float>(), out.quats.data_ptr<float>(), out.scales.data_ptr<float>());
+      radii.data_ptr<int32_t>(), g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(), out.means.data_ptr<float>(),
+      out.quats.data_ptr<float>(), out.scales.data_ptr<float>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return out;
 }

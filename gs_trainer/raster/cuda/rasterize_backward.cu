@@ -33,7 +33,8 @@ constexpr int kWarps = kBlock / 32;
 constexpr unsigned kFullMask = 0xffffffffu;
 
 // Channel capacities as in rasterize_forward.cu.
-template <typename F> void dispatch_channels(int channels, F&& f) {
+template <typename F>
+void dispatch_channels(int channels, F&& f) {
   TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
               channels);
   if (channels <= 4)
@@ -49,7 +50,6 @@ __device__ float warp_sum(float v) {
 
 // The gradient slots of one Gaussian.
 enum Slot { kMeanX, kMeanY, kConicA, kConicB, kConicC, kOpacity, kAbsX, kAbsY, kFeatures };
-
 
 // The largest n_contrib of the block: entries past it were walked by no pixel of the tile.
 __device__ int block_max(int v, int* s_warp) {
@@ -92,7 +92,8 @@ __device__ float* slot_target(const BackwardArgs& a, int64_t g, int slot) {
 }
 
 // ABS: also sum the absolute 2D-mean gradients (only absolute-gradient densification asks for them).
-template <int CMAX, bool ABS> __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
+template <int CMAX, bool ABS>
+__global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
   const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
   const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
   const int thread = threadIdx.y * kTile + threadIdx.x;
@@ -141,8 +142,8 @@ template <int CMAX, bool ABS> __global__ void __launch_bounds__(kBlock) rasteriz
     for (int j = 0; j < batch; ++j) {
       const int entry = batch_end - 1 - j - begin;  // position in the tile's list
       float alpha = 0.f, gauss = 0.f, dx = 0.f, dy = 0.f;
-      const bool valid = entry < contrib && raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j],
-                                                                              cx, cy, alpha, gauss, dx, dy);
+      const bool valid = entry < contrib && raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j], cx,
+                                                                             cy, alpha, gauss, dx, dy);
       if (!__any_sync(kFullMask, valid)) continue;
       constexpr int kSlots = kFeatures + CMAX;
       float slots[kSlots];
@@ -198,9 +199,8 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
                                     const RasterOutput& fwd, const at::Tensor& g_features_in,
                                     const at::Tensor& g_alpha_in, bool absolute_grads) {
   for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in, &g_features_in, &g_alpha_in})
-    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
-                "the CUDA rasterizer computes in float32 only, got a ", t->scalar_type(), " tensor on ",
-                t->device(), " (use the CPU backend for double precision)");
+    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat, "the CUDA rasterizer computes in float32 only, got a ",
+                t->scalar_type(), " tensor on ", t->device(), " (use the CPU backend for double precision)");
   const c10::cuda::CUDAGuard guard(means2d_in.device());
   const auto means2d = means2d_in.contiguous(), conics = conics_in.contiguous();
   const auto opacities = opacities_in.contiguous(), features = features_in.contiguous();

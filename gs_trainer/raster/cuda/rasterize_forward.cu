@@ -20,7 +20,8 @@ constexpr int kBlock = kTile * kTile;
 
 // Feature channels live in registers, so kernels are compiled for a channel capacity: 4 covers
 // colour + depth (what render() composites); 16 is the general case.
-template <typename F> void dispatch_channels(int channels, F&& f) {
+template <typename F>
+void dispatch_channels(int channels, F&& f) {
   TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
               channels);
   if (channels <= 4)
@@ -43,7 +44,8 @@ struct ForwardArgs {
   int32_t* __restrict__ out_n_contrib;
 };
 
-template <int CMAX> __global__ void __launch_bounds__(kBlock) rasterize_forward_kernel(ForwardArgs a) {
+template <int CMAX>
+__global__ void __launch_bounds__(kBlock) rasterize_forward_kernel(ForwardArgs a) {
   const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
   const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
   const int thread = threadIdx.y * kTile + threadIdx.x;
@@ -106,9 +108,8 @@ RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& mean
                                     const at::Tensor& opacities_in, const at::Tensor& features_in, int width,
                                     int height) {
   for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in})
-    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
-                "the CUDA rasterizer computes in float32 only, got a ", t->scalar_type(), " tensor on ",
-                t->device(), " (use the CPU backend for double precision)");
+    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat, "the CUDA rasterizer computes in float32 only, got a ",
+                t->scalar_type(), " tensor on ", t->device(), " (use the CPU backend for double precision)");
   const c10::cuda::CUDAGuard guard(means2d_in.device());
   const auto means2d = means2d_in.contiguous(), conics = conics_in.contiguous();
   const auto opacities = opacities_in.contiguous(), features = features_in.contiguous();
@@ -123,10 +124,20 @@ RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& mean
   out.n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
 
   const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
-  const ForwardArgs args{width, height, tiles_x, channels, ranges.data_ptr<int32_t>(), ids.data_ptr<int32_t>(),
-                         means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
-                         features.data_ptr<float>(), out.features.data_ptr<float>(), out.alpha.data_ptr<float>(),
-                         out.final_T.data_ptr<float>(), out.n_contrib.data_ptr<int32_t>()};
+  const ForwardArgs args{width,
+                         height,
+                         tiles_x,
+                         channels,
+                         ranges.data_ptr<int32_t>(),
+                         ids.data_ptr<int32_t>(),
+                         means2d.data_ptr<float>(),
+                         conics.data_ptr<float>(),
+                         opacities.data_ptr<float>(),
+                         features.data_ptr<float>(),
+                         out.features.data_ptr<float>(),
+                         out.alpha.data_ptr<float>(),
+                         out.final_T.data_ptr<float>(),
+                         out.n_contrib.data_ptr<int32_t>()};
   dispatch_channels(channels, [&](auto cmax) {
     rasterize_forward_kernel<decltype(cmax)::value>
         <<<dim3(tiles_x, tiles_y), dim3(kTile, kTile), 0, at::cuda::getCurrentCUDAStream()>>>(args);

@@ -45,8 +45,8 @@ __global__ void map_kernel(const float* __restrict__ rows, ssim::Shape s, ssim::
   map[e.i] = ssim::ssim_value_and_partials(m, partials + e.i * ssim::kPartials);
 }
 
-__global__ void gradient_rows_kernel(const float* __restrict__ partials, const float* __restrict__ g_map,
-                                     ssim::Shape s, ssim::Window<float> win, float* __restrict__ rows) {
+__global__ void gradient_rows_kernel(const float* __restrict__ partials, const float* __restrict__ g_map, ssim::Shape s,
+                                     ssim::Window<float> win, float* __restrict__ rows) {
   Element e;
   if (!element_at(s, e)) return;
   ssim::horizontal_gradient(partials, g_map, s, win, e.y, e.x, e.c, rows + e.i * ssim::kPartials);
@@ -85,9 +85,8 @@ SsimForward ssim_forward_cuda(const at::Tensor& pred_in, const at::Tensor& gt_in
   moments_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(pred.data_ptr<float>(), gt.data_ptr<float>(), s,
                                                                     win, rows.data_ptr<float>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  map_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(rows.data_ptr<float>(), s, win,
-                                                                out.map.data_ptr<float>(),
-                                                                out.partials.data_ptr<float>());
+  map_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(
+      rows.data_ptr<float>(), s, win, out.map.data_ptr<float>(), out.partials.data_ptr<float>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return out;
 }

@@ -6,8 +6,8 @@
 #include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDAGuard.h>
 
-#include "gs_trainer/train/cuda/adam_cuda.h"
 #include "gs_trainer/raster/cuda/cuda_common.h"
+#include "gs_trainer/train/cuda/adam_cuda.h"
 
 namespace gaps::backend {
 namespace {
@@ -34,11 +34,9 @@ void adam_update_cuda(at::Tensor& param, const at::Tensor& grad, at::Tensor& exp
                       const AdamStep& step) {
   check_cuda_float("parameter", param);
   check_cuda_float("gradient", grad);
-  TORCH_CHECK(param.is_contiguous() && grad.is_contiguous() && exp_avg.is_contiguous() &&
-                  exp_avg_sq.is_contiguous(),
+  TORCH_CHECK(param.is_contiguous() && grad.is_contiguous() && exp_avg.is_contiguous() && exp_avg_sq.is_contiguous(),
               "the fused Adam update needs contiguous tensors");
-  TORCH_CHECK(grad.numel() == param.numel() && exp_avg.numel() == param.numel() &&
-                  exp_avg_sq.numel() == param.numel(),
+  TORCH_CHECK(grad.numel() == param.numel() && exp_avg.numel() == param.numel() && exp_avg_sq.numel() == param.numel(),
               "Adam state and gradient must match the parameter's size");
   const int64_t n = param.numel();
   if (n == 0) return;
