@@ -9,18 +9,19 @@
 namespace gaps {
 
 // One list of fields for both directions, so JSON and struct cannot drift apart.
-#define GAPS_GAPS_CONFIG_FIELDS(X)                                                                                    \
-  X(warmup_iterations)                                                                                                \
-  X(phase_interval) X(pseudo_probability) X(n_active) X(tier_alpha_min) X(tier_alpha_max) X(alpha_step) X(max_extrap) \
-      X(interpolate_intrinsics) X(tier_upgrade_variance) X(tier_min_admitted) X(pose_rotation_weight) X(beta_start)   \
-          X(beta_end) X(w_sparsity) X(w_entropy) X(w_novelty) X(novelty_gain) X(entropy_bins) X(gamma_hist) X(w_init) \
-              X(w_ref) X(init_coverage_weight) X(contrast_ref) X(coverage_alpha_threshold) X(ref_distance_scale)      \
-                  X(hist_variance_scale) X(diversity_radius) X(exploration_period) X(exploration_fraction)            \
-                      X(admit_min_alpha) X(admit_max_residual) X(admit_min_structure) X(uncertainty_lambda)           \
-                          X(uncertainty_eps) X(extrap_kappa) X(pseudo_loss_weight) X(drop_max) X(drop_n_ref)          \
-                              X(strength_max) X(strength_min) X(cn_scale) X(cn_coverage) X(ip_adapter_scale)          \
-                                  X(lora_rank) X(lora_steps) X(inpaint_uncovered_fraction) X(inpaint_dilation)        \
-                                      X(inpaint_depth_threshold)
+// clang-format off
+#define GAPS_GAPS_CONFIG_FIELDS(X)                                                                        \
+  X(warmup_iterations) X(phase_interval) X(pseudo_probability) X(n_active) X(tier_alpha_min)             \
+  X(tier_alpha_max) X(alpha_step) X(max_extrap) X(interpolate_intrinsics) X(tier_upgrade_variance)       \
+  X(tier_min_admitted) X(pose_rotation_weight) X(beta_start) X(beta_end) X(w_sparsity) X(w_entropy)      \
+  X(w_novelty) X(novelty_gain) X(entropy_bins) X(gamma_hist) X(w_init) X(w_ref) X(init_coverage_weight)  \
+  X(contrast_ref) X(coverage_alpha_threshold) X(ref_distance_scale) X(hist_variance_scale)               \
+  X(diversity_radius) X(exploration_period) X(exploration_fraction) X(admit_min_alpha)                   \
+  X(admit_max_residual) X(admit_min_structure) X(uncertainty_lambda) X(uncertainty_eps) X(extrap_kappa) X(pseudo_loss_weight)   \
+  X(drop_max) X(drop_n_ref) X(strength_max) X(strength_min) X(cn_scale) X(cn_coverage)                   \
+  X(ip_adapter_scale) X(lora_rank) X(lora_steps) X(inpaint_uncovered_fraction) X(inpaint_dilation) \
+  X(inpaint_depth_threshold)
+// clang-format on
 
 namespace {
 
