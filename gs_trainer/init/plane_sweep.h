@@ -20,8 +20,8 @@ struct DenseOptions {
   int num_planes = 96;       // depth hypotheses, uniform in inverse depth
   int window = 7;            // ZNCC window side (odd)
   int max_neighbors = 4;     // source views per reference view
-  // Planes warped at once. Larger chunks mean fewer, longer parallel regions, which matters a lot on a busy
-  // machine (fern 3 views, 2 cores under load: 8 -> 40-60 s, 16 -> 30-39 s, 32 -> 32 s); more is only memory.
+  // Planes warped at once. Larger chunks mean fewer, longer parallel regions, which matters on a busy machine;
+  // past 16 they cost memory and no time (docs/benchmarks.md, "Sparse-view initialisation").
   int planes_per_chunk = 16;
   // Depth range: 1%..99% quantiles of the sparse points' depths in the view, widened by this factor.
   double depth_margin = 0.25;
