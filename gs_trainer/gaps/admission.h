@@ -30,7 +30,7 @@ struct AdmissionDecision {
 };
 
 // Dual-criterion admission (sec. 3.6): ᾱ_v >= admit_min_alpha and mean residual < admit_max_residual;
-// admit_pseudo_view adds the structure guard SSIM >= admit_min_structure (see gaps_config.h).
+// admit_pseudo_view adds the structure guard SSIM >= admit_min_structure (see config.h).
 // Rejected views stay in the candidate pool (the caller keeps them; nothing here removes them).
 AdmissionDecision decide_admission(double mean_alpha, double mean_residual, const GapsConfig& c);
 AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered, const at::Tensor& alpha,

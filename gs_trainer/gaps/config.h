@@ -37,7 +37,7 @@ struct GapsConfig {
   // Intrinsics of a pseudo camera: lerped between the pair (true) or copied from the first camera.
   bool interpolate_intrinsics = true;
   // Tier upgrade: when at least tier_min_admitted pseudo-views are admitted and the mean of their
-  // uncertainty variances (mean u², see gaps_admission.h) is below this. (open) 0.05 ≈ RMS residual 0.22,
+  // uncertainty variances (mean u², see admission.h) is below this. (open) 0.05 ≈ RMS residual 0.22,
   // i.e. C_hist ≈ 0.83 on the 0.3 scale of eq:c_gen.
   double tier_upgrade_variance = 0.05;
   int tier_min_admitted = 1;

@@ -35,7 +35,7 @@ struct CandidateMeasurements {
   double contrast = 0;          // rms_contrast of the render
   double d_min_supervised = 0;  // min pose distance to the supervised views (GT and admitted pseudo): η
   double d_min_gt = 0;          // min pose distance to the ground-truth views: C_ref
-  // Mean over prior phases of the view's uncertainty variance (uncertainty_variance in gaps_admission.h);
+  // Mean over prior phases of the view's uncertainty variance (uncertainty_variance in admission.h);
   // empty when the view was never generated.
   std::optional<double> uncertainty_variance_history;
 };

@@ -1,8 +1,8 @@
 #pragma once
 // Initial point cloud for training from the N training views only (the sparse-view protocol: nothing from
 // the test views). Methods, in the order of the honest fallback chain:
-//   "mvs"    sparse triangulation, then plane-sweep stereo + fusion (init_dense.h);
-//   "sparse" SIFT matching + triangulation with the known poses (init_sparse.h);
+//   "mvs"    sparse triangulation, then plane-sweep stereo + fusion (plane_sweep.h);
+//   "sparse" SIFT matching + triangulation with the known poses (sparse.h);
 //   "random" uniform points in the cameras' frusta (gaussians.h).
 // A method that cannot produce enough points falls back to the next one and says why in the report.
 // "auto" picks by the capture (auto_init_method): "mvs" for forward-facing views, "sparse" for views that
