@@ -30,57 +30,6 @@ constexpr float kInf = std::numeric_limits<float>::infinity();
 constexpr float kMinSplatWeight = 1e-4f;
 
 // ---------------------------------------------------------------------------------------------------
-// Options
-
-struct DoubleOption {
-  const char* name;
-  double ReprojectOptions::*field;
-};
-struct IntOption {
-  const char* name;
-  int ReprojectOptions::*field;
-};
-const DoubleOption kDoubleOptions[] = {
-    {"min_reference_alpha", &ReprojectOptions::min_reference_alpha},
-    {"depth_tolerance", &ReprojectOptions::depth_tolerance},
-    {"angle_floor_deg", &ReprojectOptions::angle_floor_deg},
-    {"render_alpha_threshold", &ReprojectOptions::render_alpha_threshold},
-    {"inpaint_radius", &ReprojectOptions::inpaint_radius},
-};
-const IntOption kIntOptions[] = {
-    {"num_references", &ReprojectOptions::num_references},
-    {"splat_footprint", &ReprojectOptions::splat_footprint},
-    {"inpaint_dilation", &ReprojectOptions::inpaint_dilation},
-};
-
-std::string known_option_names() {
-  std::vector<std::string> names;
-  for (const auto& o : kDoubleOptions) names.push_back(o.name);
-  for (const auto& o : kIntOptions) names.push_back(o.name);
-  return absl::StrJoin(names, ", ");
-}
-
-// Sets one option from a JSON value; false when the key is not an option at all.
-absl::StatusOr<bool> set_option(ReprojectOptions& options, const std::string& key, const nlohmann::json& value) {
-  for (const auto& o : kDoubleOptions) {
-    if (key != o.name) continue;
-    if (!value.is_number())
-      return absl::InvalidArgumentError(absl::StrCat("reproject option ", key, " must be a number"));
-    options.*o.field = value.get<double>();
-    return true;
-  }
-  for (const auto& o : kIntOptions) {
-    if (key != o.name) continue;
-    if (!value.is_number_integer()) {
-      return absl::InvalidArgumentError(absl::StrCat("reproject option ", key, " must be an integer"));
-    }
-    options.*o.field = value.get<int>();
-    return true;
-  }
-  return false;
-}
-
-// ---------------------------------------------------------------------------------------------------
 // Input checks. Messages name the request / reference and the field, so a caller can tell which of many
 // tensors is wrong.
 
@@ -409,33 +358,31 @@ ReprojectResult reproject(const GenerationRequest& q, const ReprojectOptions& o)
 
 }  // namespace
 
-absl::Status validate_reproject_options(const ReprojectOptions& o) {
-  auto bad = [](const char* name, auto value, const char* rule) {
-    return absl::InvalidArgumentError(absl::StrCat("reproject option ", name, " = ", value, ": ", rule));
-  };
-  if (!(o.min_reference_alpha > 0 && o.min_reference_alpha <= 1)) {
-    return bad("min_reference_alpha", o.min_reference_alpha, "must be in (0, 1]");
-  }
-  if (o.num_references < 1) return bad("num_references", o.num_references, "must be at least 1");
-  if (o.splat_footprint < 1 || o.splat_footprint > 8)
-    return bad("splat_footprint", o.splat_footprint, "must be in [1, 8]");
-  if (!(o.depth_tolerance >= 0 && o.depth_tolerance < 1)) {
-    return bad("depth_tolerance", o.depth_tolerance, "must be in [0, 1)");
-  }
-  if (!(o.angle_floor_deg > 0 && o.angle_floor_deg < 180)) {
-    return bad("angle_floor_deg", o.angle_floor_deg, "must be in (0, 180)");
-  }
-  if (!(o.render_alpha_threshold > 0 && o.render_alpha_threshold <= 1)) {
-    return bad("render_alpha_threshold", o.render_alpha_threshold, "must be in (0, 1]");
-  }
-  if (!(o.inpaint_radius > 0 && o.inpaint_radius < 1000)) {
-    return bad("inpaint_radius", o.inpaint_radius, "must be in (0, 1000)");
-  }
-  if (o.inpaint_dilation < 1 || o.inpaint_dilation % 2 == 0) {
-    return bad("inpaint_dilation", o.inpaint_dilation, "must be a positive odd number");
-  }
-  return absl::OkStatus();
+const OptionTable<ReprojectOptions>& reproject_option_table() {
+  using O = ReprojectOptions;
+  static const OptionTable<O> table(
+      "reproject",
+      {
+          number_option<O>("min_reference_alpha", &O::min_reference_alpha, between(0, 1, "(]"),
+                           "reference pixels below this alpha are not warped"),
+          integer_option<O>("num_references", &O::num_references, at_least(1), "nearest references warped"),
+          integer_option<O>("splat_footprint", &O::splat_footprint, between(1, 8, "[]"),
+                            "side of the block one reference pixel is splatted to"),
+          number_option<O>("depth_tolerance", &O::depth_tolerance, between(0, 1, "[)"),
+                           "relative camera-z band of one surface in the soft z-buffer"),
+          number_option<O>("angle_floor_deg", &O::angle_floor_deg, between(0, 180, "()"),
+                           "degrees added to theta_k in the blend weight"),
+          number_option<O>("render_alpha_threshold", &O::render_alpha_threshold, between(0, 1, "(]"),
+                           "render alpha at which a pixel is covered"),
+          number_option<O>("inpaint_radius", &O::inpaint_radius, between(0, 1000, "()"),
+                           "cv::inpaint neighbourhood radius in pixels"),
+          integer_option<O>("inpaint_dilation", &O::inpaint_dilation, odd_at_least(1),
+                            "side of the uncovered mask's dilation before inpainting"),
+      });
+  return table;
 }
+
+absl::Status validate_reproject_options(const ReprojectOptions& o) { return reproject_option_table().validate(o); }
 
 absl::StatusOr<ReprojectOptions> parse_reproject_options(const std::string& json_or_empty) {
   ReprojectOptions options;
@@ -444,14 +391,7 @@ absl::StatusOr<ReprojectOptions> parse_reproject_options(const std::string& json
   if (j.is_discarded() || !j.is_object()) {
     return absl::InvalidArgumentError(absl::StrCat("reproject options must be a JSON object, got: ", json_or_empty));
   }
-  for (auto it = j.begin(); it != j.end(); ++it) {
-    GAPS_ASSIGN_OR_RETURN(const bool known, set_option(options, it.key(), it.value()));
-    if (!known) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("unknown reproject option '", it.key(), "'; known: ", known_option_names()));
-    }
-  }
-  GAPS_RETURN_IF_ERROR(validate_reproject_options(options));
+  GAPS_RETURN_IF_ERROR(reproject_option_table().apply(j, options));
   return options;
 }
 

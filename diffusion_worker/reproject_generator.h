@@ -41,6 +41,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "diffusion_worker/option_table.h"
 #include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
@@ -65,6 +66,8 @@ struct ReprojectOptions {
   int inpaint_dilation = 15;
 };
 
+// The options' JSON keys, what each accepts and sets.
+const OptionTable<ReprojectOptions>& reproject_option_table();
 // Errors name the offending option and its value.
 absl::Status validate_reproject_options(const ReprojectOptions& options);
 // A JSON object with any of the fields above, e.g. {"splat_footprint": 1}; empty or blank = defaults.

@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
 #include "diffusion_worker/sdxl/two_stage.h"
@@ -21,48 +22,77 @@ absl::Status option_error(const std::string& key, const std::string& what) {
   return absl::InvalidArgumentError(absl::StrCat("sdxl option '", key, "': ", what));
 }
 
-absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
-  if (name == "float32") return at::kFloat;
-  if (name == "float16") return at::kHalf;
-  if (name == "bfloat16") return at::kBFloat16;
-  return option_error("dtype", absl::StrCat("'", name, "' is not float32, float16 or bfloat16"));
+const std::pair<const char*, at::ScalarType> kDtypes[] = {
+    {"float32", at::kFloat}, {"float16", at::kHalf}, {"bfloat16", at::kBFloat16}};
+
+std::vector<std::string> dtype_names() {
+  std::vector<std::string> names;
+  for (const auto& [name, type] : kDtypes) names.push_back(name);
+  return names;
 }
 
-// The two-stage keys; nullopt for a key that is not one of them.
-std::optional<absl::Status> parse_inpaint_option(const std::string& key, const nlohmann::json& v, SdxlOptions& o) {
-  const auto need = [&](bool ok, const char* type) {
-    return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type));
-  };
-  if (key == "inpaint" || key == "inpaint_scheduler") {
-    if (!v.is_string()) return need(false, "a string");
-    (key == "inpaint" ? o.inpaint : o.inpaint_scheduler) = v.get<std::string>();
-    return absl::OkStatus();
-  }
-  if (key == "inpaint_steps") {
-    if (!v.is_number_integer() || v.get<int64_t>() < 1) return need(false, "an integer >= 1");
-    o.inpaint_steps = v.get<int64_t>();
-    return absl::OkStatus();
-  }
-  if (key == "inpaint_dilation") {
-    if (!v.is_number_integer() || v.get<int64_t>() < 1 || v.get<int64_t>() % 2 == 0)
-      return need(false, "an odd integer >= 1");
-    o.inpaint_dilation = v.get<int64_t>();
-    return absl::OkStatus();
-  }
-  if (key == "inpaint_uncovered_fraction") {
-    if (!v.is_number() || !(v.get<double>() >= 0 && v.get<double>() < 1)) return need(false, "a number in [0, 1)");
-    o.inpaint_uncovered_fraction = v.get<double>();
-    return absl::OkStatus();
-  }
-  if (key == "inpaint_depth_threshold" || key == "inpaint_guidance") {
-    if (!v.is_number() || !std::isfinite(v.get<double>()) || v.get<double>() < 0) return need(false, "a number >= 0");
-    (key == "inpaint_guidance" ? o.inpaint_guidance : o.inpaint_depth_threshold) = v.get<double>();
-    return absl::OkStatus();
-  }
-  return std::nullopt;
+// Parsed options hold one of kDtypes' names already (the table's choices); options built in code may not.
+absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
+  for (const auto& [dtype_name, type] : kDtypes)
+    if (name == dtype_name) return type;
+  return option_error("dtype", absl::StrCat("'", name, "' is not one of ", absl::StrJoin(dtype_names(), ", ")));
 }
 
 }  // namespace
+
+const OptionTable<SdxlOptions>& sdxl_option_table() {
+  using O = SdxlOptions;
+  static const OptionTable<O> table(
+      "sdxl",
+      {
+          string_option<O>("weights", &O::weights, "diffusers SDXL folder (required)"),
+          integer_option<O>("steps", &O::steps, at_least(1),
+                            "steps of the full schedule; a request runs steps x strength"),
+          number_option<O>("guidance", &O::guidance, at_least(0), "classifier-free guidance scale"),
+          string_option<O>("dtype", &O::dtype, "weights' and activations' type (half types on CUDA only)",
+                           dtype_names()),
+          string_option<O>("device", &O::device, "cpu, cuda or cuda:N"),
+          string_option<O>("prompt", &O::prompt, "prompt of requests without one"),
+          string_option<O>("variant", &O::variant, "fp16 = the *.fp16.safetensors weight copies"),
+          string_option<O>("scheduler", &O::scheduler, "euler, ddim, dpmpp2m or pndm; \"\" = the folder's"),
+          integer_option<O>("batch_size", &O::batch_size, at_least(1), "requests denoised together"),
+          bool_option<O>("cuda_graphs", &O::cuda_graphs, "replay the UNet from CUDA graphs (CUDA only)"),
+          string_option<O>("controlnet", &O::controlnet, "depth ControlNet folder; \"\" = the SDXL folder's, if any"),
+          number_option<O>(
+              "control_min_alpha", [](auto& o) -> auto& { return o.depth_control.min_alpha; }, above(0),
+              "tau_alpha: less rendered alpha = 0 in the depth image"),
+          integer_option<O>(
+              "control_variance_window", [](auto& o) -> auto& { return o.depth_control.variance_window; },
+              odd_at_least(1), "side of the window of the local depth variance"),
+          number_option<O>(
+              "control_max_relative_variance", [](auto& o) -> auto& { return o.depth_control.max_relative_variance; },
+              at_least(0), "larger Var(d) / mean(d)^2 over the window = 0 in the depth image"),
+          string_option<O>("ip_adapter", &O::ip_adapter, "IP-Adapter weight file; needs image_encoder"),
+          string_option<O>("image_encoder", &O::image_encoder, "the IP-Adapter's CLIP image encoder folder"),
+          number_option<O>("ip_adapter_scale", &O::ip_adapter_scale, at_least(0),
+                           "lambda_ip, the image prompt's scale"),
+          string_option<O>("inpaint", &O::inpaint, "SD2 inpainting folder for two-stage generation; \"\" = off"),
+          number_option<O>("inpaint_depth_threshold", &O::inpaint_depth_threshold, at_least(0),
+                           "tau_d for requests without inpaint settings"),
+          string_option<O>("inpaint_scheduler", &O::inpaint_scheduler, "the inpainting scheduler; \"\" = the folder's"),
+          integer_option<O>("inpaint_steps", &O::inpaint_steps, at_least(1), "steps of the inpainting schedule"),
+          number_option<O>("inpaint_guidance", &O::inpaint_guidance, at_least(0), "guidance of the inpainting"),
+          number_option<O>("inpaint_uncovered_fraction", &O::inpaint_uncovered_fraction, between(0, 1, "[)"),
+                           "inpaint views more uncovered than this (requests without inpaint settings)"),
+          integer_option<O>("inpaint_dilation", &O::inpaint_dilation, odd_at_least(1),
+                            "side of the uncovered mask's dilation (requests without inpaint settings)"),
+          integer_option<O>("lora_steps", &O::lora_steps, at_least(0),
+                            "LoRA scene adaptation steps in adapt(); 0 = none"),
+          integer_option<O>("lora_rank", &O::lora_rank, at_least(1), "rank of the LoRA adapters"),
+          number_option<O>("lora_lr", &O::lora_lr, above(0), "Adam learning rate of the adapters"),
+          string_option<O>("lora_save", &O::lora_save, "file the trained adapters are saved to; needs lora_steps"),
+          string_option<O>("lora", &O::lora, "LoRA file attached at start-up; not with lora_steps"),
+          string_option<O>("depth_anything", &O::depth_anything,
+                           "Depth-Anything folder: LoRA training's control images from its depth"),
+          string_option<O>("depth_cache", &O::depth_cache, "folder of Depth-Anything's maps; needs depth_anything"),
+      });
+  return table;
+}
 
 absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   const nlohmann::json j = nlohmann::json::parse(json, nullptr, /*allow_exceptions=*/false);
@@ -71,71 +101,8 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
         absl::StrCat("sdxl options must be a JSON object with at least \"weights\", got: ", json));
   }
   SdxlOptions o;
-  for (auto it = j.begin(); it != j.end(); ++it) {
-    const std::string& key = it.key();
-    const nlohmann::json& v = it.value();
-    const auto need = [&](bool ok, const char* type) {
-      return ok ? absl::OkStatus() : option_error(key, absl::StrCat("must be ", type));
-    };
-    const std::map<std::string, std::string*> strings{{"weights", &o.weights},
-                                                      {"dtype", &o.dtype},
-                                                      {"device", &o.device},
-                                                      {"prompt", &o.prompt},
-                                                      {"scheduler", &o.scheduler},
-                                                      {"variant", &o.variant},
-                                                      {"controlnet", &o.controlnet},
-                                                      {"depth_anything", &o.depth_anything},
-                                                      {"depth_cache", &o.depth_cache},
-                                                      {"ip_adapter", &o.ip_adapter},
-                                                      {"image_encoder", &o.image_encoder},
-                                                      {"lora_save", &o.lora_save},
-                                                      {"lora", &o.lora}};
-    if (strings.count(key)) {
-      GAPS_RETURN_IF_ERROR(need(v.is_string(), "a string"));
-      *strings.at(key) = v.get<std::string>();
-    } else if (key == "control_min_alpha" || key == "control_max_relative_variance") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
-      (key == "control_min_alpha" ? o.depth_control.min_alpha : o.depth_control.max_relative_variance) =
-          v.get<double>();
-    } else if (key == "control_variance_window") {
-      GAPS_RETURN_IF_ERROR(
-          need(v.is_number_integer() && v.get<int64_t>() >= 1 && v.get<int64_t>() % 2 == 1, "an odd integer >= 1"));
-      o.depth_control.variance_window = v.get<int64_t>();
-    } else if (key == "steps" || key == "batch_size") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
-      (key == "steps" ? o.steps : o.batch_size) = v.get<int64_t>();
-    } else if (key == "lora_steps") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 0, "an integer >= 0"));
-      o.lora_steps = v.get<int64_t>();
-    } else if (key == "lora_rank") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number_integer() && v.get<int64_t>() >= 1, "an integer >= 1"));
-      o.lora_rank = v.get<int64_t>();
-    } else if (key == "lora_lr") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() > 0, "a number > 0"));
-      o.lora_lr = v.get<double>();
-    } else if (key == "cuda_graphs") {
-      GAPS_RETURN_IF_ERROR(need(v.is_boolean(), "true or false"));
-      o.cuda_graphs = v.get<bool>();
-    } else if (key == "guidance" || key == "ip_adapter_scale") {
-      GAPS_RETURN_IF_ERROR(need(v.is_number() && v.get<double>() >= 0, "a number >= 0"));
-      (key == "guidance" ? o.guidance : o.ip_adapter_scale) = v.get<double>();
-    } else if (std::optional<absl::Status> inpaint = parse_inpaint_option(key, v, o)) {
-      GAPS_RETURN_IF_ERROR(*inpaint);
-    } else {
-      return absl::InvalidArgumentError(
-          absl::StrCat("unknown sdxl option '", key,
-                       "'; known: weights, steps, guidance, dtype, device, prompt, scheduler, variant, batch_size, "
-                       "cuda_graphs, controlnet, control_min_alpha, control_variance_window, "
-                       "control_max_relative_variance, ip_adapter, "
-                       "image_encoder, ip_adapter_scale, depth_anything, depth_cache, lora_steps, lora_rank, lora_lr, "
-                       "lora_save, lora, "
-                       "inpaint, inpaint_depth_threshold, inpaint_scheduler, inpaint_steps, inpaint_guidance, "
-                       "inpaint_uncovered_fraction, "
-                       "inpaint_dilation"));
-    }
-  }
+  GAPS_RETURN_IF_ERROR(sdxl_option_table().apply(j, o));
   if (o.weights.empty()) return option_error("weights", "the SDXL model folder is required");
-  if (!(o.depth_control.min_alpha > 0)) return option_error("control_min_alpha", "must be > 0");
   if (o.ip_adapter.empty() != o.image_encoder.empty()) {
     return option_error(o.ip_adapter.empty() ? "image_encoder" : "ip_adapter",
                         "an IP-Adapter needs both ip_adapter (weights) and image_encoder (CLIP image encoder folder)");
@@ -148,7 +115,6 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
     return option_error("depth_anything", "conditions LoRA training: it needs lora_steps > 0 and a controlnet");
   }
   if (!o.depth_cache.empty() && o.depth_anything.empty()) return option_error("depth_cache", "needs depth_anything");
-  GAPS_RETURN_IF_ERROR(parse_dtype(o.dtype).status());
   return o;
 }
 

@@ -15,6 +15,7 @@
 #include "diffusion_worker/depth/depth_anything.h"
 #include "diffusion_worker/depth/depth_cache.h"
 #include "diffusion_worker/depth_control.h"
+#include "diffusion_worker/option_table.h"
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
 #include "diffusion_worker/sdxl/pipeline.h"
 #include "gs_trainer/gaps/generator.h"
@@ -68,7 +69,10 @@ struct SdxlOptions {
   std::string lora;
 };
 
-// JSON object with the keys above ("weights" required); unknown keys and bad values are errors.
+// The options' JSON keys (diffusion_worker/README.md lists the same), what each accepts and sets.
+const OptionTable<SdxlOptions>& sdxl_option_table();
+// JSON object with the table's keys ("weights" required); unknown keys, bad values and contradicting
+// options are errors.
 absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json);
 
 class SdxlGenerator final : public Generator {

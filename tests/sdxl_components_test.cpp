@@ -111,6 +111,82 @@ TEST(UNet2DConditionTest, MatchesDiffusersWithTextTimeConditioning) {
   expect_close(unet->forward(test::recorded_unet_inputs(ref)), ref.at("out"), kTolerance, "UNet output");
 }
 
+void expect_same_config(const UNetConfig& a, const UNetConfig& b, const std::string& what) {
+  EXPECT_EQ(a.in_channels, b.in_channels) << what;
+  EXPECT_EQ(a.out_channels, b.out_channels) << what;
+  EXPECT_EQ(a.layers_per_block, b.layers_per_block) << what;
+  EXPECT_EQ(a.norm_num_groups, b.norm_num_groups) << what;
+  EXPECT_EQ(a.cross_attention_dim, b.cross_attention_dim) << what;
+  EXPECT_EQ(a.block_out_channels, b.block_out_channels) << what;
+  EXPECT_EQ(a.num_attention_heads, b.num_attention_heads) << what;
+  EXPECT_EQ(a.transformer_layers_per_block, b.transformer_layers_per_block) << what;
+  EXPECT_EQ(a.reverse_transformer_layers_per_block, b.reverse_transformer_layers_per_block) << what;
+  EXPECT_EQ(a.down_block_types, b.down_block_types) << what;
+  EXPECT_EQ(a.up_block_types, b.up_block_types) << what;
+  EXPECT_EQ(a.norm_eps, b.norm_eps) << what;
+  EXPECT_EQ(a.flip_sin_to_cos, b.flip_sin_to_cos) << what;
+  EXPECT_EQ(a.use_linear_projection, b.use_linear_projection) << what;
+  EXPECT_EQ(a.freq_shift, b.freq_shift) << what;
+  EXPECT_EQ(a.addition_embed_type, b.addition_embed_type) << what;
+  EXPECT_EQ(a.addition_time_embed_dim, b.addition_time_embed_dim) << what;
+  EXPECT_EQ(a.projection_class_embeddings_input_dim, b.projection_class_embeddings_input_dim) << what;
+}
+
+// One set of defaults: a key left out of config.json reads as the default-constructed member, and those are
+// the values diffusers' UNet2DConditionModel() writes to its config.json when given no arguments.
+TEST(UNetConfigTest, AbsentKeysReadAsTheDefaultConstructedConfig) {
+  auto empty = UNetConfig::from_json(nlohmann::json::object());
+  ASSERT_TRUE(empty.ok()) << empty.status();
+  expect_same_config(*empty, UNetConfig{}, "{}");
+
+  const nlohmann::json diffusers_defaults = {
+      {"in_channels", 4},
+      {"out_channels", 4},
+      {"flip_sin_to_cos", true},
+      {"freq_shift", 0},
+      {"down_block_types", {"CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"}},
+      {"mid_block_type", "UNetMidBlock2DCrossAttn"},
+      {"up_block_types", {"UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"}},
+      {"only_cross_attention", false},
+      {"block_out_channels", {320, 640, 1280, 1280}},
+      {"layers_per_block", 2},
+      {"norm_num_groups", 32},
+      {"norm_eps", 1e-5},
+      {"cross_attention_dim", 1280},
+      {"transformer_layers_per_block", 1},
+      {"reverse_transformer_layers_per_block", nullptr},
+      {"attention_head_dim", 8},
+      {"num_attention_heads", nullptr},
+      {"use_linear_projection", false},
+      {"addition_embed_type", nullptr},
+      {"addition_time_embed_dim", nullptr},
+      {"projection_class_embeddings_input_dim", nullptr}};
+  auto written = UNetConfig::from_json(diffusers_defaults);
+  ASSERT_TRUE(written.ok()) << written.status();
+  expect_same_config(*written, UNetConfig{}, "diffusers' defaults written out");
+}
+
+TEST(UNetConfigTest, PerBlockDefaultsFollowTheBlockCount) {
+  auto config = UNetConfig::from_json({{"block_out_channels", {32, 64}},
+                                       {"down_block_types", {"DownBlock2D", "CrossAttnDownBlock2D"}},
+                                       {"up_block_types", {"CrossAttnUpBlock2D", "UpBlock2D"}},
+                                       {"transformer_layers_per_block", {1, 3}}});
+  ASSERT_TRUE(config.ok()) << config.status();
+  EXPECT_EQ(config->num_attention_heads, std::vector<int64_t>(2, UNetConfig::kAttentionHeads));
+  EXPECT_EQ(config->reverse_transformer_layers_per_block, (std::vector<int64_t>{3, 1}));
+}
+
+// diffusers has no default for text_time's dimensions (its constructor fails without them).
+TEST(UNetConfigTest, TextTimeNeedsItsDimensions) {
+  auto config = UNetConfig::from_json({{"addition_embed_type", "text_time"}, {"addition_time_embed_dim", 256}});
+  ASSERT_FALSE(config.ok());
+  EXPECT_TRUE(test::contains_all(std::string(config.status().message()), {"projection_class_embeddings_input_dim"}));
+  EXPECT_TRUE(UNetConfig::from_json({{"addition_embed_type", "text_time"},
+                                     {"addition_time_embed_dim", 256},
+                                     {"projection_class_embeddings_input_dim", 2816}})
+                  .ok());
+}
+
 TEST(WeightSpecsTest, ListExactlyTheCheckpointsTensors) {
   const ModelFolder f = folder();
   const auto matches = [](const std::vector<TensorSpec>& specs, const TensorMap& checkpoint, const std::string& what) {

@@ -61,25 +61,28 @@ absl::Status reject_unsupported_options(const nlohmann::json& j) {
 absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool with_up_blocks) {
   UNetConfig c;
   GAPS_RETURN_IF_ERROR(reject_unsupported_options(j));
-  GAPS_ASSIGN_OR_RETURN(c.in_channels, config_value<int64_t>(j, "in_channels", 4));
-  GAPS_ASSIGN_OR_RETURN(c.out_channels, config_value<int64_t>(j, "out_channels", 4));
-  GAPS_ASSIGN_OR_RETURN(c.layers_per_block, config_value<int64_t>(j, "layers_per_block", 2));
-  GAPS_ASSIGN_OR_RETURN(c.norm_num_groups, config_value<int64_t>(j, "norm_num_groups", 32));
-  GAPS_ASSIGN_OR_RETURN(c.norm_eps, config_value<double>(j, "norm_eps", 1e-5));
-  if (j.contains("cross_attention_dim") && !j["cross_attention_dim"].is_number_integer()) {
+  GAPS_ASSIGN_OR_RETURN(c.in_channels, config_value(j, "in_channels", c.in_channels));
+  GAPS_ASSIGN_OR_RETURN(c.out_channels, config_value(j, "out_channels", c.out_channels));
+  GAPS_ASSIGN_OR_RETURN(c.layers_per_block, config_value(j, "layers_per_block", c.layers_per_block));
+  GAPS_ASSIGN_OR_RETURN(c.norm_num_groups, config_value(j, "norm_num_groups", c.norm_num_groups));
+  GAPS_ASSIGN_OR_RETURN(c.norm_eps, config_value(j, "norm_eps", c.norm_eps));
+  if (j.contains("cross_attention_dim") && !j["cross_attention_dim"].is_null() &&
+      !j["cross_attention_dim"].is_number_integer()) {
     return absl::UnimplementedError("UNet config: per-block cross_attention_dim is not supported");
   }
-  GAPS_ASSIGN_OR_RETURN(c.cross_attention_dim, config_value<int64_t>(j, "cross_attention_dim", 1280));
-  GAPS_ASSIGN_OR_RETURN(c.block_out_channels, config_value<std::vector<int64_t>>(j, "block_out_channels", {}));
-  GAPS_ASSIGN_OR_RETURN(c.down_block_types, config_value<std::vector<std::string>>(j, "down_block_types", {}));
-  GAPS_ASSIGN_OR_RETURN(c.up_block_types, config_value<std::vector<std::string>>(j, "up_block_types", {}));
-  GAPS_ASSIGN_OR_RETURN(c.flip_sin_to_cos, config_value<bool>(j, "flip_sin_to_cos", true));
-  GAPS_ASSIGN_OR_RETURN(c.freq_shift, config_value<double>(j, "freq_shift", 0.0));
-  GAPS_ASSIGN_OR_RETURN(c.use_linear_projection, config_value<bool>(j, "use_linear_projection", false));
-  GAPS_ASSIGN_OR_RETURN(c.addition_embed_type, config_value<std::string>(j, "addition_embed_type", ""));
-  GAPS_ASSIGN_OR_RETURN(c.addition_time_embed_dim, config_value<int64_t>(j, "addition_time_embed_dim", 256));
-  GAPS_ASSIGN_OR_RETURN(c.projection_class_embeddings_input_dim,
-                        config_value<int64_t>(j, "projection_class_embeddings_input_dim", 0));
+  GAPS_ASSIGN_OR_RETURN(c.cross_attention_dim, config_value(j, "cross_attention_dim", c.cross_attention_dim));
+  GAPS_ASSIGN_OR_RETURN(c.block_out_channels, config_value(j, "block_out_channels", c.block_out_channels));
+  GAPS_ASSIGN_OR_RETURN(c.down_block_types, config_value(j, "down_block_types", c.down_block_types));
+  GAPS_ASSIGN_OR_RETURN(c.up_block_types, config_value(j, "up_block_types", c.up_block_types));
+  GAPS_ASSIGN_OR_RETURN(c.flip_sin_to_cos, config_value(j, "flip_sin_to_cos", c.flip_sin_to_cos));
+  GAPS_ASSIGN_OR_RETURN(c.freq_shift, config_value(j, "freq_shift", c.freq_shift));
+  GAPS_ASSIGN_OR_RETURN(c.use_linear_projection, config_value(j, "use_linear_projection", c.use_linear_projection));
+  GAPS_ASSIGN_OR_RETURN(c.addition_embed_type, config_value(j, "addition_embed_type", c.addition_embed_type));
+  GAPS_ASSIGN_OR_RETURN(c.addition_time_embed_dim,
+                        config_value(j, "addition_time_embed_dim", c.addition_time_embed_dim));
+  GAPS_ASSIGN_OR_RETURN(
+      c.projection_class_embeddings_input_dim,
+      config_value(j, "projection_class_embeddings_input_dim", c.projection_class_embeddings_input_dim));
   const size_t n = c.block_out_channels.size();
   if (!with_up_blocks) c.up_block_types.clear();
   if (n == 0 || c.down_block_types.size() != n || (with_up_blocks && c.up_block_types.size() != n)) {
@@ -97,9 +100,9 @@ absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool w
   const std::string heads_key = j.contains("num_attention_heads") && !j["num_attention_heads"].is_null()
                                     ? "num_attention_heads"
                                     : "attention_head_dim";
-  GAPS_ASSIGN_OR_RETURN(c.num_attention_heads, per_block(j, heads_key, n, std::vector<int64_t>(n, 8)));
+  GAPS_ASSIGN_OR_RETURN(c.num_attention_heads, per_block(j, heads_key, n, std::vector<int64_t>(n, kAttentionHeads)));
   GAPS_ASSIGN_OR_RETURN(c.transformer_layers_per_block,
-                        per_block(j, "transformer_layers_per_block", n, std::vector<int64_t>(n, 1)));
+                        per_block(j, "transformer_layers_per_block", n, std::vector<int64_t>(n, kTransformerLayers)));
   std::vector<int64_t> reversed(c.transformer_layers_per_block.rbegin(), c.transformer_layers_per_block.rend());
   GAPS_ASSIGN_OR_RETURN(c.reverse_transformer_layers_per_block,
                         per_block(j, "reverse_transformer_layers_per_block", n, reversed));
@@ -108,6 +111,12 @@ absl::StatusOr<UNetConfig> UNetConfig::from_json(const nlohmann::json& j, bool w
     return absl::UnimplementedError("UNet mid block type " + mid_type + " is not supported");
   if (!c.addition_embed_type.empty() && c.addition_embed_type != "text_time") {
     return absl::UnimplementedError("UNet addition_embed_type " + c.addition_embed_type + " is not supported");
+  }
+  if (c.addition_embed_type == "text_time" &&
+      (c.addition_time_embed_dim < 1 || c.projection_class_embeddings_input_dim < 1)) {
+    return absl::InvalidArgumentError(
+        "UNet config: addition_embed_type text_time needs addition_time_embed_dim and "
+        "projection_class_embeddings_input_dim");
   }
   for (const char* key : {"class_embed_type", "encoder_hid_dim_type", "time_cond_proj_dim", "time_embedding_dim"}) {
     if (j.contains(key) && !j[key].is_null())

@@ -20,16 +20,29 @@
 
 namespace gaps::sdxl {
 
+// Every default is the one diffusers' UNet2DConditionModel takes for a key its config.json leaves out
+// (Stable Diffusion 1.x's layout); from_json keeps a member's value for an absent key, so these are the
+// only defaults. Per-block lists given as one number hold that number for every block.
 struct UNetConfig {
-  int64_t in_channels = 4, out_channels = 4, layers_per_block = 2, norm_num_groups = 32, cross_attention_dim = 2048;
-  std::vector<int64_t> block_out_channels, num_attention_heads, transformer_layers_per_block;
-  std::vector<int64_t> reverse_transformer_layers_per_block;  // per up block; reversed down list when absent
-  std::vector<std::string> down_block_types, up_block_types;
+  static constexpr int64_t kAttentionHeads = 8;     // per block (attention_head_dim when num_attention_heads is absent)
+  static constexpr int64_t kTransformerLayers = 1;  // per block
+
+  int64_t in_channels = 4, out_channels = 4, layers_per_block = 2, norm_num_groups = 32, cross_attention_dim = 1280;
+  std::vector<int64_t> block_out_channels = {320, 640, 1280, 1280};
+  std::vector<std::string> down_block_types = {"CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D",
+                                               "DownBlock2D"};
+  std::vector<std::string> up_block_types = {"UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D",
+                                             "CrossAttnUpBlock2D"};
+  std::vector<int64_t> num_attention_heads = std::vector<int64_t>(4, kAttentionHeads);
+  std::vector<int64_t> transformer_layers_per_block = std::vector<int64_t>(4, kTransformerLayers);
+  // Per up block; the reversed transformer_layers_per_block when absent.
+  std::vector<int64_t> reverse_transformer_layers_per_block = std::vector<int64_t>(4, kTransformerLayers);
   double norm_eps = 1e-5;
-  bool flip_sin_to_cos = true, use_linear_projection = true;
+  bool flip_sin_to_cos = true, use_linear_projection = false;
   double freq_shift = 0;
-  std::string addition_embed_type;  // "text_time" or empty
-  int64_t addition_time_embed_dim = 256, projection_class_embeddings_input_dim = 0;
+  std::string addition_embed_type;  // "text_time" or empty (none)
+  // Both only with "text_time", which needs them (diffusers has no default); 0 = absent.
+  int64_t addition_time_embed_dim = 0, projection_class_embeddings_input_dim = 0;
   // with_up_blocks = false reads the input half only (a ControlNet's config has no up blocks).
   static absl::StatusOr<UNetConfig> from_json(const nlohmann::json& config, bool with_up_blocks = true);
 };
