@@ -1,8 +1,20 @@
 #!/usr/bin/env bash
-# One command for the whole test suite: install what is missing, build, run ctest.
+# One command for the whole test suite: install what is missing, build, run ctest (extra arguments go to
+# ctest), then one summary line: passed, failed, skipped, and how many of the skipped are GPU tests (label
+# gpu) and why they skipped; on a machine without a GPU all of them, for want of a CUDA device. The exit
+# status is ctest's.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 bash "$root/scripts/setup.sh"
 bash "$root/scripts/build.sh"
-cd "${GAPS_BUILD_DIR:-$root/build}"
-ctest --output-on-failure -j "${GAPS_TEST_JOBS:-2}" "$@"
+build=${GAPS_BUILD_DIR:-$root/build}
+cd "$build"
+results="$build/Testing/ctest_results.xml"
+gpu_tests="$build/Testing/gpu_tests.json"
+mkdir -p "$build/Testing"
+rm -f "$results"
+status=0
+ctest --output-on-failure -j "${GAPS_TEST_JOBS:-2}" --output-junit "$results" "$@" || status=$?
+ctest --show-only=json-v1 -L gpu >"$gpu_tests"
+python3 "$root/tests/scripts/ctest_summary.py" "$results" "$gpu_tests"
+exit "$status"

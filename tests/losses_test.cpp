@@ -1,10 +1,9 @@
 // Training losses: values against closed forms, the original 3DGS Python SSIM, and autograd
-// gradients against finite differences (float64, tiny images).
+// gradients against finite differences (float64, tiny images). On CUDA: gpu/losses_cuda_test.cpp.
 #include "gs_trainer/raster/losses.h"
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <cmath>
@@ -18,6 +17,8 @@
 #include <vector>
 
 #include "common/io_util.h"
+#include "tests/losses_test_util.h"
+#include "tests/test_util.h"
 
 namespace gaps {
 namespace {
@@ -26,10 +27,8 @@ constexpr double kC1 = 0.01 * 0.01;
 constexpr double kC2 = 0.03 * 0.03;
 const at::TensorOptions kDouble = at::TensorOptions().dtype(at::kDouble);
 
-at::Tensor random_image(int64_t h, int64_t w, uint64_t seed, double lo = 0.0, double hi = 1.0) {
-  at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(seed);
-  return at::rand({h, w, 3}, gen, kDouble) * (hi - lo) + lo;
-}
+using test::random_image;
+using test::run_command;
 
 // The normalised 11-tap Gaussian (sigma 1.5), computed independently of losses.cpp.
 std::vector<double> gaussian_taps() {
@@ -128,16 +127,6 @@ TEST(Ssim, ConstantShiftLeavesOnlyLuminanceTermInInterior) {
 }
 
 // ---- comparison with the original 3DGS Python code ----
-
-std::pair<int, std::string> run_command(const std::string& command) {
-  std::string output;
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (pipe == nullptr) return {-1, "popen failed"};
-  char buffer[4096];
-  while (size_t n = fread(buffer, 1, sizeof buffer, pipe)) output.append(buffer, n);
-  const int status = pclose(pipe);
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
-}
 
 void write_raw(const std::filesystem::path& path, const at::Tensor& t) {
   at::Tensor c = t.contiguous();
@@ -270,7 +259,7 @@ TEST(Gradients, WeightedPhotometricLossMatchesFiniteDifferences) {
       random_image(12, 13, 18));
 }
 
-// ---- types, devices, misuse ----
+// ---- types and misuse ----
 
 TEST(Losses, Float32AgreesWithFloat64) {
   at::Tensor pred = random_image(30, 41, 19);
@@ -279,17 +268,6 @@ TEST(Losses, Float32AgreesWithFloat64) {
   at::Tensor single = gaps::photometric_loss(pred.to(at::kFloat), gt.to(at::kFloat));
   EXPECT_EQ(single.scalar_type(), at::kFloat);
   EXPECT_NEAR(single.item<double>(), reference, 1e-6);
-}
-
-TEST(Losses, CudaAgreesWithCpu) {
-  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  at::Tensor pred = random_image(30, 41, 21).to(at::kFloat);
-  at::Tensor gt = random_image(30, 41, 22).to(at::kFloat);
-  at::Tensor weight = at::rand({30, 41});
-  const double cpu = gaps::weighted_photometric_loss(pred, gt, weight).item<double>();
-  at::Tensor cuda = gaps::weighted_photometric_loss(pred.cuda(), gt.cuda(), weight.cuda());
-  EXPECT_TRUE(cuda.is_cuda());
-  EXPECT_NEAR(cuda.item<double>(), cpu, 1e-6);
 }
 
 TEST(Losses, RejectsMismatchedShapes) {

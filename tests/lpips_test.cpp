@@ -8,7 +8,6 @@
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 #include <gtest/gtest.h>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <cmath>
@@ -25,44 +24,24 @@
 #include "gs_trainer/eval/metrics.h"
 
 #include "common/io_util.h"
+#include "tests/lpips_test_util.h"
 
 namespace gaps {
 namespace {
 
-const std::string kLinWeights = std::string(GAPS_DATA_DIR) + "/lpips/vgg.pth";
+using test::kLinWeights;
+using test::make_temp_dir;
+using test::read_file;
 
 // The LPIPS v0.1 linear weights come with the benchmark data (GAPS_DATA_DIR), which is never committed.
 #define REQUIRE_LIN_WEIGHTS()                 \
   if (access(kLinWeights.c_str(), R_OK) != 0) \
   GTEST_SKIP() << kLinWeights << " is missing (benchmark data not found at GAPS_DATA_DIR)"
 
-// Exit status of tests/scripts/lpips_reference.py when a Python module it needs is missing.
-constexpr int kMissingPythonModule = 77;
-
 // ---- small file helpers ----
-
-std::string make_temp_dir(const std::string& stem) {
-  std::string pattern = "/tmp/" + stem + "_XXXXXX";
-  return mkdtemp(pattern.data()) != nullptr ? pattern : std::string();
-}
-
-std::string read_file(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), {});
-}
 
 void write_file(const std::string& path, const std::string& bytes) {
   std::ofstream(path, std::ios::binary | std::ios::trunc).write(bytes.data(), bytes.size());
-}
-
-std::pair<int, std::string> run_command(const std::string& command) {
-  std::string output;
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (pipe == nullptr) return {-1, "popen failed"};
-  char buffer[4096];
-  while (size_t n = fread(buffer, 1, sizeof buffer, pipe)) output.append(buffer, n);
-  const int status = pclose(pipe);
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
 }
 
 bool contains(absl::string_view haystack, absl::string_view needle) {
@@ -181,74 +160,9 @@ TEST(TorchPickle, StorageSizeMismatchIsReported) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Fixtures from Python (generated once per test process).
-
-class PythonFixtures : public ::testing::Test {
- protected:
-  static void SetUpTestSuite() {
-    error_.clear();
-    skip_.clear();
-    if (access(kLinWeights.c_str(), R_OK) != 0) {
-      skip_ = kLinWeights + " is missing (benchmark data not found at GAPS_DATA_DIR)";
-      return;
-    }
-    if (access(GAPS_PYTHON, X_OK) != 0) {
-      error_ = std::string("GAPS_PYTHON (") + GAPS_PYTHON +
-               ") is not an executable; run scripts/setup.sh (it installs torch, torchvision, lpips)";
-      return;
-    }
-    dir_ = make_temp_dir("gaps_lpips_fixtures");
-    const std::string command = std::string(GAPS_PYTHON) + " " + GAPS_TEST_SCRIPTS_DIR +
-                                "/scripts/lpips_reference.py --out " + dir_ + " --lin " + kLinWeights;
-    auto [rc, output] = run_command(command);
-    if (rc == kMissingPythonModule) {
-      skip_ = "the reference needs Python modules that " + std::string(GAPS_PYTHON) + " lacks: " + output;
-      return;
-    }
-    if (rc != 0) {
-      error_ = "fixture script failed (exit " + std::to_string(rc) + "): " + command + "\n" + output;
-      return;
-    }
-    manifest_ = nlohmann::json::parse(read_file(dir_ + "/manifest.json"));
-  }
-  static void TearDownTestSuite() {
-    if (!dir_.empty()) remove_tree(dir_);
-  }
-  void SetUp() override {
-    if (!skip_.empty()) GTEST_SKIP() << skip_;
-    ASSERT_TRUE(error_.empty()) << error_;
-  }
-
-  static std::string path(const std::string& name) { return dir_ + "/" + name; }
-  static std::string backbone(const std::string& format) {
-    return path(manifest_["backbones"][format].get<std::string>());
-  }
-  static at::Tensor read_image(const nlohmann::json& pair, const char* which) {
-    const int64_t h = pair["height"].get<int64_t>(), w = pair["width"].get<int64_t>();
-    at::Tensor image = at::empty({h, w, 3}, at::kFloat);
-    const std::string bytes = read_file(path(pair[which].get<std::string>()));
-    EXPECT_EQ(bytes.size(), static_cast<size_t>(image.numel() * 4)) << pair[which];
-    std::memcpy(image.data_ptr(), bytes.data(), std::min<size_t>(bytes.size(), image.numel() * 4));
-    return image;
-  }
-  static Lpips load_lpips(const std::string& format) {
-    auto lpips = Lpips::load(kLinWeights, backbone(format));
-    EXPECT_TRUE(lpips.ok()) << lpips.status();
-    return std::move(lpips).value();
-  }
-
-  static std::string dir_;
-  static std::string error_;
-  static std::string skip_;
-  static nlohmann::json manifest_;
-};
-std::string PythonFixtures::dir_;
-std::string PythonFixtures::error_;
-std::string PythonFixtures::skip_;
-nlohmann::json PythonFixtures::manifest_;
-
-using TorchPickleFixtures = PythonFixtures;
-using LpipsParity = PythonFixtures;
+// Fixtures from Python (tests/lpips_test_util.h; the CUDA parity test is in gpu/).
+using TorchPickleFixtures = test::PythonFixtures;
+using LpipsParity = test::PythonFixtures;
 
 void expect_tensor(const std::map<std::string, at::Tensor>& dict, const std::string& key, const at::Tensor& expected,
                    const std::string& file) {
@@ -320,7 +234,7 @@ TEST_F(TorchPickleFixtures, ZipAndLegacyBackbonesAgreeAndTruncationsFail) {
   }
 }
 
-class LpipsParityByFormat : public PythonFixtures, public ::testing::WithParamInterface<const char*> {};
+class LpipsParityByFormat : public test::PythonFixtures, public ::testing::WithParamInterface<const char*> {};
 
 TEST_P(LpipsParityByFormat, MatchesPythonLpipsOnRandomBackbone) {
   Lpips lpips = load_lpips(GetParam());
@@ -354,25 +268,6 @@ TEST_F(LpipsParity, EvaluateImageReportsLpips) {
   ASSERT_TRUE(m.lpips.has_value());
   EXPECT_NEAR(*m.lpips, pair["distance"].get<double>(), 1e-5 * pair["distance"].get<double>());
   EXPECT_NEAR(m.psnr, psnr(read_image(pair, "a"), read_image(pair, "b")), 1e-12);
-}
-
-TEST_F(LpipsParity, CudaAgreesWithPython) {
-  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  Lpips lpips = load_lpips("zip");
-  lpips.to(at::Device(at::kCUDA));
-  at::NoGradGuard no_grad;
-  // cuDNN convolutions may run in TF32 by default (as in PyTorch), which moves the small distances
-  // by ~1e-4 relative; switched off here so that the CUDA path is checked as tightly as the CPU one.
-  at::Context& context = at::globalContext();
-  const bool tf32 = context.allowTF32CuDNN();
-  context.setAllowTF32CuDNN(false);
-  for (const nlohmann::json& pair : manifest_["pairs"]) {
-    at::Tensor d = lpips.distance(read_image(pair, "a").cuda(), read_image(pair, "b").cuda());
-    EXPECT_TRUE(d.is_cuda());
-    const double expected = pair["distance"].get<double>();
-    EXPECT_NEAR(d.item<double>(), expected, 2e-5 * expected + 1e-9);
-  }
-  context.setAllowTF32CuDNN(tf32);
 }
 
 TEST_F(LpipsParity, BrokenBackbonesNameTheKey) {

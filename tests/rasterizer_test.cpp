@@ -11,14 +11,12 @@
 
 #include "gs_trainer/raster/rasterize_backend.h"
 #include "gs_trainer/raster/rasterizer.h"
+#include "tests/raster_test_util.h"
 
 namespace gaps {
 namespace {
 
-struct RandomScene {
-  at::Tensor means, quats, scales, opacities, features, viewmat;
-  raster::Intrinsics K;
-};
+using test::RandomScene;
 
 // Gaussians in front of a camera looking down +z from a slightly rotated pose. Opacities stay below
 // 0.35 so that no Gaussian is cut off by its 3-sigma footprint while still above the 1/255 threshold:
@@ -32,13 +30,7 @@ RandomScene make_scene(int n, int width, int height, at::ScalarType dtype, uint6
   s.scales = at::rand({n, 3}, opts) * 0.25 + 0.05;
   s.opacities = at::rand({n}, opts) * 0.25 + 0.08;
   s.features = at::rand({n, 4}, opts);
-  Eigen::Matrix3d R = Eigen::AngleAxisd(0.1, Eigen::Vector3d(0.3, 1.0, 0.2).normalized()).toRotationMatrix();
-  s.viewmat = at::eye(4, opts);
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) s.viewmat[r][c] = R(r, c);
-  s.viewmat[0][3] = 0.05;
-  s.viewmat[2][3] = 0.3;
-  s.K = {0.9 * width, 0.9 * width, 0.5 * width + 0.7, 0.5 * height - 0.4, width, height};
+  test::place_camera(s, width, height, opts);
   return s;
 }
 

@@ -1,6 +1,6 @@
 // What a run reports about itself: the divergence guard (non-finite loss or parameters stop the run with
 // the iteration and the culprit named), the evaluation curve, peak memory and generator time in
-// metrics.json, and the self-contained HTML report.
+// metrics.json, and the self-contained HTML report. Peak memory on CUDA: gpu/run_monitoring_cuda_test.cpp.
 #include <cmath>
 #include <fstream>
 #include <limits>
@@ -15,11 +15,15 @@
 #include "gs_trainer/report.h"
 #include "gs_trainer/synthetic.h"
 #include "gs_trainer/train/divergence.h"
+#include "tests/run_monitoring_test_util.h"
 #include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
 namespace {
+
+using test::read_json;
+using test::RunMonitoring;
 
 GaussianModel small_model() {
   PointCloud points;
@@ -68,11 +72,6 @@ TEST(DivergenceGuard, OtherErrorsAreNotDivergence) {
   EXPECT_FALSE(is_divergence(absl::AbortedError("cancelled")));
 }
 
-nlohmann::json read_json(const std::filesystem::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
-}
-
 std::string read_text(const std::filesystem::path& p) {
   std::ifstream f(p);
   return std::string(std::istreambuf_iterator<char>(f), {});
@@ -94,19 +93,6 @@ class HalfGarbageGenerator : public Generator {
     for (size_t i = 0; i < requests.size(); ++i)
       out.push_back(i % 2 == 0 ? requests[i].render_rgb.clone() : at::rand_like(requests[i].render_rgb));
     return out;
-  }
-};
-
-struct RunMonitoring : test::TempDirTest {
-  RunOptions options() {
-    RunOptions o = test::short_run(dir_);
-    o.config.iterations = 60;
-    o.eval_every = 20;
-    return o;
-  }
-  void SetUp() override {
-    test::TempDirTest::SetUp();
-    test::write_small_scene(dir_);
   }
 };
 
@@ -146,21 +132,6 @@ TEST_F(RunMonitoring, CurvePeakMemoryAndReportOfAVanillaRun) {
   EXPECT_NE(html.find("No pseudo-view phases"), std::string::npos);
   EXPECT_NE(html.find("<tr><th>initial points</th><td>" + m["init_method"].get<std::string>() + "</td></tr>"),
             std::string::npos);
-}
-
-TEST_F(RunMonitoring, PeakMemoryOnCudaComesFromTheCachingAllocator) {
-  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  RunOptions o = options();
-  o.config.device = "cuda";
-  o.html_report = false;
-  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
-  ASSERT_TRUE(r.ok()) << r.status();
-  const auto m = read_json(o.out_dir / "metrics.json");
-  EXPECT_EQ(m["peak_memory"]["kind"], "cuda_allocator");
-  // At least the 2,000 initial Gaussians' parameters (59 floats each) were on the device at once.
-  EXPECT_GT(m["peak_memory"]["bytes"].get<int64_t>(), 2000 * 59 * 4);
-  EXPECT_GE(m["peak_memory"]["reserved_bytes"].get<int64_t>(), m["peak_memory"]["bytes"].get<int64_t>());
-  EXPECT_EQ(m["curve"].size(), 3u);
 }
 
 TEST_F(RunMonitoring, ReportShowsAdmittedAndRejectedPseudoViewsAndGeneratorTime) {

@@ -5,8 +5,8 @@
 // guidance 5 and a CPU generator seeded 1234: 2 DDIM steps, 2 Euler steps (strength 1), 3 of 4 DDIM steps
 // (strength 0.75), one generator per image, and the folder's PNDM (skip_prk_steps) for 4 steps at
 // strength 1 and 3 of 4 at strength 0.75. Tolerance: max abs diff <= 1e-4 of the reference's scale.
+// float16 and bfloat16 on CUDA: gpu/sdxl_cuda_test.cpp.
 #include <filesystem>
-#include <fstream>
 #include <map>
 
 #include <ATen/ATen.h>
@@ -16,23 +16,21 @@
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
 #include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/unet.h"
+#include "tests/sd2_inpaint_test_util.h"
 #include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
 
 namespace gaps::sdxl {
 namespace {
 
-std::string fixture_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sd2_inpaint_tiny"; }
-std::string model_dir() { return fixture_dir() + "/model"; }
-
-TensorMap reference(const std::string& name) {
-  auto tensors = read_safetensors(fixture_dir() + "/reference/" + name + ".safetensors");
-  EXPECT_TRUE(tensors.ok()) << tensors.status();
-  return tensors.ok() ? *tensors : TensorMap{};
-}
+using test::sd2_fixture_dir;
+using test::sd2_inpaint_setup;
+using test::sd2_model_dir;
+using test::sd2_prompts;
+using test::sd2_reference;
 
 nlohmann::json unet_json() {
-  auto json = read_json_file(model_dir() + "/unet/config.json");
+  auto json = read_json_file(sd2_model_dir() + "/unet/config.json");
   EXPECT_TRUE(json.ok()) << json.status();
   return json.ok() ? *json : nlohmann::json{};
 }
@@ -122,11 +120,11 @@ TEST(Sd2InpaintTest, RejectsUnsupportedUNetOptionsByName) {
 TEST(Sd2InpaintTest, UNetMatchesDiffusers) {
   auto config = UNetConfig::from_json(unet_json());
   ASSERT_TRUE(config.ok()) << config.status();
-  auto weights = read_folder_weights(model_dir() + "/unet");
+  auto weights = read_folder_weights(sd2_model_dir() + "/unet");
   ASSERT_TRUE(weights.ok()) << weights.status();
   auto unet = UNet2DCondition::load(*config, *weights, at::TensorOptions(), "unet");
   ASSERT_TRUE(unet.ok()) << unet.status();
-  const TensorMap ref = reference("unet");
+  const TensorMap ref = sd2_reference("unet");
   UNetInputs in;
   in.sample = ref.at("sample");
   in.timestep = ref.at("timestep");
@@ -134,26 +132,15 @@ TEST(Sd2InpaintTest, UNetMatchesDiffusers) {
   test::expect_close(unet->forward(in), ref.at("out"), 1e-4, "SD2 inpainting UNet");
 }
 
-// The prompts, seed and settings of the recorded runs.
-const nlohmann::json& inpaint_setup() {
-  static const nlohmann::json setup = [] {
-    std::ifstream in(fixture_dir() + "/reference/inpaint.json");
-    return nlohmann::json::parse(in);
-  }();
-  return setup;
-}
-
-std::vector<std::string> prompts() { return inpaint_setup()["prompts"].get<std::vector<std::string>>(); }
-
 // Runs the recorded inputs of reference `name` and compares with diffusers' output.
 void expect_run_matches(InpaintPipeline& pipeline, const std::string& name, const std::vector<uint64_t>& seeds) {
-  const nlohmann::json& run = inpaint_setup()["runs"][name];
-  const TensorMap ref = reference("inpaint_" + name);
+  const nlohmann::json& run = sd2_inpaint_setup()["runs"][name];
+  const TensorMap ref = sd2_reference("inpaint_" + name);
   InpaintParams params;
   params.steps = run["steps"].get<int64_t>();
   params.strength = run["strength"].get<double>();
-  params.guidance_scale = inpaint_setup()["guidance_scale"].get<double>();
-  auto out = pipeline.inpaint(ref.at("image"), ref.at("mask"), prompts(), params, seeds);
+  params.guidance_scale = sd2_inpaint_setup()["guidance_scale"].get<double>();
+  auto out = pipeline.inpaint(ref.at("image"), ref.at("mask"), sd2_prompts(), params, seeds);
   ASSERT_TRUE(out.ok()) << out.status();
   test::expect_close(*out, ref.at("out"), 1e-4, "inpainting " + name);
 }
@@ -163,7 +150,7 @@ class Sd2InpaintPipelineTest : public ::testing::Test {
   static std::unique_ptr<InpaintPipeline> load(const std::string& scheduler = "") {
     InpaintPipelineOptions options;
     options.scheduler = scheduler;
-    auto pipeline = InpaintPipeline::load(model_dir(), options);
+    auto pipeline = InpaintPipeline::load(sd2_model_dir(), options);
     EXPECT_TRUE(pipeline.ok()) << pipeline.status();
     return pipeline.ok() ? *std::move(pipeline) : nullptr;
   }
@@ -172,21 +159,21 @@ class Sd2InpaintPipelineTest : public ::testing::Test {
 TEST_F(Sd2InpaintPipelineTest, PromptEmbeddingsAreTheLastHiddenState) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  const TensorMap ref = reference("prompt_embeds");
-  test::expect_close(pipeline->encode_prompts(prompts()), ref.at("cond"), 1e-4, "prompt embeddings");
+  const TensorMap ref = sd2_reference("prompt_embeds");
+  test::expect_close(pipeline->encode_prompts(sd2_prompts()), ref.at("cond"), 1e-4, "prompt embeddings");
   test::expect_close(pipeline->encode_prompts({"", ""}), ref.at("uncond"), 1e-4, "empty-prompt embeddings");
 }
 
 TEST_F(Sd2InpaintPipelineTest, DdimFromNoiseMatchesDiffusers) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "ddim", {inpaint_setup()["seed"].get<uint64_t>()});
+  expect_run_matches(*pipeline, "ddim", {sd2_inpaint_setup()["seed"].get<uint64_t>()});
   // Another seed gives another image (the draws are used).
-  const TensorMap ref = reference("inpaint_ddim");
+  const TensorMap ref = sd2_reference("inpaint_ddim");
   InpaintParams params;
   params.steps = 2;
   params.guidance_scale = 5.0;
-  auto other = pipeline->inpaint(ref.at("image"), ref.at("mask"), prompts(), params, {99});
+  auto other = pipeline->inpaint(ref.at("image"), ref.at("mask"), sd2_prompts(), params, {99});
   ASSERT_TRUE(other.ok()) << other.status();
   EXPECT_GT((*other - ref.at("out")).abs().max().item<double>(), 1e-3);
 }
@@ -194,37 +181,20 @@ TEST_F(Sd2InpaintPipelineTest, DdimFromNoiseMatchesDiffusers) {
 TEST_F(Sd2InpaintPipelineTest, EulerFromNoiseMatchesDiffusers) {
   auto pipeline = load("euler");
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "euler", {inpaint_setup()["seed"].get<uint64_t>()});
+  expect_run_matches(*pipeline, "euler", {sd2_inpaint_setup()["seed"].get<uint64_t>()});
 }
 
 TEST_F(Sd2InpaintPipelineTest, PartialStrengthMatchesDiffusers) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
-  expect_run_matches(*pipeline, "ddim_strength", {inpaint_setup()["seed"].get<uint64_t>()});
+  expect_run_matches(*pipeline, "ddim_strength", {sd2_inpaint_setup()["seed"].get<uint64_t>()});
 }
 
 TEST_F(Sd2InpaintPipelineTest, OneSeedPerImageMatchesDiffusersGeneratorList) {
   auto pipeline = load();
   ASSERT_NE(pipeline, nullptr);
   expect_run_matches(*pipeline, "seed_list",
-                     inpaint_setup()["runs"]["seed_list"]["seeds"].get<std::vector<uint64_t>>());
-}
-
-TEST_F(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
-  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  // Half precision follows the float32 result within its rounding, as in sdxl_pipeline_test.
-  for (const auto [dtype, tolerance] : {std::pair{at::kHalf, 5e-2}, std::pair{at::kBFloat16, 1e-1}}) {
-    auto pipeline = InpaintPipeline::load(model_dir(), InpaintPipelineOptions{dtype, at::Device(at::kCUDA), ""});
-    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
-    const TensorMap ref = reference("inpaint_ddim");
-    InpaintParams params;
-    params.steps = 2;
-    params.guidance_scale = inpaint_setup()["guidance_scale"].get<double>();
-    auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), prompts(), params,
-                                    {inpaint_setup()["seed"].get<uint64_t>()});
-    ASSERT_TRUE(out.ok()) << out.status();
-    test::expect_close(*out, ref.at("out"), tolerance, "half-precision inpainting");
-  }
+                     sd2_inpaint_setup()["runs"]["seed_list"]["seeds"].get<std::vector<uint64_t>>());
 }
 
 TEST_F(Sd2InpaintPipelineTest, RejectsBadRequests) {
@@ -268,7 +238,7 @@ TEST(Sd2InpaintLoadTest, RejectsAUNetWithoutMaskInputs) {
 TEST(Sd2InpaintLoadTest, RejectsAnUnimplementedSchedulerByName) {
   InpaintPipelineOptions options;
   options.scheduler = "lms";
-  auto pipeline = InpaintPipeline::load(model_dir(), options);
+  auto pipeline = InpaintPipeline::load(sd2_model_dir(), options);
   ASSERT_FALSE(pipeline.ok());
   EXPECT_TRUE(test::contains_all(std::string(pipeline.status().message()), {"scheduler", "lms"}));
 }
@@ -279,7 +249,7 @@ class Sd2InpaintPndmTest : public test::TempDirTest {
  protected:
   std::string pndm_folder(bool skip_prk_steps) {
     const std::filesystem::path model = dir_ / (skip_prk_steps ? "model" : "model_prk");
-    std::filesystem::copy(model_dir(), model, std::filesystem::copy_options::recursive);
+    std::filesystem::copy(sd2_model_dir(), model, std::filesystem::copy_options::recursive);
     auto json = read_json_file((model / "scheduler" / "scheduler_config.json").string());
     EXPECT_TRUE(json.ok()) << json.status();
     (*json)["_class_name"] = "PNDMScheduler";
@@ -293,7 +263,7 @@ class Sd2InpaintPndmTest : public test::TempDirTest {
 TEST_F(Sd2InpaintPndmTest, TheFoldersPndmMatchesDiffusersFromNoiseAndPartWay) {
   auto pipeline = InpaintPipeline::load(pndm_folder(true), InpaintPipelineOptions{});
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
-  const auto seed = inpaint_setup()["seed"].get<uint64_t>();
+  const auto seed = sd2_inpaint_setup()["seed"].get<uint64_t>();
   expect_run_matches(**pipeline, "pndm", {seed});
   expect_run_matches(**pipeline, "pndm_strength", {seed});
 }
@@ -306,7 +276,7 @@ TEST_F(Sd2InpaintPndmTest, RungeKuttaWarmUpIsRefusedAndANamedSchedulerReplacesIt
   options.scheduler = "ddim";
   auto pipeline = InpaintPipeline::load(pndm_folder(true), options);
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
-  expect_run_matches(**pipeline, "ddim", {inpaint_setup()["seed"].get<uint64_t>()});
+  expect_run_matches(**pipeline, "ddim", {sd2_inpaint_setup()["seed"].get<uint64_t>()});
 }
 
 }  // namespace

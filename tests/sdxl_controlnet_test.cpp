@@ -4,7 +4,7 @@
 // Euler steps, guidance 5, conditioning scale 0.8, seed 1234). fp32 on the CPU (weights stored in fp16);
 // tolerance as the other sdxl suites: max abs diff <= 1e-4 x max(1, max |reference|). Also: loading errors
 // name the tensor, the depth conditioning image of a render by hand-computed values, the sdxl backend
-// with a ControlNet, and (CUDA only, skipped otherwise) float16 and CUDA-graph replay with residuals.
+// with a ControlNet. float16 and CUDA-graph replay with residuals: gpu/sdxl_cuda_test.cpp.
 #include <filesystem>
 #include <fstream>
 
@@ -18,6 +18,7 @@
 #include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/pipeline.h"
 #include "diffusion_worker/sdxl/unet.h"
+#include "tests/controlnet_test_util.h"
 #include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
 
@@ -26,18 +27,13 @@ namespace {
 
 using sdxl::TensorMap;
 using test::contains_all;
+using test::controlled_run;
+using test::ControlledRun;
+using test::controlnet_dir;
+using test::controlnet_reference;
 using test::expect_close;
 
 constexpr double kTolerance = 1e-4;
-
-std::string controlnet_fixture_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_controlnet_tiny"; }
-std::string controlnet_dir() { return controlnet_fixture_dir() + "/controlnet"; }
-
-TensorMap controlnet_reference(const std::string& name) {
-  auto tensors = sdxl::read_safetensors(controlnet_fixture_dir() + "/reference/" + name + ".safetensors");
-  EXPECT_TRUE(tensors.ok()) << tensors.status();
-  return tensors.ok() ? *tensors : TensorMap{};
-}
 
 TEST(ControlNetTest, ResidualsMatchDiffusers) {
   auto net = sdxl::ControlNet::load_folder(controlnet_dir(), at::TensorOptions().dtype(at::kFloat));
@@ -73,23 +69,6 @@ TEST(ControlNetTest, UNetWithResidualsMatchesDiffusers) {
   EXPECT_GT((unet->forward(test::recorded_unet_inputs(ref)) - expected).abs().max().item<double>(), 1e-2);
 }
 
-struct ControlledRun {
-  nlohmann::json setup;
-  TensorMap ref;
-  sdxl::Img2ImgParams params;
-};
-
-ControlledRun controlled_run() {
-  ControlledRun run;
-  std::ifstream in(controlnet_fixture_dir() + "/reference/img2img_controlnet.json");
-  run.setup = nlohmann::json::parse(in);
-  run.ref = controlnet_reference("img2img_controlnet");
-  run.params.strength = run.setup["strength"].get<double>();
-  run.params.steps = run.setup["num_inference_steps"].get<int64_t>();
-  run.params.guidance_scale = run.setup["guidance_scale"].get<double>();
-  return run;
-}
-
 TEST(ControlNetPipelineTest, Img2ImgMatchesDiffusers) {
   sdxl::PipelineOptions options;
   options.controlnet = controlnet_dir();
@@ -115,35 +94,6 @@ TEST(ControlNetPipelineTest, Img2ImgMatchesDiffusers) {
   ASSERT_TRUE(zero.ok() && plain.ok());
   EXPECT_TRUE(at::equal(*zero, *plain));
   EXPECT_GT((*plain - *out).abs().max().item<double>(), 1e-3);
-}
-
-TEST(ControlNetPipelineTest, RunsOnTheGpuInHalfPrecisionAndFromCudaGraphs) {
-  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  sdxl::PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
-  options.controlnet = controlnet_dir();
-  auto pipeline = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), options);
-  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
-  const ControlledRun run = controlled_run();
-  const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
-  const sdxl::ControlInput control{run.ref.at("control_image"),
-                                   {run.setup["controlnet_conditioning_scale"].get<double>()}};
-  auto out = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
-  ASSERT_TRUE(out.ok()) << out.status();
-  // float16 follows the float32 reference within its rounding (as in sdxl_pipeline_test).
-  expect_close(*out, run.ref.at("out"), 5e-2, "half-precision ControlNet img2img");
-  // The residuals are inputs of the captured UNet graph: replay gives the eager result, and a run
-  // without control (another graph) is not affected by the controlled one.
-  auto plain = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234});
-  ASSERT_TRUE(plain.ok());
-  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
-  for (int pass = 0; pass < 2; ++pass) {  // capture, then replay
-    auto graphed = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
-    ASSERT_TRUE(graphed.ok()) << graphed.status();
-    expect_close(*graphed, *out, 1e-3, "ControlNet img2img with CUDA graphs");
-    auto graphed_plain = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234});
-    ASSERT_TRUE(graphed_plain.ok());
-    expect_close(*graphed_plain, *plain, 1e-3, "img2img without control with CUDA graphs");
-  }
 }
 
 TEST(ControlNetPipelineTest, RejectsControlItCannotUse) {

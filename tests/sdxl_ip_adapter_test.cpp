@@ -5,7 +5,7 @@
 // and img2img of two images with one reference image (2 of 4 Euler steps, guidance 5, seed 1234). fp32
 // on the CPU; tolerance: max abs diff <= 1e-4 x max(1, max |reference|), as the other SDXL parity suites.
 // Also the errors (missing tensors, layer counts, inconsistent options) and the `sdxl` backend's use of
-// the nearest reference view.
+// the nearest reference view. float16 and CUDA-graph replay: gpu/sdxl_cuda_test.cpp.
 #include <fstream>
 
 #include <ATen/ATen.h>
@@ -18,6 +18,7 @@
 #include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/pipeline.h"
 #include "diffusion_worker/sdxl/unet.h"
+#include "tests/ip_adapter_test_util.h"
 #include "tests/sdxl_test_util.h"
 
 namespace gaps::sdxl {
@@ -26,16 +27,11 @@ namespace {
 constexpr double kTolerance = 1e-4;
 using test::contains_all;
 using test::expect_close;
-
-std::string ip_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/ip_adapter_tiny"; }
-std::string ip_weights() { return ip_dir() + "/ip_adapter.safetensors"; }
-std::string image_encoder_dir() { return ip_dir() + "/image_encoder"; }
-
-TensorMap ip_reference(const std::string& name) {
-  auto tensors = read_safetensors(ip_dir() + "/reference/" + name + ".safetensors");
-  EXPECT_TRUE(tensors.ok()) << tensors.status();
-  return tensors.ok() ? *tensors : TensorMap{};
-}
+using test::image_encoder_dir;
+using test::ip_dir;
+using test::ip_options;
+using test::ip_reference;
+using test::ip_weights;
 
 UNet2DCondition tiny_unet() {
   auto folder = ModelFolder::open(test::sdxl_model_dir());
@@ -148,13 +144,6 @@ TEST(IpAdapterTest, LayerCountMismatchIsNamed) {
   EXPECT_TRUE(contains_all(std::string(adapter.status().message()), {"image_proj.latents", "Plus"}));
 }
 
-PipelineOptions ip_options() {
-  PipelineOptions options;
-  options.ip_adapter = ip_weights();
-  options.image_encoder = image_encoder_dir();
-  return options;
-}
-
 TEST(IpAdapterPipelineTest, Img2ImgWithReferenceImagesMatchesDiffusers) {
   std::ifstream in(ip_dir() + "/reference/img2img.json");
   const nlohmann::json setup = nlohmann::json::parse(in);
@@ -185,40 +174,6 @@ TEST(IpAdapterPipelineTest, Img2ImgWithReferenceImagesMatchesDiffusers) {
   ASSERT_TRUE(plain.ok());
   test::expect_close(*without, *plain, 1e-6, "img2img without reference images");
   EXPECT_GT((*without - *out).abs().max().item<double>(), 1e-3);
-}
-
-TEST(IpAdapterPipelineTest, RunsOnTheGpuInHalfPrecisionAndReplaysCudaGraphsWithNewPrompts) {
-  if (!at::hasCUDA()) GTEST_SKIP() << "no CUDA device";
-  PipelineOptions options = ip_options();
-  options.dtype = at::kHalf;
-  options.device = at::Device(at::kCUDA);
-  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
-  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
-  const TensorMap ref = ip_reference("img2img");
-  const TensorMap images = ip_reference("encoder");
-  const std::vector<std::string> prompts{"a photo of a fern in a garden", "a bonsai tree"};
-  Img2ImgParams params;
-  params.steps = 4;
-  params.reference_images = {images.at("image_0"), images.at("image_0")};
-  auto eager = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
-  ASSERT_TRUE(eager.ok()) << eager.status();
-  // float16 follows the float32 reference within its rounding (as the plain pipeline's GPU test).
-  expect_close(*eager, ref.at("out"), 5e-2, "half-precision img2img with IP-Adapter");
-  params.reference_images = {images.at("image_1"), at::Tensor()};
-  auto eager_other = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
-  ASSERT_TRUE(eager_other.ok()) << eager_other.status();
-  // Captured graphs read the image prompt's buffers: a replay with other references gives their result.
-  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
-  for (int run = 0; run < 2; ++run) {
-    params.reference_images = {images.at("image_0"), images.at("image_0")};
-    auto graphed = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
-    ASSERT_TRUE(graphed.ok()) << graphed.status();
-    expect_close(*graphed, *eager, 1e-3, "graphed img2img with IP-Adapter");
-    params.reference_images = {images.at("image_1"), at::Tensor()};
-    auto graphed_other = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
-    ASSERT_TRUE(graphed_other.ok()) << graphed_other.status();
-    expect_close(*graphed_other, *eager_other, 1e-3, "graphed img2img with other references");
-  }
 }
 
 TEST(IpAdapterPipelineTest, RejectsInconsistentOptionsAndRequests) {

@@ -1,6 +1,7 @@
 #pragma once
 // Shared by the SDXL parity tests: the tiny fixture folder (tests/fixtures/sdxl_tiny, made by
-// tests/scripts/make_sdxl_fixtures.py) and a closeness check scaled to the reference's magnitude.
+// tests/scripts/make_sdxl_fixtures.py), the reference tensors of any fixture folder, and a closeness check
+// scaled to the reference's magnitude.
 #include <initializer_list>
 #include <string>
 
@@ -19,11 +20,15 @@ inline const bool kSdxlSingleThreaded = (at::set_num_threads(1), true);
 inline std::string sdxl_fixture_dir() { return std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/sdxl_tiny"; }
 inline std::string sdxl_model_dir() { return sdxl_fixture_dir() + "/model"; }
 
-inline sdxl::TensorMap sdxl_reference(const std::string& name) {
-  auto tensors = sdxl::read_safetensors(sdxl_fixture_dir() + "/reference/" + name + ".safetensors");
+// The tensors a fixture script recorded as reference `name` in the fixture folder (empty, with a failure,
+// if they cannot be read).
+inline sdxl::TensorMap fixture_reference(const std::string& fixture_dir, const std::string& name) {
+  auto tensors = sdxl::read_safetensors(fixture_dir + "/reference/" + name + ".safetensors");
   EXPECT_TRUE(tensors.ok()) << tensors.status();
   return tensors.ok() ? *tensors : sdxl::TensorMap{};
 }
+
+inline sdxl::TensorMap sdxl_reference(const std::string& name) { return fixture_reference(sdxl_fixture_dir(), name); }
 
 // Passes when text contains every part; the failure message shows the text.
 inline ::testing::AssertionResult contains_all(const std::string& text, std::initializer_list<std::string> parts) {

@@ -1,9 +1,13 @@
 #pragma once
 // Helpers shared by the test suites.
+#include <sys/wait.h>
+
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <string>
 #include <system_error>
+#include <utility>
 
 #include <gtest/gtest.h>
 #include "common/io_util.h"
@@ -12,6 +16,17 @@ namespace gaps::test {
 
 // Never std::filesystem::remove_all in binaries linking LibTorch (see common/io_util.h).
 using ::gaps::remove_tree;
+
+// Exit status and combined stdout and stderr of a shell command (the tests' Python references).
+inline std::pair<int, std::string> run_command(const std::string& command) {
+  std::string output;
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
+  if (pipe == nullptr) return {-1, "popen failed"};
+  char buffer[4096];
+  while (size_t n = fread(buffer, 1, sizeof buffer, pipe)) output.append(buffer, n);
+  const int status = pclose(pipe);
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
+}
 
 // A fresh folder per test (named after the suite and test), removed afterwards.
 class TempDirTest : public ::testing::Test {

@@ -1,4 +1,5 @@
-// Optimiser, schedules, adaptive density control and configuration of the vanilla trainer.
+// Optimiser, schedules, adaptive density control and configuration of the vanilla trainer. The fused CUDA
+// optimiser step against this one: gpu/adam_cuda_test.cpp.
 #include <cmath>
 
 #include <ATen/ATen.h>
@@ -12,22 +13,12 @@
 #include "gs_trainer/train/densify.h"
 #include "gs_trainer/train/train_config.h"
 #include "gs_trainer/train/trainer.h"
+#include "tests/trainer_test_util.h"
 
 namespace gaps {
 namespace {
 
-GaussianModel tiny_model(int n) {
-  GaussianModel m;
-  m.max_sh_degree = 1;
-  m.means = at::arange(3 * n, at::kFloat).view({n, 3}) * 0.1;
-  m.log_scales = at::full({n, 3}, std::log(0.01f));
-  m.quats = at::zeros({n, 4});
-  m.quats.select(1, 0).fill_(1.0);
-  m.opacity_logits = at::zeros({n});
-  m.sh_dc = at::zeros({n, 1, 3});
-  m.sh_rest = at::zeros({n, 3, 3});
-  return m;
-}
+using test::tiny_model;
 
 void set_grads(GaussianModel& m, double value) {
   for (at::Tensor* p : m.parameters()) p->mutable_grad() = at::full_like(*p, value);
@@ -65,34 +56,6 @@ TEST(GaussianAdam, StateFollowsRowsThroughKeepAndAppend) {
   adam.step();
   EXPECT_GT((m.means[0] - before[0]).abs().sum().item<double>(), 0.0);
   EXPECT_EQ((m.means[4] - before[4]).abs().sum().item<double>(), 0.0);
-}
-
-// The fused CUDA update against the ATen one on the CPU, over a few steps with random gradients.
-TEST(GaussianAdamCuda, MatchesCpu) {
-#if defined(GAPS_CUDA_KERNELS)
-  if (!at::hasCUDA()) GTEST_SKIP() << "needs a CUDA device";
-#else
-  GTEST_SKIP() << "built without the CUDA kernels";
-#endif
-  at::manual_seed(5);
-  GaussianModel cpu = tiny_model(1000);
-  for (at::Tensor* p : cpu.parameters()) *p = *p + at::randn_like(*p);
-  GaussianModel cuda = cpu.to(at::Device(at::kCUDA, 0));
-  const std::vector<double> lrs = {0.01, 0.02, 0.03, 0.04, 0.05, 0.06};
-  GaussianAdam adam_cpu(cpu, lrs, 1e-15), adam_cuda(cuda, lrs, 1e-15);
-  for (int step = 0; step < 3; ++step) {
-    auto cpu_params = cpu.parameters(), cuda_params = cuda.parameters();
-    for (size_t k = 0; k < cpu_params.size(); ++k) {
-      const at::Tensor g = at::randn_like(*cpu_params[k]);
-      cpu_params[k]->mutable_grad() = g;
-      cuda_params[k]->mutable_grad() = g.cuda();
-    }
-    adam_cpu.step();
-    adam_cuda.step();
-  }
-  auto cpu_params = cpu.parameters(), cuda_params = cuda.parameters();
-  for (size_t k = 0; k < cpu_params.size(); ++k)
-    EXPECT_LT((cuda_params[k]->detach().cpu() - cpu_params[k]->detach()).abs().max().item<double>(), 1e-5) << k;
 }
 
 TEST(ExponentialLr, InterpolatesLogLinearlyAndClamps) {

@@ -20,27 +20,17 @@
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
-#include <Eigen/Geometry>
 
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/raster/rasterize_backend.h"
 #include "gs_trainer/raster/rasterizer.h"
 #include "gs_trainer/scene/scene.h"
+#include "tests/gpu/require_cuda.h"
+#include "tests/raster_test_util.h"
 
 namespace gaps {
 namespace {
-
-bool cuda_ready() {
-#if defined(GAPS_CUDA_KERNELS)
-  return at::hasCUDA();
-#else
-  return false;
-#endif
-}
-
-#define REQUIRE_CUDA() \
-  if (!cuda_ready()) GTEST_SKIP() << "needs a CUDA device and a build with the CUDA kernels"
 
 const at::Device kCuda(at::kCUDA, 0);
 
@@ -84,12 +74,9 @@ void expect_grad_close(const std::string& what, const at::Tensor& got, const at:
   expect_close(what, got, want, 1e-3, 1e-4 * max_abs(want));
 }
 
-// ---- random scenes (as in rasterizer_test.cpp) ------------------------------------------------------
+// ---- random scenes, seen by the camera of rasterizer_test.cpp -------------------------------------------
 
-struct RandomScene {
-  at::Tensor means, quats, scales, opacities, features, viewmat;
-  raster::Intrinsics K;
-};
+using test::RandomScene;
 
 struct SceneSpec {
   int n, width, height, channels;
@@ -109,13 +96,7 @@ RandomScene make_scene(const SceneSpec& spec) {
   s.scales = at::rand({spec.n, 3}, opts) * (spec.scale_hi - spec.scale_lo) + spec.scale_lo;
   s.opacities = at::rand({spec.n}, opts) * (spec.opacity_hi - spec.opacity_lo) + spec.opacity_lo;
   s.features = at::rand({spec.n, spec.channels}, opts);
-  Eigen::Matrix3d R = Eigen::AngleAxisd(0.1, Eigen::Vector3d(0.3, 1.0, 0.2).normalized()).toRotationMatrix();
-  s.viewmat = at::eye(4, opts);
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) s.viewmat[r][c] = R(r, c);
-  s.viewmat[0][3] = 0.05;
-  s.viewmat[2][3] = 0.3;
-  s.K = {0.9 * spec.width, 0.9 * spec.width, 0.5 * spec.width + 0.7, 0.5 * spec.height - 0.4, spec.width, spec.height};
+  test::place_camera(s, spec.width, spec.height, opts);
   return s;
 }
 
@@ -175,11 +156,12 @@ void compare_scene(const std::string& name, const SceneSpec& spec) {
 }
 
 // ---- projection and tile lists, stage by stage --------------------------------------------------------
-// (The backend's CUDA entry points exist only in builds with the kernels.)
-#if defined(GAPS_CUDA_KERNELS)
+// The backend's CUDA entry points exist only in builds with the kernels; without them these tests are
+// still registered (and skip), so every build lists the same GPU tests.
 
 TEST(RasterizerCuda, ProjectionAndTileListsMatchCpuExactly) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
+#if defined(GAPS_CUDA_KERNELS)
   const RandomScene cpu = to(make_scene(kWide), at::kCPU, at::kFloat);
   const RandomScene gpu = to(cpu, kCuda, at::kFloat);
   const auto pc = backend::project_forward_cpu(cpu.means, cpu.quats, cpu.scales, cpu.viewmat, cpu.K);
@@ -215,11 +197,13 @@ TEST(RasterizerCuda, ProjectionAndTileListsMatchCpuExactly) {
   expect_grad_close("projection d/means", qg.means, qc.means);
   expect_grad_close("projection d/quats", qg.quats, qc.quats);
   expect_grad_close("projection d/scales", qg.scales, qc.scales);
+#endif  // GAPS_CUDA_KERNELS
 }
 
 // final_T and n_contrib are internal to the autograd function; compare them through the backend.
 TEST(RasterizerCuda, CompositingStateMatchesCpu) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
+#if defined(GAPS_CUDA_KERNELS)
   const RandomScene cpu = to(make_scene(kWide), at::kCPU, at::kFloat);
   const RandomScene gpu = to(cpu, kCuda, at::kFloat);
   const int w = cpu.K.width, h = cpu.K.height;
@@ -238,26 +222,25 @@ TEST(RasterizerCuda, CompositingStateMatchesCpu) {
   EXPECT_GT(saturated, 0) << "the wide scene should exercise early termination";
   // Only the rare ulp-level flips of the T < 1e-4 stop described at the top may differ.
   EXPECT_LE(mismatched, w * h / 1000);
-}
-
 #endif  // GAPS_CUDA_KERNELS
+}
 
 // ---- the public API: images and every gradient ---------------------------------------------------------
 
 TEST(RasterizerCuda, SmallSceneMatchesCpu) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   compare_scene("small 12 @ 29x23", kSmall);
 }
 
 TEST(RasterizerCuda, WideSceneMatchesCpu) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   compare_scene("wide 2000 @ 160x120", kWide);
 }
 
 // Without a sink the CUDA backward runs its variant that never sums |mean2d|; here channel 3 also gets no
 // output gradient and channel 0 none in the left half of the image. Every gradient must match the CPU's.
 TEST(RasterizerCuda, ChannelsWithoutGradientAndNoSinkMatchCpu) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   const SceneSpec spec = kWide;
   const RandomScene scene = make_scene(spec);
   at::manual_seed(spec.seed + 2);
@@ -277,7 +260,7 @@ TEST(RasterizerCuda, ChannelsWithoutGradientAndNoSinkMatchCpu) {
 
 // More channels than the 4 that render() composites take the kernels' 16-channel variant.
 TEST(RasterizerCuda, SevenChannelsMatchCpu) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   SceneSpec spec = kWide;
   spec.n = 500;
   spec.channels = 7;
@@ -288,7 +271,7 @@ TEST(RasterizerCuda, SevenChannelsMatchCpu) {
 // CUDA float against them checks the CUDA gradients transitively (float rounding of the whole pipeline,
 // hence the looser tolerance).
 TEST(RasterizerCuda, FloatGradientsMatchCpuDouble) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   const RandomScene scene = make_scene(kSmall);
   at::manual_seed(99);
   const auto r1 = at::randn({kSmall.height, kSmall.width, kSmall.channels}, at::kDouble);
@@ -302,7 +285,7 @@ TEST(RasterizerCuda, FloatGradientsMatchCpuDouble) {
 }
 
 TEST(RasterizerCuda, ForwardIsDeterministic) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   const RandomScene s = to(make_scene(kWide), kCuda, at::kFloat);
   auto render_once = [&] {
     auto p = project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
@@ -314,7 +297,7 @@ TEST(RasterizerCuda, ForwardIsDeterministic) {
 }
 
 TEST(RasterizerCuda, NothingVisibleGivesEmptyImageAndZeroGradients) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   RandomScene s = to(make_scene(kSmall), kCuda, at::kFloat);
   s.means = s.means.clone();
   s.means.select(1, 2).fill_(-1.0);  // behind the camera
@@ -331,7 +314,7 @@ TEST(RasterizerCuda, NothingVisibleGivesEmptyImageAndZeroGradients) {
 }
 
 TEST(RasterizerCuda, RejectsDoubleWithAClearError) {
-  REQUIRE_CUDA();
+  GAPS_REQUIRE_CUDA_KERNELS();
   const RandomScene s = to(make_scene(kSmall), kCuda, at::kDouble);
   try {
     project_gaussians(s.means, s.quats, s.scales, s.viewmat, s.K);
@@ -384,7 +367,7 @@ void compare_fern(const std::string& name, const GaussianModel& model, const Cam
 class RasterizerCudaFern : public ::testing::Test {
  protected:
   void SetUp() override {
-    if (!cuda_ready()) GTEST_SKIP() << "needs a CUDA device and a build with the CUDA kernels";
+    GAPS_REQUIRE_CUDA_KERNELS();
     const std::filesystem::path root = GAPS_DATA_DIR "/llff/fern";
     if (!std::filesystem::exists(root)) GTEST_SKIP() << "no LLFF fern under " << root;
     SceneLoadOptions load;

@@ -1,0 +1,128 @@
+// The diffusion pipelines on CUDA in half precision, against the float32 references their CPU parity
+// suites check (sdxl_pipeline_test.cpp, sdxl_controlnet_test.cpp, sdxl_ip_adapter_test.cpp,
+// sd2_inpaint_test.cpp), and CUDA-graph replay against eager runs. Half precision follows the float32
+// result on the tiny random weights within its rounding: 5e-2 for float16 (11-bit mantissa), 1e-1 for
+// bfloat16 (8-bit).
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <ATen/ATen.h>
+#include <gtest/gtest.h>
+
+#include "diffusion_worker/sdxl/inpaint_pipeline.h"
+#include "diffusion_worker/sdxl/pipeline.h"
+#include "tests/controlnet_test_util.h"
+#include "tests/gpu/require_cuda.h"
+#include "tests/ip_adapter_test_util.h"
+#include "tests/sd2_inpaint_test_util.h"
+#include "tests/sdxl_test_util.h"
+
+namespace gaps::sdxl {
+namespace {
+
+using test::expect_close;
+
+TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
+  GAPS_REQUIRE_CUDA();
+  for (const auto& [dtype, tolerance] : {std::pair{at::kHalf, 5e-2}, std::pair{at::kBFloat16, 1e-1}}) {
+    auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{dtype, at::Device(at::kCUDA), ""});
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    const TensorMap ref = test::sdxl_reference("img2img");
+    Img2ImgParams params;
+    params.steps = 4;
+    auto out =
+        (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+    ASSERT_TRUE(out.ok()) << out.status();
+    expect_close(*out, ref.at("out"), tolerance, "half-precision img2img output");
+    // Replaying captured UNet graphs gives the eager result.
+    ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+    for (int run = 0; run < 2; ++run) {  // capture, then replay the captured graph
+      auto graphed =
+          (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+      ASSERT_TRUE(graphed.ok()) << graphed.status();
+      expect_close(*graphed, *out, 1e-3, "img2img with CUDA graphs");
+    }
+  }
+}
+
+TEST(ControlNetPipelineTest, RunsOnTheGpuInHalfPrecisionAndFromCudaGraphs) {
+  GAPS_REQUIRE_CUDA();
+  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
+  options.controlnet = test::controlnet_dir();
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const test::ControlledRun run = test::controlled_run();
+  const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
+  const ControlInput control{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}};
+  auto out = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+  ASSERT_TRUE(out.ok()) << out.status();
+  expect_close(*out, run.ref.at("out"), 5e-2, "half-precision ControlNet img2img");
+  // The residuals are inputs of the captured UNet graph: replay gives the eager result, and a run
+  // without control (another graph) is not affected by the controlled one.
+  auto plain = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234});
+  ASSERT_TRUE(plain.ok());
+  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+  for (int pass = 0; pass < 2; ++pass) {  // capture, then replay
+    auto graphed = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+    ASSERT_TRUE(graphed.ok()) << graphed.status();
+    expect_close(*graphed, *out, 1e-3, "ControlNet img2img with CUDA graphs");
+    auto graphed_plain = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234});
+    ASSERT_TRUE(graphed_plain.ok());
+    expect_close(*graphed_plain, *plain, 1e-3, "img2img without control with CUDA graphs");
+  }
+}
+
+TEST(IpAdapterPipelineTest, RunsOnTheGpuInHalfPrecisionAndReplaysCudaGraphsWithNewPrompts) {
+  GAPS_REQUIRE_CUDA();
+  PipelineOptions options = test::ip_options();
+  options.dtype = at::kHalf;
+  options.device = at::Device(at::kCUDA);
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const TensorMap ref = test::ip_reference("img2img");
+  const TensorMap images = test::ip_reference("encoder");
+  const std::vector<std::string> prompts{"a photo of a fern in a garden", "a bonsai tree"};
+  Img2ImgParams params;
+  params.steps = 4;
+  params.reference_images = {images.at("image_0"), images.at("image_0")};
+  auto eager = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+  ASSERT_TRUE(eager.ok()) << eager.status();
+  expect_close(*eager, ref.at("out"), 5e-2, "half-precision img2img with IP-Adapter");
+  params.reference_images = {images.at("image_1"), at::Tensor()};
+  auto eager_other = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+  ASSERT_TRUE(eager_other.ok()) << eager_other.status();
+  // Captured graphs read the image prompt's buffers: a replay with other references gives their result.
+  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+  for (int run = 0; run < 2; ++run) {
+    params.reference_images = {images.at("image_0"), images.at("image_0")};
+    auto graphed = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+    ASSERT_TRUE(graphed.ok()) << graphed.status();
+    expect_close(*graphed, *eager, 1e-3, "graphed img2img with IP-Adapter");
+    params.reference_images = {images.at("image_1"), at::Tensor()};
+    auto graphed_other = (*pipeline)->img2img(ref.at("image"), prompts, params, {1234});
+    ASSERT_TRUE(graphed_other.ok()) << graphed_other.status();
+    expect_close(*graphed_other, *eager_other, 1e-3, "graphed img2img with other references");
+  }
+}
+
+TEST(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
+  GAPS_REQUIRE_CUDA();
+  const nlohmann::json& setup = test::sd2_inpaint_setup();
+  for (const auto& [dtype, tolerance] : {std::pair{at::kHalf, 5e-2}, std::pair{at::kBFloat16, 1e-1}}) {
+    auto pipeline =
+        InpaintPipeline::load(test::sd2_model_dir(), InpaintPipelineOptions{dtype, at::Device(at::kCUDA), ""});
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    const TensorMap ref = test::sd2_reference("inpaint_ddim");
+    InpaintParams params;
+    params.steps = 2;
+    params.guidance_scale = setup["guidance_scale"].get<double>();
+    auto out = (*pipeline)->inpaint(ref.at("image"), ref.at("mask"), test::sd2_prompts(), params,
+                                    {setup["seed"].get<uint64_t>()});
+    ASSERT_TRUE(out.ok()) << out.status();
+    expect_close(*out, ref.at("out"), tolerance, "half-precision inpainting");
+  }
+}
+
+}  // namespace
+}  // namespace gaps::sdxl
