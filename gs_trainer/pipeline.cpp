@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <fstream>
+#include <optional>
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
@@ -20,6 +21,8 @@
 
 namespace gaps {
 namespace {
+
+using Log = std::function<void(const std::string&)>;
 
 // Loss and parameters are checked for finiteness this often (one device synchronisation each time).
 constexpr int kDivergenceCheckEvery = 10;
@@ -39,7 +42,7 @@ absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const s
 // model trains on. The points are in world units either way.
 absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOptions& o,
                                                                    const std::vector<TrainingView>& train,
-                                                                   const std::function<void(const std::string&)>& log) {
+                                                                   const Log& log) {
   if (o.init_resolution < 0)
     return absl::InvalidArgumentError(
         absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));
@@ -63,8 +66,7 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
 
 // *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
-                                          const std::vector<TrainingView>& train,
-                                          const std::function<void(const std::string&)>& log,
+                                          const std::vector<TrainingView>& train, const Log& log,
                                           std::string* method_used = nullptr) {
   if (method_used) *method_used = o.init;
   if (o.init == "ply") {
@@ -141,6 +143,183 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   return write_json(o.out_dir / "metrics.json", j);
 }
 
+// metrics.json (see write_metrics) and, when asked for, report.html.
+absl::Status write_outputs(const RunOptions& o, const RunResult& r, const std::vector<TrainingView>& test,
+                           const std::string& failure = "", const std::string& error = "") {
+  GAPS_RETURN_IF_ERROR(write_metrics(o, r, failure, error));
+  if (o.html_report) GAPS_RETURN_IF_ERROR(write_run_report(o.out_dir, test));
+  return absl::OkStatus();
+}
+
+// What run_init_only and run_pipeline both start from: the scene split by the protocol (its description
+// logged) and the training views loaded.
+struct LoadedScene {
+  Scene scene;
+  Split split;
+  std::string summary;
+  std::vector<TrainingView> train;
+};
+
+absl::StatusOr<LoadedScene> load_scene_and_training_views(const RunOptions& o, const at::Device& device,
+                                                          const Log& log) {
+  SceneLoadOptions load;
+  load.resolution = o.resolution;
+  LoadedScene loaded;
+  GAPS_ASSIGN_OR_RETURN(loaded.scene, load_scene(o.scene_dir, load));
+  GAPS_ASSIGN_OR_RETURN(loaded.split, benchmark_split(static_cast<int>(loaded.scene.cameras.size()), o.views));
+  loaded.summary = describe(loaded.scene, loaded.split);
+  log(loaded.summary);
+  GAPS_ASSIGN_OR_RETURN(loaded.train, load_views(loaded.scene, loaded.split.train, device));
+  return loaded;
+}
+
+// Nothing when no backbone is given (LPIPS is then reported as null).
+absl::StatusOr<std::optional<Lpips>> load_lpips(const RunOptions& o, const at::Device& device) {
+  if (o.lpips_backbone.empty()) return std::nullopt;
+  GAPS_ASSIGN_OR_RETURN(Lpips lpips, Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string()));
+  lpips.to(device);
+  return std::optional<Lpips>(std::move(lpips));
+}
+
+// The trainer and, for the paper's variants, the method driving it, from the initial points to the end of
+// training. The method refers to the trainer, hence neither copied nor moved.
+class TrainingRun {
+ public:
+  TrainingRun(const RunOptions& o, const Log& log, const PointCloud& points, std::vector<TrainingView> train,
+              const at::Device& device)
+      : o_(o),
+        log_(log),
+        references_(train),
+        trainer_(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config),
+        guard_(kDivergenceCheckEvery, o.config.iterations) {
+    if (o.config.gaussians_per_variation > 0)
+      log(absl::StrCat("automatic budget: ", trainer_.config().max_gaussians, " Gaussians (",
+                       o.config.gaussians_per_variation, " per unit of the training views' total variation)"));
+  }
+  TrainingRun(const TrainingRun&) = delete;
+  TrainingRun& operator=(const TrainingRun&) = delete;
+
+  const Trainer& trainer() const { return trainer_; }
+  std::optional<double> generator_seconds() const {
+    return generator_ ? std::optional<double>(generator_->seconds()) : std::nullopt;
+  }
+  // Wall-clock seconds since train() began, without the evaluations of the curve.
+  double train_seconds() const { return seconds_since_start(std::chrono::steady_clock::now()); }
+
+  // The paper's method on top of the trainer; nothing for the vanilla variant.
+  absl::Status attach_method(size_t scene_images) {
+    if (o_.variant == Variant::kVanilla) return absl::OkStatus();
+    if (!o_.generator)
+      return absl::InvalidArgumentError(
+          absl::StrCat("variant ", variant_name(o_.variant), " needs a generator backend"));
+    GapsConfig gaps = o_.gaps;
+    gaps.n_active = o_.n_active > 0 ? o_.n_active : (scene_images > 100 ? kNActiveMip360 : kNActiveLlff);
+    generator_.emplace(o_.generator);
+    method_.emplace(trainer_, &*generator_, references_, gaps, o_.variant, o_.config.seed);
+    method_->set_inspection_dir(o_.out_dir / "pseudo_views");
+    if (o_.on_phase || !o_.checkpoint_dir.empty())
+      method_->set_phase_observer([this](const std::string& event, const nlohmann::json& entry) {
+        // The state before the phase: a resumed run repeats the phase, then goes on.
+        if (event == "started") save_checkpoint_and_tell();
+        if (o_.on_phase) o_.on_phase(event, entry);
+      });
+    log_(absl::StrCat("method: ", variant_name(o_.variant), " with generator ", o_.generator->name()));
+    return absl::OkStatus();
+  }
+
+  // Goes on from the checkpoint in o.checkpoint_dir, if there is one.
+  absl::Status resume() {
+    if (o_.checkpoint_dir.empty()) return absl::OkStatus();
+    const absl::StatusOr<int> resumed = load_checkpoint(o_.checkpoint_dir, trainer_, method());
+    if (resumed.ok())
+      log_(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
+    else if (!absl::IsNotFound(resumed.status()))
+      return resumed.status();
+    return absl::OkStatus();
+  }
+
+  // Trains to the last iteration unless stopped (should_stop) or diverged; every o.eval_every iterations
+  // the test views are evaluated into *curve.
+  absl::Status train(const ProgressCallback& on_progress, const std::vector<TrainingView>& test, const Lpips* lpips,
+                     std::vector<CurvePoint>* curve) {
+    start_ = std::chrono::steady_clock::now();
+    return trainer_.run(on_progress, 10, [&] { return monitored_step(test, lpips, curve); });
+  }
+
+  // After train(): a stopped run (cancelled, or its service shutting down) leaves its state for a later
+  // resume; the method's phases go to phases.json.
+  absl::Status keep_state(const absl::Status& trained) {
+    if (absl::IsCancelled(trained)) save_checkpoint_and_tell();
+    if (method_) GAPS_RETURN_IF_ERROR(write_json(o_.out_dir / "phases.json", method_->phase_log()));
+    return absl::OkStatus();
+  }
+
+ private:
+  GapsTraining* method() { return method_ ? &*method_ : nullptr; }
+
+  // The training state to o.checkpoint_dir (when set); a failure costs the checkpoint only, with a warning.
+  void save_checkpoint_and_tell() {
+    if (o_.checkpoint_dir.empty()) return;
+    if (const absl::Status saved = save_checkpoint(o_.checkpoint_dir, trainer_, method()); !saved.ok())
+      log_(absl::StrCat("warning: checkpoint not written: ", saved.message()));
+    else if (o_.on_checkpoint)
+      o_.on_checkpoint(trainer_.iteration());
+  }
+
+  double seconds_since_start(std::chrono::steady_clock::time_point t) const {
+    return std::chrono::duration<double>(t - start_).count() - eval_seconds_;
+  }
+
+  // One iteration of the method (or of the trainer alone), unless should_stop says otherwise.
+  absl::StatusOr<at::Tensor> next_step() {
+    if (o_.should_stop && o_.should_stop())
+      return absl::CancelledError(absl::StrCat("stopped at iteration ", trainer_.iteration()));
+    if (method_) return method_->step();
+    return trainer_.step();
+  }
+
+  // The step, the divergence guard, and at the curve's iterations an evaluation whose time is left out of the
+  // training time (the last iteration's is the run's final evaluation).
+  absl::StatusOr<at::Tensor> monitored_step(const std::vector<TrainingView>& test, const Lpips* lpips,
+                                            std::vector<CurvePoint>* curve) {
+    GAPS_ASSIGN_OR_RETURN(at::Tensor loss, next_step());
+    const int it = trainer_.iteration();
+    GAPS_RETURN_IF_ERROR(guard_.observe(it, loss, trainer_.model()));
+    if (o_.eval_every <= 0 || it % o_.eval_every != 0 || it >= o_.config.iterations) return loss;
+    (void)loss.item<double>();  // the queued training work belongs to the training time
+    const auto eval_start = std::chrono::steady_clock::now();
+    GAPS_ASSIGN_OR_RETURN(const std::vector<ImageMetrics> views,
+                          evaluate_views(trainer_.model(), test, o_.config.background, lpips, {}));
+    GAPS_ASSIGN_OR_RETURN(const ImageMetrics average, average_metrics(views));
+    curve->push_back({it, seconds_since_start(eval_start), average, trainer_.model().size()});
+    eval_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - eval_start).count();
+    return loss;
+  }
+
+  const RunOptions& o_;
+  const Log& log_;
+  const std::vector<TrainingView> references_;  // the training views as loaded, for the method
+  Trainer trainer_;
+  std::optional<TimedGenerator> generator_;
+  std::optional<GapsTraining> method_;
+  DivergenceGuard guard_;
+  std::chrono::steady_clock::time_point start_;
+  double eval_seconds_ = 0.0;  // spent on the curve's evaluations since start_
+};
+
+// The run's final evaluation on the test views: per view (renders written when asked for), averaged, and as
+// the curve's last point.
+absl::Status evaluate_final(const RunOptions& o, const GaussianModel& model, const std::vector<TrainingView>& test,
+                            const Lpips* lpips, RunResult* result) {
+  GAPS_ASSIGN_OR_RETURN(result->per_view,
+                        evaluate_views(model, test, o.config.background, lpips,
+                                       o.save_renders ? o.out_dir / "renders" : std::filesystem::path()));
+  GAPS_ASSIGN_OR_RETURN(result->metrics, average_metrics(result->per_view));
+  if (o.eval_every > 0)
+    result->curve.push_back({o.config.iterations, result->train_seconds, result->metrics, result->num_gaussians});
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& model,
@@ -162,149 +341,56 @@ absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& mo
   return out;
 }
 
-absl::Status run_init_only(const RunOptions& o, const std::function<void(const std::string&)>& log) {
-  const at::Device device(o.config.device);
-  SceneLoadOptions load;
-  load.resolution = o.resolution;
-  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(o.scene_dir, load));
-  GAPS_ASSIGN_OR_RETURN(Split split, benchmark_split(static_cast<int>(scene.cameras.size()), o.views));
-  log(describe(scene, split));
-  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
-  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log));
+absl::Status run_init_only(const RunOptions& o, const Log& log) {
+  GAPS_ASSIGN_OR_RETURN(const LoadedScene loaded, load_scene_and_training_views(o, at::Device(o.config.device), log));
+  GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, loaded.scene, loaded.train, log));
   std::filesystem::create_directories(o.out_dir);
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
   std::vector<Camera> cameras;
-  for (const auto& v : train) cameras.push_back(v.camera);
+  for (const auto& v : loaded.train) cameras.push_back(v.camera);
   GAPS_RETURN_IF_ERROR(write_init_as_colmap(o.out_dir / "sparse" / "0", cameras, points));
   log(absl::StrCat(points.xyz.size(0), " points written to ", (o.out_dir / "points.ply").string(), " and ",
                    (o.out_dir / "sparse" / "0").string()));
   return absl::OkStatus();
 }
 
-absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallback& on_progress,
-                                       const std::function<void(const std::string&)>& log) {
+absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallback& on_progress, const Log& log) {
   const at::Device device(o.config.device);
   if (device.is_cuda() && !at::hasCUDA())
     return absl::FailedPreconditionError("--device cuda requested but no CUDA device is available");
-  std::optional<Lpips> lpips;
-  if (!o.lpips_backbone.empty()) {
-    GAPS_ASSIGN_OR_RETURN(lpips, Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string()));
-    lpips->to(device);
-  }
-  SceneLoadOptions load;
-  load.resolution = o.resolution;
-  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(o.scene_dir, load));
-  GAPS_ASSIGN_OR_RETURN(Split split, benchmark_split(static_cast<int>(scene.cameras.size()), o.views));
+  GAPS_ASSIGN_OR_RETURN(const std::optional<Lpips> lpips, load_lpips(o, device));
+  const Lpips* lpips_model = lpips ? &*lpips : nullptr;
+  GAPS_ASSIGN_OR_RETURN(LoadedScene loaded, load_scene_and_training_views(o, device, log));
+  GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> test, load_views(loaded.scene, loaded.split.test, device));
   RunResult result;
-  result.summary = describe(scene, split);
-  log(result.summary);
-  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> train, load_views(scene, split.train, device));
-  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> test, load_views(scene, split.test, device));
-  GAPS_ASSIGN_OR_RETURN(PointCloud points, initial_points(o, scene, train, log, &result.init_method));
+  result.summary = loaded.summary;
+  GAPS_ASSIGN_OR_RETURN(const PointCloud points,
+                        initial_points(o, loaded.scene, loaded.train, log, &result.init_method));
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
 
   std::filesystem::create_directories(o.out_dir);
   const PeakMemoryMeter memory(device);
-  const std::vector<TrainingView> references = train;
-  Trainer trainer(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config);
-  result.max_gaussians = trainer.config().max_gaussians;
-  if (o.config.gaussians_per_variation > 0)
-    log(absl::StrCat("automatic budget: ", result.max_gaussians, " Gaussians (", o.config.gaussians_per_variation,
-                     " per unit of the training views' total variation)"));
-  std::optional<TimedGenerator> generator;
-  std::optional<GapsTraining> method;
-  Trainer::StepFunction step = [&]() -> absl::StatusOr<at::Tensor> { return trainer.step(); };
-  if (o.variant != Variant::kVanilla) {
-    if (!o.generator)
-      return absl::InvalidArgumentError(
-          absl::StrCat("variant ", variant_name(o.variant), " needs a generator backend"));
-    GapsConfig gaps = o.gaps;
-    gaps.n_active = o.n_active > 0 ? o.n_active : (scene.cameras.size() > 100 ? kNActiveMip360 : kNActiveLlff);
-    generator.emplace(o.generator);
-    method.emplace(trainer, &*generator, references, gaps, o.variant, o.config.seed);
-    method->set_inspection_dir(o.out_dir / "pseudo_views");
-    if (o.on_phase || !o.checkpoint_dir.empty())
-      method->set_phase_observer([&](const std::string& event, const nlohmann::json& entry) {
-        if (event == "started" && !o.checkpoint_dir.empty()) {
-          // The state before the phase: a resumed run repeats the phase, then goes on.
-          if (const absl::Status saved = save_checkpoint(o.checkpoint_dir, trainer, &*method); !saved.ok())
-            log(absl::StrCat("warning: checkpoint not written: ", saved.message()));
-          else if (o.on_checkpoint)
-            o.on_checkpoint(trainer.iteration());
-        }
-        if (o.on_phase) o.on_phase(event, entry);
-      });
-    step = [&] { return method->step(); };
-    log(absl::StrCat("method: ", variant_name(o.variant), " with generator ", o.generator->name()));
-  }
-  const Lpips* lpips_model = lpips ? &*lpips : nullptr;
-  if (!o.checkpoint_dir.empty()) {
-    const absl::StatusOr<int> resumed = load_checkpoint(o.checkpoint_dir, trainer, method ? &*method : nullptr);
-    if (resumed.ok())
-      log(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
-    else if (!absl::IsNotFound(resumed.status()))
-      return resumed.status();
-  }
-  if (o.should_stop) {
-    step = [&trainer, &o, inner = std::move(step)]() -> absl::StatusOr<at::Tensor> {
-      if (o.should_stop()) return absl::CancelledError(absl::StrCat("stopped at iteration ", trainer.iteration()));
-      return inner ? inner() : trainer.step();
-    };
-  }
-  const auto start = std::chrono::steady_clock::now();
-  const auto seconds_since = [](std::chrono::steady_clock::time_point t) {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-  };
-  double eval_seconds = 0.0;
-  DivergenceGuard guard(kDivergenceCheckEvery, o.config.iterations);
-  // Each iteration: the step, the divergence guard, and at the curve's iterations an evaluation whose time
-  // is left out of the training time (the last iteration's is the final evaluation below).
-  const Trainer::StepFunction monitored = [&]() -> absl::StatusOr<at::Tensor> {
-    GAPS_ASSIGN_OR_RETURN(at::Tensor loss, step());
-    const int it = trainer.iteration();
-    GAPS_RETURN_IF_ERROR(guard.observe(it, loss, trainer.model()));
-    if (o.eval_every <= 0 || it % o.eval_every != 0 || it >= o.config.iterations) return loss;
-    (void)loss.item<double>();  // the queued training work belongs to the training time
-    const auto eval_start = std::chrono::steady_clock::now();
-    GAPS_ASSIGN_OR_RETURN(const std::vector<ImageMetrics> views,
-                          evaluate_views(trainer.model(), test, o.config.background, lpips_model, {}));
-    GAPS_ASSIGN_OR_RETURN(const ImageMetrics average, average_metrics(views));
-    result.curve.push_back({it, std::chrono::duration<double>(eval_start - start).count() - eval_seconds, average,
-                            trainer.model().size()});
-    eval_seconds += seconds_since(eval_start);
-    return loss;
-  };
-  const absl::Status trained = trainer.run(on_progress, 10, monitored);
-  // A stopped run (cancelled, or its service shutting down) leaves its state for a later resume.
-  if (absl::IsCancelled(trained) && !o.checkpoint_dir.empty()) {
-    if (const absl::Status saved = save_checkpoint(o.checkpoint_dir, trainer, method ? &*method : nullptr); !saved.ok())
-      log(absl::StrCat("warning: checkpoint not written: ", saved.message()));
-    else if (o.on_checkpoint)
-      o.on_checkpoint(trainer.iteration());
-  }
-  if (method) GAPS_RETURN_IF_ERROR(write_json(o.out_dir / "phases.json", method->phase_log()));
-  result.train_seconds = seconds_since(start) - eval_seconds;
-  result.num_gaussians = trainer.model().size();
+  TrainingRun run(o, log, points, std::move(loaded.train), device);
+  result.max_gaussians = run.trainer().config().max_gaussians;
+  GAPS_RETURN_IF_ERROR(run.attach_method(loaded.scene.cameras.size()));
+  GAPS_RETURN_IF_ERROR(run.resume());
+  const absl::Status trained = run.train(on_progress, test, lpips_model, &result.curve);
+  GAPS_RETURN_IF_ERROR(run.keep_state(trained));
+
+  result.train_seconds = run.train_seconds();
+  result.num_gaussians = run.trainer().model().size();
   result.peak_memory = memory.read();
-  if (generator) result.generator_seconds = generator->seconds();
+  result.generator_seconds = run.generator_seconds();
   // Whatever happened, keep what was computed.
-  GAPS_RETURN_IF_ERROR(save_gaussians_ply(trainer.model(), o.out_dir / "point_cloud.ply"));
+  GAPS_RETURN_IF_ERROR(save_gaussians_ply(run.trainer().model(), o.out_dir / "point_cloud.ply"));
   if (is_divergence(trained)) {
     log(std::string(trained.message()));
-    GAPS_RETURN_IF_ERROR(write_metrics(o, result, "diverged", std::string(trained.message())));
-    if (o.html_report) GAPS_RETURN_IF_ERROR(write_run_report(o.out_dir, test));
+    GAPS_RETURN_IF_ERROR(write_outputs(o, result, test, "diverged", std::string(trained.message())));
   }
   GAPS_RETURN_IF_ERROR(trained);
-
-  GAPS_ASSIGN_OR_RETURN(result.per_view,
-                        evaluate_views(trainer.model(), test, o.config.background, lpips_model,
-                                       o.save_renders ? o.out_dir / "renders" : std::filesystem::path()));
-  GAPS_ASSIGN_OR_RETURN(result.metrics, average_metrics(result.per_view));
-  if (o.eval_every > 0)
-    result.curve.push_back({o.config.iterations, result.train_seconds, result.metrics, result.num_gaussians});
+  GAPS_RETURN_IF_ERROR(evaluate_final(o, run.trainer().model(), test, lpips_model, &result));
   result.peak_memory = memory.read();
-  GAPS_RETURN_IF_ERROR(write_metrics(o, result));
-  if (o.html_report) GAPS_RETURN_IF_ERROR(write_run_report(o.out_dir, test));
+  GAPS_RETURN_IF_ERROR(write_outputs(o, result, test));
   return result;
 }
 
