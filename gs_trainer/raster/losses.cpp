@@ -3,7 +3,7 @@
 #include <ATen/ATen.h>
 #include <torch/csrc/autograd/custom_function.h>
 
-#include "gs_trainer/raster/ssim_backend.h"
+#include "gs_trainer/raster/backend.h"
 
 namespace gaps {
 namespace {
@@ -22,26 +22,14 @@ void check_pair(const at::Tensor& pred, const at::Tensor& gt) {
 class SsimMapFunction : public torch::autograd::Function<SsimMapFunction> {
  public:
   static tensor_list forward(AutogradContext* ctx, Variable pred, Variable gt) {
-    backend::SsimForward f;
-    if (pred.is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      f = backend::ssim_forward_cuda(pred, gt);
-#else
-      TORCH_CHECK(false, "gaps was built without CUDA kernels (GAPS_CUDA=OFF or no nvcc): use --device cpu");
-#endif
-    } else {
-      f = backend::ssim_forward_cpu(pred, gt);
-    }
+    const backend::SsimForward f = backend::raster_backend(pred.device()).ssim_forward(pred, gt);
     ctx->save_for_backward({pred, gt, f.partials});
     return {f.map};
   }
 
   static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
     const auto s = ctx->get_saved_variables();
-#if defined(GAPS_CUDA_KERNELS)
-    if (s[0].is_cuda()) return {backend::ssim_backward_cuda(s[0], s[1], s[2], grads[0]), Variable()};
-#endif
-    return {backend::ssim_backward_cpu(s[0], s[1], s[2], grads[0]), Variable()};
+    return {backend::raster_backend(s[0].device()).ssim_backward(s[0], s[1], s[2], grads[0]), Variable()};
   }
 };
 

@@ -1,6 +1,7 @@
 #pragma once
-// The rasterizer's stages as plain tensor functions, one implementation per device (CPU here, CUDA in
-// gs_trainer/cuda/). rasterizer.h wraps them as autograd functions; nothing else should call them.
+// The rasterizer's stages as plain tensor functions, one implementation per device (cpu/, cuda/).
+// rasterizer.cpp wraps them as autograd functions through backend.h's table; besides, only tests and
+// benchmarks call them, by name.
 #include <tuple>
 
 #include <ATen/Tensor.h>

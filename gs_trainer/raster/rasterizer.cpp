@@ -1,4 +1,4 @@
-// Autograd wrappers: pick the device's backend, save what the backward pass needs.
+// Autograd wrappers: call the backend of the input's device, save what the backward pass needs.
 #include "gs_trainer/raster/rasterizer.h"
 
 #include <optional>
@@ -6,7 +6,7 @@
 #include <ATen/ATen.h>
 #include <torch/csrc/autograd/custom_function.h>
 
-#include "gs_trainer/raster/rasterize_backend.h"
+#include "gs_trainer/raster/backend.h"
 
 namespace gaps {
 namespace {
@@ -14,10 +14,6 @@ namespace {
 using torch::autograd::AutogradContext;
 using torch::autograd::tensor_list;
 using torch::autograd::Variable;
-
-[[noreturn]] void no_cuda_backend() {
-  TORCH_CHECK(false, "gaps was built without CUDA kernels (GAPS_CUDA=OFF or no nvcc): use --device cpu");
-}
 
 raster::Intrinsics intrinsics_from(AutogradContext* ctx) {
   const auto v = ctx->saved_data["K"].toDoubleVector();
@@ -34,16 +30,8 @@ class ShadeFunction : public torch::autograd::Function<ShadeFunction> {
   static tensor_list forward(AutogradContext* ctx, Variable means, Variable sh_dc, Variable sh_rest, int64_t degree,
                              std::vector<double> centre) {
     const backend::Centre c{centre[0], centre[1], centre[2]};
-    at::Tensor features;
-    if (means.is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      features = backend::shade_forward_cuda(means, sh_dc, sh_rest, static_cast<int>(degree), c);
-#else
-      no_cuda_backend();
-#endif
-    } else {
-      features = backend::shade_forward_cpu(means, sh_dc, sh_rest, static_cast<int>(degree), c);
-    }
+    const at::Tensor features =
+        backend::raster_backend(means.device()).shade_forward(means, sh_dc, sh_rest, static_cast<int>(degree), c);
     ctx->save_for_backward({means, sh_dc, sh_rest});
     ctx->saved_data["centre"] = centre;
     ctx->saved_data["degree"] = degree;
@@ -54,16 +42,8 @@ class ShadeFunction : public torch::autograd::Function<ShadeFunction> {
     const auto s = ctx->get_saved_variables();
     const int degree = static_cast<int>(ctx->saved_data["degree"].toInt());
     const at::Tensor g = grads[0].defined() ? grads[0] : at::zeros({s[0].size(0), 4}, s[0].options());
-    backend::ShadeGrads out;
-    if (s[0].is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      out = backend::shade_backward_cuda(s[0], s[1], s[2], degree, centre_from(ctx), g);
-#else
-      no_cuda_backend();
-#endif
-    } else {
-      out = backend::shade_backward_cpu(s[0], s[1], s[2], degree, centre_from(ctx), g);
-    }
+    const backend::ShadeGrads out =
+        backend::raster_backend(s[0].device()).shade_backward(s[0], s[1], s[2], degree, centre_from(ctx), g);
     return {out.means, out.sh_dc, out.sh_rest, Variable(), Variable()};
   }
 };
@@ -73,16 +53,8 @@ class ProjectFunction : public torch::autograd::Function<ProjectFunction> {
   static tensor_list forward(AutogradContext* ctx, Variable means, Variable quats, Variable scales, Variable viewmat,
                              std::vector<double> K) {
     const raster::Intrinsics intr{K[0], K[1], K[2], K[3], static_cast<int>(K[4]), static_cast<int>(K[5])};
-    backend::Projection p;
-    if (means.is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      p = backend::project_forward_cuda(means, quats, scales, viewmat, intr);
-#else
-      no_cuda_backend();
-#endif
-    } else {
-      p = backend::project_forward_cpu(means, quats, scales, viewmat, intr);
-    }
+    const backend::Projection p =
+        backend::raster_backend(means.device()).project_forward(means, quats, scales, viewmat, intr);
     ctx->save_for_backward({means, quats, scales, viewmat, p.radii});
     ctx->saved_data["K"] = K;
     ctx->mark_non_differentiable({p.depths, p.radii});
@@ -94,16 +66,8 @@ class ProjectFunction : public torch::autograd::Function<ProjectFunction> {
     const auto intr = intrinsics_from(ctx);
     const at::Tensor g_means2d = grads[0].defined() ? grads[0] : at::zeros_like(s[0].narrow(1, 0, 2));
     const at::Tensor g_conics = grads[1].defined() ? grads[1] : at::zeros_like(s[2]);
-    backend::ProjectionGrads g;
-    if (s[0].is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      g = backend::project_backward_cuda(s[0], s[1], s[2], s[3], intr, s[4], g_means2d, g_conics);
-#else
-      no_cuda_backend();
-#endif
-    } else {
-      g = backend::project_backward_cpu(s[0], s[1], s[2], s[3], intr, s[4], g_means2d, g_conics);
-    }
+    const backend::ProjectionGrads g = backend::raster_backend(s[0].device())
+                                           .project_backward(s[0], s[1], s[2], s[3], intr, s[4], g_means2d, g_conics);
     return {g.means, g.quats, g.scales, Variable(), Variable()};
   }
 };
@@ -114,19 +78,9 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
                              Variable features, Variable depths, Variable radii, int64_t width, int64_t height,
                              std::optional<at::Tensor> abs_sink) {
     const int w = static_cast<int>(width), h = static_cast<int>(height);
-    backend::TileBins bins;
-    backend::RasterOutput out;
-    if (means2d.is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      bins = backend::bin_tiles_cuda(means2d, conics, opacities, radii, depths, w, h);
-      out = backend::rasterize_forward_cuda(bins, means2d, conics, opacities, features, w, h);
-#else
-      no_cuda_backend();
-#endif
-    } else {
-      bins = backend::bin_tiles_cpu(means2d, conics, opacities, radii, depths, w, h);
-      out = backend::rasterize_forward_cpu(bins, means2d, conics, opacities, features, w, h);
-    }
+    const backend::RasterBackend& stages = backend::raster_backend(means2d.device());
+    const backend::TileBins bins = stages.bin_tiles(means2d, conics, opacities, radii, depths, w, h);
+    const backend::RasterOutput out = stages.rasterize_forward(bins, means2d, conics, opacities, features, w, h);
     ctx->save_for_backward({means2d, conics, opacities, features, bins.gaussian_ids, bins.tile_ranges, out.final_T,
                             out.n_contrib, out.alpha});
     // The sink is an output buffer, not an input of the graph, so it travels outside the saved variables.
@@ -144,18 +98,11 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
     const int h = static_cast<int>(fwd.alpha.size(0)), w = static_cast<int>(fwd.alpha.size(1));
     const at::Tensor g_feat = grads[0].defined() ? grads[0] : at::zeros({h, w, s[3].size(1)}, s[3].options());
     const at::Tensor g_alpha = grads[1].defined() ? grads[1] : at::zeros_like(fwd.alpha);
-    backend::RasterGrads g;
-    if (s[0].is_cuda()) {
-#if defined(GAPS_CUDA_KERNELS)
-      g = backend::rasterize_backward_cuda(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha,
-                                           ctx->saved_data.count("abs_sink") > 0);
-#else
-      no_cuda_backend();
-#endif
-    } else {
-      g = backend::rasterize_backward_cpu(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha);
-    }
-    if (ctx->saved_data.count("abs_sink")) ctx->saved_data["abs_sink"].toTensor().add_(g.means2d_abs);
+    const bool has_sink = ctx->saved_data.count("abs_sink") > 0;
+    const backend::RasterGrads g =
+        backend::raster_backend(s[0].device())
+            .rasterize_backward(bins, s[0], s[1], s[2], s[3], fwd, g_feat, g_alpha, has_sink);
+    if (has_sink) ctx->saved_data["abs_sink"].toTensor().add_(g.means2d_abs);
     return {g.means2d, g.conics, g.opacities, g.features, Variable(), Variable(), Variable(), Variable(), Variable()};
   }
 };

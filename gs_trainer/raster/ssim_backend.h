@@ -1,7 +1,7 @@
 #pragma once
-// The SSIM map's two passes as plain tensor functions, one implementation per device (CPU here, CUDA in
-// gs_trainer/raster/cuda/ssim.cu), with the maths of ssim_math.h. losses.cpp wraps them as an autograd function;
-// nothing else should call them.
+// The SSIM map's two passes as plain tensor functions, one implementation per device (cpu/ssim.cpp,
+// cuda/ssim.cu), with the maths of ssim_math.h. losses.cpp wraps them as an autograd function through
+// backend.h's table; nothing else should call them.
 #include <ATen/Tensor.h>
 
 namespace gaps::backend {

@@ -6,11 +6,33 @@
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 
-#if defined(GAPS_CUDA_KERNELS)
 #include "gs_trainer/train/cuda/adam_cuda.h"
-#endif
 
 namespace gaps {
+namespace {
+
+using AdamUpdate = void (*)(at::Tensor& param, const at::Tensor& grad, at::Tensor& exp_avg, at::Tensor& exp_avg_sq,
+                            const backend::AdamStep& step);
+
+// The update in ATen operations, for any device.
+void adam_update_aten(at::Tensor& param, const at::Tensor& grad, at::Tensor& exp_avg, at::Tensor& exp_avg_sq,
+                      const backend::AdamStep& step) {
+  exp_avg.mul_(step.beta1).add_(grad, 1 - step.beta1);
+  exp_avg_sq.mul_(step.beta2).addcmul_(grad, grad, 1 - step.beta2);
+  const at::Tensor denom = (exp_avg_sq.sqrt() / std::sqrt(step.bias_correction2)).add_(step.eps);
+  param.addcdiv_(exp_avg, denom, -step.lr / step.bias_correction1);
+}
+
+// The fused kernel where this build has it and the tensors suit it (it reads the gradient as one dense
+// array); ATen's operations otherwise.
+AdamUpdate adam_update_for([[maybe_unused]] const at::Tensor& param, [[maybe_unused]] const at::Tensor& grad) {
+#if defined(GAPS_CUDA_KERNELS)
+  if (param.is_cuda() && grad.is_contiguous()) return backend::adam_update_cuda;
+#endif
+  return adam_update_aten;
+}
+
+}  // namespace
 
 GaussianAdam::GaussianAdam(GaussianModel& model, std::vector<double> learning_rates, double eps, double beta1,
                            double beta2)
@@ -31,17 +53,8 @@ void GaussianAdam::step() {
   for (auto& g : groups_) {
     const at::Tensor& grad = g.param->grad();
     if (!grad.defined()) continue;
-#if defined(GAPS_CUDA_KERNELS)
-    if (g.param->is_cuda() && grad.is_contiguous()) {
-      at::Tensor param = g.param->detach();  // shares storage: the update is in place
-      backend::adam_update_cuda(param, grad, g.exp_avg, g.exp_avg_sq, {g.lr, beta1_, beta2_, eps_, bc1, bc2});
-      continue;
-    }
-#endif
-    g.exp_avg.mul_(beta1_).add_(grad, 1 - beta1_);
-    g.exp_avg_sq.mul_(beta2_).addcmul_(grad, grad, 1 - beta2_);
-    const at::Tensor denom = (g.exp_avg_sq.sqrt() / std::sqrt(bc2)).add_(eps_);
-    g.param->addcdiv_(g.exp_avg, denom, -g.lr / bc1);
+    at::Tensor param = g.param->detach();  // shares storage: the update is in place
+    adam_update_for(param, grad)(param, grad, g.exp_avg, g.exp_avg_sq, {g.lr, beta1_, beta2_, eps_, bc1, bc2});
   }
 }
 

@@ -1,6 +1,7 @@
 #pragma once
-// Checks and launch arithmetic shared by the element-wise kernels of this folder.
+// Checks, launch arithmetic and template dispatch shared by the kernels of this folder.
 #include <cstdint>
+#include <type_traits>
 
 #include <ATen/core/Tensor.h>
 #include <c10/util/Exception.h>
@@ -18,6 +19,19 @@ constexpr int kElementwiseThreads = 256;
 
 inline unsigned int blocks_for(int64_t n, int threads = kElementwiseThreads) {
   return static_cast<unsigned int>((n + threads - 1) / threads);
+}
+
+// The compositing kernels keep a pixel's feature channels in registers, so they are compiled for a channel
+// capacity: 4 covers colour + depth (what render() composites); 16 is the general case. Calls
+// f(std::integral_constant<int, capacity>) for the smallest capacity that holds `channels`.
+template <typename F>
+void dispatch_channels(int channels, F&& f) {
+  TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
+              channels);
+  if (channels <= 4)
+    f(std::integral_constant<int, 4>{});
+  else
+    f(std::integral_constant<int, 16>{});
 }
 
 }  // namespace gaps::backend

@@ -15,13 +15,12 @@
 // millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
 // sums in another order than the CPU's anyway, and the alpha decisions it must share with the forward
 // pass come from gaussian_power, which is written with unfused intrinsics.
-#include <type_traits>
-
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/zeros.h>
 #include <c10/cuda/CUDAGuard.h>
 
+#include "gs_trainer/raster/cuda/cuda_common.h"
 #include "gs_trainer/raster/rasterize_backend.h"
 
 namespace gaps::backend {
@@ -31,17 +30,6 @@ constexpr int kTile = raster::kTileSize;
 constexpr int kBlock = kTile * kTile;
 constexpr int kWarps = kBlock / 32;
 constexpr unsigned kFullMask = 0xffffffffu;
-
-// Channel capacities as in rasterize_forward.cu.
-template <typename F>
-void dispatch_channels(int channels, F&& f) {
-  TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
-              channels);
-  if (channels <= 4)
-    f(std::integral_constant<int, 4>{});
-  else
-    f(std::integral_constant<int, 16>{});
-}
 
 __device__ float warp_sum(float v) {
   for (int offset = 16; offset > 0; offset /= 2) v += __shfl_xor_sync(kFullMask, v, offset);

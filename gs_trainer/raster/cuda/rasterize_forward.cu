@@ -3,13 +3,12 @@
 // memory; each thread composites its pixel with exactly the CPU's rules (rasterize_forward_cpu.cpp):
 // skip alpha < 1/255, clamp alpha at 0.99, stop before the transmittance falls below 1e-4, and record
 // how far the list was walked (n_contrib) for the backward pass.
-#include <type_traits>
-
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/empty.h>
 #include <c10/cuda/CUDAGuard.h>
 
+#include "gs_trainer/raster/cuda/cuda_common.h"
 #include "gs_trainer/raster/rasterize_backend.h"
 
 namespace gaps::backend {
@@ -17,18 +16,6 @@ namespace {
 
 constexpr int kTile = raster::kTileSize;
 constexpr int kBlock = kTile * kTile;
-
-// Feature channels live in registers, so kernels are compiled for a channel capacity: 4 covers
-// colour + depth (what render() composites); 16 is the general case.
-template <typename F>
-void dispatch_channels(int channels, F&& f) {
-  TORCH_CHECK(channels >= 1 && channels <= 16, "the CUDA rasterizer composites 1 to 16 feature channels, got ",
-              channels);
-  if (channels <= 4)
-    f(std::integral_constant<int, 4>{});
-  else
-    f(std::integral_constant<int, 16>{});
-}
 
 struct ForwardArgs {
   int width, height, tiles_x, channels;

@@ -1,5 +1,6 @@
 #pragma once
-// One fused Adam update per parameter tensor on the GPU (adam.cpp calls it for CUDA tensors).
+// One fused Adam update per parameter tensor on the GPU, for adam.cpp to pick for CUDA tensors. Only builds
+// with CUDA kernels (GAPS_CUDA_KERNELS) define it.
 #include <ATen/Tensor.h>
 
 namespace gaps::backend {
