@@ -1,7 +1,7 @@
 // Backward of the tile compositing on the CPU. Each tile walks its pixels back to front, so every
 // (tile, Gaussian) entry's gradient is written by one thread only; they are then summed per Gaussian in
 // tile order, which keeps the result deterministic without atomics. The tile kernel is
-// rasterize_backward_kernels_cpu.h, compiled once per instruction set (cpu_simd.h).
+// rasterize_backward_kernels.h, compiled once per instruction set (simd.h).
 // Everything the kernel headers use comes first: they are compiled under target pragmas.
 #include <algorithm>
 #include <cmath>

@@ -1,5 +1,5 @@
-// The backward tile kernel of rasterize_backward_cpu.cpp for one instruction set: included there through
-// cpu_simd_multiversion.h (no include guard, no system includes; BackwardArgs and kFixed come from the
+// The backward tile kernel of cpu/rasterize_backward.cpp for one instruction set: included there through
+// simd_multiversion.h (no include guard, no system includes; BackwardArgs and kFixed come from the
 // includer).
 #include "gs_trainer/raster/cpu/rasterize_tile_simd.h"
 
@@ -174,7 +174,7 @@ GAPS_SIMD_INLINE void backward_tile(int64_t tile_index, const BackwardArgs<T>& i
       }
     }
     if (!touched) continue;  // no gradient, no record
-    // The record layout of rasterize_backward_cpu.cpp: mean2d (2), conic (3), opacity (1), |mean2d| (2),
+    // The record layout of cpu/rasterize_backward.cpp: mean2d (2), conic (3), opacity (1), |mean2d| (2),
     // features (C).
     st.sums[0] = acc.mean_x;
     st.sums[1] = acc.mean_y;

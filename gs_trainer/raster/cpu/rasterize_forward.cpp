@@ -2,8 +2,8 @@
 // per-pixel state the backward pass needs (final transmittance, how far the tile list was walked).
 // Loops run Gaussian-major over a tile's pixels, a SIMD vector of pixels of one row at a time (pixels are
 // independent given the Gaussian order), visiting only the rows a Gaussian can reach and stopping when
-// every pixel of the tile is saturated. The kernel is rasterize_forward_kernels_cpu.h, compiled once per
-// instruction set (cpu_simd.h).
+// every pixel of the tile is saturated. The kernel is rasterize_forward_kernels.h, compiled once per
+// instruction set (simd.h).
 // Everything the kernel headers use comes first: they are compiled under target pragmas.
 #include <algorithm>
 #include <cmath>

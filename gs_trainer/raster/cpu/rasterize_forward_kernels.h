@@ -1,5 +1,5 @@
-// The forward tile kernel of rasterize_forward_cpu.cpp for one instruction set: included there through
-// cpu_simd_multiversion.h (no include guard, no system includes; ForwardArgs comes from the includer).
+// The forward tile kernel of cpu/rasterize_forward.cpp for one instruction set: included there through
+// simd_multiversion.h (no include guard, no system includes; ForwardArgs comes from the includer).
 #include "gs_trainer/raster/cpu/rasterize_tile_simd.h"
 
 namespace gaps::backend::GAPS_SIMD_NS {

@@ -1,6 +1,6 @@
 #pragma once
 // What the CPU forward and backward tile kernels share (scalar part; the vector part is
-// rasterize_tile_simd_cpu.h): the packed per-Gaussian record they read, with what the conservative
+// rasterize_tile_simd.h): the packed per-Gaussian record they read, with what the conservative
 // "which rows of this tile can the Gaussian reach" test needs, and the tiles' geometry. CPU only.
 //
 // Exactness: that test only drops rows where the per-pixel test of eval_alpha (power > 0 or alpha < 1/255
@@ -26,12 +26,12 @@ struct alignas(16 * sizeof(T)) Splat {
   T a, b, c;  // conic
   T opacity;
   // Where alpha can reach kMinAlpha: in the row of pixel centres at height py (dy = my - py), the centres px
-  // with |px - (mx + shear dy)| <= sqrt(h2 - shrink dy^2); reached_row_bits (rasterize_tile_simd_cpu.h)
+  // with |px - (mx + shear dy)| <= sqrt(h2 - shrink dy^2); reached_row_bits (rasterize_tile_simd.h)
   // adds the safety margins. h2 < 0: nowhere; h2 = inf: anywhere (no culling).
   T h2, shrink, shear;
   // Float only: [lo, hi] bands of power outside which the simd::exp used for float gives the same skip
   // (alpha < kMinAlpha) and clamp (alpha >= kMaxAlpha) decisions as eval_alpha's exp (see
-  // rasterize_tile_simd_cpu.h). Empty (NaN) where the Gaussian contributes nowhere.
+  // rasterize_tile_simd.h). Empty (NaN) where the Gaussian contributes nowhere.
   T near_min[2], near_max[2];
 };
 

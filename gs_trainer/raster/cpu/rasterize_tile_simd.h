@@ -1,5 +1,5 @@
 // eval_alpha (raster_math.h) for a whole tile row segment at once, for one instruction set: included by
-// the kernel headers inside cpu_simd_multiversion.h (no include guard, no system includes).
+// the kernel headers inside simd_multiversion.h (no include guard, no system includes).
 //
 // A tile row of 16 pixels is kSegments<T> vectors ("segments"). The terms of the Gaussian's power that
 // only depend on the column are computed once per (tile, Gaussian), those that only depend on the row

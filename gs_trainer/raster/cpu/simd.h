@@ -3,7 +3,7 @@
 //
 // The library is built for baseline x86-64, so the kernels are compiled several times, each copy for
 // one instruction set, and the caller picks the best copy the CPU runs. The kernels are written once
-// with GCC/Clang vector extensions (cpu_simd_ops.h) in a header that cpu_simd_multiversion.h includes
+// with GCC/Clang vector extensions (simd_ops.h) in a header that simd_multiversion.h includes
 // once per instruction set, each time in its own namespace (avx512, avx2, baseline) under a target
 // pragma. (A target attribute on the entry function alone is not enough: GCC lowers the vector
 // comparisons of an inline helper for the ISA the helper was parsed with, lane by lane, before inlining.)

@@ -1,4 +1,4 @@
-// Compiles the kernel header named by GAPS_SIMD_KERNELS once per instruction set (see cpu_simd.h):
+// Compiles the kernel header named by GAPS_SIMD_KERNELS once per instruction set (see simd.h):
 //
 //   #define GAPS_SIMD_KERNELS "gs_trainer/some_kernels_cpu.h"
 //   #include "gs_trainer/raster/cpu/simd_multiversion.h"
@@ -8,7 +8,7 @@
 // kernel header. The including file must include every system header the kernels use beforehand, so
 // that no library code is parsed under a target pragma.
 #ifndef GAPS_SIMD_KERNELS
-#error "define GAPS_SIMD_KERNELS before including cpu_simd_multiversion.h"
+#error "define GAPS_SIMD_KERNELS before including simd_multiversion.h"
 #endif
 
 #if defined(__x86_64__) || defined(__i386__)

@@ -1,6 +1,6 @@
 // SIMD vocabulary of the CPU tile kernels, for one instruction set: included (through a kernel header) by
-// cpu_simd_multiversion.h once per GAPS_SIMD_NS, with GAPS_SIMD_BYTES the native vector width. No include
-// guard and no system includes, on purpose (see cpu_simd_multiversion.h). Needs <cmath>, <cstdint>,
+// simd_multiversion.h once per GAPS_SIMD_NS, with GAPS_SIMD_BYTES the native vector width. No include
+// guard and no system includes, on purpose (see simd_multiversion.h). Needs <cmath>, <cstdint>,
 // <cstring>, <new>, <type_traits>, <utility> and, on x86-64, <immintrin.h>.
 //
 // A Vec<T> is one native register of lanes (16 floats with AVX-512, 8 with AVX2, 4 with SSE2); a Mask<T>

@@ -1,7 +1,7 @@
 // Tile binning on the GPU, as in 3DGS: every visible Gaussian emits one (key, index) pair per 16x16 tile
 // its footprint touches (raster::tile_rect), with key = tile << 32 | depth bits, and one radix sort orders the pairs
 // by tile, then depth. The pairs are emitted in increasing Gaussian index and CUB's radix sort is stable,
-// so equal depths keep increasing index: the (depth, index) order of bin_tiles_cpu.cpp, entry for entry.
+// so equal depths keep increasing index: the (depth, index) order of cpu/bin_tiles.cpp, entry for entry.
 #include <cub/device/device_radix_sort.cuh>
 
 #include <ATen/core/Tensor.h>
@@ -19,7 +19,7 @@ namespace {
 
 constexpr int kThreads = 256;
 
-// Gaussian i's tiles (raster::tile_rect, as bin_tiles_cpu.cpp computes them).
+// Gaussian i's tiles (raster::tile_rect, as cpu/bin_tiles.cpp computes them).
 __device__ raster::TileRect tiles_of(int64_t i, const float* __restrict__ means2d, const float* __restrict__ conics,
                                      const float* __restrict__ opacities, const int32_t* __restrict__ radii,
                                      int tiles_x, int tiles_y) {

@@ -1,6 +1,6 @@
 // Projection of 3D Gaussians to 2D conics on the GPU, forward and backward: one thread per Gaussian
 // running the shared maths of raster_math.h (project_one, finish_projection, project_one_vjp), so the
-// results are those of project_cpu.cpp. The .cu files are compiled without FMA contraction, which keeps
+// results are those of cpu/project.cpp. The .cu files are compiled without FMA contraction, which keeps
 // every float operation rounding as on the CPU (bitwise-equal conics and depths keep the tile sort order
 // and the alpha decisions of the rasterizer identical).
 #include <ATen/core/Tensor.h>

@@ -1,15 +1,11 @@
 // Backward of the tile compositing on the GPU, as in gsplat: one 16x16 thread block per tile, one thread
 // per pixel, walking the tile's list back to front in shared-memory batches. Each thread undoes its
 // pixel's compositing (T grows back by 1 / (1 - alpha), `behind` holds the features composited behind)
-// with the operations of rasterize_backward_cpu.cpp. The 32 pixels of a warp then sum their gradients for
+// with the operations of cpu/rasterize_backward.cpp. The 32 pixels of a warp then sum their gradients for
 // the current Gaussian with shuffles, and one lane adds the sums to the per-Gaussian gradients with
 // atomics: 32 times fewer atomics than per-pixel ones. The |mean2d| sums are compiled in only where a
-// caller asks for them (absolute-gradient densification). Measured on an H200 (bench/results/
-// rasterizer_backward_variants_gpu_2026-11-22.txt), each of these was slower than this plain form:
-// a reduce-scatter that leaves each sum in its own lane so that one warp-wide atomic stores them all
-// (+40%), the same butterflies with the atomics spread over the lanes (+5%), skipping per warp the sums of
-// channels without output gradient (more registers, lower occupancy: +20% at 1M Gaussians), and forcing
-// 5 or 6 resident blocks per multiprocessor by launch bounds (no gain).
+// caller asks for them (absolute-gradient densification). The variants measured against this plain form,
+// all slower, are in docs/benchmarks.md ("CUDA rasterizer against gsplat").
 // Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
 // deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
 // millions of intersections. This file alone is compiled with FMA contraction: its gradients are float

@@ -1,6 +1,6 @@
 // Front-to-back compositing on the GPU, as in 3DGS / gsplat: one 16x16 thread block per tile, one thread
 // per pixel. The block walks its tile's depth-sorted list in batches of 256 Gaussians staged in shared
-// memory; each thread composites its pixel with exactly the CPU's rules (rasterize_forward_cpu.cpp):
+// memory; each thread composites its pixel with exactly the CPU's rules (cpu/rasterize_forward.cpp):
 // skip alpha < 1/255, clamp alpha at 0.99, stop before the transmittance falls below 1e-4, and record
 // how far the list was walked (n_contrib) for the backward pass.
 #include <ATen/core/Tensor.h>

@@ -1,5 +1,5 @@
 // Per-Gaussian colour (SH at the view direction) and distance on the GPU, forward and backward: one thread
-// per Gaussian running shade_math.h, the maths of shade_cpu.cpp. One kernel each way replaces the few dozen
+// per Gaussian running shade_math.h, the maths of cpu/shade.cpp. One kernel each way replaces the few dozen
 // element-wise ATen launches (and their autograd nodes) that the same computation costs in tensor ops.
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>

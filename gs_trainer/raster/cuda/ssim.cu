@@ -1,5 +1,5 @@
 // The SSIM map and its backward pass on the GPU: one thread per (pixel, channel) and pass, running
-// ssim_math.h as ssim_cpu.cpp does. Four kernels in all replace the ~100 ATen launches (convolutions,
+// ssim_math.h as cpu/ssim.cpp does. Four kernels in all replace the ~100 ATen launches (convolutions,
 // element-wise products, their autograd nodes) of the same computation in tensor operations.
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
