@@ -30,25 +30,44 @@ CREATE TABLE IF NOT EXISTS artifacts (
 );
 )sql";
 
-// A prepared statement that finalises itself.
+// The code says whether trying again can help; the message is SQLite's.
+absl::Status sqlite_error(int rc, absl::string_view message) {
+  const std::string text = absl::StrCat("job store: ", message);
+  switch (rc & 0xff) {  // the primary result code
+    case SQLITE_BUSY:
+    case SQLITE_LOCKED:
+      return absl::UnavailableError(text);
+    case SQLITE_FULL:
+      return absl::ResourceExhaustedError(text);
+    case SQLITE_READONLY:
+    case SQLITE_PERM:
+      return absl::PermissionDeniedError(text);
+    default:
+      return absl::InternalError(text);
+  }
+}
+
+// A prepared statement that finalises itself. A failed preparation or binding is kept and reported by
+// done(), and step() does not run the statement after one.
 class Statement {
  public:
-  Statement(sqlite3* db, const char* sql) : db_(db) { rc_ = sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr); }
+  Statement(sqlite3* db, const char* sql) : db_(db) { check(sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr)); }
+  // Finalising reports the last step's error again, which done() already returned.
   ~Statement() { sqlite3_finalize(stmt_); }
-  absl::Status prepared() const {
-    return rc_ == SQLITE_OK ? absl::OkStatus() : absl::InternalError(absl::StrCat("SQLite: ", sqlite3_errmsg(db_)));
+  absl::Status prepared() const { return error_; }
+  void bind(int i, const std::string& text) {
+    check(sqlite3_bind_text64(stmt_, i, text.data(), text.size(), SQLITE_TRANSIENT, SQLITE_UTF8));
   }
-  void bind(int i, const std::string& text) { sqlite3_bind_text(stmt_, i, text.data(), text.size(), SQLITE_TRANSIENT); }
   void bind_blob(int i, const std::string& bytes) {
-    sqlite3_bind_blob(stmt_, i, bytes.data(), static_cast<int>(bytes.size()), SQLITE_TRANSIENT);
+    check(sqlite3_bind_blob64(stmt_, i, bytes.data(), bytes.size(), SQLITE_TRANSIENT));
   }
-  void bind(int i, int64_t v) { sqlite3_bind_int64(stmt_, i, v); }
-  void bind(int i, double v) { sqlite3_bind_double(stmt_, i, v); }
+  void bind(int i, int64_t v) { check(sqlite3_bind_int64(stmt_, i, v)); }
+  void bind(int i, double v) { check(sqlite3_bind_double(stmt_, i, v)); }
   // SQLITE_ROW, SQLITE_DONE or an error code.
-  int step() { return sqlite3_step(stmt_); }
+  int step() { return error_.ok() ? sqlite3_step(stmt_) : SQLITE_ERROR; }
   absl::Status done(int rc) const {
-    return rc == SQLITE_DONE || rc == SQLITE_ROW ? absl::OkStatus()
-                                                 : absl::InternalError(absl::StrCat("SQLite: ", sqlite3_errmsg(db_)));
+    if (!error_.ok()) return error_;
+    return rc == SQLITE_DONE || rc == SQLITE_ROW ? absl::OkStatus() : sqlite_error(rc, sqlite3_errmsg(db_));
   }
   std::string blob(int column) const {
     const void* p = sqlite3_column_blob(stmt_, column);
@@ -61,9 +80,14 @@ class Statement {
   int64_t integer(int column) const { return sqlite3_column_int64(stmt_, column); }
 
  private:
+  // Keeps the first failure: the message of a later successful call would replace SQLite's.
+  void check(int rc) {
+    if (rc != SQLITE_OK && error_.ok()) error_ = sqlite_error(rc, sqlite3_errmsg(db_));
+  }
+
   sqlite3* db_;
   sqlite3_stmt* stmt_ = nullptr;
-  int rc_;
+  absl::Status error_;
 };
 
 template <typename Message>
@@ -95,6 +119,10 @@ absl::StatusOr<std::unique_ptr<JobStore>> JobStore::open(const std::filesystem::
     return absl::UnavailableError(absl::StrCat(file.string(), ": cannot open job database (", message, ")"));
   }
   std::unique_ptr<JobStore> store(new JobStore(db));
+  // SQLite falls back to read-only for a file it may not write; every job would then fail at its first
+  // write instead of the trainer at its start.
+  if (sqlite3_db_readonly(db, "main") == 1)
+    return absl::PermissionDeniedError(absl::StrCat(file.string(), ": the job database is read-only"));
   sqlite3_busy_timeout(db, 5000);
   // WAL with synchronous=NORMAL: no fsync per event; a killed process loses nothing, a power loss at most
   // the last transactions, and the database stays consistent either way.
@@ -107,12 +135,24 @@ JobStore::~JobStore() { sqlite3_close(db_); }
 
 absl::Status JobStore::exec(const std::string& sql) {
   char* error = nullptr;
-  if (sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error) != SQLITE_OK) {
-    const std::string message = error ? error : "unknown error";
-    sqlite3_free(error);
-    return absl::InternalError(absl::StrCat("SQLite: ", message));
+  const int rc = sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error);
+  if (rc == SQLITE_OK) return absl::OkStatus();
+  const std::string message = error ? error : sqlite3_errstr(rc);
+  sqlite3_free(error);
+  return sqlite_error(rc, message);
+}
+
+absl::Status JobStore::transaction(const std::function<absl::Status()>& body) {
+  GAPS_RETURN_IF_ERROR(exec("BEGIN IMMEDIATE"));
+  absl::Status status = body();
+  if (status.ok()) status = exec("COMMIT");
+  // A failed COMMIT can leave the transaction open: every later write would join it and be lost with it.
+  if (!status.ok() && sqlite3_get_autocommit(db_) == 0) {
+    if (absl::Status undo = exec("ROLLBACK"); !undo.ok())
+      status =
+          absl::Status(status.code(), absl::StrCat(status.message(), "; rolling back failed too: ", undo.message()));
   }
-  return absl::OkStatus();
+  return status;
 }
 
 absl::Status JobStore::insert(const v1::JobStatus& status, const v1::JobSpec& spec) {
@@ -129,6 +169,10 @@ absl::Status JobStore::insert(const v1::JobStatus& status, const v1::JobSpec& sp
 
 absl::Status JobStore::update(const v1::JobStatus& status) {
   std::lock_guard<std::mutex> lock(mutex_);
+  return update_locked(status);
+}
+
+absl::Status JobStore::update_locked(const v1::JobStatus& status) {
   Statement s(db_, "UPDATE jobs SET state = ?, status = ? WHERE id = ?");
   GAPS_RETURN_IF_ERROR(s.prepared());
   s.bind(1, int64_t{status.state()});
@@ -177,19 +221,25 @@ absl::StatusOr<std::vector<v1::JobStatus>> JobStore::in_state(v1::JobState state
 
 absl::StatusOr<int64_t> JobStore::append_event(v1::JobEvent& event) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement next(db_, "SELECT COALESCE(MAX(seq) + 1, 0) FROM events WHERE job_id = ?");
-  GAPS_RETURN_IF_ERROR(next.prepared());
-  next.bind(1, event.job_id());
-  const int rc = next.step();
-  GAPS_RETURN_IF_ERROR(next.done(rc));
-  event.set_sequence(next.integer(0));
+  GAPS_RETURN_IF_ERROR(transaction([&] { return append_event_locked(event); }));
+  return event.sequence();
+}
+
+absl::Status JobStore::append_event_locked(v1::JobEvent& event) {
+  {
+    Statement next(db_, "SELECT COALESCE(MAX(seq) + 1, 0) FROM events WHERE job_id = ?");
+    GAPS_RETURN_IF_ERROR(next.prepared());
+    next.bind(1, event.job_id());
+    const int rc = next.step();
+    GAPS_RETURN_IF_ERROR(next.done(rc));
+    event.set_sequence(next.integer(0));
+  }
   Statement s(db_, "INSERT INTO events (job_id, seq, event) VALUES (?, ?, ?)");
   GAPS_RETURN_IF_ERROR(s.prepared());
   s.bind(1, event.job_id());
   s.bind(2, event.sequence());
   s.bind_blob(3, event.SerializeAsString());
-  GAPS_RETURN_IF_ERROR(s.done(s.step()));
-  return event.sequence();
+  return s.done(s.step());
 }
 
 absl::StatusOr<std::vector<v1::JobEvent>> JobStore::events(const std::string& job_id, int64_t from_sequence) {
@@ -210,24 +260,33 @@ absl::StatusOr<std::vector<v1::JobEvent>> JobStore::events(const std::string& jo
 
 absl::Status JobStore::set_artifacts(const std::string& job_id, const std::vector<Artifact>& artifacts) {
   std::lock_guard<std::mutex> lock(mutex_);
-  GAPS_RETURN_IF_ERROR(exec("BEGIN"));
-  absl::Status status = [&]() -> absl::Status {
-    Statement clear(db_, "DELETE FROM artifacts WHERE job_id = ?");
-    GAPS_RETURN_IF_ERROR(clear.prepared());
-    clear.bind(1, job_id);
-    GAPS_RETURN_IF_ERROR(clear.done(clear.step()));
-    for (const auto& a : artifacts) {
-      Statement s(db_, "INSERT INTO artifacts (job_id, path, size) VALUES (?, ?, ?)");
-      GAPS_RETURN_IF_ERROR(s.prepared());
-      s.bind(1, job_id);
-      s.bind(2, a.path);
-      s.bind(3, a.size);
-      GAPS_RETURN_IF_ERROR(s.done(s.step()));
-    }
-    return absl::OkStatus();
-  }();
-  GAPS_RETURN_IF_ERROR(exec(status.ok() ? "COMMIT" : "ROLLBACK"));
-  return status;
+  return transaction([&] { return set_artifacts_locked(job_id, artifacts); });
+}
+
+absl::Status JobStore::set_artifacts_locked(const std::string& job_id, const std::vector<Artifact>& artifacts) {
+  Statement clear(db_, "DELETE FROM artifacts WHERE job_id = ?");
+  GAPS_RETURN_IF_ERROR(clear.prepared());
+  clear.bind(1, job_id);
+  GAPS_RETURN_IF_ERROR(clear.done(clear.step()));
+  for (const auto& a : artifacts) {
+    Statement s(db_, "INSERT INTO artifacts (job_id, path, size) VALUES (?, ?, ?)");
+    GAPS_RETURN_IF_ERROR(s.prepared());
+    s.bind(1, job_id);
+    s.bind(2, a.path);
+    s.bind(3, a.size);
+    GAPS_RETURN_IF_ERROR(s.done(s.step()));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status JobStore::end_job(const v1::JobStatus& status, const std::vector<Artifact>& artifacts,
+                               v1::JobEvent& event) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return transaction([&]() -> absl::Status {
+    GAPS_RETURN_IF_ERROR(set_artifacts_locked(status.job_id(), artifacts));
+    GAPS_RETURN_IF_ERROR(update_locked(status));
+    return append_event_locked(event);
+  });
 }
 
 absl::StatusOr<std::vector<JobStore::Artifact>> JobStore::artifacts(const std::string& job_id) {

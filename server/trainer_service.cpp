@@ -4,6 +4,7 @@
 #include <chrono>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <random>
 
 #include <ATen/ATen.h>
@@ -44,6 +45,32 @@ v1::JobEvent event_for(const std::string& job_id) {
   e.set_job_id(job_id);
   e.set_time(now_seconds());
   return e;
+}
+
+// The event that ends a job's history; watchers stop at it.
+v1::JobEvent closing_event(const v1::JobStatus& status) {
+  v1::JobEvent e = event_for(status.job_id());
+  if (status.state() == v1::SUCCEEDED)
+    *e.mutable_finished() = status;
+  else if (status.state() == v1::CANCELLED)
+    *e.mutable_cancelled() = status;
+  else
+    *e.mutable_failed() = status;
+  return e;
+}
+
+// What clients get for a job whose end the store refused: the store's code and message, and that the
+// stored state is stale.
+absl::Status unrecorded_end_error(const v1::JobStatus& status, const absl::Status& store_error) {
+  return absl::Status(store_error.code(),
+                      absl::StrCat("job ", status.job_id(), " ended (", v1::JobState_Name(status.state()),
+                                   ") but the trainer could not record that: ", store_error.message(),
+                                   "; it keeps trying, and a trainer restarted on its data folder runs the job again"));
+}
+
+std::string event_name(const v1::JobEvent& event) {
+  const auto* field = v1::JobEvent::descriptor()->FindFieldByNumber(event.event_case());
+  return field ? field->name() : "empty";
 }
 
 v1::PhaseEvent phase_event(const nlohmann::json& entry) {
@@ -110,6 +137,7 @@ absl::Status TrainerService::start() {
     }
   }
   for (int i = 0; i < options_.concurrency; ++i) threads_.emplace_back([this] { job_loop(); });
+  threads_.emplace_back([this] { retry_loop(); });
   return absl::OkStatus();
 }
 
@@ -122,8 +150,14 @@ void TrainerService::shutdown() {
   stop_training_ = true;
   queue_changed_.notify_all();
   events_changed_.notify_all();
+  stopping_changed_.notify_all();
   for (auto& t : threads_) t.join();
   threads_.clear();
+  retry_unrecorded_ends();
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (const auto& [job_id, end] : unrecorded_ends_)
+    std::cerr << "gaps-trainer: job " << job_id << ": its end was never recorded in the job store ("
+              << end.error.message() << ")\n";
 }
 
 void TrainerService::enqueue(const std::string& job_id) {
@@ -134,10 +168,14 @@ void TrainerService::enqueue(const std::string& job_id) {
 }
 
 void TrainerService::publish(v1::JobEvent event) {
-  const absl::StatusOr<int64_t> seq = store_->append_event(event);
-  if (!seq.ok())
-    std::cerr << "gaps-trainer: cannot record an event of " << event.job_id() << ": " << seq.status() << "\n";
+  if (const absl::StatusOr<int64_t> seq = store_->append_event(event); !seq.ok())
+    log_store_error(event.job_id(), absl::StrCat("its ", event_name(event), " event"), seq.status());
   events_changed_.notify_all();
+}
+
+void TrainerService::log_store_error(const std::string& job_id, const std::string& what,
+                                     const absl::Status& error) const {
+  std::cerr << "gaps-trainer: job " << job_id << ": the job store did not record " << what << ": " << error << "\n";
 }
 
 void TrainerService::job_loop() {
@@ -161,34 +199,95 @@ void TrainerService::run_job(const std::string& job_id) {
     cancelled = cancel_flags_[job_id];
   }
   absl::StatusOr<v1::JobStatus> status = store_->get(job_id);
-  if (!status.ok() || terminal(status->state())) return;  // cancelled while queued
+  if (!status.ok() || terminal(status->state())) {
+    if (!status.ok())
+      std::cerr << "gaps-trainer: job " << job_id << ": cannot read it from the job store, so it stays queued until "
+                << "the trainer restarts: " << status.status() << "\n";
+    std::lock_guard<std::mutex> lock(mutex_);
+    cancel_flags_.erase(job_id);
+    return;
+  }
   status->set_state(v1::RUNNING);
   status->set_started_at(now_seconds());
-  (void)store_->update(*status);
+  // The job runs anyway: a store that recovers records its end, and one that does not keeps it queued, so
+  // that a restarted trainer runs it again.
+  if (absl::Status st = store_->update(*status); !st.ok()) log_store_error(job_id, "that it started", st);
   v1::JobEvent started = event_for(job_id);
   started.set_state_changed(v1::RUNNING);
   publish(started);
 
   v1::JobStatus final_status = train(*status, *cancelled);
   if (!terminal(final_status.state())) {  // interrupted by shutdown: stays RUNNING for the next process
-    (void)store_->update(final_status);
+    if (absl::Status st = store_->update(final_status); !st.ok())
+      log_store_error(job_id, "its progress before the shutdown (it resumes from its last recorded checkpoint)", st);
     return;
   }
   final_status.set_finished_at(now_seconds());
   const auto artifacts = list_artifacts(job_dir(job_id) / "out");
   for (const auto& a : artifacts) final_status.add_artifacts(a.path);
-  (void)store_->set_artifacts(job_id, artifacts);
-  (void)store_->update(final_status);
-  v1::JobEvent done = event_for(job_id);
-  if (final_status.state() == v1::SUCCEEDED)
-    *done.mutable_finished() = final_status;
-  else if (final_status.state() == v1::CANCELLED)
-    *done.mutable_cancelled() = final_status;
-  else
-    *done.mutable_failed() = final_status;
-  publish(done);
+  end_job({final_status, artifacts, absl::OkStatus()});
+}
+
+void TrainerService::end_job(UnrecordedEnd end) {
+  const std::string job_id = end.status.job_id();
+  const absl::Status st = record_end(end);
+  if (!st.ok()) {
+    log_store_error(job_id,
+                    absl::StrCat("its end (", v1::JobState_Name(end.status.state()), "), retrying every ",
+                                 options_.store_retry_interval.count(), " ms"),
+                    st);
+    end.error = unrecorded_end_error(end.status, st);
+  }
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!st.ok()) unrecorded_ends_[job_id] = std::move(end);
+    cancel_flags_.erase(job_id);
+  }
+  events_changed_.notify_all();  // watchers get the closing event or the refusal
+}
+
+absl::Status TrainerService::record_end(const UnrecordedEnd& end) {
+  v1::JobEvent closing = closing_event(end.status);
+  return store_->end_job(end.status, end.artifacts, closing);
+}
+
+void TrainerService::retry_loop() {
+  std::unique_lock<std::mutex> lock(mutex_);
+  while (!stopping_changed_.wait_for(lock, options_.store_retry_interval, [this] { return stopping_; })) {
+    if (unrecorded_ends_.empty()) continue;
+    lock.unlock();
+    retry_unrecorded_ends();
+    lock.lock();
+  }
+}
+
+void TrainerService::retry_unrecorded_ends() {
+  std::vector<UnrecordedEnd> ends;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const auto& [job_id, end] : unrecorded_ends_) ends.push_back(end);
+  }
+  for (const UnrecordedEnd& end : ends) {
+    const absl::Status st = record_end(end);
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (st.ok()) {
+      unrecorded_ends_.erase(end.status.job_id());
+      std::cerr << "gaps-trainer: job " << end.status.job_id() << ": its end is recorded now\n";
+    } else {
+      unrecorded_ends_[end.status.job_id()].error = unrecorded_end_error(end.status, st);
+    }
+  }
+  events_changed_.notify_all();
+}
+
+absl::Status TrainerService::unrecorded_end(const std::string& job_id) {
   std::lock_guard<std::mutex> lock(mutex_);
-  cancel_flags_.erase(job_id);
+  const auto it = unrecorded_ends_.find(job_id);
+  return it == unrecorded_ends_.end() ? absl::OkStatus() : it->second.error;
+}
+
+void TrainerService::note_unrecorded_end(v1::JobStatus& status) {
+  if (absl::Status st = unrecorded_end(status.job_id()); !st.ok()) status.set_error(std::string(st.message()));
 }
 
 v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool>& cancelled) {
@@ -255,7 +354,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
     status.set_iteration(p.iteration);
     status.set_iterations(p.iterations);
     status.set_num_gaussians(p.num_gaussians);
-    (void)store_->update(status);
+    if (absl::Status st = store_->update(status); !st.ok())
+      log_store_error(job_id, absl::StrCat("its progress at iteration ", p.iteration), st);
   };
   const auto log = [&](const std::string& line) {
     v1::JobEvent e = event_for(job_id);
@@ -311,7 +411,10 @@ grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::Serve
   absl::StatusOr<RunOptions> o = run_options_from_proto(upload.spec.config(), upload.spec.has_points(), "");
   status.set_iterations(o.ok() ? o->config.iterations : 0);
   v1::JobSpec stored = upload.spec;  // images live in the scene folder, not in the database
-  if (auto st = store_->insert(status, stored); !st.ok()) return rpc::to_grpc(st);
+  if (auto st = store_->insert(status, stored); !st.ok()) {
+    remove_tree(dir);
+    return rpc::to_grpc(st);
+  }
   v1::JobEvent queued = event_for(job_id);
   queued.set_state_changed(v1::QUEUED);
   publish(queued);
@@ -333,6 +436,8 @@ grpc::Status TrainerService::WatchJob(grpc::ServerContext* context, const v1::Wa
       next = e.sequence() + 1;
       if (e.has_finished() || e.has_failed() || e.has_cancelled()) return grpc::Status::OK;
     }
+    // Its end will not be in the events until the store takes it.
+    if (auto st = unrecorded_end(request->job_id()); !st.ok()) return rpc::to_grpc(st);
     std::unique_lock<std::mutex> lock(mutex_);
     if (stopping_) return grpc::Status(grpc::StatusCode::UNAVAILABLE, "trainer shutting down");
     events_changed_.wait_for(lock, std::chrono::milliseconds(250));
@@ -346,6 +451,7 @@ grpc::Status TrainerService::GetJob(grpc::ServerContext* context, const v1::GetJ
   absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
   if (!job.ok()) return rpc::to_grpc(job.status());
   *response = *job;
+  note_unrecorded_end(*response);
   return grpc::Status::OK;
 }
 
@@ -354,7 +460,10 @@ grpc::Status TrainerService::ListJobs(grpc::ServerContext* context, const v1::Li
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   absl::StatusOr<std::vector<v1::JobStatus>> jobs = store_->list();
   if (!jobs.ok()) return rpc::to_grpc(jobs.status());
-  for (auto& j : *jobs) *response->add_jobs() = std::move(j);
+  for (auto& j : *jobs) {
+    note_unrecorded_end(j);
+    *response->add_jobs() = std::move(j);
+  }
   return grpc::Status::OK;
 }
 
@@ -367,25 +476,38 @@ grpc::Status TrainerService::CancelJob(grpc::ServerContext* context, const v1::C
     return grpc::Status(
         grpc::StatusCode::FAILED_PRECONDITION,
         absl::StrCat("job ", request->job_id(), " already ended (", v1::JobState_Name(job->state()), ")"));
-  bool queued = false;
+  if (auto st = unrecorded_end(request->job_id()); !st.ok())
+    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, std::string(st.message()));
+  std::optional<size_t> queue_position;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (auto it = cancel_flags_.find(request->job_id()); it != cancel_flags_.end()) *it->second = true;
     const auto pos = std::find(queue_.begin(), queue_.end(), request->job_id());
     if (pos != queue_.end()) {
+      queue_position = pos - queue_.begin();
       queue_.erase(pos);
-      cancel_flags_.erase(request->job_id());
-      queued = true;
     }
   }
-  if (queued) {  // never started: it ends here; a running job ends in its own thread at the next iteration
+  if (queue_position) {  // never started: it ends here; a running job ends in its own thread at the next iteration
     job->set_state(v1::CANCELLED);
     job->set_error("cancelled before it started");
     job->set_finished_at(now_seconds());
-    if (auto st = store_->update(*job); !st.ok()) return rpc::to_grpc(st);
-    v1::JobEvent e = event_for(job->job_id());
-    *e.mutable_cancelled() = *job;
-    publish(e);
+    v1::JobEvent closing = closing_event(*job);
+    const absl::Status st = store_->end_job(*job, {}, closing);
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (st.ok()) {
+        cancel_flags_.erase(request->job_id());
+      } else {  // the store still has it queued, so it stays in the queue where it was
+        *cancel_flags_[request->job_id()] = false;
+        queue_.insert(queue_.begin() + std::min(*queue_position, queue_.size()), request->job_id());
+        queue_changed_.notify_one();
+      }
+    }
+    events_changed_.notify_all();
+    if (!st.ok())
+      return rpc::to_grpc(
+          absl::Status(st.code(), absl::StrCat("job ", request->job_id(), " stays queued: ", st.message())));
   }
   *response = *job;
   return grpc::Status::OK;

@@ -4,7 +4,11 @@
 // trainer knows its jobs, replays their events and re-runs the ones that were running) and serves events,
 // artifacts and renders. Jobs of the method variants get pseudo-views from a pool of diffusion workers
 // (server/remote_generator.h); a phase no worker answers is skipped and reported, never fatal.
+// A write the job store refuses is never dropped silently: a submission or cancellation fails with the
+// store's error, a lost event or progress update of a running job is logged with the job id, and a job end
+// the store refused is retried in the background while GetJob/ListJobs/WatchJob report it as unrecorded.
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <deque>
 #include <filesystem>
@@ -28,6 +32,7 @@ struct TrainerServiceOptions {
   WorkerPoolOptions workers;       // diffusion workers (addresses may be empty: vanilla jobs only)
   std::string token;               // required bearer token (empty: none)
   uint64_t max_upload_bytes = uint64_t{8} << 30;
+  std::chrono::milliseconds store_retry_interval{10000};  // between attempts to record a refused job end
 };
 
 class TrainerService final : public v1::Trainer::Service {
@@ -62,16 +67,37 @@ class TrainerService final : public v1::Trainer::Service {
   void run_job(const std::string& job_id);
   // Runs the pipeline for a job; returns its final status (or the status to keep when shutting down).
   v1::JobStatus train(v1::JobStatus status, const std::atomic<bool>& cancelled);
+  // Stores the event (logging a refusal) and wakes the watchers.
   void publish(v1::JobEvent event);
   void enqueue(const std::string& job_id);
+  void log_store_error(const std::string& job_id, const std::string& what, const absl::Status& error) const;
+
+  // A job that ended but whose end the store refused: retried by retry_loop, and reported by the RPCs
+  // instead of the stale state the store still holds.
+  struct UnrecordedEnd {
+    v1::JobStatus status;  // the final status to record
+    std::vector<JobStore::Artifact> artifacts;
+    absl::Status error;  // for clients: the store's latest refusal, naming the job and its outcome
+  };
+  // Records the end (status, artifacts, closing event) or keeps it as unrecorded.
+  void end_job(UnrecordedEnd end);
+  absl::Status record_end(const UnrecordedEnd& end);
+  void retry_loop();
+  void retry_unrecorded_ends();
+  // OK, or the error of the job's unrecorded end.
+  absl::Status unrecorded_end(const std::string& job_id);
+  // Puts the store's refusal into a status read from it whose end is unrecorded.
+  void note_unrecorded_end(v1::JobStatus& status);
 
   TrainerServiceOptions options_;
   std::unique_ptr<JobStore> store_;
   std::mutex mutex_;
   std::condition_variable queue_changed_;
   std::condition_variable events_changed_;
+  std::condition_variable stopping_changed_;
   std::deque<std::string> queue_;
   std::map<std::string, std::shared_ptr<std::atomic<bool>>> cancel_flags_;  // queued and running jobs
+  std::map<std::string, UnrecordedEnd> unrecorded_ends_;
   bool stopping_ = false;
   std::atomic<bool> stop_training_{false};
   std::vector<std::thread> threads_;

@@ -1,6 +1,11 @@
 // The client-server building blocks in one process: message codecs and chunking, the worker service
 // (remote generation equals in-process generation, bounded queue, deadlines, tokens), the worker pool's
-// give-up path, the SQLite job store across reopening, and upload validation.
+// give-up path, the SQLite job store across reopening and when it refuses writes, the trainer service's
+// answers to a job store that refuses writes, and upload validation.
+#include <sqlite3.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <condition_variable>
 #include <fstream>
 #include <thread>
@@ -11,6 +16,7 @@
 #include <gtest/gtest.h>
 #include <Eigen/Geometry>
 
+#include "absl/strings/match.h"
 #include "client/remote_client.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
@@ -26,6 +32,7 @@
 #include "server/job_store.h"
 #include "server/remote_generator.h"
 #include "server/scene_upload.h"
+#include "server/trainer_service.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -422,6 +429,230 @@ TEST_F(JobStoreTest, JobsEventsAndArtifactsSurviveReopening) {
   EXPECT_EQ((*events)[1].progress().iteration(), 20);
   EXPECT_EQ((*store)->artifacts("job-1")->size(), 2u);
   EXPECT_EQ((*store)->get("job-2").status().code(), absl::StatusCode::kNotFound);
+}
+
+constexpr char kRefusal[] = "database or disk is full (test)";
+
+// A second connection to a job database that makes it refuse writes as a full disk would: each refusal is
+// a trigger that aborts the matching statements with kRefusal until it is lifted.
+class StoreSabotage {
+ public:
+  explicit StoreSabotage(const std::filesystem::path& file) {
+    EXPECT_EQ(sqlite3_open(file.c_str(), &db_), SQLITE_OK);
+    sqlite3_busy_timeout(db_, 5000);
+  }
+  ~StoreSabotage() { sqlite3_close(db_); }
+  // `on` is the trigger's event and condition, e.g. "UPDATE ON jobs WHEN NEW.state = 3".
+  void refuse(const std::string& name, const std::string& on) {
+    exec("CREATE TRIGGER " + name + " BEFORE " + on + " BEGIN SELECT RAISE(ABORT, '" + kRefusal + "'); END");
+  }
+  void lift(const std::string& name) { exec("DROP TRIGGER " + name); }
+  void exec(const std::string& sql) {
+    char* error = nullptr;
+    EXPECT_EQ(sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error), SQLITE_OK)
+        << sql << ": " << (error ? error : "");
+    sqlite3_free(error);
+  }
+
+ private:
+  sqlite3* db_ = nullptr;
+};
+
+TEST_F(JobStoreTest, AJobEndIsRecordedWholeOrNotAtAll) {
+  auto store = JobStore::open(dir_ / "jobs.db");
+  ASSERT_TRUE(store.ok()) << store.status();
+  v1::JobStatus status;
+  status.set_job_id("job-1");
+  status.set_state(v1::RUNNING);
+  ASSERT_TRUE((*store)->insert(status, v1::JobSpec()).ok());
+  status.set_state(v1::SUCCEEDED);
+  v1::JobEvent closing;
+  closing.set_job_id("job-1");
+  *closing.mutable_finished() = status;
+  StoreSabotage sabotage(dir_ / "jobs.db");
+  sabotage.refuse("no_events", "INSERT ON events");
+  const absl::Status refused = (*store)->end_job(status, {{"point_cloud.ply", 2000}}, closing);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInternal) << refused;
+  EXPECT_TRUE(absl::StrContains(refused.message(), kRefusal)) << refused;
+  EXPECT_EQ((*store)->get("job-1")->state(), v1::RUNNING);
+  EXPECT_TRUE((*store)->artifacts("job-1")->empty());
+  sabotage.lift("no_events");
+  ASSERT_TRUE((*store)->end_job(status, {{"point_cloud.ply", 2000}}, closing).ok());
+  EXPECT_EQ((*store)->get("job-1")->state(), v1::SUCCEEDED);
+  EXPECT_EQ((*store)->artifacts("job-1")->size(), 1u);
+  auto events = (*store)->events("job-1", 0);
+  ASSERT_TRUE(events.ok()) << events.status();
+  ASSERT_EQ(events->size(), 1u);
+  EXPECT_TRUE((*events)[0].has_finished());
+}
+
+TEST_F(JobStoreTest, ADatabaseLockedByAnotherProcessIsUnavailable) {
+  auto store = JobStore::open(dir_ / "jobs.db");
+  ASSERT_TRUE(store.ok()) << store.status();
+  v1::JobStatus status;
+  status.set_job_id("job-1");
+  status.set_state(v1::QUEUED);
+  ASSERT_TRUE((*store)->insert(status, v1::JobSpec()).ok());
+  StoreSabotage other(dir_ / "jobs.db");
+  other.exec("BEGIN EXCLUSIVE");
+  status.set_state(v1::RUNNING);
+  const absl::Status locked = (*store)->update(status);  // after the store's busy timeout
+  EXPECT_EQ(locked.code(), absl::StatusCode::kUnavailable) << locked;
+  v1::JobEvent event;
+  event.set_job_id("job-1");
+  EXPECT_EQ((*store)->append_event(event).status().code(), absl::StatusCode::kUnavailable);
+  other.exec("COMMIT");
+  EXPECT_TRUE((*store)->update(status).ok());
+  EXPECT_TRUE((*store)->append_event(event).ok());
+}
+
+TEST_F(JobStoreTest, AReadOnlyDatabaseIsRefusedAtOpening) {
+  ASSERT_TRUE(JobStore::open(dir_ / "jobs.db").ok());
+  ASSERT_EQ(chmod((dir_ / "jobs.db").c_str(), 0444), 0);
+  if (access((dir_ / "jobs.db").c_str(), W_OK) == 0) GTEST_SKIP() << "file permissions do not bind this user";
+  const auto store = JobStore::open(dir_ / "jobs.db");
+  EXPECT_FALSE(store.ok());
+  EXPECT_TRUE(absl::StrContains(store.status().message(), (dir_ / "jobs.db").string())) << store.status();
+}
+
+// A trainer service in this process, its client and a saboteur of its job store.
+struct TrainerStoreErrors : test::TempDirTest {
+  void SetUp() override {
+    test::TempDirTest::SetUp();
+    TrainerServiceOptions options;
+    options.data_dir = dir_ / "data";
+    options.store_retry_interval = std::chrono::milliseconds(100);
+    auto made = TrainerService::create(options);
+    ASSERT_TRUE(made.ok()) << made.status();
+    service = std::move(*made);
+    ASSERT_TRUE(service->start().ok());
+    grpc::ServerBuilder builder;
+    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+    builder.RegisterService(service.get());
+    server = builder.BuildAndStart();
+    ASSERT_GT(port, 0);
+    auto connected = client::TrainerClient::connect("127.0.0.1:" + std::to_string(port), {});
+    ASSERT_TRUE(connected.ok()) << connected.status();
+    trainer = std::make_unique<client::TrainerClient>(std::move(*connected));
+    sabotage = std::make_unique<StoreSabotage>(dir_ / "data" / "jobs.db");
+    SyntheticSceneOptions s;
+    s.images = 9;
+    s.width = 32;
+    s.height = 24;
+    ASSERT_TRUE(write_synthetic_scene(dir_ / "source", s).ok());
+    auto prepared = client::prepare_scene(dir_ / "source", 1);
+    ASSERT_TRUE(prepared.ok()) << prepared.status();
+    scene = *prepared;
+  }
+  void TearDown() override {
+    if (service) service->shutdown();
+    if (server) server->Shutdown(std::chrono::system_clock::now());
+    test::TempDirTest::TearDown();
+  }
+
+  static v1::JobSpec spec(int iterations) {
+    v1::JobSpec s;
+    s.set_name("store errors");
+    s.mutable_config()->set_views(3);
+    s.mutable_config()->set_init("random");
+    s.mutable_config()->set_random_points(300);
+    s.mutable_config()->set_variant("vanilla");
+    s.mutable_config()->mutable_training()->set_iterations(iterations);
+    return s;
+  }
+
+  // Polls GetJob until `done` holds or a minute passed; returns the last answer.
+  absl::StatusOr<v1::JobStatus> get_until(const std::string& job_id,
+                                          const std::function<bool(const v1::JobStatus&)>& done) {
+    absl::StatusOr<v1::JobStatus> job = trainer->get(job_id);
+    for (int i = 0; i < 600 && job.ok() && !done(*job); ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      job = trainer->get(job_id);
+    }
+    return job;
+  }
+
+  std::unique_ptr<TrainerService> service;
+  std::unique_ptr<grpc::Server> server;
+  int port = 0;
+  std::unique_ptr<client::TrainerClient> trainer;
+  std::unique_ptr<StoreSabotage> sabotage;
+  client::PreparedScene scene;
+};
+
+TEST_F(TrainerStoreErrors, ARefusedSubmissionFailsAndLeavesNoJobFolder) {
+  sabotage->refuse("no_jobs", "INSERT ON jobs");
+  const auto job = trainer->submit(spec(20), scene);
+  ASSERT_FALSE(job.ok());
+  EXPECT_EQ(job.status().code(), absl::StatusCode::kInternal) << job.status();
+  EXPECT_TRUE(absl::StrContains(job.status().message(), kRefusal)) << job.status();
+  EXPECT_TRUE(std::filesystem::is_empty(dir_ / "data" / "jobs"));
+  const auto listed = trainer->list();
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  EXPECT_TRUE(listed->empty());
+}
+
+TEST_F(TrainerStoreErrors, StoreRefusalsWhileAJobRunsAreLoggedAndItsEndIsRecordedOnceTheStoreRecovers) {
+  // Nothing after the submission is recorded: neither the running state, nor progress, nor any event.
+  sabotage->refuse("no_running", "UPDATE ON jobs WHEN NEW.state = 2");
+  sabotage->refuse("no_events", "INSERT ON events WHEN NEW.seq > 0");
+  testing::internal::CaptureStderr();
+  const auto job = trainer->submit(spec(20), scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  const auto unrecorded = get_until(*job, [](const v1::JobStatus& s) { return !s.error().empty(); });
+  const std::string log = testing::internal::GetCapturedStderr();
+  ASSERT_TRUE(unrecorded.ok()) << unrecorded.status();
+  // The state the store holds, with the reason it is stale; never the end the store did not take.
+  EXPECT_EQ(unrecorded->state(), v1::QUEUED);
+  EXPECT_TRUE(absl::StrContains(unrecorded->error(), "SUCCEEDED")) << unrecorded->error();
+  EXPECT_TRUE(absl::StrContains(unrecorded->error(), kRefusal)) << unrecorded->error();
+  const auto listed = trainer->list();
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->size(), 1u);
+  EXPECT_EQ((*listed)[0].error(), unrecorded->error());
+  int events = 0;
+  const auto watched = trainer->watch(*job, [&](const v1::JobEvent&) { ++events; });
+  EXPECT_EQ(watched.status().code(), absl::StatusCode::kInternal) << watched.status();
+  EXPECT_TRUE(absl::StrContains(watched.status().message(), kRefusal)) << watched.status();
+  EXPECT_EQ(events, 1);  // QUEUED
+  for (const std::string& what :
+       {"that it started", "its progress at iteration 10", "its progress event", "its end (SUCCEEDED)"})
+    EXPECT_TRUE(absl::StrContains(log, "job " + *job + ": the job store did not record " + what)) << what << "\n"
+                                                                                                  << log;
+  EXPECT_TRUE(absl::StrContains(log, kRefusal)) << log;
+
+  sabotage->lift("no_running");
+  sabotage->lift("no_events");
+  const auto recorded = get_until(*job, [](const v1::JobStatus& s) { return s.state() == v1::SUCCEEDED; });
+  ASSERT_TRUE(recorded.ok()) << recorded.status();
+  EXPECT_EQ(recorded->state(), v1::SUCCEEDED);
+  EXPECT_TRUE(recorded->error().empty()) << recorded->error();
+  const auto finished = trainer->watch(*job, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(finished.ok()) << finished.status();
+  EXPECT_EQ(finished->state(), v1::SUCCEEDED);
+  const auto files = trainer->fetch(*job, dir_ / "fetched");
+  ASSERT_TRUE(files.ok()) << files.status();
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "fetched" / "point_cloud.ply"));
+}
+
+TEST_F(TrainerStoreErrors, ARefusedCancellationKeepsTheJobQueued) {
+  const auto running = trainer->submit(spec(1000000), scene);  // occupies the only job thread
+  const auto queued = trainer->submit(spec(20), scene);
+  ASSERT_TRUE(running.ok() && queued.ok());
+  sabotage->refuse("no_cancel", "UPDATE ON jobs WHEN NEW.state = 5");
+  const auto refused = trainer->cancel(*queued);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInternal) << refused.status();
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "stays queued")) << refused.status();
+  const auto still_queued = trainer->get(*queued);
+  ASSERT_TRUE(still_queued.ok()) << still_queued.status();
+  EXPECT_EQ(still_queued->state(), v1::QUEUED);
+  sabotage->lift("no_cancel");
+  const auto cancelled = trainer->cancel(*queued);
+  ASSERT_TRUE(cancelled.ok()) << cancelled.status();
+  EXPECT_EQ(cancelled->state(), v1::CANCELLED);
+  const auto watched = trainer->watch(*queued, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(watched.ok()) << watched.status();
+  EXPECT_EQ(watched->state(), v1::CANCELLED);
 }
 
 struct UploadTest : test::TempDirTest {
