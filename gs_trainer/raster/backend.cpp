@@ -1,5 +1,6 @@
 #include "gs_trainer/raster/backend.h"
 
+#include <ATen/ops/empty.h>
 #include <c10/util/Exception.h>
 
 namespace gaps::backend {
@@ -36,6 +37,15 @@ const RasterBackend& raster_backend(const c10::Device& device) {
   if (!device.is_cuda()) return kCpu;
   TORCH_CHECK(kCuda != nullptr, "gaps was built without CUDA kernels (GAPS_CUDA=OFF or no nvcc): use --device cpu");
   return *kCuda;
+}
+
+RasterOutput empty_raster_output(int height, int width, int channels, const at::TensorOptions& options) {
+  RasterOutput out;
+  out.features = at::empty({height, width, channels}, options);
+  out.alpha = at::empty({height, width}, options);
+  out.final_T = at::empty({height, width}, options);
+  out.n_contrib = at::empty({height, width}, options.dtype(at::kInt));
+  return out;
 }
 
 }  // namespace gaps::backend

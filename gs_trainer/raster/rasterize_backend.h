@@ -33,6 +33,9 @@ struct RasterOutput {
   at::Tensor n_contrib;  // H x W int32, entries of the tile list walked up to the last contributor
 };
 
+// Uninitialised outputs of one forward pass (both backends write every pixel), in `options`' dtype and device.
+RasterOutput empty_raster_output(int height, int width, int channels, const at::TensorOptions& options);
+
 struct ShadeGrads {
   at::Tensor means, sh_dc, sh_rest;
 };

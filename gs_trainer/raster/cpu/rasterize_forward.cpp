@@ -58,11 +58,7 @@ RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means
   const int channels = static_cast<int>(features.size(1));
   const auto opts = features.options();
   // Every pixel is written by its tile.
-  RasterOutput out;
-  out.features = at::empty({height, width, channels}, opts);
-  out.alpha = at::empty({height, width}, opts);
-  out.final_T = at::empty({height, width}, opts);
-  out.n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
+  RasterOutput out = empty_raster_output(height, width, channels, opts);
   AT_DISPATCH_FLOATING_TYPES(features.scalar_type(), "rasterize_forward_cpu", [&] {
     const auto splats = tile::make_splats(means2d.size(0), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                                           opacities.data_ptr<scalar_t>());

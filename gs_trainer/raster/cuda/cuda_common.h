@@ -1,6 +1,7 @@
 #pragma once
 // Checks, launch arithmetic and template dispatch shared by the kernels of this folder.
 #include <cstdint>
+#include <initializer_list>
 #include <type_traits>
 
 #include <ATen/core/Tensor.h>
@@ -13,6 +14,13 @@ inline void check_cuda_float(const char* name, const at::Tensor& t) {
   TORCH_CHECK(t.is_cuda(), name, " must be a CUDA tensor");
   TORCH_CHECK(t.scalar_type() == at::kFloat, "the CUDA kernels compute in float32 only; ", name, " is ",
               t.scalar_type(), " (use the CPU backend for double precision)");
+}
+
+// The compositing passes' inputs: float32 CUDA tensors, or an error that says what to use instead.
+inline void check_raster_inputs(std::initializer_list<const at::Tensor*> tensors) {
+  for (const at::Tensor* t : tensors)
+    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat, "the CUDA rasterizer computes in float32 only, got a ",
+                t->scalar_type(), " tensor on ", t->device(), " (use the CPU backend for double precision)");
 }
 
 constexpr int kElementwiseThreads = 256;

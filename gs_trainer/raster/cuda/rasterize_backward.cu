@@ -182,9 +182,7 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
                                     const at::Tensor& opacities_in, const at::Tensor& features_in,
                                     const RasterOutput& fwd, const at::Tensor& g_features_in,
                                     const at::Tensor& g_alpha_in, bool absolute_grads) {
-  for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in, &g_features_in, &g_alpha_in})
-    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat, "the CUDA rasterizer computes in float32 only, got a ",
-                t->scalar_type(), " tensor on ", t->device(), " (use the CPU backend for double precision)");
+  check_raster_inputs({&means2d_in, &conics_in, &opacities_in, &features_in, &g_features_in, &g_alpha_in});
   const c10::cuda::CUDAGuard guard(means2d_in.device());
   const auto means2d = means2d_in.contiguous(), conics = conics_in.contiguous();
   const auto opacities = opacities_in.contiguous(), features = features_in.contiguous();

@@ -94,9 +94,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_forward_kernel(ForwardArgs a
 RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d_in, const at::Tensor& conics_in,
                                     const at::Tensor& opacities_in, const at::Tensor& features_in, int width,
                                     int height) {
-  for (const auto* t : {&means2d_in, &conics_in, &opacities_in, &features_in})
-    TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat, "the CUDA rasterizer computes in float32 only, got a ",
-                t->scalar_type(), " tensor on ", t->device(), " (use the CPU backend for double precision)");
+  check_raster_inputs({&means2d_in, &conics_in, &opacities_in, &features_in});
   const c10::cuda::CUDAGuard guard(means2d_in.device());
   const auto means2d = means2d_in.contiguous(), conics = conics_in.contiguous();
   const auto opacities = opacities_in.contiguous(), features = features_in.contiguous();
@@ -104,11 +102,7 @@ RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& mean
   const int channels = static_cast<int>(features.size(1));
   const auto opts = features.options();
   // Every pixel is written by the kernel, so no clearing pass is needed.
-  RasterOutput out;
-  out.features = at::empty({height, width, channels}, opts);
-  out.alpha = at::empty({height, width}, opts);
-  out.final_T = at::empty({height, width}, opts);
-  out.n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
+  RasterOutput out = empty_raster_output(height, width, channels, opts);
 
   const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
   const ForwardArgs args{width,
