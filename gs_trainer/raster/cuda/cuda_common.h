@@ -1,5 +1,6 @@
 #pragma once
-// Checks, launch arithmetic and template dispatch shared by the kernels of this folder.
+// Checks, launch arithmetic, template dispatch and the compositing passes' common inputs, shared by the kernels
+// of this folder.
 #include <cstdint>
 #include <initializer_list>
 #include <type_traits>
@@ -40,6 +41,33 @@ void dispatch_channels(int channels, F&& f) {
     f(std::integral_constant<int, 4>{});
   else
     f(std::integral_constant<int, 16>{});
+}
+
+// What both compositing passes read: the image and its tile grid, the tiles' Gaussian lists and the splats.
+struct CompositeInputs {
+  int width, height, tiles_x, channels;
+  const int32_t* __restrict__ ranges;
+  const int32_t* __restrict__ ids;
+  const float* __restrict__ means2d;
+  const float* __restrict__ conics;
+  const float* __restrict__ opacities;
+  const float* __restrict__ features;
+};
+
+// Pointers into contiguous float32 (int32: ranges, ids) CUDA tensors, which must outlive the launch.
+inline CompositeInputs composite_inputs(int width, int height, int tiles_x, const at::Tensor& ranges,
+                                        const at::Tensor& ids, const at::Tensor& means2d, const at::Tensor& conics,
+                                        const at::Tensor& opacities, const at::Tensor& features) {
+  return {width,
+          height,
+          tiles_x,
+          static_cast<int>(features.size(1)),
+          ranges.data_ptr<int32_t>(),
+          ids.data_ptr<int32_t>(),
+          means2d.data_ptr<float>(),
+          conics.data_ptr<float>(),
+          opacities.data_ptr<float>(),
+          features.data_ptr<float>()};
 }
 
 }  // namespace gaps::backend

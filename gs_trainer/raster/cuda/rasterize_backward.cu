@@ -46,14 +46,7 @@ __device__ int block_max(int v, int* s_warp) {
   return m;
 }
 
-struct BackwardArgs {
-  int width, height, tiles_x, channels;
-  const int32_t* __restrict__ ranges;
-  const int32_t* __restrict__ ids;
-  const float* __restrict__ means2d;
-  const float* __restrict__ conics;
-  const float* __restrict__ opacities;
-  const float* __restrict__ features;
+struct BackwardArgs : CompositeInputs {
   const float* __restrict__ final_T;
   const int32_t* __restrict__ n_contrib;
   const float* __restrict__ g_out_features;  // H x W x C
@@ -203,16 +196,7 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
   if (n == 0) return grads;
 
   const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
-  const BackwardArgs args{width,
-                          height,
-                          tiles_x,
-                          channels,
-                          ranges.data_ptr<int32_t>(),
-                          ids.data_ptr<int32_t>(),
-                          means2d.data_ptr<float>(),
-                          conics.data_ptr<float>(),
-                          opacities.data_ptr<float>(),
-                          features.data_ptr<float>(),
+  const BackwardArgs args{composite_inputs(width, height, tiles_x, ranges, ids, means2d, conics, opacities, features),
                           final_T.data_ptr<float>(),
                           n_contrib.data_ptr<int32_t>(),
                           g_features.data_ptr<float>(),

@@ -17,14 +17,7 @@ namespace {
 constexpr int kTile = raster::kTileSize;
 constexpr int kBlock = kTile * kTile;
 
-struct ForwardArgs {
-  int width, height, tiles_x, channels;
-  const int32_t* __restrict__ ranges;
-  const int32_t* __restrict__ ids;
-  const float* __restrict__ means2d;
-  const float* __restrict__ conics;
-  const float* __restrict__ opacities;
-  const float* __restrict__ features;
+struct ForwardArgs : CompositeInputs {
   float* __restrict__ out_features;
   float* __restrict__ out_alpha;
   float* __restrict__ out_final_T;
@@ -105,19 +98,8 @@ RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& mean
   RasterOutput out = empty_raster_output(height, width, channels, opts);
 
   const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
-  const ForwardArgs args{width,
-                         height,
-                         tiles_x,
-                         channels,
-                         ranges.data_ptr<int32_t>(),
-                         ids.data_ptr<int32_t>(),
-                         means2d.data_ptr<float>(),
-                         conics.data_ptr<float>(),
-                         opacities.data_ptr<float>(),
-                         features.data_ptr<float>(),
-                         out.features.data_ptr<float>(),
-                         out.alpha.data_ptr<float>(),
-                         out.final_T.data_ptr<float>(),
+  const ForwardArgs args{composite_inputs(width, height, tiles_x, ranges, ids, means2d, conics, opacities, features),
+                         out.features.data_ptr<float>(), out.alpha.data_ptr<float>(), out.final_T.data_ptr<float>(),
                          out.n_contrib.data_ptr<int32_t>()};
   dispatch_channels(channels, [&](auto cmax) {
     rasterize_forward_kernel<decltype(cmax)::value>
