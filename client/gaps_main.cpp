@@ -4,6 +4,7 @@
 // Remote subcommands talk to a gaps-trainer service (client/remote_commands.h):
 //   gaps submit SCENE --views N ... --trainer ADDR | watch JOB | list | cancel JOB | fetch JOB -o DIR
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -19,6 +20,7 @@
 #include "absl/flags/usage.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/option_flags.h"
 #include "client/remote_commands.h"
 #include "common/status_macros.h"
 #include "diffusion_worker/backend_registry.h"
@@ -29,17 +31,6 @@
 ABSL_FLAG(std::string, scene, "", "scene folder (LLFF poses_bounds.npy, COLMAP sparse/, or transforms.json)");
 ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
 ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
-ABSL_FLAG(int, iterations, 10000, "training iterations");
-ABSL_FLAG(
-    int64_t, max_gaussians, -1,
-    "Gaussian budget: densification grows the model up to this many, preferring the largest gradients; wins over "
-    "--gaussians-per-variation (0: the automatic budget decides; default: the --config file's max_gaussians, else 0)");
-ABSL_FLAG(double, gaussians_per_variation, -1,
-          "automatic Gaussian budget when --max-gaussians is 0: this many Gaussians per unit of the training views' "
-          "total variation (sum of grey-level gradient magnitudes; 3.5 gives 31-46 % of vanilla 3DGS's model on fern "
-          "and bonsai); 0: unlimited growth as in 3DGS (default: the --config file's value, else 3.5)");
-ABSL_FLAG(uint64_t, seed, 0, "random seed");
-ABSL_FLAG(std::string, device, "", "cpu or cuda (default: cuda when available)");
 ABSL_FLAG(std::string, out, "", "output folder (PLY, renders, metrics.json)");
 ABSL_FLAG(std::string, init, "auto",
           "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from "
@@ -51,18 +42,19 @@ ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
 ABSL_FLAG(int, init_resolution, 0,
           "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger "
           "images than -r 8 trains on (0: --resolution)");
-ABSL_FLAG(std::string, config, "", "JSON file of training options (TrainConfig field names)");
+ABSL_FLAG(std::string, config, "",
+          "JSON file of training options (the names `gaps options` lists under training); flags win over it");
 ABSL_FLAG(std::string, lpips_backbone, "", "VGG16 weights (torchvision vgg16-397923af.pth); LPIPS is null without");
 ABSL_FLAG(std::string, lpips_weights, "", "LPIPS v0.1 linear weights (vgg.pth)");
 ABSL_FLAG(bool, quiet, false, "no progress bar");
 ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), no-gaps or no-dropgaussian");
 ABSL_FLAG(std::string, backend, "reproject", "pseudo-view generator backend for the method variants");
 ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
-ABSL_FLAG(std::string, gaps_config, "", "JSON file of GAPS options (GapsConfig field names)");
+ABSL_FLAG(std::string, gaps_config, "",
+          "JSON file of GAPS options (the names `gaps options` lists under gaps); flags win over it");
 ABSL_FLAG(int, eval_every, 1000,
           "evaluate the test views every N iterations into metrics.json's curve (0: only at the end)");
 ABSL_FLAG(bool, report, true, "write report.html (metrics, curve, renders next to ground truth, pseudo-views)");
-ABSL_FLAG(int, n_active, 0, "pseudo-views selected per phase (0: 16, or 24 for scenes of more than 100 images)");
 
 namespace {
 
@@ -73,6 +65,9 @@ constexpr char kUsage[] =
     "  demo    build a synthetic scene, reconstruct it from 3 views, print test PSNR\n"
     "  submit SCENE   upload a scene to a gaps-trainer (--trainer ADDR) and print the job id\n"
     "  watch JOB | list | cancel JOB | fetch JOB -o DIR   follow, list, stop or download remote jobs\n"
+    "  options   every training and GAPS option: name, type, default, range, meaning (a Markdown table)\n"
+    "Every option is also a flag (--lambda-dssim 0.3, --n-active 24, --tier-alpha-max 1,1.5) and a key of the\n"
+    "--config (training) or --gaps-config (GAPS) JSON files; a flag given on the command line wins over the file.\n"
     "Flags accept dashes or underscores (--init-ply or --init_ply).";
 
 void print_progress(const gaps::TrainProgress& p) {
@@ -100,7 +95,8 @@ std::vector<char*> normalise_flag_names(int argc, char** argv, std::vector<std::
   return out;
 }
 
-absl::StatusOr<gaps::RunOptions> options_from_flags() {
+// `command_defaults`: training options a command sets when neither the config file nor a flag does.
+absl::StatusOr<gaps::RunOptions> options_from_flags(const nlohmann::json& command_defaults = nlohmann::json::object()) {
   gaps::RunOptions o;
   o.views = absl::GetFlag(FLAGS_views);
   o.resolution = absl::GetFlag(FLAGS_resolution);
@@ -120,37 +116,24 @@ absl::StatusOr<gaps::RunOptions> options_from_flags() {
   }
   o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);
   o.lpips_weights = absl::GetFlag(FLAGS_lpips_weights);
-  if (const std::string path = absl::GetFlag(FLAGS_config); !path.empty()) {
-    std::ifstream f(path);
-    if (!f) return absl::NotFoundError(absl::StrCat(path, ": cannot open config file"));
-    try {
-      o.config = nlohmann::json::parse(f).get<gaps::TrainConfig>();
-    } catch (const std::exception& e) {
-      return absl::InvalidArgumentError(absl::StrCat(path, ": ", e.what()));
-    }
-  }
   GAPS_ASSIGN_OR_RETURN(o.variant, gaps::parse_variant(absl::GetFlag(FLAGS_variant)));
-  if (const std::string path = absl::GetFlag(FLAGS_gaps_config); !path.empty()) {
-    std::ifstream f(path);
-    if (!f) return absl::NotFoundError(absl::StrCat(path, ": cannot open GAPS config file"));
-    try {
-      o.gaps = nlohmann::json::parse(f).get<gaps::GapsConfig>();
-    } catch (const std::exception& e) {
-      return absl::InvalidArgumentError(absl::StrCat(path, ": ", e.what()));
-    }
+  GAPS_ASSIGN_OR_RETURN(
+      gaps::client::GivenOptions given,
+      gaps::client::options_from_files_and_flags(absl::GetFlag(FLAGS_config), absl::GetFlag(FLAGS_gaps_config)));
+  for (const std::string& note : given.notes) std::cerr << "gaps: " << note << "\n";
+  // Options neither the file nor a flag gives: the command's own defaults.
+  for (auto it = command_defaults.begin(); it != command_defaults.end(); ++it)
+    if (!given.training.contains(it.key())) given.training[it.key()] = it.value();
+  if (!given.training.contains("device")) given.training["device"] = at::hasCUDA() ? "cuda" : "cpu";
+  try {
+    o.config = given.training.get<gaps::TrainConfig>();
+    o.gaps = given.gaps.get<gaps::GapsConfig>();
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(gaps::json_error_message(e));
   }
-  o.n_active = absl::GetFlag(FLAGS_n_active);
   o.eval_every = absl::GetFlag(FLAGS_eval_every);
   o.html_report = absl::GetFlag(FLAGS_report);
   if (o.eval_every < 0) return absl::InvalidArgumentError("--eval-every must be 0 or positive");
-  o.config.iterations = absl::GetFlag(FLAGS_iterations);
-  o.config.seed = absl::GetFlag(FLAGS_seed);
-  if (absl::GetFlag(FLAGS_max_gaussians) >= 0) o.config.max_gaussians = absl::GetFlag(FLAGS_max_gaussians);
-  if (absl::GetFlag(FLAGS_gaussians_per_variation) >= 0)
-    o.config.gaussians_per_variation = absl::GetFlag(FLAGS_gaussians_per_variation);
-  const std::string device = absl::GetFlag(FLAGS_device);
-  o.config.device = !device.empty() ? device : (at::hasCUDA() ? "cuda" : "cpu");
-  if (o.config.iterations <= 0) return absl::InvalidArgumentError("--iterations must be positive");
   if (o.resolution <= 0) return absl::InvalidArgumentError("--resolution must be positive");
   return o;
 }
@@ -233,7 +216,8 @@ int run_init() {
 }
 
 int run_demo() {
-  auto options = options_from_flags();
+  // The demo's own budget, unless the user chose one.
+  auto options = options_from_flags({{"iterations", 1500}});
   if (!options.ok()) {
     std::cerr << "gaps demo: " << options.status().message() << "\n";
     return 2;
@@ -256,6 +240,21 @@ int run_demo() {
   return report(run_with_generator(*options), *options);
 }
 
+// The option tables as Markdown: docs/options.md is this output.
+int print_options() {
+  std::cout << "| section | option | type | default | range | meaning |\n|---|---|---|---|---|---|\n";
+  for (const auto& table : {gaps::train_config_options(), gaps::gaps_config_options()}) {
+    for (const gaps::OptionInfo& o : table) {
+      const bool ranged = std::isfinite(o.min) && std::isfinite(o.max) && o.type != "bool" && o.type != "std::string";
+      std::string help = o.help;
+      for (size_t at = help.find('|'); at != std::string::npos; at = help.find('|', at + 2)) help.replace(at, 1, "\\|");
+      std::cout << "| " << o.section << " | `" << o.name << "` | " << o.type << " | `" << o.default_value.dump()
+                << "` | " << (ranged ? absl::StrCat("[", o.min, ", ", o.max, "]") : "") << " | " << help << " |\n";
+    }
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -269,11 +268,8 @@ int main(int argc, char** argv) {
   if (gaps::client::is_remote_command(command))
     return gaps::client::run_remote_command(command,
                                             std::vector<std::string>(positional.begin() + 2, positional.end()));
-  if (command == "demo") {
-    // The demo's own budget, unless the user chose one.
-    if (!flag_given(storage, "--iterations")) absl::SetFlag(&FLAGS_iterations, 1500);
-    return run_demo();
-  }
+  if (command == "demo") return run_demo();
+  if (command == "options") return print_options();
   std::cerr << kUsage << "\n";
   return 2;
 }

@@ -9,23 +9,23 @@
 #include "absl/flags/flag.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/option_flags.h"
 #include "client/remote_client.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "gs_trainer/gaps/config.h"
+#include "gs_trainer/train/train_config.h"
 #include "rpc/config_codec.h"
 
 // Shared with `gaps train` (defined in gaps_main.cpp).
 ABSL_DECLARE_FLAG(int, views);
 ABSL_DECLARE_FLAG(int, resolution);
-ABSL_DECLARE_FLAG(int, iterations);
-ABSL_DECLARE_FLAG(uint64_t, seed);
 ABSL_DECLARE_FLAG(std::string, init);
 ABSL_DECLARE_FLAG(std::string, init_ply);
 ABSL_DECLARE_FLAG(int64_t, random_points);
 ABSL_DECLARE_FLAG(std::string, config);
 ABSL_DECLARE_FLAG(std::string, gaps_config);
 ABSL_DECLARE_FLAG(std::string, variant);
-ABSL_DECLARE_FLAG(int, n_active);
 ABSL_DECLARE_FLAG(std::string, out);
 ABSL_DECLARE_FLAG(bool, quiet);
 
@@ -49,16 +49,6 @@ absl::StatusOr<TrainerClient> connect() {
                                  absl::GetFlag(FLAGS_tls_client_cert), absl::GetFlag(FLAGS_tls_client_key)});
 }
 
-absl::Status read_options(const std::string& path, google::protobuf::Message* message) {
-  if (path.empty()) return absl::OkStatus();
-  GAPS_ASSIGN_OR_RETURN(std::string text, read_file_bytes(path, "options file"));
-  const nlohmann::json j = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
-  if (j.is_discarded()) return absl::InvalidArgumentError(absl::StrCat(path, ": invalid JSON"));
-  const absl::Status st = rpc::set_fields(j, message);
-  if (!st.ok()) return absl::InvalidArgumentError(absl::StrCat(path, ": ", st.message()));
-  return absl::OkStatus();
-}
-
 absl::StatusOr<v1::JobSpec> spec_from_flags(const std::string& scene) {
   v1::JobSpec spec;
   const std::string name = absl::GetFlag(FLAGS_name);
@@ -70,11 +60,18 @@ absl::StatusOr<v1::JobSpec> spec_from_flags(const std::string& scene) {
   c->set_init(init);
   c->set_random_points(absl::GetFlag(FLAGS_random_points));
   c->set_variant(absl::GetFlag(FLAGS_variant));
-  GAPS_RETURN_IF_ERROR(read_options(absl::GetFlag(FLAGS_config), c->mutable_training()));
-  GAPS_RETURN_IF_ERROR(read_options(absl::GetFlag(FLAGS_gaps_config), c->mutable_gaps()));
-  c->mutable_training()->set_iterations(absl::GetFlag(FLAGS_iterations));
-  c->mutable_training()->set_seed(absl::GetFlag(FLAGS_seed));
-  if (absl::GetFlag(FLAGS_n_active) > 0) c->mutable_gaps()->set_n_active(absl::GetFlag(FLAGS_n_active));
+  // The same files and flags as `gaps train`, checked here as there, so that a job is refused before its upload.
+  GAPS_ASSIGN_OR_RETURN(GivenOptions given,
+                        options_from_files_and_flags(absl::GetFlag(FLAGS_config), absl::GetFlag(FLAGS_gaps_config)));
+  for (const std::string& note : given.notes) std::cerr << "gaps: " << note << "\n";
+  try {
+    (void)given.training.get<TrainConfig>();
+    (void)given.gaps.get<GapsConfig>();
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(json_error_message(e));
+  }
+  GAPS_RETURN_IF_ERROR(rpc::set_fields(given.training, c->mutable_training()));
+  GAPS_RETURN_IF_ERROR(rpc::set_fields(given.gaps, c->mutable_gaps()));
   return spec;
 }
 

@@ -118,24 +118,10 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   j["curve"] = r.curve;
   j["peak_memory"] = r.peak_memory;
   j["generator_seconds"] = r.generator_seconds ? nlohmann::json(*r.generator_seconds) : nlohmann::json(nullptr);
-  j["iterations"] = o.config.iterations;
-  j["views"] = o.views;
-  j["resolution"] = o.resolution;
-  j["device"] = o.config.device;
-  j["seed"] = o.config.seed;
-  j["init"] = o.init;
-  j["init_method"] = r.init_method;
-  j["init_resolution"] = o.init_resolution > 0 ? o.init_resolution : o.resolution;
-  j["variant"] = variant_name(o.variant);
+  j.update(run_configuration_json(o, r));
   if (!failure.empty()) {
     for (const char* key : {"psnr", "ssim", "lpips"}) j[key] = nullptr;
   }
-  if (o.variant != Variant::kVanilla) {
-    j["gaps"] = o.gaps;
-    j["generator"] = o.generator->name();
-  }
-  j["scene"] = o.scene_dir.string();
-  j["config"] = o.config;
   for (const auto& v : r.per_view) {
     j["per_view"].push_back(
         {{"psnr", v.psnr}, {"ssim", v.ssim}, {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
@@ -181,6 +167,31 @@ absl::StatusOr<std::optional<Lpips>> load_lpips(const RunOptions& o, const at::D
   return std::optional<Lpips>(std::move(lpips));
 }
 
+}  // namespace
+
+nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
+  nlohmann::json j;
+  j["iterations"] = r.config.iterations;
+  j["views"] = o.views;
+  j["resolution"] = o.resolution;
+  j["device"] = r.config.device;
+  j["seed"] = r.config.seed;
+  j["init"] = o.init;
+  j["init_method"] = r.init_method;
+  j["init_resolution"] = o.init_resolution > 0 ? o.init_resolution : o.resolution;
+  j["random_points"] = o.random_points;
+  j["variant"] = variant_name(o.variant);
+  if (o.variant != Variant::kVanilla) {
+    j["gaps"] = r.gaps;
+    j["generator"] = o.generator ? o.generator->name() : "";
+  }
+  j["scene"] = o.scene_dir.string();
+  j["config"] = r.config;
+  return j;
+}
+
+namespace {
+
 // The trainer and, for the paper's variants, the method driving it, from the initial points to the end of
 // training. The method refers to the trainer, hence neither copied nor moved.
 class TrainingRun {
@@ -207,13 +218,24 @@ class TrainingRun {
   double train_seconds() const { return seconds_since_start(std::chrono::steady_clock::now()); }
 
   // The paper's method on top of the trainer; nothing for the vanilla variant.
-  absl::Status attach_method(size_t scene_images) {
+  // The method's options as used: n_active resolved from the training views' layout when 0.
+  GapsConfig effective_gaps() const {
+    GapsConfig gaps = o_.gaps;
+    std::vector<Camera> cameras;
+    for (const auto& v : references_) cameras.push_back(v.camera);
+    gaps.n_active = n_active_for(o_.gaps, views_surround_scene(cameras));
+    return gaps;
+  }
+
+  absl::Status attach_method() {
     if (o_.variant == Variant::kVanilla) return absl::OkStatus();
     if (!o_.generator)
       return absl::InvalidArgumentError(
           absl::StrCat("variant ", variant_name(o_.variant), " needs a generator backend"));
-    GapsConfig gaps = o_.gaps;
-    gaps.n_active = o_.n_active > 0 ? o_.n_active : (scene_images > 100 ? kNActiveMip360 : kNActiveLlff);
+    const GapsConfig gaps = effective_gaps();
+    if (o_.gaps.n_active == 0)
+      log_(absl::StrCat("pseudo-views per phase: ", gaps.n_active, " (the training views ",
+                        gaps.n_active == kNActiveMip360 ? "surround the scene" : "face one way", ")"));
     generator_.emplace(o_.generator);
     method_.emplace(trainer_, &*generator_, references_, gaps, o_.variant, o_.config.seed);
     method_->set_inspection_dir(o_.out_dir / "pseudo_views");
@@ -372,7 +394,9 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   const PeakMemoryMeter memory(device);
   TrainingRun run(o, log, points, std::move(loaded.train), device);
   result.max_gaussians = run.trainer().config().max_gaussians;
-  GAPS_RETURN_IF_ERROR(run.attach_method(loaded.scene.cameras.size()));
+  result.config = run.trainer().config();
+  result.gaps = run.effective_gaps();
+  GAPS_RETURN_IF_ERROR(run.attach_method());
   GAPS_RETURN_IF_ERROR(run.resume());
   const absl::Status trained = run.train(on_progress, test, lpips_model, &result.curve);
   GAPS_RETURN_IF_ERROR(run.keep_state(trained));

@@ -5,6 +5,7 @@
 #include <functional>
 #include <string>
 
+#include <nlohmann/json_fwd.hpp>
 #include "absl/status/statusor.h"
 #include "gs_trainer/eval/metrics.h"
 #include "gs_trainer/gaps/training.h"
@@ -38,9 +39,6 @@ struct RunOptions {
   // The paper's method: anything but vanilla needs a generator (not owned; see diffusion_worker/).
   Variant variant = Variant::kVanilla;
   GapsConfig gaps;
-  // Pseudo-views per phase; 0 picks the paper's size from the scene: 16 (LLFF-like), 24 for captures of
-  // more than 100 images (Mip-NeRF 360-like).
-  int n_active = 0;
   Generator* generator = nullptr;
   // Every this many iterations the test views are evaluated into the run's curve (0: only at the end).
   int eval_every = 0;
@@ -68,7 +66,15 @@ struct RunResult {
   PeakMemory peak_memory;
   std::optional<double> generator_seconds;  // method variants only
   std::string init_method;  // what made the initial points: RunOptions::init with "auto" resolved, fallbacks taken
+  // The options the run used, automatic values resolved (the Gaussian budget in config.max_gaussians, the
+  // pseudo-views per phase in gaps.n_active): what metrics.json records.
+  TrainConfig config;
+  GapsConfig gaps;
 };
+
+// metrics.json's record of what ran: the run-level options and, from `result`, the effective TrainConfig and
+// (for the method's variants) GapsConfig and generator.
+nlohmann::json run_configuration_json(const RunOptions& options, const RunResult& result);
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;
 

@@ -1,5 +1,6 @@
 #include "server/job_config.h"
 
+#include <c10/core/Device.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "common/status_macros.h"
@@ -9,7 +10,8 @@
 namespace gaps {
 
 absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool has_points,
-                                                  const std::filesystem::path& points_file) {
+                                                  const std::filesystem::path& points_file,
+                                                  const std::string& trainer_device) {
   RunOptions o;
   o.views = c.views();
   o.resolution = 1;  // uploads arrive at the resolution to train at
@@ -31,13 +33,14 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
     o.config = rpc::present_fields(c.training()).get<TrainConfig>();
     o.gaps = rpc::present_fields(c.gaps()).get<GapsConfig>();
   } catch (const std::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat("config: ", e.what()));
+    return absl::InvalidArgumentError(absl::StrCat("config: ", json_error_message(e)));
   }
-  if (o.config.iterations <= 0) return absl::InvalidArgumentError("config: iterations must be positive");
-  if (c.gaps().has_n_active()) {
-    if (c.gaps().n_active() <= 0) return absl::InvalidArgumentError("config: n_active must be positive");
-    o.n_active = c.gaps().n_active();
-  }
+  if (trainer_device.empty()) return o;
+  // A job may name the device type its trainer trains on; the trainer decides which card.
+  if (c.training().has_device() && at::Device(o.config.device).type() != at::Device(trainer_device).type())
+    return absl::InvalidArgumentError(
+        absl::StrCat("config: the job asks for device ", o.config.device, "; this trainer trains on ", trainer_device));
+  o.config.device = trainer_device;
   return o;
 }
 

@@ -49,7 +49,7 @@ absl::Status write_uploaded_scene(const SceneUpload& upload, const fs::path& sce
   if (cameras != images)
     return absl::InvalidArgumentError(
         absl::StrCat("camera count mismatch: ", cameras, " cameras for ", images, " images"));
-  GAPS_RETURN_IF_ERROR(invalid(run_options_from_proto(spec.config(), spec.has_points(), "").status()));
+  GAPS_RETURN_IF_ERROR(invalid(run_options_from_proto(spec.config(), spec.has_points(), "", "").status()));
   if (auto split = benchmark_split(cameras, spec.config().views()); !split.ok())
     return absl::InvalidArgumentError(
         absl::StrCat("config: views ", spec.config().views(), ": ", split.status().message()));

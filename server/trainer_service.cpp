@@ -301,12 +301,11 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
   absl::StatusOr<v1::JobSpec> spec = store_->spec(job_id);
   if (!spec.ok()) return fail(spec.status());
   absl::StatusOr<RunOptions> options =
-      run_options_from_proto(spec->config(), spec->has_points(), dir / "scene" / "points.ply");
+      run_options_from_proto(spec->config(), spec->has_points(), dir / "scene" / "points.ply", options_.device);
   if (!options.ok()) return fail(options.status());
   RunOptions& o = *options;
   o.scene_dir = dir / "scene";
   o.out_dir = dir / "out";
-  o.config.device = options_.device;
   o.init_cache_dir = options_.data_dir / "init_cache";
   std::unique_ptr<RemoteGenerator> generator;
   if (o.variant != Variant::kVanilla) {
@@ -408,7 +407,8 @@ grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::Serve
   status.set_name(upload.spec.name());
   status.set_state(v1::QUEUED);
   status.set_submitted_at(now_seconds());
-  absl::StatusOr<RunOptions> o = run_options_from_proto(upload.spec.config(), upload.spec.has_points(), "");
+  absl::StatusOr<RunOptions> o =
+      run_options_from_proto(upload.spec.config(), upload.spec.has_points(), "", options_.device);
   status.set_iterations(o.ok() ? o->config.iterations : 0);
   v1::JobSpec stored = upload.spec;  // images live in the scene folder, not in the database
   if (auto st = store_->insert(status, stored); !st.ok()) {

@@ -187,7 +187,8 @@ TEST(GenerationControls, AdaptiveControlScale) {
 // A smooth textured "render" and uniform noise: the noise passes τ_res = 0.7 (mean residual about 1/3), so
 // only the structure guard stops it; a generation that keeps the render's structure passes it.
 TEST(StructureGuard, RejectsNoiseThatTheResidualCriterionAdmits) {
-  const GapsConfig c;
+  GapsConfig c;
+  c.admit_min_structure = 0.1;  // off by default (the paper's two criteria); a guard against garbage generators
   constexpr int64_t kSize = 128;
   const at::Tensor ramp = at::linspace(0.1, 0.9, kSize, kDouble);
   const at::Tensor render = (0.5 + 0.4 * at::sin(ramp.view({kSize, 1}) * 20) * at::cos(ramp.view({1, kSize}) * 15))

@@ -58,8 +58,13 @@ TEST(GapsConfig, DefaultsAreThePapers) {
   EXPECT_EQ(c.warmup_iterations, 1000);
   EXPECT_EQ(c.phase_interval, 500);
   EXPECT_DOUBLE_EQ(c.pseudo_probability, 0.25);
-  EXPECT_EQ(c.n_active, 16);
+  EXPECT_EQ(c.n_active, 0);  // the paper's 16 or 24, from the training views' layout (n_active_for)
+  EXPECT_EQ(kNActiveLlff, 16);
   EXPECT_EQ(kNActiveMip360, 24);
+  EXPECT_EQ(c.admit_min_structure, 0.0);  // the paper's two admission criteria only
+  EXPECT_EQ(c.lora_rank, 4);
+  EXPECT_EQ(c.lora_steps, 50);
+  EXPECT_DOUBLE_EQ(c.ip_adapter_scale, 0.5);
   EXPECT_DOUBLE_EQ(c.w_sparsity + c.w_entropy + c.w_novelty, 1.0);
   EXPECT_DOUBLE_EQ(c.gamma_hist, 0.7);
   EXPECT_DOUBLE_EQ(c.diversity_radius, 0.15);
@@ -85,7 +90,7 @@ TEST(GapsConfig, JsonRoundTripAndUnknownKeyIsAnError) {
 
   EXPECT_THROW(nlohmann::json({{"n_activ", 3}}).get<GapsConfig>(), nlohmann::json::other_error);
   // Partial objects keep the other defaults.
-  EXPECT_EQ(nlohmann::json({{"diversity_radius", 0.3}}).get<GapsConfig>().n_active, 16);
+  EXPECT_EQ(nlohmann::json({{"diversity_radius", 0.3}}).get<GapsConfig>().n_active, 0);
 }
 
 TEST(GapsConfig, InvalidTiersAreRejected) {

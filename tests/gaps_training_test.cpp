@@ -133,7 +133,7 @@ TEST(GapsOnFern, TwoPhasesWithTheReprojectBackendAdmitAndStayFinite) {
   o.generator = generator->get();
   o.gaps.warmup_iterations = 40;
   o.gaps.phase_interval = 40;
-  o.n_active = 4;
+  o.gaps.n_active = 4;
   std::vector<double> losses;
   auto r = run_pipeline(
       o, [&](const TrainProgress& p) { losses.push_back(p.loss); }, [](const std::string&) {});

@@ -69,7 +69,7 @@ nlohmann::json run_golden_case(const std::filesystem::path& out) {
   o.generator = generator->get();
   o.gaps.warmup_iterations = 100;
   o.gaps.phase_interval = 100;
-  o.n_active = 4;
+  o.gaps.n_active = 4;
   o.html_report = false;
   auto r = run_pipeline(o, nullptr, [](const std::string&) {});
   EXPECT_TRUE(r.ok()) << r.status();

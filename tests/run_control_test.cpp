@@ -51,7 +51,7 @@ struct RunControlTest : test::TempDirTest {
     RunOptions o = test::short_run(dir_, generator ? Variant::kFull : Variant::kVanilla, generator);
     o.random_points = 1000;
     o.config.iterations = 70;
-    o.n_active = 2;
+    o.gaps.n_active = 2;
     o.save_renders = false;
     return o;
   }

@@ -23,6 +23,7 @@
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
+#include "tests/option_values.h"
 #include "tests/test_util.h"
 
 extern char** environ;
@@ -457,6 +458,61 @@ TEST_F(Services, CommandLineSubmitWatchListFetch) {
                                     " --token-file " + (dir_ / "wrong_token").string());
   EXPECT_NE(code, 0);
   EXPECT_NE(out.find("invalid bearer token"), std::string::npos) << out;
+}
+
+// One pair of config files with every option away from its default: `gaps train` in process and `gaps submit`
+// to a trainer service must run with, and record in metrics.json, the same configuration.
+TEST_F(Services, TrainAndSubmitRecordTheSameConfigurationForEveryOption) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
+  // Short, CPU, and with phases: the overrides keep those while every value still differs from its default.
+  const nlohmann::json training = test::non_default_options(
+      train_config_options(),
+      {{"iterations", 60}, {"device", "cpu"}, {"opacity_reset_interval", 5000}, {"max_gaussians", 30000}, {"seed", 3}});
+  const nlohmann::json gaps = test::non_default_options(
+      gaps_config_options(), {{"warmup_iterations", 20}, {"phase_interval", 20}, {"n_active", 2}});
+  std::ofstream(dir_ / "training.json") << training.dump(2);
+  std::ofstream(dir_ / "gaps.json") << gaps.dump(2);
+  const std::string gaps_cli = GAPS_CLI_BIN;
+  // The file's seed 3 is overridden by the flag, and the run says so.
+  const std::string run_flags =
+      " --views 3 --resolution 8 --variant full --init random --random-points 1500 --quiet"
+      " --seed 4 --config " +
+      (dir_ / "training.json").string() + " --gaps-config " + (dir_ / "gaps.json").string();
+  auto [code, out] =
+      run_command(gaps_cli + " train --scene " + fern.string() + " --out " + (dir_ / "local").string() + run_flags);
+  ASSERT_EQ(code, 0) << out;
+  EXPECT_NE(out.find("seed = 4 from the command line, over 3 in"), std::string::npos) << out;
+
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  const std::string common =
+      " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " + (dir_ / "token").string();
+  std::tie(code, out) = run_command(gaps_cli + " submit " + fern.string() + run_flags + " --watch" + common);
+  ASSERT_EQ(code, 0) << out << trainer->log_text();
+  EXPECT_NE(out.find("seed = 4 from the command line, over 3 in"), std::string::npos) << out;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(out, m, std::regex("job-[0-9a-f]+"))) << out;
+  std::tie(code, out) =
+      run_command(gaps_cli + " fetch " + std::string(m[0]) + " -o " + (dir_ / "remote").string() + common);
+  ASSERT_EQ(code, 0) << out;
+
+  nlohmann::json local = read_json(dir_ / "local" / "metrics.json");
+  nlohmann::json remote = read_json(dir_ / "remote" / "metrics.json");
+  nlohmann::json expected_training = training;
+  expected_training["seed"] = 4;
+  EXPECT_EQ(local["config"], expected_training);
+  EXPECT_EQ(local["gaps"], gaps);
+  // What differs by construction: where the scene and generator live, and the service receives images already
+  // downscaled by the client (resolution 1).
+  for (const char* key : {"scene", "generator", "resolution", "init_resolution"}) {
+    local.erase(key);
+    remote.erase(key);
+  }
+  for (const char* key :
+       {"config", "gaps", "iterations", "views", "device", "seed", "init", "init_method", "random_points", "variant"})
+    EXPECT_EQ(local[key], remote[key]) << key;
 }
 
 }  // namespace

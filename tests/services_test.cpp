@@ -163,7 +163,7 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   EXPECT_EQ(rpc::set_fields({{"no_such_option", 1}}, config.mutable_training()).code(),
             absl::StatusCode::kInvalidArgument);
   config.set_views(3);
-  auto o = run_options_from_proto(config, false, "");
+  auto o = run_options_from_proto(config, false, "", "cpu");
   ASSERT_TRUE(o.ok()) << o.status();
   EXPECT_EQ(o->config.iterations, 123);
   EXPECT_DOUBLE_EQ(o->config.lambda_dssim, 0.3);
@@ -173,11 +173,11 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   EXPECT_EQ(o->variant, Variant::kFull);
   EXPECT_EQ(o->init, "auto");  // unset: the capture decides between mvs and sparse
   config.set_init("sparse");
-  EXPECT_EQ(run_options_from_proto(config, false, "")->init, "sparse");
+  EXPECT_EQ(run_options_from_proto(config, false, "", "cpu")->init, "sparse");
   config.set_init("points");
-  EXPECT_EQ(run_options_from_proto(config, false, "").status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(run_options_from_proto(config, false, "", "cpu").status().code(), absl::StatusCode::kInvalidArgument);
   config.set_init("colmap");
-  const auto unknown = run_options_from_proto(config, false, "");
+  const auto unknown = run_options_from_proto(config, false, "", "cpu");
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(unknown.status().message().find("unknown init 'colmap' (auto, mvs"), std::string_view::npos);
 }

@@ -34,7 +34,7 @@ inline RunOptions short_run(const std::filesystem::path& dir, Variant variant = 
   o.generator = generator;
   o.gaps.warmup_iterations = 30;
   o.gaps.phase_interval = 30;
-  o.n_active = 4;
+  o.gaps.n_active = 4;
   return o;
 }
 

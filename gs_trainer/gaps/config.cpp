@@ -4,24 +4,8 @@
 
 #include <absl/strings/str_cat.h>
 #include <nlohmann/json.hpp>
-#include "common/json_fields.h"
 
 namespace gaps {
-
-// One list of fields for both directions, so JSON and struct cannot drift apart.
-// clang-format off
-#define GAPS_GAPS_CONFIG_FIELDS(X)                                                                        \
-  X(warmup_iterations) X(phase_interval) X(pseudo_probability) X(n_active) X(tier_alpha_min)             \
-  X(tier_alpha_max) X(alpha_step) X(max_extrap) X(interpolate_intrinsics) X(tier_upgrade_variance)       \
-  X(tier_min_admitted) X(pose_rotation_weight) X(beta_start) X(beta_end) X(w_sparsity) X(w_entropy)      \
-  X(w_novelty) X(novelty_gain) X(entropy_bins) X(gamma_hist) X(w_init) X(w_ref) X(init_coverage_weight)  \
-  X(contrast_ref) X(coverage_alpha_threshold) X(ref_distance_scale) X(hist_variance_scale)               \
-  X(diversity_radius) X(exploration_period) X(exploration_fraction) X(admit_min_alpha)                   \
-  X(admit_max_residual) X(admit_min_structure) X(uncertainty_lambda) X(uncertainty_eps) X(extrap_kappa) X(pseudo_loss_weight)   \
-  X(drop_max) X(drop_n_ref) X(strength_max) X(strength_min) X(cn_scale) X(cn_coverage)                   \
-  X(ip_adapter_scale) X(lora_rank) X(lora_steps) X(inpaint_uncovered_fraction) X(inpaint_dilation) \
-  X(inpaint_depth_threshold)
-// clang-format on
 
 namespace {
 
@@ -45,23 +29,24 @@ absl::Status validate_tiers(const GapsConfig& c) {
 }  // namespace
 
 absl::Status validate_gaps_config(const GapsConfig& c) {
+  GAPS_GAPS_CONFIG_OPTIONS(GAPS_CHECK_OPTION)
   if (absl::Status s = validate_tiers(c); !s.ok()) return s;
-  if (c.warmup_iterations < 0 || c.phase_interval <= 0) return invalid("bad schedule");
-  if (c.pseudo_probability < 0 || c.pseudo_probability > 1) return invalid("pseudo_probability not in [0, 1]");
-  if (c.n_active <= 0) return invalid("n_active must be positive");
-  if (c.alpha_step <= 0) return invalid("alpha_step must be positive");
-  if (c.entropy_bins < 2) return invalid("entropy_bins must be at least 2");
-  if (c.beta_start < 0 || c.beta_end < 0) return invalid("beta must be non-negative");
-  if (c.exploration_period <= 0) return invalid("exploration_period must be positive");
-  if (c.exploration_fraction < 0 || c.exploration_fraction > 1) return invalid("exploration_fraction not in [0, 1]");
-  if (c.drop_max < 0 || c.drop_max >= 1) return invalid("drop_max not in [0, 1)");  // 1/(1-r) compensation
-  if (c.drop_n_ref <= 0 || c.cn_coverage <= 0 || c.contrast_ref <= 0 || c.ref_distance_scale <= 0 ||
-      c.hist_variance_scale <= 0) {
-    return invalid("scales must be positive");
-  }
+  if (c.strength_min > c.strength_max) return invalid("strength_min is above strength_max");
   const absl::Status inpaint = check_inpaint_settings(inpaint_settings(c));
   if (!inpaint.ok()) return invalid(std::string(inpaint.message()));
   return absl::OkStatus();
+}
+
+std::vector<OptionInfo> gaps_config_options() {
+  std::vector<OptionInfo> out;
+  const std::string section = "gaps";
+  GAPS_GAPS_CONFIG_OPTIONS(GAPS_DESCRIBE_OPTION)
+  return out;
+}
+
+int n_active_for(const GapsConfig& c, bool views_surround_scene) {
+  if (c.n_active > 0) return c.n_active;
+  return views_surround_scene ? kNActiveMip360 : kNActiveLlff;
 }
 
 int diffusion_phase_at(int iteration, int total_iterations, const GapsConfig& c) {
@@ -75,11 +60,11 @@ int num_diffusion_phases(int total_iterations, const GapsConfig& c) {
   return (total_iterations - 1 - c.warmup_iterations) / c.phase_interval + 1;
 }
 
-void to_json(nlohmann::json& j, const GapsConfig& c) { GAPS_GAPS_CONFIG_FIELDS(GAPS_WRITE_FIELD) }
+void to_json(nlohmann::json& j, const GapsConfig& c) { GAPS_GAPS_CONFIG_OPTIONS(GAPS_WRITE_OPTION) }
 
 void from_json(const nlohmann::json& j, GapsConfig& c) {
-  read_fields(j, "GAPS", [&](const std::string& key, const nlohmann::json& value) {
-    GAPS_GAPS_CONFIG_FIELDS(GAPS_READ_FIELD)
+  read_options(j, "GAPS", [&](const std::string& key, const nlohmann::json& value) {
+    GAPS_GAPS_CONFIG_OPTIONS(GAPS_READ_OPTION)
     return false;
   });
   if (absl::Status s = validate_gaps_config(c); !s.ok()) {

@@ -7,101 +7,97 @@
 
 #include <absl/status/status.h>
 #include <nlohmann/json_fwd.hpp>
+#include "common/option_table.h"
 #include "gs_trainer/gaps/generator.h"
 
 namespace gaps {
 
-// Active pseudo-views per diffusion phase (paper sec. 4.3): 16 on LLFF, 24 on the wider 360° scenes.
+// Active pseudo-views per diffusion phase (paper sec. 4.3): 16 on LLFF, 24 on the wider 360° scenes. With
+// n_active = 0 the run picks one of them from the training views' geometry (n_active_for).
 inline constexpr int kNActiveLlff = 16;
 inline constexpr int kNActiveMip360 = 24;
 
+// X(type, name, default, min, max, help): see common/option_table.h. "(open)": the paper gives no value; the
+// help says why ours.
+// clang-format off
+#define GAPS_GAPS_CONFIG_OPTIONS(X)                                                                                 \
+  /* Schedule (sec. 3.2): a diffusion phase runs at every iteration t >= warmup with (t - warmup) % interval == 0. */ \
+  X(int, warmup_iterations, 1000, 0, 1e6, "T_w: iterations before the first diffusion phase")                        \
+  X(int, phase_interval, 500, 1, 1e6, "Delta T: iterations between diffusion phases")                               \
+  X(double, pseudo_probability, 0.25, 0, 1, "p_pseudo: chance an iteration trains on an admitted pseudo-view")       \
+  /* Candidate pool (sec. 3.4, eq. slerp). */                                                                        \
+  X(int, n_active, 0, 0, 1e4,                                                                                        \
+    "pseudo-views selected per phase; 0 = from the training views' geometry, as --init auto decides: 16 for views " \
+    "facing one way (LLFF), 24 for views surrounding the scene (Mip-NeRF 360)")                                      \
+  X(std::vector<double>, tier_alpha_min, (std::vector<double>{0.0, -0.25, -0.5}), -10, 10,                          \
+    "(open) lower ends of the progressive tiers' SLERP alpha ranges; tier k contains tier k-1, tier 0 contains "     \
+    "[0, 1]: tier 0 interpolates, each later tier widens by a quarter baseline per side")                           \
+  X(std::vector<double>, tier_alpha_max, (std::vector<double>{1.0, 1.25, 1.5}), -10, 10,                            \
+    "(open) upper ends of the tiers' alpha ranges")                                                                  \
+  X(double, alpha_step, 0.125, 1e-4, 1,                                                                              \
+    "(open) alpha grid step; a fixed grid keeps candidate ids (and their history) across tier upgrades")            \
+  X(double, max_extrap, 0.5, 0, 10, "hard cap on d_extrap = max(0, -alpha) + max(0, alpha - 1)")                    \
+  X(bool, interpolate_intrinsics, true, 0, 0,                                                                        \
+    "pseudo cameras lerp the pair's intrinsics (false: copy the first camera's)")                                    \
+  X(double, tier_upgrade_variance, 0.05, 0, 1,                                                                       \
+    "(open) upgrade the tier when the admitted views' mean uncertainty variance is below this (0.05: RMS residual " \
+    "0.22, C_hist about 0.83)")                                                                                      \
+  X(int, tier_min_admitted, 1, 0, 1e6, "admitted views needed before a tier upgrade")                               \
+  X(double, pose_rotation_weight, 0.5, 0, 1e6,                                                                       \
+    "pose distance (eq. pose_dist) = ||c1 - c2|| + this times the geodesic angle in radians")                       \
+  /* Score (eq. gaps_score, i_recon, c_gen, beta_anneal). */                                                         \
+  X(double, beta_start, 2.0, 0, 100, "(open) beta at the first phase; the paper requires beta_start > beta_end")   \
+  X(double, beta_end, 0.5, 0, 100, "(open) beta at the last phase")                                                  \
+  X(double, w_sparsity, 0.2, 0, 100, "w_s on (1 - mean alpha) in I_recon")                                           \
+  X(double, w_entropy, 0.2, 0, 100, "w_e on the normalised 3x3 local entropy in I_recon")                           \
+  X(double, w_novelty, 0.6, 0, 100, "w_n on the novelty eta = min(1, novelty_gain * d / (1 + d)) in I_recon")       \
+  X(double, novelty_gain, 4.0, 0, 1e6, "gain of the novelty term")                                                   \
+  X(int, entropy_bins, 16, 2, 256, "(open) grey levels of the local entropy's histogram")                           \
+  X(double, gamma_hist, 0.7, 0, 1, "gamma: C_gen = (1 - gamma) C_model + gamma C_hist")                             \
+  X(double, w_init, 0.5, 0, 100, "(open) C_model = w_init C_init + w_ref C_ref")                                     \
+  X(double, w_ref, 0.5, 0, 100, "(open) weight of C_ref in C_model")                                                 \
+  X(double, init_coverage_weight, 0.5, 0, 1,                                                                         \
+    "(open) C_init = this * coverage + (1 - this) * min(1, contrast / contrast_ref)")                                \
+  X(double, contrast_ref, 0.25, 1e-6, 1e6, "(open) RMS luma contrast of a natural image, C_init's reference")       \
+  X(double, coverage_alpha_threshold, 0.5, 0, 1, "(open) a pixel is covered when its rendered alpha reaches this") \
+  X(double, ref_distance_scale, 0.5, 1e-9, 1e9, "C_ref = exp(-d_min_gt / scale)")                                    \
+  X(double, hist_variance_scale, 0.3, 1e-9, 1e9, "C_hist = 1 - min(1, mean variance / scale)")                       \
+  /* Selection (sec. 3.4 greedy selection, sec. 3.6 forced exploration). */                                          \
+  X(double, diversity_radius, 0.15, 0, 1e6, "d_div: selected views lie at least this far apart (pose distance)")    \
+  X(int, exploration_period, 3, 1, 1e6, "k_new: every k_new-th diffusion phase explores")                           \
+  X(double, exploration_fraction, 0.25, 0, 1, "rho_new: this fraction of the selection goes to never-admitted views") \
+  /* Admission and pseudo loss (sec. 3.6). */                                                                        \
+  X(double, admit_min_alpha, 0.25, 0, 1, "tau_cov: admit when the render's mean alpha is at least this")            \
+  X(double, admit_max_residual, 0.7, 0, 1, "tau_res: admit when mean |I_hall - I_GS| is below this")                \
+  X(double, admit_min_structure, 0.0, -1, 1,                                                                         \
+    "not in the paper: also require SSIM(I_hall, I_GS) >= this (0 = off); rejects images without the render's "    \
+    "structure, such as noise, which tau_res alone admits")                                                          \
+  X(double, uncertainty_lambda, 0.7, 0, 1e6, "lambda_u (eq. confidence_weight)")                                     \
+  X(double, uncertainty_eps, 1e-6, 1e-12, 1, "epsilon (eq. confidence_weight)")                                      \
+  X(double, extrap_kappa, 2.0, 0, 1e6, "kappa (eq. extrap_decay)")                                                   \
+  X(double, pseudo_loss_weight, 0.35, 0, 1e6, "w_PLW (eq. pseudo_loss)")                                             \
+  /* Density-adaptive DropGaussian (eq. drop_ratio, dropgaussian). */                                                \
+  X(double, drop_max, 0.2, 0, 0.99, "r_max: the largest drop ratio")                                                 \
+  X(double, drop_n_ref, 200000, 1, 1e12, "N_thr: Gaussian count at which the drop ratio reaches r_max")             \
+  /* Generation controls (sec. 3.3), sent to the generator. */                                                       \
+  X(double, strength_max, 0.85, 0, 1, "sigma_max (eq. adaptive_strength)")                                           \
+  X(double, strength_min, 0.3, 0, 1, "sigma_min (eq. adaptive_strength)")                                            \
+  X(double, cn_scale, 1.0, 0, 10, "mean ControlNet scale (eq. adaptive_cn)")                                         \
+  X(double, cn_coverage, 0.3, 1e-6, 1, "tau_clip (eq. adaptive_cn)")                                                 \
+  X(double, ip_adapter_scale, 0.5, 0, 10, "lambda_ip (eq. ipadapter)")                                               \
+  X(int, lora_rank, 4, 1, 1024, "r (eq. lora)")                                                                      \
+  X(int, lora_steps, 50, 0, 1e5, "LoRA training steps in the first diffusion phase (0 = no scene adaptation)")      \
+  /* Two-stage generation (eq. two_stage), sent with every generation request. */                                   \
+  X(double, inpaint_uncovered_fraction, 0.02, 0, 1,                                                                  \
+    "views with more than this fraction of uncovered pixels go through SD2 inpainting (the paper's 2 %)")           \
+  X(int, inpaint_dilation, 15, 1, 1001, "dilation kernel of the inpainting mask (odd; the paper's 15)")             \
+  X(double, inpaint_depth_threshold, 0.01, 0, 1e12,                                                                  \
+    "tau_d: pixels whose rendered depth (alpha-weighted distance) is below this are uncovered (not given by the "   \
+    "paper; 0.01 marks pixels with almost no content where surfaces lie at distances of order 1)")
+// clang-format on
+
 struct GapsConfig {
-  // --- Schedule (sec. 3.2). A diffusion phase runs at every iteration t >= warmup with
-  // (t - warmup) % phase_interval == 0; the total budget T is TrainConfig::iterations.
-  int warmup_iterations = 1000;      // T_w
-  int phase_interval = 500;          // ΔT
-  double pseudo_probability = 0.25;  // p_pseudo: chance an iteration trains on an admitted pseudo-view
-
-  // --- Candidate pool (sec. 3.4, eq:slerp).
-  int n_active = kNActiveLlff;
-  // Progressive tiers: tier k samples α in [tier_alpha_min[k], tier_alpha_max[k]]; each tier contains the
-  // previous one. (open) The paper gives no numbers: tier 0 interpolates only, then the range widens by a
-  // quarter baseline per side per tier, up to half a baseline beyond either camera.
-  std::vector<double> tier_alpha_min = {0.0, -0.25, -0.5};
-  std::vector<double> tier_alpha_max = {1.0, 1.25, 1.5};
-  // (open) Uniform α grid: α = k * alpha_step. A fixed grid makes every tier's candidates a superset of
-  // the previous tier's, so candidate ids (and their uncertainty history) survive tier upgrades.
-  double alpha_step = 0.125;
-  // Hard cap on d_extrap = max(0, -α) + max(0, α - 1), whatever the tiers say.
-  double max_extrap = 0.5;
-  // Intrinsics of a pseudo camera: lerped between the pair (true) or copied from the first camera.
-  bool interpolate_intrinsics = true;
-  // Tier upgrade: when at least tier_min_admitted pseudo-views are admitted and the mean of their
-  // uncertainty variances (mean u², see admission.h) is below this. (open) 0.05 ≈ RMS residual 0.22,
-  // i.e. C_hist ≈ 0.83 on the 0.3 scale of eq:c_gen.
-  double tier_upgrade_variance = 0.05;
-  int tier_min_admitted = 1;
-
-  // --- Pose distance (eq:pose_dist): ||c1 - c2|| + pose_rotation_weight * geodesic angle (radians).
-  double pose_rotation_weight = 0.5;
-
-  // --- Score (eq:gaps_score, eq:i_recon, eq:c_gen, eq:beta_anneal).
-  // (open) β values are not given; β_start > β_end as the paper requires.
-  double beta_start = 2.0;
-  double beta_end = 0.5;
-  double w_sparsity = 0.2;  // w_s on (1 - mean alpha)
-  double w_entropy = 0.2;   // w_e on the normalised 3x3 local entropy
-  double w_novelty = 0.6;   // w_n on η = min(1, novelty_gain * d / (1 + d))
-  double novelty_gain = 4.0;
-  int entropy_bins = 16;    // (open) greyscale quantisation levels of the local entropy
-  double gamma_hist = 0.7;  // γ: C_gen = (1 - γ) C_model + γ C_hist
-  // C_model = w_init C_init + w_ref C_ref. (open) equal weights.
-  double w_init = 0.5;
-  double w_ref = 0.5;
-  // (open) C_init = init_coverage_weight * coverage + (1 - init_coverage_weight) * min(1, contrast /
-  // contrast_ref), contrast = std of the render's luma (RMS contrast); 0.25 is about a natural image's.
-  double init_coverage_weight = 0.5;
-  double contrast_ref = 0.25;
-  // (open) coverage = fraction of pixels whose rendered alpha is at least this.
-  double coverage_alpha_threshold = 0.5;
-  double ref_distance_scale = 0.5;   // C_ref = exp(-d_min_gt / scale)
-  double hist_variance_scale = 0.3;  // C_hist = 1 - min(1, σ̄² / scale)
-
-  // --- Selection (sec. 3.4 greedy selection, sec. 3.6 forced exploration).
-  double diversity_radius = 0.15;      // d_div, in pose distance
-  int exploration_period = 3;          // k_new: every k_new-th diffusion phase explores
-  double exploration_fraction = 0.25;  // ρ_new: ceil(ρ_new * |selection|) slots go to never-admitted views
-
-  // --- Admission and pseudo loss (sec. 3.6).
-  double admit_min_alpha = 0.25;    // τ_cov: mean alpha >= τ_cov
-  double admit_max_residual = 0.7;  // τ_res: mean |I_hall - I_GS| < τ_res
-  // Not in the paper: SSIM(I_hall, I_GS) >= this (0 disables). τ_res alone admits uniform noise (its mean
-  // residual against a render is about 1/3); noise has an SSIM near 0 with any render, while a generation
-  // anchored on the render keeps its structure. Low on purpose: it only rejects images without structure.
-  double admit_min_structure = 0.1;
-  double uncertainty_lambda = 0.7;   // λ_u (eq:confidence_weight)
-  double uncertainty_eps = 1e-6;     // ε (eq:confidence_weight)
-  double extrap_kappa = 2.0;         // κ (eq:extrap_decay)
-  double pseudo_loss_weight = 0.35;  // w_PLW (eq:pseudo_loss)
-
-  // --- Density-adaptive DropGaussian (eq:drop_ratio, eq:dropgaussian).
-  double drop_max = 0.2;       // r_max
-  double drop_n_ref = 200000;  // N_thr
-
-  // --- Generation controls (sec. 3.3), consumed by the diffusion side.
-  double strength_max = 0.85;     // σ_max (eq:adaptive_strength)
-  double strength_min = 0.3;      // σ_min
-  double cn_scale = 1.0;          // s̄_cn (eq:adaptive_cn)
-  double cn_coverage = 0.3;       // τ_clip
-  double ip_adapter_scale = 0.5;  // λ_ip (eq:ipadapter)
-  int lora_rank = 4;              // r (eq:lora)
-  int lora_steps = 50;            // LoRA steps in the first diffusion phase
-  // Two-stage generation (eq:two_stage), sent with every generation request (GenerationRequest::inpaint).
-  double inpaint_uncovered_fraction = InpaintSettings{}.uncovered_fraction;  // > 2% uncovered: SD2 inpainting
-  int inpaint_dilation = InpaintSettings{}.dilation;  // dilation kernel of the inpainting mask (odd)
-  // τ_d: render_depth (alpha-weighted distance) below this is uncovered. Not given by the paper; 0.01 marks
-  // pixels with almost no rendered content in scenes whose surfaces lie at distances of order 1 or more.
-  double inpaint_depth_threshold = InpaintSettings{}.depth_threshold;
+  GAPS_GAPS_CONFIG_OPTIONS(GAPS_DECLARE_OPTION)
 
   int num_tiers() const { return static_cast<int>(tier_alpha_min.size()); }
 };
@@ -111,8 +107,13 @@ inline InpaintSettings inpaint_settings(const GapsConfig& c) {
   return {c.inpaint_depth_threshold, c.inpaint_uncovered_fraction, c.inpaint_dilation};
 }
 
-// Checks ranges and the tier layout (equal lengths, nested ranges containing [0, 1]).
+// Range checks from the option table, the tier layout (equal lengths, nested ranges containing [0, 1]) and
+// the inpainting settings.
 absl::Status validate_gaps_config(const GapsConfig& c);
+// Every option of GapsConfig, in table order.
+std::vector<OptionInfo> gaps_config_options();
+// The pseudo-views per phase a run uses: c.n_active, or when 0 the paper's value for the views' layout.
+int n_active_for(const GapsConfig& c, bool views_surround_scene);
 
 // Index (0-based) of the diffusion phase that runs before iteration `iteration` (0-based, < total), or
 // -1 when none does. With the defaults and T = 10,000: iterations 1000, 1500, ..., 9500, 18 phases.

@@ -218,8 +218,12 @@ double viewing_direction_spread_degrees(const std::vector<Camera>& cameras) {
   return std::acos(std::clamp(min_cosine, -1.0, 1.0)) * 180.0 / M_PI;
 }
 
+bool views_surround_scene(const std::vector<Camera>& cameras) {
+  return viewing_direction_spread_degrees(cameras) > kSurroundingViewsDegrees;
+}
+
 std::string auto_init_method(const std::vector<Camera>& cameras) {
-  return viewing_direction_spread_degrees(cameras) > kSurroundingViewsDegrees ? "sparse" : "mvs";
+  return views_surround_scene(cameras) ? "sparse" : "mvs";
 }
 
 namespace {

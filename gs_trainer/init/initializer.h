@@ -54,6 +54,10 @@ inline constexpr double kSurroundingViewsDegrees = 90.0;
 // Largest angle in degrees between two cameras' viewing directions (0 for fewer than two cameras).
 double viewing_direction_spread_degrees(const std::vector<Camera>& cameras);
 
+// Whether the views surround the scene (their viewing directions spread over more than
+// kSurroundingViewsDegrees): what decides "auto" here and the paper's pseudo-views per phase (GapsConfig).
+bool views_surround_scene(const std::vector<Camera>& cameras);
+
 // What "auto" resolves to: "sparse" when the views surround the scene, else "mvs". The plane sweep compares
 // square windows between neighbouring views; across the tens of degrees between the neighbours of a sparse
 // 360° capture those windows no longer match and the fused cloud is wrong enough to cost 3DGS more than

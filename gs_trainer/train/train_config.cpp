@@ -2,29 +2,38 @@
 
 #include <string>
 
+#include <c10/core/Device.h>
 #include <nlohmann/json.hpp>
-#include "common/json_fields.h"
 
 namespace gaps {
 
-// One list of fields for both directions, so JSON and struct cannot drift apart.
-// clang-format off
-#define GAPS_TRAIN_CONFIG_FIELDS(X)                                                                        \
-  X(iterations) X(seed) X(device) X(lambda_dssim) X(position_lr_init) X(position_lr_final)                 \
-  X(feature_lr) X(opacity_lr) X(scaling_lr) X(rotation_lr) X(adam_eps)          \
-  X(max_sh_degree) X(sh_increase_interval) X(densify_from_iter) X(densify_until_fraction)                  \
-  X(densification_interval) X(opacity_reset_interval) X(densify_grad_threshold) X(absolute_gradient)      \
-  X(percent_dense) X(min_opacity) X(max_screen_size) X(max_gaussians) X(gaussians_per_variation)        \
-  X(prune_min_contribution) X(background)
-// clang-format on
+absl::Status validate_train_config(const TrainConfig& c) {
+  GAPS_TRAIN_CONFIG_OPTIONS(GAPS_CHECK_OPTION)
+  try {
+    const c10::Device device(c.device);
+    if (!device.is_cpu() && !device.is_cuda()) throw std::runtime_error("not cpu or cuda");
+  } catch (const std::exception&) {
+    return absl::InvalidArgumentError(absl::StrCat("option 'device' = '", c.device, "' is not cpu, cuda or cuda:N"));
+  }
+  return absl::OkStatus();
+}
 
-void to_json(nlohmann::json& j, const TrainConfig& c) { GAPS_TRAIN_CONFIG_FIELDS(GAPS_WRITE_FIELD) }
+std::vector<OptionInfo> train_config_options() {
+  std::vector<OptionInfo> out;
+  const std::string section = "training";
+  GAPS_TRAIN_CONFIG_OPTIONS(GAPS_DESCRIBE_OPTION)
+  return out;
+}
+
+void to_json(nlohmann::json& j, const TrainConfig& c) { GAPS_TRAIN_CONFIG_OPTIONS(GAPS_WRITE_OPTION) }
 
 void from_json(const nlohmann::json& j, TrainConfig& c) {
-  read_fields(j, "training", [&](const std::string& key, const nlohmann::json& value) {
-    GAPS_TRAIN_CONFIG_FIELDS(GAPS_READ_FIELD)
+  read_options(j, "training", [&](const std::string& key, const nlohmann::json& value) {
+    GAPS_TRAIN_CONFIG_OPTIONS(GAPS_READ_OPTION)
     return false;
   });
+  if (absl::Status s = validate_train_config(c); !s.ok())
+    throw nlohmann::json::other_error::create(502, std::string(s.message()), &j);
 }
 
 }  // namespace gaps

@@ -1,0 +1,107 @@
+#include "client/option_flags.h"
+
+#include "absl/flags/flag.h"
+#include "absl/strings/str_cat.h"
+#include "common/io_util.h"
+#include "common/status_macros.h"
+#include "gs_trainer/gaps/config.h"
+#include "gs_trainer/train/train_config.h"
+
+namespace gaps::client {
+
+bool AbslParseFlag(absl::string_view text, OptionFlag* flag, std::string*) {
+  flag->text = std::string(text);
+  flag->given = true;
+  return true;
+}
+
+std::string AbslUnparseFlag(const OptionFlag& flag) { return flag.text; }
+
+namespace {
+
+// The default as --help shows it: strings bare, everything else as JSON.
+OptionFlag default_flag(const nlohmann::json& value) {
+  return {value.is_string() ? value.get<std::string>() : value.dump(), false};
+}
+
+}  // namespace
+}  // namespace gaps::client
+
+#define GAPS_DEFINE_OPTION_FLAG(type, name, def, lo, hi, help) \
+  ABSL_FLAG(gaps::client::OptionFlag, name, gaps::client::default_flag(nlohmann::json(type(def))), help);
+GAPS_TRAIN_CONFIG_OPTIONS(GAPS_DEFINE_OPTION_FLAG)
+GAPS_GAPS_CONFIG_OPTIONS(GAPS_DEFINE_OPTION_FLAG)
+#undef GAPS_DEFINE_OPTION_FLAG
+
+namespace gaps::client {
+namespace {
+
+struct FlagEntry {
+  const char* name;
+  const absl::Flag<OptionFlag>* flag;
+};
+
+#define GAPS_FLAG_ENTRY(type, name, def, lo, hi, help) {#name, &FLAGS_##name},
+const FlagEntry kTrainingFlags[] = {GAPS_TRAIN_CONFIG_OPTIONS(GAPS_FLAG_ENTRY)};
+const FlagEntry kGapsFlags[] = {GAPS_GAPS_CONFIG_OPTIONS(GAPS_FLAG_ENTRY)};
+#undef GAPS_FLAG_ENTRY
+
+absl::StatusOr<nlohmann::json> read_options_file(const std::string& path) {
+  if (path.empty()) return nlohmann::json::object();
+  GAPS_ASSIGN_OR_RETURN(const std::string text, read_file_bytes(path, "options file"));
+  nlohmann::json j = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded()) return absl::InvalidArgumentError(absl::StrCat(path, ": invalid JSON"));
+  if (!j.is_object()) return absl::InvalidArgumentError(absl::StrCat(path, ": options must be a JSON object"));
+  return j;
+}
+
+// A flag's text as the JSON value of its option: a string option takes the text as it is; the others parse it
+// as JSON, a list also as comma-separated numbers without brackets.
+absl::StatusOr<nlohmann::json> flag_value(const std::string& name, const std::string& text,
+                                          const nlohmann::json& default_value) {
+  if (default_value.is_string()) return nlohmann::json(text);
+  std::string json_text = text;
+  if (default_value.is_array() && (json_text.empty() || json_text.front() != '[')) json_text = "[" + text + "]";
+  nlohmann::json j = nlohmann::json::parse(json_text, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded()) return absl::InvalidArgumentError(absl::StrCat("--", name, "=", text, ": not a valid value"));
+  return j;
+}
+
+// Lays the given flags of one section over `options`, noting each key that was in the file.
+absl::Status apply_flags(const FlagEntry* begin, const FlagEntry* end, const nlohmann::json& defaults,
+                         const std::string& file, nlohmann::json& options, std::vector<std::string>& notes) {
+  for (const FlagEntry* e = begin; e != end; ++e) {
+    const OptionFlag flag = absl::GetFlag(*e->flag);
+    if (!flag.given) continue;
+    GAPS_ASSIGN_OR_RETURN(nlohmann::json value, flag_value(e->name, flag.text, defaults.at(e->name)));
+    if (options.contains(e->name) && options[e->name] != value)
+      notes.push_back(absl::StrCat(e->name, " = ", value.dump(), " from the command line, over ",
+                                   options[e->name].dump(), " in ", file));
+    options[e->name] = std::move(value);
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& training_file,
+                                                          const std::string& gaps_file) {
+  GivenOptions given;
+  GAPS_ASSIGN_OR_RETURN(given.training, read_options_file(training_file));
+  GAPS_ASSIGN_OR_RETURN(given.gaps, read_options_file(gaps_file));
+  GAPS_RETURN_IF_ERROR(apply_flags(std::begin(kTrainingFlags), std::end(kTrainingFlags), TrainConfig{}, training_file,
+                                   given.training, given.notes));
+  GAPS_RETURN_IF_ERROR(
+      apply_flags(std::begin(kGapsFlags), std::end(kGapsFlags), GapsConfig{}, gaps_file, given.gaps, given.notes));
+  return given;
+}
+
+bool option_flag_given(const std::string& name) {
+  for (const FlagEntry& e : kTrainingFlags)
+    if (name == e.name) return absl::GetFlag(*e.flag).given;
+  for (const FlagEntry& e : kGapsFlags)
+    if (name == e.name) return absl::GetFlag(*e.flag).given;
+  return false;
+}
+
+}  // namespace gaps::client

@@ -1,0 +1,35 @@
+#pragma once
+// One command-line flag per training and GAPS option, generated from the option tables (common/option_table.h),
+// shared by `gaps train`, `init`, `demo` and `submit`. A flag overrides the config file only when it is given
+// on the command line; options_from_files_and_flags says which source won for every overridden field.
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+#include "absl/status/statusor.h"
+
+namespace gaps::client {
+
+// A flag's text as given. Unset flags keep `given` false and show the option's default in --help.
+struct OptionFlag {
+  std::string text;
+  bool given = false;
+};
+bool AbslParseFlag(absl::string_view text, OptionFlag* flag, std::string* error);
+std::string AbslUnparseFlag(const OptionFlag& flag);
+
+// The training ("training") and GAPS ("gaps") options of a run: each config file (may be empty: none) with the
+// flags given on the command line laid over it, as JSON objects of the config files' shape (only the keys the
+// file or a flag set). `notes` gets one line per option where a flag replaced the file's value.
+struct GivenOptions {
+  nlohmann::json training = nlohmann::json::object();
+  nlohmann::json gaps = nlohmann::json::object();
+  std::vector<std::string> notes;
+};
+absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& training_file,
+                                                          const std::string& gaps_file);
+
+// Whether the option flag `name` was given on the command line.
+bool option_flag_given(const std::string& name);
+
+}  // namespace gaps::client
