@@ -390,6 +390,33 @@ TEST(GapsScore, ConfidenceTerms) {
   EXPECT_NEAR(initial_confidence(fresh, c), 0.8, 1e-12);
 }
 
+TEST(GapsScore, HistoryIsTheMeanOverEveryPhaseThatGeneratedTheView) {
+  UncertaintyHistory history;
+  EXPECT_FALSE(mean_uncertainty_variance(history, 3).has_value());
+  history[3] = {0.1};
+  EXPECT_DOUBLE_EQ(*mean_uncertainty_variance(history, 3), 0.1);
+  history[3].push_back(0.3);
+  EXPECT_DOUBLE_EQ(*mean_uncertainty_variance(history, 3), 0.2);  // (0.1 + 0.3) / 2, not the last
+  EXPECT_FALSE(mean_uncertainty_variance(history, 4).has_value());
+}
+
+TEST(GapsScore, AHighVarianceGenerationLowersTheNextConfidence) {
+  // A view generated once with variance 0.27 (rejected or not: the history does not ask) scores C_hist =
+  // 1 - 0.27 / 0.3 = 0.1 next phase, well below its C_model of 0.775.
+  const GapsConfig c;
+  CandidateMeasurements m = example_measurements();
+  m.uncertainty_variance_history.reset();
+  const double before = generative_confidence(m, c);
+  UncertaintyHistory history = {{5, {0.27}}};
+  m.uncertainty_variance_history = mean_uncertainty_variance(history, 5);
+  EXPECT_NEAR(generative_confidence(m, c), 0.3 * 0.775 + 0.7 * 0.1, 1e-12);
+  EXPECT_LT(generative_confidence(m, c), before);
+  // A second, good generation (variance 0.03) brings the mean to 0.15 and C_hist to 0.5.
+  history[5].push_back(0.03);
+  m.uncertainty_variance_history = mean_uncertainty_variance(history, 5);
+  EXPECT_NEAR(generative_confidence(m, c), 0.3 * 0.775 + 0.7 * 0.5, 1e-12);
+}
+
 TEST(GapsScore, BetaAnnealsLinearly) {
   const GapsConfig c;  // β 2.0 -> 0.5
   EXPECT_DOUBLE_EQ(annealed_beta(0, 10000, c), 2.0);

@@ -36,8 +36,9 @@ struct GapsConfig {
   double max_extrap = 0.5;
   // Intrinsics of a pseudo camera: lerped between the pair (true) or copied from the first camera.
   bool interpolate_intrinsics = true;
-  // Tier upgrade: when at least tier_min_admitted pseudo-views are admitted and the mean of their
-  // uncertainty variances (mean u², see admission.h) is below this. (open) 0.05 ≈ RMS residual 0.22,
+  // Tier upgrade: when at least tier_min_admitted pseudo-views are admitted in a phase and the mean of their
+  // uncertainty variances (mean u², see admission.h) is below this. Only admitted views count (sec. 3.4);
+  // rejected ones lower their own C_hist instead. (open) 0.05 ≈ RMS residual 0.22,
   // i.e. C_hist ≈ 0.83 on the 0.3 scale of eq:c_gen.
   double tier_upgrade_variance = 0.05;
   int tier_min_admitted = 1;
@@ -64,8 +65,9 @@ struct GapsConfig {
   double contrast_ref = 0.25;
   // (open) coverage = fraction of pixels whose rendered alpha is at least this.
   double coverage_alpha_threshold = 0.5;
-  double ref_distance_scale = 0.5;   // C_ref = exp(-d_min_gt / scale)
-  double hist_variance_scale = 0.3;  // C_hist = 1 - min(1, σ̄² / scale)
+  double ref_distance_scale = 0.5;  // C_ref = exp(-d_min_gt / scale)
+  // C_hist = 1 - min(1, σ̄² / scale), σ̄² the mean over every earlier phase that generated the view.
+  double hist_variance_scale = 0.3;
 
   // --- Selection (sec. 3.4 greedy selection, sec. 3.6 forced exploration).
   double diversity_radius = 0.15;      // d_div, in pose distance

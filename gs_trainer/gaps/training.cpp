@@ -153,16 +153,16 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
     for (auto& c : pool) {
       c.admitted_before = admitted_.count(c.id) > 0;
       const RenderOutput r = render(model, c.camera);
-      const auto history =
-          uncertainty_history_.count(c.id) ? std::optional<double>(uncertainty_history_[c.id]) : std::nullopt;
       const auto m = measure_render(r.rgb.clamp(0, 1), r.alpha, min_pose_distance(c.camera, supervised),
-                                    min_pose_distance(c.camera, gt_cameras_), history, config_);
+                                    min_pose_distance(c.camera, gt_cameras_),
+                                    mean_uncertainty_variance(uncertainty_history_, c.id), config_);
       const ScoreTerms s = score_candidate(m, t, T, config_);
       scores.push_back(s.score);
       entry["candidates"].push_back({{"id", c.id},
                                      {"pair", {c.i, c.j}},
                                      {"alpha", c.alpha},
                                      {"i_recon", s.i_recon},
+                                     {"c_model", s.c_model},
                                      {"c_gen", s.c_gen},
                                      {"score", s.score}});
     }
@@ -210,17 +210,18 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     const AdmissionDecision d = admit_pseudo_view(image, rendered, alpha, config_);
     const bool admit = !gate || d.admitted;
     const at::Tensor u = uncertainty_map(image, rendered);
+    const double variance = uncertainty_variance(u);
+    uncertainty_history_[chosen[k].id].push_back(variance);
     entry["selection"].push_back({{"id", chosen[k].id},
                                   {"pair", {chosen[k].i, chosen[k].j}},
                                   {"alpha", chosen[k].alpha},
                                   {"coverage", requests[k].coverage},
                                   {"strength", requests[k].strength},
+                                  {"uncertainty_variance", variance},
                                   {"admitted", admit},
                                   {"reason", gate ? d.reason : "no admission gate (no-gaps)"}});
     GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
     if (!admit) continue;
-    const double variance = uncertainty_variance(u);
-    uncertainty_history_[chosen[k].id] = variance;
     admitted_variances.push_back(variance);
     // no-gaps trains on plain pixels: its ablation has no uncertainty weighting either.
     const at::Tensor weight = gate ? pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_)
@@ -232,6 +233,7 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
       admitted_variances.empty()
           ? 0.0
           : std::accumulate(admitted_variances.begin(), admitted_variances.end(), 0.0) / admitted_variances.size();
+  // The tier follows the admitted views alone (sec. 3.4), unlike C_hist, which also remembers the rejected.
   if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
   return absl::OkStatus();
 }

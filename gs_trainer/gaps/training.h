@@ -19,6 +19,7 @@
 #include "gs_trainer/gaps/config.h"
 #include "gs_trainer/gaps/generator.h"
 #include "gs_trainer/gaps/pose.h"
+#include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/train/trainer.h"
 
 namespace gaps {
@@ -69,8 +70,8 @@ class GapsTraining {
   at::Generator drop_rng_;
   int tier_ = 0;
   bool adapted_ = false;
-  std::map<int, PseudoView> admitted_;         // candidate id -> latest admitted view
-  std::map<int, double> uncertainty_history_;  // candidate id -> last uncertainty variance
+  std::map<int, PseudoView> admitted_;      // candidate id -> latest admitted view
+  UncertaintyHistory uncertainty_history_;  // every generation's variance, admitted or not (C_hist)
   std::filesystem::path inspection_dir_;
   std::vector<ReferenceView> gt_renders_;  // GT views with the model's renders, per phase
   nlohmann::json log_ = nlohmann::json::array();
