@@ -4,9 +4,11 @@
 #include <gtest/gtest.h>
 
 #include <map>
+#include <set>
 #include <string>
 #include <vector>
 
+#include "common/npy.h"
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/gaps/training.h"
 #include "gs_trainer/pipeline.h"
@@ -118,9 +120,35 @@ TEST_F(GapsTrainingTest, NoGapsGeneratesPairMidpointsOnceWithoutGate) {
   const auto phases = read_json(dir_ / "out" / "phases.json");
   ASSERT_EQ(phases.size(), 1u);
   EXPECT_EQ(phases[0]["selection"].size(), 3u);  // 3 training views -> 3 pairs
+  std::set<std::pair<int, int>> pairs;
   for (const auto& s : phases[0]["selection"]) {
     EXPECT_DOUBLE_EQ(s["alpha"].get<double>(), 0.5);
     EXPECT_TRUE(s["admitted"].get<bool>());
+    pairs.insert({s["pair"][0].get<int>(), s["pair"][1].get<int>()});
+  }
+  EXPECT_EQ(pairs.size(), 3u);
+}
+
+// no-gaps drops the gate, not the uncertainty-weighted loss: an admitted view's weight map is eq:pseudo_loss's,
+// w_PLW · α(p) · (1 - λ_u u(p) / max u), whose lowest value is at most w_PLW (1 - λ_u), where u peaks.
+TEST_F(GapsTrainingTest, NoGapsTrainsWithUncertaintyWeights) {
+  EchoGenerator gen(1.0);  // flat grey: a residual that varies over the image
+  RunOptions o = options(Variant::kNoGaps, &gen);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  int polls = 0;
+  o.should_stop = [&] { return ++polls > 45; };  // after phase 0 (iteration 30): the checkpoint holds its views
+  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+  const auto state = read_json(dir_ / "checkpoint" / "state.json");
+  const auto& admitted = state["method"]["admitted"];
+  ASSERT_EQ(admitted.size(), 3u);
+  const double w_plw = o.gaps.pseudo_loss_weight, lambda = o.gaps.uncertainty_lambda;
+  for (const auto& a : admitted) {
+    auto weight = read_npy(dir_ / "checkpoint" / ("admitted_" + std::to_string(a["id"].get<int>()) + "_weight.npy"));
+    ASSERT_TRUE(weight.ok()) << weight.status();
+    EXPECT_LE(weight->data.max().item<double>(), w_plw + 1e-6);
+    EXPECT_GE(weight->data.min().item<double>(), 0.0);
+    EXPECT_LE(weight->data.min().item<double>(), w_plw * (1 - lambda) + 1e-4);
   }
 }
 

@@ -97,14 +97,6 @@ std::vector<ReferenceView> GapsTraining::references_for(const Camera& pose) cons
   return refs;
 }
 
-// The paper's no-GAPS ablation: the midpoints of (up to) 8 training pairs, generated once, never refreshed.
-std::vector<Candidate> GapsTraining::no_gaps_candidates() const {
-  std::vector<Candidate> out;
-  for (const auto& c : build_candidate_pool(gt_cameras_, config_, 0))
-    if (std::abs(c.alpha - 0.5) < 1e-9 && out.size() < 8) out.push_back(c);
-  return out;
-}
-
 absl::Status GapsTraining::run_phase(int phase) {
   at::AutoGradMode no_grad(false);
   const GaussianModel& model = trainer_.model();
@@ -145,7 +137,7 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
 
   std::vector<Candidate> chosen;
   if (variant_ == Variant::kNoGaps) {
-    chosen = no_gaps_candidates();
+    chosen = static_midpoints(gt_cameras_, config_);
   } else {
     std::vector<Candidate> pool = build_candidate_pool(gt_cameras_, config_, tier_);
     const std::vector<Camera> supervised = supervised_cameras();
@@ -223,10 +215,9 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
     if (!admit) continue;
     admitted_variances.push_back(variance);
-    // no-gaps trains on plain pixels: its ablation has no uncertainty weighting either.
-    const at::Tensor weight = gate ? pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_)
-                                   : at::full_like(alpha, config_.pseudo_loss_weight);
-    admitted_[chosen[k].id] = {chosen[k].camera, image, weight, chosen[k].id};
+    // no-gaps drops the gate, not the uncertainty weighting: the paper keeps the rest of the method.
+    admitted_[chosen[k].id] = {chosen[k].camera, image, pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_),
+                               chosen[k].id};
   }
   entry["admitted"] = admitted_variances.size();
   entry["mean_uncertainty_variance"] =
