@@ -14,8 +14,9 @@ OUT receives
   ip_adapter/image_encoder/      its CLIPVisionModelWithProjection, ViT-H/14 (hidden 1280, 32 layers, 16
                                  heads, MLP 5120, patch 14, image 224, projection 1024, gelu);
   lora/pytorch_lora_weights.safetensors
-                                 rank-4 LoRA (alpha 4) on to_q/to_k/to_v/to_out.0 of every UNet attention
-                                 layer, diffusers/PEFT layout, as the backend's LoRA training saves;
+                                 rank-4 LoRA (alpha 4) on to_q/to_k/to_v/to_out.0 of every UNet
+                                 cross-attention (attn2) layer, diffusers/PEFT layout, as the backend's
+                                 LoRA training saves;
   sd2_inpaint/                   stabilityai/stable-diffusion-2-inpainting: UNet (in_channels 9,
                                  cross_attention_dim 1024, attention_head_dim [5, 10, 20, 20], linear
                                  projections), OpenCLIP ViT-H text encoder as CLIPTextModel (hidden 1024,
@@ -135,7 +136,7 @@ def write_ip_adapter(out, unet, tiny, dtype, device, g):
 def write_lora(out, unet, dtype, device, g, rank=4):
     tensors = {}
     for name, module in unet.named_modules():
-        if any(name.endswith(".attn1." + t) or name.endswith(".attn2." + t) for t in LORA_TARGETS):
+        if any(name.endswith(".attn2." + t) for t in LORA_TARGETS):
             down = torch.randn(rank, module.in_features, generator=g, device=device) * module.in_features ** -0.5
             up = torch.randn(module.out_features, rank, generator=g, device=device) * 0.01
             tensors[f"unet.{name}.lora_A.weight"] = down

@@ -59,9 +59,10 @@ struct SdxlOptions {
   double inpaint_uncovered_fraction = 0.02;  // inpaint views with more uncovered pixels than this
   int64_t inpaint_dilation = 15;             // side of the square dilation kernel (odd)
   // Scene adaptation by LoRA (sdxl/lora_training.h): adapt() trains rank-lora_rank adapters (alpha =
-  // rank) on to_q/to_k/to_v/to_out of every attention layer for lora_steps Adam steps at lora_lr
-  // (0 steps = no training) and writes them to lora_save when set. lora: a LoRA file (diffusers/PEFT
-  // safetensors) attached at startup instead, e.g. one saved by an earlier run.
+  // rank) on to_q/to_k/to_v/to_out of every cross-attention layer (attn2, as the paper) for lora_steps Adam
+  // steps at lora_lr (0 steps = no training) and writes them to lora_save when set. lora: a LoRA file
+  // (diffusers/PEFT safetensors) attached at startup instead, e.g. one saved by an earlier run; it attaches
+  // every adapter it holds, self-attention ones included (sdxl/lora.h).
   int64_t lora_steps = 0;
   int64_t lora_rank = 4;
   double lora_lr = 1e-4;

@@ -1,6 +1,7 @@
 #include "gs_trainer/checkpoint.h"
 
 #include <sstream>
+#include <vector>
 
 #include <ATen/ATen.h>
 #include <nlohmann/json.hpp>
@@ -107,7 +108,8 @@ struct CheckpointAccess {
     m["tier"] = method->tier_;
     m["log"] = method->log_;
     m["uncertainty_history"] = json::array();
-    for (const auto& [id, v] : method->uncertainty_history_) m["uncertainty_history"].push_back({id, v});
+    for (const auto& [id, per_phase] : method->uncertainty_history_)
+      m["uncertainty_history"].push_back({id, per_phase});
     m["admitted"] = json::array();
     for (const auto& [id, view] : method->admitted_) {
       m["admitted"].push_back({{"id", id}, {"candidate_id", view.candidate_id}, {"camera", camera_json(view.camera)}});
@@ -153,8 +155,13 @@ struct CheckpointAccess {
     method->log_ = m.at("log");
     method->adapted_ = false;  // the generator may be another process now: adapt it again
     method->uncertainty_history_.clear();
-    for (const auto& e : m.at("uncertainty_history"))
-      method->uncertainty_history_[e.at(0).get<int>()] = e.at(1).get<double>();
+    for (const auto& e : m.at("uncertainty_history")) {
+      // Checkpoints written before the history kept every phase hold one number per view: its last admitted
+      // variance, which reads as a history of one phase.
+      const json& v = e.at(1);
+      method->uncertainty_history_[e.at(0).get<int>()] =
+          v.is_number() ? std::vector<double>{v.get<double>()} : v.get<std::vector<double>>();
+    }
     method->admitted_.clear();
     for (const auto& a : m.at("admitted")) {
       const int id = a.at("id");

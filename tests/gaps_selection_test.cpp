@@ -292,6 +292,73 @@ TEST(CandidatePool, MaxExtrapCapsTheTiers) {
   EXPECT_EQ(build_candidate_pool(three_cameras(), c).size(), 3u * 11);
 }
 
+// ---------------------------------------------------------------- the no-gaps ablation's static midpoints
+
+// Nine cameras on a 3×3 grid of spacing 1 in the x-y plane, camera k at (k % 3, k / 3), all facing one way.
+std::vector<Camera> nine_cameras() {
+  std::vector<Camera> cams;
+  for (int k = 0; k < 9; ++k) cams.push_back(make_camera(Eigen::Matrix3d::Identity(), {k % 3 * 1.0, k / 3 * 1.0, 0}));
+  return cams;
+}
+
+using PairSet = std::set<std::pair<int, int>>;
+
+TEST(StaticMidpoints, FewerPairsThanEightTakesThemAll) {
+  const std::vector<std::pair<int, int>> pairs = spread_pairs(three_cameras(), kStaticMidpoints);
+  ASSERT_EQ(pairs.size(), 3u);
+  EXPECT_EQ(PairSet(pairs.begin(), pairs.end()), (PairSet{{0, 1}, {0, 2}, {1, 2}}));
+}
+
+TEST(StaticMidpoints, EightPairsSpreadOverNineCameras) {
+  const std::vector<Camera> cams = nine_cameras();
+  const std::vector<std::pair<int, int>> pairs = spread_pairs(cams, kStaticMidpoints);
+  ASSERT_EQ(pairs.size(), 8u);
+  EXPECT_EQ(PairSet(pairs.begin(), pairs.end()).size(), 8u);  // no pair twice
+  std::vector<int> uses(9, 0);
+  for (const auto& [i, j] : pairs) {
+    EXPECT_LT(i, j);
+    ++uses[i];
+    ++uses[j];
+    // Grid neighbours only: with every camera free, a pair at distance 1 is always available.
+    EXPECT_NEAR(pose_distance(cams[i], cams[j]), 1.0, 1e-12) << i << "-" << j;
+  }
+  // 16 camera slots over 9 cameras: each serves once or twice; camera 0 is not in every pair.
+  EXPECT_EQ(*std::min_element(uses.begin(), uses.end()), 1);
+  EXPECT_EQ(*std::max_element(uses.begin(), uses.end()), 2);
+  EXPECT_LT(uses[0], 8);
+  // The first four pairs use eight distinct cameras: nobody serves twice before everyone served once.
+  std::set<int> first_four;
+  for (int k = 0; k < 4; ++k) first_four.insert({pairs[k].first, pairs[k].second});
+  EXPECT_EQ(first_four.size(), 8u);
+  // Deterministic: ties are broken by pair order.
+  EXPECT_EQ(pairs, spread_pairs(cams, kStaticMidpoints));
+  EXPECT_EQ(pairs.front(), (std::pair<int, int>{0, 1}));
+}
+
+TEST(StaticMidpoints, CandidatesAreThePairMidpoints) {
+  const std::vector<Camera> cams = nine_cameras();
+  const GapsConfig c;
+  const std::vector<Candidate> mids = static_midpoints(cams, c);
+  const std::vector<std::pair<int, int>> pairs = spread_pairs(cams, kStaticMidpoints, c.pose_rotation_weight);
+  ASSERT_EQ(mids.size(), pairs.size());
+  const std::vector<Candidate> pool = build_candidate_pool(cams, c, 0);
+  std::set<int> ids;
+  for (size_t k = 0; k < mids.size(); ++k) {
+    const Candidate& m = mids[k];
+    EXPECT_EQ(std::make_pair(m.i, m.j), pairs[k]);
+    EXPECT_DOUBLE_EQ(m.alpha, 0.5);
+    EXPECT_DOUBLE_EQ(m.d_extrap, 0.0);
+    expect_vector_near(m.camera.center(), 0.5 * (cams[m.i].center() + cams[m.j].center()), 1e-12);
+    // pair_index agrees with the pool's numbering of the same pair.
+    const auto same =
+        std::find_if(pool.begin(), pool.end(), [&](const Candidate& p) { return p.i == m.i && p.j == m.j; });
+    ASSERT_NE(same, pool.end());
+    EXPECT_EQ(m.pair_index, same->pair_index);
+    ids.insert(m.id);
+  }
+  EXPECT_EQ(ids.size(), mids.size());
+}
+
 // ---------------------------------------------------------------- render statistics
 
 at::Tensor grey_image(const at::Tensor& grey) { return grey.unsqueeze(2).repeat({1, 1, 3}); }
@@ -393,6 +460,33 @@ TEST(GapsScore, ConfidenceTerms) {
   // Contrast above the reference saturates.
   fresh.contrast = 0.5;
   EXPECT_NEAR(initial_confidence(fresh, c), 0.8, 1e-12);
+}
+
+TEST(GapsScore, HistoryIsTheMeanOverEveryPhaseThatGeneratedTheView) {
+  UncertaintyHistory history;
+  EXPECT_FALSE(mean_uncertainty_variance(history, 3).has_value());
+  history[3] = {0.1};
+  EXPECT_DOUBLE_EQ(*mean_uncertainty_variance(history, 3), 0.1);
+  history[3].push_back(0.3);
+  EXPECT_DOUBLE_EQ(*mean_uncertainty_variance(history, 3), 0.2);  // (0.1 + 0.3) / 2, not the last
+  EXPECT_FALSE(mean_uncertainty_variance(history, 4).has_value());
+}
+
+TEST(GapsScore, AHighVarianceGenerationLowersTheNextConfidence) {
+  // A view generated once with variance 0.27 (rejected or not: the history does not ask) scores C_hist =
+  // 1 - 0.27 / 0.3 = 0.1 next phase, well below its C_model of 0.775.
+  const GapsConfig c;
+  CandidateMeasurements m = example_measurements();
+  m.uncertainty_variance_history.reset();
+  const double before = generative_confidence(m, c);
+  UncertaintyHistory history = {{5, {0.27}}};
+  m.uncertainty_variance_history = mean_uncertainty_variance(history, 5);
+  EXPECT_NEAR(generative_confidence(m, c), 0.3 * 0.775 + 0.7 * 0.1, 1e-12);
+  EXPECT_LT(generative_confidence(m, c), before);
+  // A second, good generation (variance 0.03) brings the mean to 0.15 and C_hist to 0.5.
+  history[5].push_back(0.03);
+  m.uncertainty_variance_history = mean_uncertainty_variance(history, 5);
+  EXPECT_NEAR(generative_confidence(m, c), 0.3 * 0.775 + 0.7 * 0.5, 1e-12);
 }
 
 TEST(GapsScore, BetaAnnealsLinearly) {

@@ -3,6 +3,12 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include <map>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "common/npy.h"
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/gaps/training.h"
 #include "gs_trainer/pipeline.h"
@@ -41,6 +47,19 @@ class EchoGenerator : public Generator {
 
  private:
   double noise_;
+};
+
+// Each channel of the render pushed to the far end of [0, 1]: every pixel's residual is at least 0.5, so the
+// uncertainty variance (mean u²) is at least 0.25 and a residual threshold below 0.5 rejects every view.
+class ContraryGenerator : public Generator {
+ public:
+  std::string name() const override { return "contrary (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back((r.render_rgb < 0.5).to(r.render_rgb.scalar_type()));
+    return out;
+  }
 };
 
 struct GapsTrainingTest : test::TempDirTest {
@@ -101,10 +120,74 @@ TEST_F(GapsTrainingTest, NoGapsGeneratesPairMidpointsOnceWithoutGate) {
   const auto phases = read_json(dir_ / "out" / "phases.json");
   ASSERT_EQ(phases.size(), 1u);
   EXPECT_EQ(phases[0]["selection"].size(), 3u);  // 3 training views -> 3 pairs
+  std::set<std::pair<int, int>> pairs;
   for (const auto& s : phases[0]["selection"]) {
     EXPECT_DOUBLE_EQ(s["alpha"].get<double>(), 0.5);
     EXPECT_TRUE(s["admitted"].get<bool>());
+    pairs.insert({s["pair"][0].get<int>(), s["pair"][1].get<int>()});
   }
+  EXPECT_EQ(pairs.size(), 3u);
+}
+
+// no-gaps drops the gate, not the uncertainty-weighted loss: an admitted view's weight map is eq:pseudo_loss's,
+// w_PLW · α(p) · (1 - λ_u u(p) / max u), whose lowest value is at most w_PLW (1 - λ_u), where u peaks.
+TEST_F(GapsTrainingTest, NoGapsTrainsWithUncertaintyWeights) {
+  EchoGenerator gen(1.0);  // flat grey: a residual that varies over the image
+  RunOptions o = options(Variant::kNoGaps, &gen);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  int polls = 0;
+  o.should_stop = [&] { return ++polls > 45; };  // after phase 0 (iteration 30): the checkpoint holds its views
+  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+  const auto state = read_json(dir_ / "checkpoint" / "state.json");
+  const auto& admitted = state["method"]["admitted"];
+  ASSERT_EQ(admitted.size(), 3u);
+  const double w_plw = o.gaps.pseudo_loss_weight, lambda = o.gaps.uncertainty_lambda;
+  for (const auto& a : admitted) {
+    auto weight = read_npy(dir_ / "checkpoint" / ("admitted_" + std::to_string(a["id"].get<int>()) + "_weight.npy"));
+    ASSERT_TRUE(weight.ok()) << weight.status();
+    EXPECT_LE(weight->data.max().item<double>(), w_plw + 1e-6);
+    EXPECT_GE(weight->data.min().item<double>(), 0.0);
+    EXPECT_LE(weight->data.min().item<double>(), w_plw * (1 - lambda) + 1e-4);
+  }
+}
+
+// C_hist must remember rejected generations: every candidate's logged C_gen is eq:c_gen on the mean of the
+// variances its earlier generations logged, and a view rejected with a high variance scores lower next phase.
+TEST_F(GapsTrainingTest, ARejectedViewLosesConfidenceNextPhase) {
+  ContraryGenerator gen;
+  RunOptions o = options(Variant::kFull, &gen);
+  o.gaps.admit_max_residual = 0.3;    // every contrary view (residual >= 0.5) is rejected
+  o.gaps.hist_variance_scale = 0.25;  // and its variance (>= 0.25) leaves it no historical confidence
+  auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  EXPECT_EQ(phases[0]["admitted"].get<int>(), 0);
+  std::map<int, std::vector<double>> generated;  // id -> variances logged by earlier phases
+  for (const auto& s : phases[0]["selection"]) {
+    EXPECT_FALSE(s["admitted"].get<bool>());
+    EXPECT_GE(s["uncertainty_variance"].get<double>(), 0.25);
+    generated[s["id"].get<int>()].push_back(s["uncertainty_variance"].get<double>());
+  }
+  ASSERT_FALSE(generated.empty());
+  const double gamma = o.gaps.gamma_hist;
+  int rescored = 0;
+  for (const auto& cand : phases[1]["candidates"]) {
+    const double c_model = cand["c_model"].get<double>(), c_gen = cand["c_gen"].get<double>();
+    const auto it = generated.find(cand["id"].get<int>());
+    if (it == generated.end()) {
+      EXPECT_DOUBLE_EQ(c_gen, c_model) << cand;
+      continue;
+    }
+    double mean = 0;
+    for (double v : it->second) mean += v / static_cast<double>(it->second.size());
+    const double c_hist = 1.0 - std::min(1.0, mean / o.gaps.hist_variance_scale);
+    EXPECT_NEAR(c_gen, (1 - gamma) * c_model + gamma * c_hist, 1e-12) << cand;
+    EXPECT_LT(c_gen, c_model) << cand;
+    ++rescored;
+  }
+  EXPECT_EQ(rescored, static_cast<int>(generated.size()));  // tier 0 still: every generated view is scored
 }
 
 TEST_F(GapsTrainingTest, MethodVariantsNeedAGenerator) {

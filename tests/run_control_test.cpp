@@ -2,7 +2,10 @@
 // phases (reported to the phase observer) instead of failing the run, any other generator error still
 // fails it, should_stop ends a run with CANCELLED while keeping the model and checkpointing it, and a
 // stopped run resumes from that checkpoint.
+#include <algorithm>
 #include <fstream>
+#include <map>
+#include <vector>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -137,6 +140,45 @@ TEST_F(RunControlTest, AStoppedRunResumesFromWhereItStopped) {
   ASSERT_EQ(phases.size(), 2u);
   EXPECT_EQ(phases[0]["phase"], 0);
   EXPECT_EQ(phases[1]["phase"], 1);
+}
+
+// C_hist's history (every phase's uncertainty variance per generated view) is saved and read back: after the
+// resume, phase 1 scores the views phase 0 generated with it (eq:c_gen), as an uninterrupted run would.
+TEST_F(RunControlTest, TheUncertaintyHistorySurvivesAResume) {
+  EchoGenerator generator;
+  RunOptions o = options(&generator);
+  o.checkpoint_dir = dir_ / "checkpoint";
+  int polls = 0;
+  o.should_stop = [&] { return ++polls > 45; };
+  ASSERT_EQ(run_pipeline(o, nullptr, [](const std::string&) {}).status().code(), absl::StatusCode::kCancelled);
+  auto state = read_file_bytes(dir_ / "checkpoint" / "state.json");
+  ASSERT_TRUE(state.ok());
+  const auto method = nlohmann::json::parse(*state)["method"];
+  ASSERT_EQ(method["log"].size(), 1u);
+  std::map<int, std::vector<double>> logged;  // what phase 0 generated, from its log
+  for (const auto& s : method["log"][0]["selection"])
+    logged[s["id"].get<int>()].push_back(s["uncertainty_variance"].get<double>());
+  std::map<int, std::vector<double>> saved;
+  for (const auto& e : method["uncertainty_history"]) saved[e[0].get<int>()] = e[1].get<std::vector<double>>();
+  ASSERT_FALSE(logged.empty());
+  EXPECT_EQ(saved, logged);
+
+  o.should_stop = nullptr;
+  ASSERT_TRUE(run_pipeline(o, nullptr, [](const std::string&) {}).ok());
+  std::ifstream f(dir_ / "out" / "phases.json");
+  const auto phases = nlohmann::json::parse(f);
+  ASSERT_EQ(phases.size(), 2u);
+  int rescored = 0;
+  for (const auto& cand : phases[1]["candidates"]) {
+    const auto it = saved.find(cand["id"].get<int>());
+    if (it == saved.end()) continue;
+    const double c_hist = 1.0 - std::min(1.0, it->second[0] / o.gaps.hist_variance_scale);
+    const double gamma = o.gaps.gamma_hist;
+    EXPECT_NEAR(cand["c_gen"].get<double>(), (1 - gamma) * cand["c_model"].get<double>() + gamma * c_hist, 1e-12)
+        << cand;
+    ++rescored;
+  }
+  EXPECT_EQ(rescored, static_cast<int>(saved.size()));
 }
 
 TEST_F(RunControlTest, ACheckpointRestoresTheModelAndIteration) {

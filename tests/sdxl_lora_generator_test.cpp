@@ -8,6 +8,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <gtest/gtest.h>
 
+#include "common/safetensors.h"
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/sdxl_generator.h"
 #include "tests/sdxl_test_util.h"
@@ -72,6 +73,12 @@ class SdxlLoraGeneratorTest : public test::TempDirTest {
     // so the same views and seed give the same images again.
     ASSERT_TRUE((*generator)->adapt(views(2, 12, 8)).ok());
     test::expect_close(generate_one(**generator), after, 1e-6, "generator adapted a second time");
+
+    // Trained adapters sit on the cross-attention layers only, as the paper places them.
+    auto saved = sdxl::read_safetensors(path);
+    ASSERT_TRUE(saved.ok()) << saved.status();
+    EXPECT_FALSE(saved->empty());
+    for (const auto& [key, tensor] : *saved) EXPECT_NE(key.find(".attn2."), std::string::npos) << key;
 
     auto reloaded = make_generator("sdxl", options_json(extra + ", \"lora\": \"" + path + "\""));
     ASSERT_TRUE(reloaded.ok()) << reloaded.status();

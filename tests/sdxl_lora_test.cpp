@@ -1,9 +1,12 @@
 // LoRA on the SDXL UNet's attention projections against the tiny fixtures of tests/fixtures/lora_tiny (made by
 // tests/scripts/make_lora_fixtures.py: a diffusers-saved rank-4 LoRA for the UNet of tests/fixtures/sdxl_tiny
 // and torch references of PEFT's LoRA forward). fp32 on the CPU, max abs diff <= 1e-4 x max(1, max |ref|).
-// Also: merging equals the adapted forward, save -> load is tensor-exact, fresh adapters leave the UNet's
-// output unchanged, and malformed files are refused naming the tensor (the UNet left untouched).
+// Also: merging equals the adapted forward, save -> load is tensor-exact, fresh adapters go on the
+// cross-attention layers only (the paper's placement) and leave the UNet's output unchanged, and malformed
+// files are refused naming the tensor (the UNet left untouched).
+#include <set>
 #include <string>
+#include <utility>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -51,6 +54,8 @@ TEST(LoraTest, UNetStepMatchesPeftLoraForward) {
   sdxl::UNet2DCondition unet = tiny_unet();
   auto lora = UNetLora::load(lora_file(), unet);
   ASSERT_TRUE(lora.ok()) << lora.status();
+  // The file adapts self- and cross-attention (12 transformer blocks x 2 layers x 4 projections); loading
+  // attaches all of it, only new adapters are restricted to cross-attention.
   EXPECT_EQ(lora->adapters().size(), 96u);
   for (const auto& a : lora->adapters()) {
     EXPECT_EQ(a.down.size(0), 4) << a.module;
@@ -97,6 +102,33 @@ TEST(LoraTest, UnmergingRestoresTheBaseWeightsBitForBit) {
   EXPECT_TRUE(at::equal(unet_step(unet), base));
 }
 
+bool is_cross_attention(const std::string& module) { return module.find(".attn2.") != std::string::npos; }
+
+TEST(LoraTest, FreshAdaptersGoOnEveryCrossAttentionProjectionOnly) {
+  sdxl::UNet2DCondition unet = tiny_unet();
+  auto lora = UNetLora::create(unet, {}, 11);
+  ASSERT_TRUE(lora.ok()) << lora.status();
+  std::set<std::string> adapted;
+  for (const auto& a : lora->adapters()) {
+    EXPECT_TRUE(is_cross_attention(a.module)) << a.module;
+    adapted.insert(a.module);
+  }
+  int cross_layers = 0;
+  unet.for_each_attention([&](const std::string& name, sdxl::Attention& attn) {
+    const bool cross = is_cross_attention(name + ".");
+    cross_layers += cross ? 1 : 0;
+    for (const auto& [suffix, layer] : {std::pair<std::string, sdxl::Linear*>{"to_q", &attn.to_q},
+                                        {"to_k", &attn.to_k},
+                                        {"to_v", &attn.to_v},
+                                        {"to_out.0", &attn.to_out}}) {
+      EXPECT_EQ(adapted.count(name + "." + suffix), cross ? 1u : 0u) << name << "." << suffix;
+      EXPECT_EQ(layer->lora_down.defined(), cross) << name << "." << suffix;
+    }
+  });
+  EXPECT_EQ(cross_layers, 12);
+  EXPECT_EQ(lora->adapters().size(), 4u * cross_layers);
+}
+
 TEST(LoraTest, FreshAdaptersLeaveTheOutputUnchangedAndFollowTheSeed) {
   sdxl::UNet2DCondition unet = tiny_unet();
   const at::Tensor base = unet_step(unet);
@@ -104,7 +136,7 @@ TEST(LoraTest, FreshAdaptersLeaveTheOutputUnchangedAndFollowTheSeed) {
   config.targets = {"to_q", "to_v"};
   auto lora = UNetLora::create(unet, config, 11);
   ASSERT_TRUE(lora.ok()) << lora.status();
-  EXPECT_EQ(lora->adapters().size(), 48u);
+  EXPECT_EQ(lora->adapters().size(), 24u);  // 12 cross-attention layers x 2 projections
   EXPECT_TRUE(at::equal(unet_step(unet), base));
   sdxl::UNet2DCondition other = tiny_unet();
   auto again = UNetLora::create(other, config, 11);

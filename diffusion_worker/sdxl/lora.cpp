@@ -21,7 +21,8 @@ constexpr char kUpSuffix[] = ".lora_B.weight";
 constexpr char kMetadataKey[] = "lora_adapter_metadata";
 const char* const kProjections[] = {"to_q", "to_k", "to_v", "to_out.0"};
 
-// Every attention projection of unet by its diffusers name (valid while unet is not moved).
+// Every attention projection of unet, self- and cross-attention, by its diffusers name (valid while unet is
+// not moved).
 std::map<std::string, Linear*> projection_layers(UNet2DCondition& unet) {
   std::map<std::string, Linear*> layers;
   unet.for_each_attention([&](const std::string& name, Attention& a) {
@@ -30,6 +31,9 @@ std::map<std::string, Linear*> projection_layers(UNet2DCondition& unet) {
   });
   return layers;
 }
+
+// The paper (sec. lora) adapts the cross-attention blocks, diffusers' attn2; attn1 is self-attention.
+bool in_cross_attention(const std::string& module) { return absl::StrContains(module, ".attn2."); }
 
 // The adapter ranks and alphas of a LoRA file's metadata (diffusers' PEFT LoraConfig, keys "unet.*").
 struct AlphaRule {
@@ -120,7 +124,7 @@ absl::StatusOr<UNetLora> UNetLora::create(UNet2DCondition& unet, const LoraConfi
     const bool targeted = std::any_of(config.targets.begin(), config.targets.end(), [&](const std::string& t) {
       return absl::EndsWith(module, absl::StrCat(".", t));
     });
-    if (!targeted) continue;
+    if (!targeted || !in_cross_attention(module)) continue;
     const int64_t out = layer->weight.size(0), in = layer->weight.size(1);
     const double bound = 1.0 / std::sqrt(static_cast<double>(in));
     const at::TensorOptions options = adapter_options(*layer);
@@ -131,7 +135,7 @@ absl::StatusOr<UNetLora> UNetLora::create(UNet2DCondition& unet, const LoraConfi
     a.alpha = config.alpha;
     lora.adapters_.push_back(std::move(a));
   }
-  if (lora.adapters_.empty()) return absl::InvalidArgumentError("the UNet has no attention layers to adapt");
+  if (lora.adapters_.empty()) return absl::InvalidArgumentError("the UNet has no cross-attention layers to adapt");
   lora.attach_to(unet);
   return lora;
 }

@@ -4,11 +4,15 @@
 // (through Linear::lora_down / lora_up), and the adapters can be merged into W. Files are diffusers' LoRA
 // safetensors as StableDiffusionXLPipeline.save_lora_weights writes them for a PEFT-adapted UNet:
 //   unet.<module>.lora_A.weight (down), unet.<module>.lora_B.weight (up), e.g. module
-//   "down_blocks.1.attentions.0.transformer_blocks.0.attn1.to_q", and the "__metadata__" entry
+//   "down_blocks.1.attentions.0.transformer_blocks.0.attn2.to_q", and the "__metadata__" entry
 //   "lora_adapter_metadata" (JSON: "unet.r", "unet.lora_alpha", "unet.target_modules", optional
 //   "unet.alpha_pattern"). Without that entry alpha equals each module's rank (scale 1), as diffusers
 //   loads such files. Text-encoder adapters, kohya-style files (lora_unet_*, lora_down/lora_up), DoRA and
 //   LoRA biases are refused by name.
+// New adapters (create) go on the cross-attention layers only (attn2 of every transformer block), as the
+// paper's scene adaptation places them. A file attaches whatever attention projections it holds, self-
+// attention (attn1) included: third-party LoRAs are often trained that way, and refusing them would only
+// stop them from loading, not make them follow the paper.
 #include <map>
 #include <string>
 #include <vector>
@@ -24,7 +28,7 @@ namespace gaps::sdxl {
 struct LoraConfig {
   int64_t rank = 4;
   double alpha = 4;  // scale = alpha / rank
-  // Projections of every attention layer that get an adapter (suffixes of their diffusers names).
+  // Projections of every cross-attention layer that get an adapter (suffixes of their diffusers names).
   std::vector<std::string> targets = {"to_q", "to_k", "to_v", "to_out.0"};
 };
 
@@ -37,11 +41,12 @@ class UNetLora {
     double scale() const { return alpha / static_cast<double>(down.size(0)); }
   };
 
-  // New adapters on every target projection, attached to unet: down ~ U(-1/sqrt(in), 1/sqrt(in)) (PEFT's
-  // kaiming-uniform init) from seed, up = 0, so the UNet's output is unchanged until they are trained.
+  // New adapters on every target projection of the cross-attention layers, attached to unet: down ~
+  // U(-1/sqrt(in), 1/sqrt(in)) (PEFT's kaiming-uniform init) from seed, up = 0, so the UNet's output is
+  // unchanged until they are trained.
   static absl::StatusOr<UNetLora> create(UNet2DCondition& unet, const LoraConfig& config, uint64_t seed);
-  // Reads a LoRA file and attaches it to unet (left untouched on error). Errors name the file and every
-  // missing, mis-shaped or unknown tensor.
+  // Reads a LoRA file and attaches all its adapters, on self- or cross-attention, to unet (left untouched on
+  // error). Errors name the file and every missing, mis-shaped or unknown tensor.
   static absl::StatusOr<UNetLora> load(const std::string& path, UNet2DCondition& unet);
   static absl::StatusOr<UNetLora> from_tensors(const TensorMap& tensors, const SafetensorsMetadata& metadata,
                                                UNet2DCondition& unet, const std::string& source);

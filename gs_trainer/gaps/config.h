@@ -40,8 +40,8 @@ inline constexpr int kNActiveMip360 = 24;
   X(bool, interpolate_intrinsics, true, 0, 0,                                                                        \
     "pseudo cameras lerp the pair's intrinsics (false: copy the first camera's)")                                    \
   X(double, tier_upgrade_variance, 0.05, 0, 1,                                                                       \
-    "(open) upgrade the tier when the admitted views' mean uncertainty variance is below this (0.05: RMS residual " \
-    "0.22, C_hist about 0.83)")                                                                                      \
+    "(open) upgrade the tier when the views admitted in a phase have a mean uncertainty variance below this "      \
+    "(0.05: RMS residual 0.22, C_hist about 0.83); rejected views lower their own C_hist instead")                  \
   X(int, tier_min_admitted, 1, 0, 1e6, "admitted views needed before a tier upgrade")                               \
   X(double, pose_rotation_weight, 0.5, 0, 1e6,                                                                       \
     "pose distance (eq. pose_dist) = ||c1 - c2|| + this times the geodesic angle in radians")                       \
@@ -61,7 +61,8 @@ inline constexpr int kNActiveMip360 = 24;
   X(double, contrast_ref, 0.25, 1e-6, 1e6, "(open) RMS luma contrast of a natural image, C_init's reference")       \
   X(double, coverage_alpha_threshold, 0.5, 0, 1, "(open) a pixel is covered when its rendered alpha reaches this") \
   X(double, ref_distance_scale, 0.5, 1e-9, 1e9, "C_ref = exp(-d_min_gt / scale)")                                    \
-  X(double, hist_variance_scale, 0.3, 1e-9, 1e9, "C_hist = 1 - min(1, mean variance / scale)")                       \
+  X(double, hist_variance_scale, 0.3, 1e-9, 1e9,                                                                     \
+    "C_hist = 1 - min(1, mean variance / scale), the mean over every earlier phase that generated the view")        \
   /* Selection (sec. 3.4 greedy selection, sec. 3.6 forced exploration). */                                          \
   X(double, diversity_radius, 0.15, 0, 1e6, "d_div: selected views lie at least this far apart (pose distance)")    \
   X(int, exploration_period, 3, 1, 1e6, "k_new: every k_new-th diffusion phase explores")                           \

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <tuple>
 #include <utility>
 
 #include <absl/strings/str_format.h>
@@ -123,6 +124,49 @@ std::vector<Candidate> build_candidate_pool(const std::vector<Camera>& cameras, 
     }
   }
   return pool;
+}
+
+namespace {
+
+// Index of the pair (i, j), i < j, among the pairs of n cameras in lexicographic order (build_candidate_pool's).
+int pair_index_of(int i, int j, int n) { return i * (2 * n - i - 1) / 2 + (j - i - 1); }
+
+}  // namespace
+
+std::vector<std::pair<int, int>> spread_pairs(const std::vector<Camera>& cameras, int count, double rotation_weight) {
+  const int n = static_cast<int>(cameras.size());
+  std::vector<std::pair<int, int>> left;
+  for (int i = 0; i < n; ++i)
+    for (int j = i + 1; j < n; ++j) left.emplace_back(i, j);
+  std::vector<int> uses(n, 0);
+  std::vector<std::pair<int, int>> chosen;
+  while (static_cast<int>(chosen.size()) < count && !left.empty()) {
+    // Lexicographic comparison of (busiest camera, total use, distance); `left` stays in pair order, so the
+    // first of equal keys has the lower pair index.
+    const auto key = [&](const std::pair<int, int>& p) {
+      const auto [i, j] = p;
+      return std::make_tuple(std::max(uses[i], uses[j]), uses[i] + uses[j],
+                             pose_distance(cameras[i], cameras[j], rotation_weight));
+    };
+    const auto best =
+        std::min_element(left.begin(), left.end(), [&](const auto& a, const auto& b) { return key(a) < key(b); });
+    ++uses[best->first];
+    ++uses[best->second];
+    chosen.push_back(*best);
+    left.erase(best);
+  }
+  return chosen;
+}
+
+std::vector<Candidate> static_midpoints(const std::vector<Camera>& cameras, const GapsConfig& c, int count) {
+  std::vector<Candidate> out;
+  for (const auto& [i, j] : spread_pairs(cameras, count, c.pose_rotation_weight)) {
+    Candidate cand = make_candidate(cameras, i, j, 0.5, c);
+    cand.pair_index = pair_index_of(i, j, static_cast<int>(cameras.size()));
+    cand.id = cand.pair_index;
+    out.push_back(std::move(cand));
+  }
+  return out;
 }
 
 }  // namespace gaps

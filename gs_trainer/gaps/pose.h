@@ -2,6 +2,7 @@
 // Pose maths of Generative Active Pseudo-view Selection (paper sec. 3.4): the pose distance
 // (eq:pose_dist), geodesic interpolation/extrapolation between two cameras (eq:slerp) and the candidate
 // pool built from every training pair with progressive α tiers.
+#include <utility>
 #include <vector>
 
 #include "gs_trainer/gaps/config.h"
@@ -47,5 +48,23 @@ int alpha_tier(double alpha, const GapsConfig& c);
 // (-1: all), with d_extrap <= max_extrap. α = 0 and α = 1 are left out: they are the training cameras.
 // Order: pair-major, α ascending; ids index the full grid so they agree between calls.
 std::vector<Candidate> build_candidate_pool(const std::vector<Camera>& cameras, const GapsConfig& c, int max_tier = -1);
+
+// Pseudo-views of the no-gaps ablation (paper sec. ablation).
+inline constexpr int kStaticMidpoints = 8;
+
+// `count` training pairs (i < j), every pair when there are no more: picked one at a time, each time the pair
+// whose cameras have served least so far (the larger of their two counts, then their sum), the shorter
+// pose distance (eq:pose_dist) between equally used ones, then the lower pair index. Returned in that order.
+// Why: the paper fixes eight midpoints but not their pairs. Lexicographic order would route all eight through
+// camera 0 from 9 cameras on, so the static set would supervise one corner of the capture; spreading the
+// cameras covers it as evenly as eight views can. Among equally spread choices, nearby pairs see the same
+// content, so their midpoints are the interpolations a fixed-pose baseline can ground best.
+std::vector<std::pair<int, int>> spread_pairs(const std::vector<Camera>& cameras, int count,
+                                              double rotation_weight = 0.5);
+
+// The no-gaps ablation's static set: the midpoints (α = 0.5) of spread_pairs(cameras, count). They are not
+// drawn from the pool (α = 0.5 need not lie on its grid), so their ids are the pair indices.
+std::vector<Candidate> static_midpoints(const std::vector<Camera>& cameras, const GapsConfig& c,
+                                        int count = kStaticMidpoints);
 
 }  // namespace gaps

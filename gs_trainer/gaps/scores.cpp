@@ -100,6 +100,12 @@ CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& 
   return m;
 }
 
+std::optional<double> mean_uncertainty_variance(const UncertaintyHistory& history, int id) {
+  const auto it = history.find(id);
+  if (it == history.end() || it->second.empty()) return std::nullopt;
+  return std::accumulate(it->second.begin(), it->second.end(), 0.0) / static_cast<double>(it->second.size());
+}
+
 double novelty(double d_min, const GapsConfig& c) { return std::min(1.0, c.novelty_gain * d_min / (1.0 + d_min)); }
 
 double recon_informativeness(const CandidateMeasurements& m, const GapsConfig& c) {

@@ -3,6 +3,7 @@
 // statistics, I_recon (eq:i_recon), C_gen (eq:c_gen), the annealed score (eq:gaps_score,
 // eq:beta_anneal), greedy selection with a diversity radius and per-pair cap, forced exploration and the
 // progressive-tier rule. Scores take per-candidate measurements, so they are testable without rendering.
+#include <map>
 #include <optional>
 #include <vector>
 
@@ -35,10 +36,17 @@ struct CandidateMeasurements {
   double contrast = 0;          // rms_contrast of the render
   double d_min_supervised = 0;  // min pose distance to the supervised views (GT and admitted pseudo): η
   double d_min_gt = 0;          // min pose distance to the ground-truth views: C_ref
-  // Mean over prior phases of the view's uncertainty variance (uncertainty_variance in admission.h);
-  // empty when the view was never generated.
+  // σ̄²_v of eq:c_gen: mean_uncertainty_variance of the view's history; empty when it was never generated.
   std::optional<double> uncertainty_variance_history;
 };
+
+// Per candidate id, the uncertainty variance (uncertainty_variance in admission.h) of every diffusion phase
+// that generated the view, in phase order. Rejected generations count as much as admitted ones: a view the
+// diffusion model keeps failing on must lose confidence, or the score keeps selecting it.
+using UncertaintyHistory = std::map<int, std::vector<double>>;
+
+// σ̄²_v of eq:c_gen ("the mean uncertainty variance from prior phases"); empty when no phase generated `id`.
+std::optional<double> mean_uncertainty_variance(const UncertaintyHistory& history, int id);
 
 // Fills the render terms of the measurements from a full-fidelity render (no DropGaussian).
 CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& alpha, double d_min_supervised,
@@ -97,7 +105,9 @@ std::vector<int> select_for_phase(const std::vector<Candidate>& pool, const std:
                                   const GapsConfig& c);
 
 // Progressive tiers (sec. 3.4): the next phase's tier. Upgrades by one when at least tier_min_admitted
-// views are admitted and the mean of their uncertainty variances is below tier_upgrade_variance.
+// views are admitted and the mean of their uncertainty variances is below tier_upgrade_variance. The paper
+// reads the signal off the admitted pseudo-views only: the caller passes the variances of the views the
+// phase admitted, not the rejected ones that UncertaintyHistory also holds.
 int next_tier(int current_tier, const std::vector<double>& admitted_uncertainty_variances, const GapsConfig& c);
 
 }  // namespace gaps

@@ -97,14 +97,6 @@ std::vector<ReferenceView> GapsTraining::references_for(const Camera& pose) cons
   return refs;
 }
 
-// The paper's no-GAPS ablation: the midpoints of (up to) 8 training pairs, generated once, never refreshed.
-std::vector<Candidate> GapsTraining::no_gaps_candidates() const {
-  std::vector<Candidate> out;
-  for (const auto& c : build_candidate_pool(gt_cameras_, config_, 0))
-    if (std::abs(c.alpha - 0.5) < 1e-9 && out.size() < 8) out.push_back(c);
-  return out;
-}
-
 absl::Status GapsTraining::run_phase(int phase) {
   at::AutoGradMode no_grad(false);
   const GaussianModel& model = trainer_.model();
@@ -145,7 +137,7 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
 
   std::vector<Candidate> chosen;
   if (variant_ == Variant::kNoGaps) {
-    chosen = no_gaps_candidates();
+    chosen = static_midpoints(gt_cameras_, config_);
   } else {
     std::vector<Candidate> pool = build_candidate_pool(gt_cameras_, config_, tier_);
     const std::vector<Camera> supervised = supervised_cameras();
@@ -153,16 +145,16 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
     for (auto& c : pool) {
       c.admitted_before = admitted_.count(c.id) > 0;
       const RenderOutput r = render(model, c.camera);
-      const auto history =
-          uncertainty_history_.count(c.id) ? std::optional<double>(uncertainty_history_[c.id]) : std::nullopt;
       const auto m = measure_render(r.rgb.clamp(0, 1), r.alpha, min_pose_distance(c.camera, supervised),
-                                    min_pose_distance(c.camera, gt_cameras_), history, config_);
+                                    min_pose_distance(c.camera, gt_cameras_),
+                                    mean_uncertainty_variance(uncertainty_history_, c.id), config_);
       const ScoreTerms s = score_candidate(m, t, T, config_);
       scores.push_back(s.score);
       entry["candidates"].push_back({{"id", c.id},
                                      {"pair", {c.i, c.j}},
                                      {"alpha", c.alpha},
                                      {"i_recon", s.i_recon},
+                                     {"c_model", s.c_model},
                                      {"c_gen", s.c_gen},
                                      {"score", s.score}});
     }
@@ -210,28 +202,29 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     const AdmissionDecision d = admit_pseudo_view(image, rendered, alpha, config_);
     const bool admit = !gate || d.admitted;
     const at::Tensor u = uncertainty_map(image, rendered);
+    const double variance = uncertainty_variance(u);
+    uncertainty_history_[chosen[k].id].push_back(variance);
     entry["selection"].push_back({{"id", chosen[k].id},
                                   {"pair", {chosen[k].i, chosen[k].j}},
                                   {"alpha", chosen[k].alpha},
                                   {"coverage", requests[k].coverage},
                                   {"strength", requests[k].strength},
+                                  {"uncertainty_variance", variance},
                                   {"admitted", admit},
                                   {"reason", gate ? d.reason : "no admission gate (no-gaps)"}});
     GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
     if (!admit) continue;
-    const double variance = uncertainty_variance(u);
-    uncertainty_history_[chosen[k].id] = variance;
     admitted_variances.push_back(variance);
-    // no-gaps trains on plain pixels: its ablation has no uncertainty weighting either.
-    const at::Tensor weight = gate ? pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_)
-                                   : at::full_like(alpha, config_.pseudo_loss_weight);
-    admitted_[chosen[k].id] = {chosen[k].camera, image, weight, chosen[k].id};
+    // no-gaps drops the gate, not the uncertainty weighting: the paper keeps the rest of the method.
+    admitted_[chosen[k].id] = {chosen[k].camera, image, pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_),
+                               chosen[k].id};
   }
   entry["admitted"] = admitted_variances.size();
   entry["mean_uncertainty_variance"] =
       admitted_variances.empty()
           ? 0.0
           : std::accumulate(admitted_variances.begin(), admitted_variances.end(), 0.0) / admitted_variances.size();
+  // The tier follows the admitted views alone (sec. 3.4), unlike C_hist, which also remembers the rejected.
   if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
   return absl::OkStatus();
 }

@@ -2,9 +2,11 @@
 // The alternating optimisation of the paper (sec. 3.2): GT-only warmup, then a diffusion phase every
 // phase_interval iterations (GAPS selection, generation, admission), and between phases iterations that
 // train on an admitted pseudo-view with probability p_pseudo, all under density-adaptive DropGaussian.
-// Variants for the ablation: vanilla, full, no-gaps (8 pair-midpoint views generated once, no gate),
-// no-dropgaussian. A generator answering UNAVAILABLE (e.g. no remote worker reachable) skips the phase:
-// it is logged with "skipped" and training goes on with the pseudo-views admitted so far.
+// Variants for the ablation: vanilla, full, no-gaps (the paper's static baseline: the midpoints of 8
+// training pairs, pose.h static_midpoints, generated once in the first phase, all admitted, trained with
+// the full method's uncertainty weights), no-dropgaussian. A generator answering UNAVAILABLE (e.g. no remote
+// worker reachable) skips the phase: it is logged with "skipped" and training goes on with the pseudo-views
+// admitted so far.
 #include <filesystem>
 #include <functional>
 #include <map>
@@ -19,6 +21,7 @@
 #include "gs_trainer/gaps/config.h"
 #include "gs_trainer/gaps/generator.h"
 #include "gs_trainer/gaps/pose.h"
+#include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/train/trainer.h"
 
 namespace gaps {
@@ -50,7 +53,6 @@ class GapsTraining {
   absl::Status run_phase(int phase);
   absl::Status run_phase_generation(int phase, nlohmann::json& entry);
   absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);
-  std::vector<Candidate> no_gaps_candidates() const;
   std::vector<ReferenceView> references_for(const Camera& pose) const;
   absl::Status save_for_inspection(int phase, int id, bool admitted, const at::Tensor& image) const;
   at::Tensor drop_scale();
@@ -69,8 +71,8 @@ class GapsTraining {
   at::Generator drop_rng_;
   int tier_ = 0;
   bool adapted_ = false;
-  std::map<int, PseudoView> admitted_;         // candidate id -> latest admitted view
-  std::map<int, double> uncertainty_history_;  // candidate id -> last uncertainty variance
+  std::map<int, PseudoView> admitted_;      // candidate id -> latest admitted view
+  UncertaintyHistory uncertainty_history_;  // every generation's variance, admitted or not (C_hist)
   std::filesystem::path inspection_dir_;
   std::vector<ReferenceView> gt_renders_;  // GT views with the model's renders, per phase
   nlohmann::json log_ = nlohmann::json::array();
