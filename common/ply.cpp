@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include <ATen/ATen.h>
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "common/spherical_harmonics.h"
 #include "common/status_macros.h"
@@ -68,7 +69,10 @@ absl::StatusOr<PlyHeader> parse_header(std::istream& in, const std::filesystem::
     } else if (word == "element") {
       ls >> element;
       if (element == "vertex") {
-        ls >> h.vertex_count;
+        std::string count;
+        ls >> count;
+        if (!absl::SimpleAtoi(count, &h.vertex_count) || h.vertex_count < 0)
+          return err(absl::StrCat("vertex count '", count, "' is not a non-negative integer"));
         seen_vertex = true;
       } else if (!seen_vertex) {
         h.vertex_first = false;
@@ -92,6 +96,22 @@ absl::StatusOr<PlyHeader> parse_header(std::istream& in, const std::filesystem::
   return err("header has no end_header");
 }
 
+// The header's vertex count against the bytes that follow it, before anything is allocated for them: a
+// binary vertex takes its row size, an ASCII value at least one byte.
+absl::Status check_count_fits(std::istream& in, const PlyHeader& h, const std::filesystem::path& path) {
+  const std::streampos data_start = in.tellg();
+  in.seekg(0, std::ios::end);
+  const int64_t available = static_cast<int64_t>(in.tellg() - data_start);
+  in.seekg(data_start);
+  int64_t vertex_bytes = 0;
+  for (const auto& p : h.properties) vertex_bytes += h.format == "ascii" ? 1 : p.size;
+  if (vertex_bytes > 0 && h.vertex_count > available / vertex_bytes)
+    return absl::InvalidArgumentError(absl::StrCat(path.string(), ": the header announces ", h.vertex_count,
+                                                   " vertices but the file holds data for at most ",
+                                                   available / vertex_bytes));
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<PlyVertices> read_ply_vertices(const std::filesystem::path& path) {
@@ -99,6 +119,7 @@ absl::StatusOr<PlyVertices> read_ply_vertices(const std::filesystem::path& path)
   if (!in) return absl::NotFoundError(absl::StrCat(path.string(), ": cannot open PLY file"));
   GAPS_ASSIGN_OR_RETURN(PlyHeader h, parse_header(in, path));
   const int64_t n = h.vertex_count, np = static_cast<int64_t>(h.properties.size());
+  GAPS_RETURN_IF_ERROR(check_count_fits(in, h, path));
   at::Tensor data = at::empty({n, np}, at::kDouble);
   double* out = data.data_ptr<double>();
   if (h.format == "ascii") {
@@ -156,8 +177,7 @@ absl::StatusOr<PointCloud> read_point_cloud_ply(const std::filesystem::path& pat
   } else {
     pc.rgb = at::full({v.count, 3}, 0.5, at::kFloat);
   }
-  if (!at::isfinite(pc.xyz).all().item<bool>())
-    return absl::InvalidArgumentError(absl::StrCat(path.string(), ": non-finite point coordinates"));
+  GAPS_RETURN_IF_ERROR(check_point_cloud(pc, path.string()));
   return pc;
 }
 

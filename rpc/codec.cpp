@@ -123,7 +123,7 @@ absl::StatusOr<Camera> decode_camera(const v1::Camera& in, const std::string& wh
   }
   c.near = in.near();
   c.far = in.far();
-  GAPS_RETURN_IF_ERROR(check_rotation(c.R, what));
+  GAPS_RETURN_IF_ERROR(check_camera(c, what));
   return c;
 }
 

@@ -4,6 +4,7 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_replace.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/ply.h"
@@ -83,8 +84,10 @@ absl::Status write_uploaded_scene(const SceneUpload& upload, const fs::path& sce
   if (spec.has_points()) {
     const fs::path ply = scene_dir / "points.ply";
     GAPS_RETURN_IF_ERROR(write_file_bytes(ply, upload.points_ply));
+    // The reader names the file it read; the client knows it as the uploaded point cloud, not by our path.
     if (auto points = read_point_cloud_ply(ply); !points.ok())
-      return absl::InvalidArgumentError(absl::StrCat("uploaded point cloud: ", points.status().message()));
+      return absl::InvalidArgumentError(absl::StrCat(
+          "uploaded point cloud: ", absl::StrReplaceAll(points.status().message(), {{ply.string() + ": ", ""}})));
   }
   const std::string doc = nlohmann::json{{"camera_model", "PINHOLE"}, {"frames", frames}}.dump(2);
   return write_file_bytes(scene_dir / "transforms.json", doc);

@@ -708,6 +708,20 @@ TEST_F(UploadTest, CorruptUploadsAreInvalidArgumentsNamingTheProblem) {
   upload = good;
   upload.spec.mutable_config()->set_views(20);
   expect_invalid("views");
+  // Finite as a double, infinite as the float32 training uses: refused before any job exists.
+  upload = good;
+  upload.spec.mutable_cameras(1)->set_translation(0, 1e300);
+  expect_invalid("translation not finite or beyond");
+  upload = good;
+  upload.spec.mutable_cameras(3)->set_near(5);
+  upload.spec.mutable_cameras(3)->set_far(1);
+  expect_invalid("near bound 5 beyond far bound 1");
+  upload = good;
+  upload.spec.mutable_cameras(3)->set_near(-1);
+  expect_invalid("depth bounds must be finite and not negative");
+  upload = good;
+  upload.spec.mutable_cameras(0)->set_fx(1e30);
+  expect_invalid("focal lengths");
 }
 
 TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {
@@ -720,10 +734,28 @@ TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {
   auto back = read_point_cloud_ply(dir_ / "scene" / "points.ply");
   ASSERT_TRUE(back.ok());
   EXPECT_TRUE(at::allclose(back->xyz, points.xyz));
-  upload.points_ply = "ply\nnot really";
-  const absl::Status broken = write_uploaded_scene(upload, dir_ / "scene2");
-  EXPECT_EQ(broken.code(), absl::StatusCode::kInvalidArgument) << broken;
-  EXPECT_NE(broken.message().find("uploaded point cloud"), std::string_view::npos) << broken;
+  const std::string ply_header =
+      "ply\nformat binary_little_endian 1.0\nelement vertex COUNT\nproperty float x\nproperty float y\n"
+      "property float z\nend_header\n";
+  const auto refused = [&](const std::string& ply, const std::string& needle) {
+    upload.points_ply = ply;
+    const absl::Status st = write_uploaded_scene(upload, dir_ / "scene2");
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
+    EXPECT_NE(st.message().find("uploaded point cloud"), std::string_view::npos) << st;
+    EXPECT_NE(st.message().find(needle), std::string_view::npos) << st;
+    EXPECT_EQ(st.message().find(dir_.string()), std::string_view::npos) << "the server's path leaks: " << st;
+  };
+  refused("ply\nnot really", "end_header");
+  const std::string one_point(12, '\0');
+  for (const char* count : {"-5", "abc", "4294967296"}) {
+    std::string ply = ply_header;
+    ply.replace(ply.find("COUNT"), 5, count);
+    refused(ply + one_point, count[0] == '4' ? "announces 4294967296 vertices" : "is not a non-negative integer");
+  }
+  std::string far_point = ply_header;
+  far_point.replace(far_point.find("COUNT"), 5, "1");
+  const float coordinates[3] = {1e38f, 0.f, 0.f};
+  refused(far_point + std::string(reinterpret_cast<const char*>(coordinates), 12), "point 0 has a coordinate beyond");
 }
 
 }  // namespace

@@ -66,12 +66,23 @@ std::string camera_summary(const Camera& c) {
 
 }  // namespace
 
+namespace {
+
+absl::StatusOr<Scene> checked(absl::StatusOr<Scene> scene) {
+  if (!scene.ok()) return scene;
+  for (const Camera& c : scene->cameras) GAPS_RETURN_IF_ERROR(check_camera(c, (scene->root / c.name).string()));
+  if (scene->points) GAPS_RETURN_IF_ERROR(check_point_cloud(*scene->points, (scene->root / "points").string()));
+  return scene;
+}
+
+}  // namespace
+
 absl::StatusOr<Scene> load_scene(const fs::path& root, const SceneLoadOptions& options) {
   std::error_code ec;
   if (!fs::is_directory(root, ec)) return absl::NotFoundError(absl::StrCat(root.string(), ": scene folder not found"));
-  if (fs::is_regular_file(root / "transforms.json", ec)) return load_transforms_scene(root, options);
-  if (find_colmap_model(root)) return load_colmap_scene(root, options);
-  if (fs::is_regular_file(root / "poses_bounds.npy", ec)) return load_llff_scene(root, options);
+  if (fs::is_regular_file(root / "transforms.json", ec)) return checked(load_transforms_scene(root, options));
+  if (find_colmap_model(root)) return checked(load_colmap_scene(root, options));
+  if (fs::is_regular_file(root / "poses_bounds.npy", ec)) return checked(load_llff_scene(root, options));
   return absl::NotFoundError(absl::StrCat(root.string(),
                                           ": no scene found (expected transforms.json, a COLMAP model with images "
                                           "in sparse/0/ or sparse/, or poses_bounds.npy)"));

@@ -31,12 +31,18 @@ struct SceneLoadOptions {
   std::string images_dir;
 };
 
-// Picks the format: transforms.json, else a COLMAP model with registered images (sparse/0 or sparse/), else
-// poses_bounds.npy. Errors name the directory (or the file at fault).
 // A proper rotation up to rounding error; `where` prefixes the error ("file: row 3"). Also what the
 // services check of cameras that arrive over the wire.
 absl::Status check_rotation(const Eigen::Matrix3d& R, const std::string& where);
+// Everything a camera must satisfy before training sees it: a proper rotation, a translation within
+// kMaxCoordinate (common/point_cloud.h), positive finite focal lengths, a finite principal point, a size,
+// and depth bounds that are finite, not negative and ordered (near <= far) when given. Every scene loader
+// and the services' camera decoder call it.
+absl::Status check_camera(const Camera& camera, const std::string& where);
 
+// Picks the format: transforms.json, else a COLMAP model with registered images (sparse/0 or sparse/), else
+// poses_bounds.npy. Errors name the directory (or the file at fault). Every camera passes check_camera and
+// the scene's points check_point_cloud.
 absl::StatusOr<Scene> load_scene(const std::filesystem::path& root, const SceneLoadOptions& options = {});
 // One format explicitly. load_transforms_scene takes the scene folder or the .json file itself.
 absl::StatusOr<Scene> load_llff_scene(const std::filesystem::path& root, const SceneLoadOptions& options = {});

@@ -129,4 +129,24 @@ absl::Status check_rotation(const Eigen::Matrix3d& R, const std::string& where) 
   return absl::OkStatus();
 }
 
+absl::Status check_camera(const Camera& c, const std::string& where) {
+  GAPS_RETURN_IF_ERROR(check_rotation(c.R, where));
+  const auto invalid = [&](const std::string& what) {
+    return absl::InvalidArgumentError(absl::StrCat(where, ": ", what));
+  };
+  if (!c.t.allFinite() || c.t.cwiseAbs().maxCoeff() > kMaxCoordinate)
+    return invalid(absl::StrCat("translation not finite or beyond +-", kMaxCoordinate));
+  // A focal length of more than 1e7 pixels or a principal point that far out is no camera; it would only
+  // overflow float32 projections.
+  constexpr double kMaxPixels = 1e7;
+  if (!(c.fx > 0 && c.fy > 0 && c.fx <= kMaxPixels && c.fy <= kMaxPixels))
+    return invalid("focal lengths must be positive, finite and at most 1e7 pixels");
+  if (!(std::abs(c.cx) <= kMaxPixels && std::abs(c.cy) <= kMaxPixels)) return invalid("principal point not finite");
+  if (c.width <= 0 || c.height <= 0) return invalid("camera has no image size");
+  if (!(c.near >= 0 && c.far >= 0 && c.far <= kMaxCoordinate))
+    return invalid(absl::StrCat("depth bounds must be finite and not negative (near ", c.near, ", far ", c.far, ")"));
+  if (c.far > 0 && c.near > c.far) return invalid(absl::StrCat("near bound ", c.near, " beyond far bound ", c.far));
+  return absl::OkStatus();
+}
+
 }  // namespace gaps
