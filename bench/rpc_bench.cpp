@@ -105,8 +105,8 @@ int main(int argc, char** argv) {
   pool.addresses = {"127.0.0.1:" + std::to_string(worker_port)};
   auto remote = gaps::RemoteGenerator::create(pool);
   if (!remote.ok()) return fail(remote.status());
-  (void)(*local)->adapt(refs);
-  (void)(*remote)->adapt(refs);
+  (void)(*local)->adapt(refs, std::nullopt);
+  (void)(*remote)->adapt(refs, std::nullopt);
   if (auto warm = (*remote)->generate(requests); !warm.ok()) return fail(warm.status());  // connects, adapts
   const double in_process = median_seconds(repeats, [&] { (void)(*local)->generate(requests); });
   const double over_rpc = median_seconds(repeats, [&] { (void)(*remote)->generate(requests); });

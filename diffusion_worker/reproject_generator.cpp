@@ -399,10 +399,16 @@ ReprojectGenerator::ReprojectGenerator(ReprojectOptions options) : options_(std:
 
 std::string ReprojectGenerator::name() const { return "reproject 1"; }
 
-absl::Status ReprojectGenerator::adapt(const std::vector<ReferenceView>& views) {
+absl::Status ReprojectGenerator::adapt(const std::vector<ReferenceView>& views,
+                                       const std::optional<SceneAdaptation>& adaptation) {
+  notes_.clear();
   if (views.empty()) return absl::InvalidArgumentError("reproject adapt: no ground-truth views");
   for (size_t i = 0; i < views.size(); ++i) {
     GAPS_RETURN_IF_ERROR(check_reference(views[i], absl::StrCat("view ", i)));
+  }
+  if (adaptation && adaptation->lora_steps > 0) {
+    notes_.push_back(absl::StrCat("reproject has no model to adapt: the ", adaptation->lora_steps, " LoRA steps (rank ",
+                                  adaptation->lora_rank, ") asked for were not run"));
   }
   return absl::OkStatus();
 }
@@ -418,6 +424,7 @@ absl::StatusOr<ReprojectResult> ReprojectGenerator::generate_one(const Generatio
 }
 
 absl::StatusOr<std::vector<at::Tensor>> ReprojectGenerator::generate(const std::vector<GenerationRequest>& requests) {
+  notes_.clear();
   GAPS_RETURN_IF_ERROR(validate_reproject_options(options_));
   for (size_t i = 0; i < requests.size(); ++i) {
     GAPS_RETURN_IF_ERROR(check_request(requests[i], options_.num_references, absl::StrCat("request ", i)));
@@ -438,6 +445,7 @@ absl::StatusOr<std::vector<at::Tensor>> ReprojectGenerator::generate(const std::
   for (size_t i = 0; i < requests.size(); ++i) {
     if (!errors[i].empty()) return absl::InternalError(absl::StrCat("reproject request ", i, " failed: ", errors[i]));
   }
+  if (auto note = unapplied_ip_adapter_note("reproject has no IP-Adapter", requests)) notes_.push_back(*note);
   return images;
 }
 

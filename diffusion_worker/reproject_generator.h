@@ -84,14 +84,17 @@ struct ReprojectResult {
 };
 
 // adapt() learns nothing for this backend: it only checks the views (shapes, finite depth/alpha) and
-// returns OK. generate() checks every request before doing any work.
+// returns OK, with a note when LoRA steps were asked for. generate() checks every request before doing any
+// work; requests that ask for an IP-Adapter image prompt get a note (it has none).
 class ReprojectGenerator : public Generator {
  public:
   explicit ReprojectGenerator(ReprojectOptions options = {});
 
   std::string name() const override;  // "reproject 1"
-  absl::Status adapt(const std::vector<ReferenceView>& views) override;
+  absl::Status adapt(const std::vector<ReferenceView>& views,
+                     const std::optional<SceneAdaptation>& adaptation) override;
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
+  std::vector<std::string> notes() const override { return notes_; }
 
   // One request, with intermediates.
   absl::StatusOr<ReprojectResult> generate_one(const GenerationRequest& request) const;
@@ -99,6 +102,7 @@ class ReprojectGenerator : public Generator {
 
  private:
   ReprojectOptions options_;
+  std::vector<std::string> notes_;  // of the last adapt() or generate()
 };
 
 }  // namespace gaps

@@ -70,7 +70,7 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
           string_option<O>("ip_adapter", &O::ip_adapter, "IP-Adapter weight file; needs image_encoder"),
           string_option<O>("image_encoder", &O::image_encoder, "the IP-Adapter's CLIP image encoder folder"),
           number_option<O>("ip_adapter_scale", &O::ip_adapter_scale, at_least(0),
-                           "lambda_ip, the image prompt's scale"),
+                           "lambda_ip, the image prompt's scale, for requests without one"),
           string_option<O>("inpaint", &O::inpaint, "SD2 inpainting folder for two-stage generation; \"\" = off"),
           number_option<O>("inpaint_depth_threshold", &O::inpaint_depth_threshold, at_least(0),
                            "tau_d for requests without inpaint settings"),
@@ -82,11 +82,11 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
           integer_option<O>("inpaint_dilation", &O::inpaint_dilation, odd_at_least(1),
                             "side of the uncovered mask's dilation (requests without inpaint settings)"),
           integer_option<O>("lora_steps", &O::lora_steps, at_least(0),
-                            "LoRA scene adaptation steps in adapt(); 0 = none"),
+                            "LoRA scene adaptation steps of adapt() calls without the job's; 0 = none"),
           integer_option<O>("lora_rank", &O::lora_rank, at_least(1),
-                            "rank of the LoRA adapters (cross-attention to_q/to_k/to_v/to_out)"),
+                            "rank of the LoRA adapters (cross-attention to_q/to_k/to_v/to_out) of adapt() calls without the job's"),
           number_option<O>("lora_lr", &O::lora_lr, above(0), "Adam learning rate of the adapters"),
-          string_option<O>("lora_save", &O::lora_save, "file the trained adapters are saved to; needs lora_steps"),
+          string_option<O>("lora_save", &O::lora_save, "file the trained adapters are saved to; not with lora"),
           string_option<O>("lora", &O::lora, "LoRA file attached at start-up (all its adapters); not with lora_steps"),
           string_option<O>("depth_anything", &O::depth_anything,
                            "Depth-Anything folder: LoRA training's control images from its depth"),
@@ -111,9 +111,12 @@ absl::StatusOr<SdxlOptions> parse_sdxl_options(const std::string& json) {
   if (o.lora_steps > 0 && !o.lora.empty()) {
     return option_error("lora", "give either a LoRA file to load or lora_steps to train one, not both");
   }
-  if (!o.lora_save.empty() && o.lora_steps == 0) return option_error("lora_save", "needs lora_steps > 0");
-  if (!o.depth_anything.empty() && (o.lora_steps == 0 || o.controlnet.empty())) {
-    return option_error("depth_anything", "conditions LoRA training: it needs lora_steps > 0 and a controlnet");
+  // With a LoRA file attached nothing is trained, whatever a job asks.
+  if (!o.lora_save.empty() && !o.lora.empty())
+    return option_error("lora_save", "nothing is trained with a LoRA file attached (option lora)");
+  if (!o.depth_anything.empty() && (o.controlnet.empty() || !o.lora.empty())) {
+    return option_error("depth_anything",
+                        "conditions LoRA training: it needs a controlnet, and no LoRA file attached (option lora)");
   }
   if (!o.depth_cache.empty() && o.depth_anything.empty()) return option_error("depth_cache", "needs depth_anything");
   return o;
@@ -161,7 +164,7 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
 
 std::string SdxlGenerator::name() const {
   std::string name = pipeline_->controlnet() ? "sdxl 1 controlnet" : "sdxl 1";
-  if (options_.lora_steps > 0 && pipeline_->controlnet())
+  if (options_.lora.empty() && pipeline_->controlnet())
     absl::StrAppend(&name, depth_model_ ? " lora-depth:depth-anything" : " lora-depth:rendered");
   return name;
 }
@@ -180,7 +183,9 @@ std::string SdxlGenerator::weights_identity() const {
   return out;
 }
 
-absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
+absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views,
+                                  const std::optional<SceneAdaptation>& adaptation) {
+  notes_.clear();
   if (views.empty()) return absl::InvalidArgumentError("sdxl adapt: no ground-truth views");
   for (size_t i = 0; i < views.size(); ++i) {
     const at::Tensor& image = views[i].image;
@@ -188,8 +193,20 @@ absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views) {
       return absl::InvalidArgumentError(absl::StrCat("sdxl adapt: view ", i, " image is not H x W x 3"));
     }
   }
-  if (options_.lora_steps == 0) return absl::OkStatus();
-  return train_lora(views);
+  const SceneAdaptation lora =
+      adaptation.value_or(SceneAdaptation{static_cast<int>(options_.lora_rank), static_cast<int>(options_.lora_steps)});
+  if (absl::Status range = check_scene_adaptation(lora); !range.ok())
+    return absl::InvalidArgumentError(absl::StrCat("sdxl adapt: ", range.message()));
+  if (!options_.lora.empty()) {
+    if (lora.lora_steps > 0) {
+      notes_.push_back(absl::StrCat("sdxl keeps the LoRA file attached at start-up (option lora: ", options_.lora,
+                                    "): the ", lora.lora_steps, " LoRA steps asked for were not trained"));
+    }
+    return absl::OkStatus();
+  }
+  // Without training, a previous scene's adapters must not shape this scene's images.
+  if (lora.lora_steps == 0) return pipeline_->reset_lora();
+  return train_lora(views, lora);
 }
 
 absl::StatusOr<at::Tensor> SdxlGenerator::view_disparity(const at::Tensor& image, size_t index) {
@@ -224,7 +241,7 @@ absl::StatusOr<at::Tensor> SdxlGenerator::training_control_image(const Reference
   return control.image;
 }
 
-absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) {
+absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views, const SceneAdaptation& adaptation) {
   const int64_t height = views[0].image.size(0), width = views[0].image.size(1), f = pipeline_->latent_factor();
   const std::vector<int64_t> pad{0, (width + f - 1) / f * f - width, 0, (height + f - 1) / f * f - height};
   std::vector<at::Tensor> images, controls;
@@ -244,10 +261,10 @@ absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) 
   std::optional<sdxl::ControlInput> control;
   if (pipeline_->controlnet()) control = sdxl::ControlInput{at::cat(controls), {1.0}};
   sdxl::LoraConfig config;
-  config.rank = options_.lora_rank;
-  config.alpha = static_cast<double>(options_.lora_rank);
+  config.rank = adaptation.lora_rank;
+  config.alpha = static_cast<double>(adaptation.lora_rank);
   sdxl::LoraTrainingOptions training;
-  training.steps = options_.lora_steps;
+  training.steps = adaptation.lora_steps;
   training.learning_rate = options_.lora_lr;
   GAPS_ASSIGN_OR_RETURN(const std::vector<double> losses,
                         pipeline_->train_lora(at::cat(images), {options_.prompt}, control, config, training));
@@ -256,6 +273,7 @@ absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views) 
 }
 
 absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vector<GenerationRequest>& requests) {
+  notes_.clear();
   std::vector<at::Tensor> results(requests.size());
   // Requests of one size and step count share a batch.
   std::map<std::tuple<int64_t, int64_t, int64_t>, std::vector<size_t>> groups;
@@ -282,6 +300,10 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       return absl::InvalidArgumentError(absl::StrCat(
           "sdxl generate: request ", i, " needs render_depth of the render's size (two-stage inpainting)"));
     }
+    if (requests[i].ip_adapter_scale) {
+      if (absl::Status range = check_ip_adapter_scale(*requests[i].ip_adapter_scale); !range.ok())
+        return absl::InvalidArgumentError(absl::StrCat("sdxl generate: request ", i, " ", range.message()));
+    }
     const double strength = requests[i].strength;
     if (!(strength >= 0.0 && strength <= 1.0)) {
       return absl::InvalidArgumentError(
@@ -302,7 +324,7 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       std::vector<at::Tensor> images, controls;
       std::vector<std::string> prompts;
       std::vector<uint64_t> seeds;
-      std::vector<double> scales;
+      std::vector<double> scales, ip_scales;
       std::vector<at::Tensor> references;
       for (size_t m = begin; m < end; ++m) {
         const GenerationRequest& r = requests[members[m]];
@@ -318,14 +340,16 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
         prompts.push_back(r.prompt.empty() ? options_.prompt : r.prompt);
         seeds.push_back(r.seed);
         // IP-Adapter: the nearest ground-truth view is the image prompt (none for a request without one).
-        if (!options_.ip_adapter.empty())
+        if (!options_.ip_adapter.empty()) {
           references.push_back(r.references.empty() ? at::Tensor() : r.references[0].image);
+          ip_scales.push_back(r.ip_adapter_scale.value_or(options_.ip_adapter_scale));
+        }
       }
       sdxl::Img2ImgParams params;
       params.steps = options_.steps;
       params.guidance_scale = options_.guidance;
       params.reference_images = std::move(references);
-      params.ip_adapter_scales = {options_.ip_adapter_scale};
+      if (!ip_scales.empty()) params.ip_adapter_scales = std::move(ip_scales);
       // Every member runs int(steps * strength) = run_steps steps, so any member's strength serves.
       params.strength = requests[members[begin]].strength;
       std::optional<sdxl::ControlInput> control;
@@ -338,6 +362,11 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
     }
   }
   if (!options_.inpaint.empty()) GAPS_RETURN_IF_ERROR(inpaint_uncovered(requests, results));
+  if (options_.ip_adapter.empty()) {
+    if (auto note =
+            unapplied_ip_adapter_note("sdxl has no IP-Adapter loaded (options ip_adapter, image_encoder)", requests))
+      notes_.push_back(*note);
+  }
   return results;
 }
 

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <fstream>
 #include <optional>
+#include <set>
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
@@ -239,12 +240,12 @@ class TrainingRun {
     generator_.emplace(o_.generator);
     method_.emplace(trainer_, &*generator_, references_, gaps, o_.variant, o_.config.seed);
     method_->set_inspection_dir(o_.out_dir / "pseudo_views");
-    if (o_.on_phase || !o_.checkpoint_dir.empty())
-      method_->set_phase_observer([this](const std::string& event, const nlohmann::json& entry) {
-        // The state before the phase: a resumed run repeats the phase, then goes on.
-        if (event == "started") save_checkpoint_and_tell();
-        if (o_.on_phase) o_.on_phase(event, entry);
-      });
+    method_->set_phase_observer([this](const std::string& event, const nlohmann::json& entry) {
+      // The state before the phase: a resumed run repeats the phase, then goes on.
+      if (event == "started") save_checkpoint_and_tell();
+      if (event != "started") log_generator_notes(entry);
+      if (o_.on_phase) o_.on_phase(event, entry);
+    });
     log_(absl::StrCat("method: ", variant_name(o_.variant), " with generator ", o_.generator->name()));
     return absl::OkStatus();
   }
@@ -278,6 +279,16 @@ class TrainingRun {
 
  private:
   GapsTraining* method() { return method_ ? &*method_ : nullptr; }
+
+  // What the generator could not honour of the job's controls, in the run log the first time it comes up
+  // (phases.json keeps every phase's notes).
+  void log_generator_notes(const nlohmann::json& entry) {
+    if (!entry.contains("generator_notes")) return;
+    for (const auto& note : entry["generator_notes"]) {
+      if (logged_notes_.insert(note.get<std::string>()).second)
+        log_(absl::StrCat("generator note (phase ", entry.value("phase", -1), "): ", note.get<std::string>()));
+    }
+  }
 
   // The training state to o.checkpoint_dir (when set); a failure costs the checkpoint only, with a warning.
   void save_checkpoint_and_tell() {
@@ -324,6 +335,7 @@ class TrainingRun {
   Trainer trainer_;
   std::optional<TimedGenerator> generator_;
   std::optional<GapsTraining> method_;
+  std::set<std::string> logged_notes_;
   DivergenceGuard guard_;
   std::chrono::steady_clock::time_point start_;
   double eval_seconds_ = 0.0;  // spent on the curve's evaluations since start_

@@ -58,8 +58,9 @@ PeakMemory PeakMemoryMeter::read() const {
   return m;
 }
 
-absl::Status TimedGenerator::adapt(const std::vector<ReferenceView>& views) {
-  return timed(seconds_, [&] { return inner_->adapt(views); });
+absl::Status TimedGenerator::adapt(const std::vector<ReferenceView>& views,
+                                   const std::optional<SceneAdaptation>& adaptation) {
+  return timed(seconds_, [&] { return inner_->adapt(views, adaptation); });
 }
 
 absl::StatusOr<std::vector<at::Tensor>> TimedGenerator::generate(const std::vector<GenerationRequest>& requests) {

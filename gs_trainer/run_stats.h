@@ -47,8 +47,10 @@ class TimedGenerator : public Generator {
  public:
   explicit TimedGenerator(Generator* inner) : inner_(inner) {}
   std::string name() const override { return inner_->name(); }
-  absl::Status adapt(const std::vector<ReferenceView>& views) override;
+  absl::Status adapt(const std::vector<ReferenceView>& views,
+                     const std::optional<SceneAdaptation>& adaptation) override;
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
+  std::vector<std::string> notes() const override { return inner_->notes(); }
   double seconds() const { return seconds_; }
 
  private:

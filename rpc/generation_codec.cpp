@@ -46,7 +46,38 @@ absl::StatusOr<std::optional<InpaintSettings>> decode_inpaint_settings(const v1:
   return s;
 }
 
+// Both fields or none.
+absl::StatusOr<std::optional<SceneAdaptation>> decode_adaptation(const v1::AdaptSceneBatch& b) {
+  if (!b.has_lora_rank() && !b.has_lora_steps()) return std::nullopt;
+  if (!b.has_lora_rank() || !b.has_lora_steps())
+    return absl::InvalidArgumentError("AdaptSceneBatch: give both lora_rank and lora_steps, or neither");
+  const SceneAdaptation a{b.lora_rank(), b.lora_steps()};
+  if (absl::Status range = check_scene_adaptation(a); !range.ok())
+    return absl::InvalidArgumentError(absl::StrCat("AdaptSceneBatch: ", range.message()));
+  return a;
+}
+
 }  // namespace
+
+void encode_adapt_batch(const std::string& scene_id, const std::vector<ReferenceView>& views,
+                        const std::optional<SceneAdaptation>& adaptation, v1::AdaptSceneBatch* out) {
+  out->set_scene_id(scene_id);
+  for (const auto& v : views) encode_reference(v, out->add_references());
+  if (adaptation) {
+    out->set_lora_rank(adaptation->lora_rank);
+    out->set_lora_steps(adaptation->lora_steps);
+  }
+}
+
+absl::StatusOr<AdaptRequest> decode_adapt_batch(const v1::AdaptSceneBatch& batch) {
+  AdaptRequest out;
+  for (int i = 0; i < batch.references_size(); ++i) {
+    GAPS_ASSIGN_OR_RETURN(ReferenceView view, decode_reference(batch.references(i), absl::StrCat("reference ", i)));
+    out.views.push_back(std::move(view));
+  }
+  GAPS_ASSIGN_OR_RETURN(out.adaptation, decode_adaptation(batch));
+  return out;
+}
 
 void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out) {
   std::map<std::string, int> index;  // camera name -> position in out->references
@@ -61,6 +92,7 @@ void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1:
     pose->set_control_scale(q.control_scale);
     pose->set_prompt(q.prompt);
     pose->set_seed(q.seed);
+    if (q.ip_adapter_scale) pose->set_ip_adapter_scale(*q.ip_adapter_scale);
     if (q.inpaint) {
       pose->set_inpaint_depth_threshold(q.inpaint->depth_threshold);
       pose->set_inpaint_uncovered_fraction(q.inpaint->uncovered_fraction);
@@ -93,12 +125,16 @@ absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1:
                           decode_tensor_shaped(p.render_depth(), {h, w}, absl::StrCat(what, " render_depth")));
     GAPS_ASSIGN_OR_RETURN(q.render_alpha,
                           decode_tensor_shaped(p.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha")));
-    for (double v : {p.coverage(), p.strength(), p.control_scale(), p.ip_scale()})
+    for (double v : {p.coverage(), p.strength(), p.control_scale()})
       if (!std::isfinite(v)) return absl::InvalidArgumentError(absl::StrCat(what, ": non-finite control value"));
-    // The Generator seam carries neither yet; refusing beats silently ignoring what the caller asked for.
-    if (p.ip_scale() != 0.0 || p.has_inpaint_mask())
-      return absl::UnimplementedError(
-          absl::StrCat(what, ": ip_scale and inpaint_mask are not supported by this worker's backends"));
+    // The Generator seam does not carry it yet; refusing beats silently ignoring what the caller asked for.
+    if (p.has_inpaint_mask())
+      return absl::UnimplementedError(absl::StrCat(what, ": inpaint_mask is not supported by this worker's backends"));
+    if (p.has_ip_adapter_scale()) {
+      if (absl::Status range = check_ip_adapter_scale(p.ip_adapter_scale()); !range.ok())
+        return absl::InvalidArgumentError(absl::StrCat(what, ": ", range.message()));
+      q.ip_adapter_scale = p.ip_adapter_scale();
+    }
     q.coverage = p.coverage();
     q.strength = p.strength();
     q.control_scale = p.control_scale();

@@ -60,7 +60,9 @@ std::string RemoteGenerator::name() const {
 void RemoteGenerator::mark_failed(Worker& w) {
   w.healthy = false;
   w.failed_at = std::chrono::steady_clock::now();
-  w.scene_handle.clear();  // a restarted worker forgot its scenes
+  // A restarted worker forgot its scenes: adapt it again before it generates.
+  w.scene_handle.clear();
+  w.adapted_version = 0;
 }
 
 absl::Status RemoteGenerator::probe(Worker& w) {
@@ -97,17 +99,28 @@ bool RemoteGenerator::usable(Worker& w) {
   return true;
 }
 
-absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views) {
+namespace {
+
+void add_worker_notes(const std::string& address, const google::protobuf::RepeatedPtrField<std::string>& from,
+                      std::vector<std::string>* to) {
+  for (const std::string& note : from) to->push_back(absl::StrCat(address, ": ", note));
+}
+
+}  // namespace
+
+absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views,
+                                    const std::optional<SceneAdaptation>& adaptation) {
   views_ = views;
+  adaptation_ = adaptation;
   ++views_version_;
+  notes_.clear();
   return absl::OkStatus();
 }
 
-absl::Status RemoteGenerator::adapt_on(Worker& w) {
+absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* notes) {
   if (views_.empty() || w.adapted_version == views_version_) return absl::OkStatus();
   v1::AdaptSceneBatch batch;
-  batch.set_scene_id(options_.scene_id);
-  for (const auto& v : views_) rpc::encode_reference(v, batch.add_references());
+  rpc::encode_adapt_batch(options_.scene_id, views_, adaptation_, &batch);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
@@ -116,17 +129,21 @@ absl::Status RemoteGenerator::adapt_on(Worker& w) {
   stream->WritesDone();
   v1::AdaptSceneProgress progress;
   std::string handle;
-  while (stream->Read(&progress))
+  std::vector<std::string> adapt_notes;
+  while (stream->Read(&progress)) {
     if (!progress.scene_handle().empty()) handle = progress.scene_handle();
+    add_worker_notes(w.address, progress.notes(), &adapt_notes);
+  }
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " AdaptScene"));
   if (handle.empty()) return absl::InternalError(absl::StrCat(w.address, " AdaptScene returned no scene handle"));
+  notes->insert(notes->end(), adapt_notes.begin(), adapt_notes.end());
   w.scene_handle = handle;
   w.adapted_version = views_version_;
   return absl::OkStatus();
 }
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, const v1::GenerateBatch& batch,
-                                                                     size_t count) {
+                                                                     size_t count, std::vector<std::string>* notes) {
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
@@ -156,10 +173,12 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
                                                     absl::StrCat(w.address, " image ", k)));
     images.push_back(std::move(image));
   }
+  add_worker_notes(w.address, result.notes(), notes);
   return images;
 }
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vector<GenerationRequest>& requests) {
+  notes_.clear();
   if (requests.empty()) return std::vector<at::Tensor>{};
   v1::GenerateBatch batch;
   rpc::encode_generation_batch(requests, &batch);
@@ -168,11 +187,13 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
     for (size_t k = 0; k < workers_.size(); ++k) {
       Worker& w = *workers_[(next_ + k) % workers_.size()];
       if (!usable(w)) continue;
-      absl::Status st = adapt_on(w);
+      std::vector<std::string> notes;  // of this worker only: a failed one's are not this call's
+      absl::Status st = adapt_on(w, &notes);
       if (st.ok()) {
-        auto images = generate_on(w, batch, requests.size());
+        auto images = generate_on(w, batch, requests.size(), &notes);
         if (images.ok()) {
           next_ = (next_ + k + 1) % workers_.size();
+          notes_ = std::move(notes);
           return images;
         }
         st = images.status();

@@ -6,6 +6,7 @@
 #include <chrono>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -36,9 +37,13 @@ class RemoteGenerator final : public Generator {
 
   // "remote <backend version>" once a worker answered GetInfo, else "remote (no worker reached yet)".
   std::string name() const override;
-  // Remembers the views; each worker is adapted on its first Generate call.
-  absl::Status adapt(const std::vector<ReferenceView>& views) override;
+  // Remembers the views and the adaptation; each worker is adapted on its first Generate call.
+  absl::Status adapt(const std::vector<ReferenceView>& views,
+                     const std::optional<SceneAdaptation>& adaptation) override;
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
+  // After generate(): the answering worker's notes, "<address>: <note>", those of its adaptation (when this
+  // call adapted it) first.
+  std::vector<std::string> notes() const override { return notes_; }
 
  private:
   struct Worker;
@@ -46,15 +51,19 @@ class RemoteGenerator final : public Generator {
   // True when the worker may be called now (healthy, or its cooldown passed and a probe succeeded).
   bool usable(Worker& worker);
   absl::Status probe(Worker& worker);
-  absl::Status adapt_on(Worker& worker);
-  absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const v1::GenerateBatch& batch, size_t count);
+  // Adapts the worker unless it is adapted to the current views; appends the worker's notes to *notes.
+  absl::Status adapt_on(Worker& worker, std::vector<std::string>* notes);
+  absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const v1::GenerateBatch& batch, size_t count,
+                                                      std::vector<std::string>* notes);
   void mark_failed(Worker& worker);
 
   WorkerPoolOptions options_;
   std::vector<std::unique_ptr<Worker>> workers_;
   size_t next_ = 0;  // round-robin start
   std::vector<ReferenceView> views_;
+  std::optional<SceneAdaptation> adaptation_;
   uint64_t views_version_ = 0;
+  std::vector<std::string> notes_;
   mutable std::mutex name_mutex_;
   std::string backend_version_;
 };

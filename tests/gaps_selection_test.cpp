@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <set>
 #include <string>
 #include <vector>
@@ -105,6 +106,24 @@ TEST(GapsConfig, InvalidTiersAreRejected) {
   GapsConfig c;
   c.drop_max = 1.0;  // 1/(1-r) would divide by zero
   EXPECT_FALSE(validate_gaps_config(c).ok());
+}
+
+// The generator-side controls are the paper's by default (sec. 3.3: LoRA rank 4, 50 steps, lambda_ip 0.5)
+// and a job with values out of range is refused before any generator sees them.
+TEST(GapsConfig, GenerationControlsArePapersAndChecked) {
+  GapsConfig c;
+  EXPECT_EQ(scene_adaptation(c).lora_rank, 4);
+  EXPECT_EQ(scene_adaptation(c).lora_steps, 50);
+  EXPECT_DOUBLE_EQ(c.ip_adapter_scale, 0.5);
+  const auto refusal = [](const std::function<void(GapsConfig&)>& change) {
+    GapsConfig bad;
+    change(bad);
+    return std::string(validate_gaps_config(bad).message());
+  };
+  EXPECT_NE(refusal([](GapsConfig& g) { g.lora_rank = 0; }).find("lora_rank must be >= 1"), std::string::npos);
+  EXPECT_NE(refusal([](GapsConfig& g) { g.lora_steps = -1; }).find("lora_steps must be >= 0"), std::string::npos);
+  EXPECT_NE(refusal([](GapsConfig& g) { g.ip_adapter_scale = -0.1; }).find("ip_adapter_scale"), std::string::npos);
+  EXPECT_TRUE(refusal([](GapsConfig& g) { g.lora_steps = 0; }).empty()) << "no scene adaptation is allowed";
 }
 
 TEST(GapsSchedule, PhasesEveryIntervalAfterWarmup) {

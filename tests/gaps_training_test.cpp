@@ -24,8 +24,11 @@ class EchoGenerator : public Generator {
  public:
   explicit EchoGenerator(double noise) : noise_(noise) {}
   std::string name() const override { return "echo (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>& views) override {
+  absl::Status adapt(const std::vector<ReferenceView>& views,
+                     const std::optional<SceneAdaptation>& adaptation) override {
     adapted_views = static_cast<int>(views.size());
+    this->adaptation = adaptation;
+    last_notes = adapt_notes;
     return absl::OkStatus();
   }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
@@ -37,13 +40,20 @@ class EchoGenerator : public Generator {
       out.push_back(r.render_rgb * (1 - noise_) + 0.5 * noise_);
       EXPECT_TRUE(r.inpaint.has_value());
       if (r.inpaint) inpaint = *r.inpaint;
+      ip_adapter_scale = r.ip_adapter_scale;
     }
     calls += 1;
+    last_notes = generate_notes;
     return out;
   }
+  std::vector<std::string> notes() const override { return last_notes; }
   int calls = 0;
   int adapted_views = 0;
-  InpaintSettings inpaint;  // of the last request
+  std::optional<SceneAdaptation> adaptation;
+  InpaintSettings inpaint;                               // of the last request
+  std::optional<double> ip_adapter_scale;                // of the last request
+  std::vector<std::string> adapt_notes, generate_notes;  // what adapt() and generate() report
+  std::vector<std::string> last_notes;
 
  private:
   double noise_;
@@ -81,6 +91,9 @@ TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   run.gaps.inpaint_depth_threshold = 0.3;  // GapsConfig's two-stage settings reach the generator
   run.gaps.inpaint_uncovered_fraction = 0.05;
   run.gaps.inpaint_dilation = 9;
+  run.gaps.lora_rank = 3;  // and its generation controls
+  run.gaps.lora_steps = 20;
+  run.gaps.ip_adapter_scale = 0.25;
   auto r = run_pipeline(run, nullptr, [](const std::string&) {});
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_TRUE(std::isfinite(r->metrics.psnr));
@@ -89,15 +102,40 @@ TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   EXPECT_EQ(gen.inpaint.depth_threshold, 0.3);
   EXPECT_EQ(gen.inpaint.uncovered_fraction, 0.05);
   EXPECT_EQ(gen.inpaint.dilation, 9);
+  ASSERT_TRUE(gen.adaptation.has_value());
+  EXPECT_EQ(gen.adaptation->lora_rank, 3);
+  EXPECT_EQ(gen.adaptation->lora_steps, 20);
+  EXPECT_EQ(gen.ip_adapter_scale, std::optional<double>(0.25));
   const auto phases = read_json(dir_ / "out" / "phases.json");
   ASSERT_EQ(phases.size(), 2u);
   for (const auto& p : phases) {
     EXPECT_EQ(p["selection"].size(), 4u);
     EXPECT_GT(p["candidates"].size(), 4u);
     EXPECT_GT(p["admitted"].get<int>(), 0);
+    EXPECT_FALSE(p.contains("generator_notes")) << "a generator that honours everything";
   }
   EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "pseudo_views" / "phase_00"));
   EXPECT_EQ(read_json(dir_ / "out" / "metrics.json")["variant"], "full");
+}
+
+// What the generator could not honour goes into each phase's entry (the adaptation's into the first phase's
+// only) and, once per distinct note, into the run log.
+TEST_F(GapsTrainingTest, GeneratorNotesGoToThePhaseEntriesAndOnceToTheRunLog) {
+  EchoGenerator gen(0.05);
+  gen.adapt_notes = {"no LoRA here"};
+  gen.generate_notes = {"no IP-Adapter here"};
+  std::vector<std::string> log;
+  auto r = run_pipeline(options(Variant::kFull, &gen), nullptr, [&](const std::string& line) { log.push_back(line); });
+  ASSERT_TRUE(r.ok()) << r.status();
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  EXPECT_EQ(phases[0]["generator_notes"], nlohmann::json({"no LoRA here", "no IP-Adapter here"}));
+  EXPECT_EQ(phases[1]["generator_notes"], nlohmann::json({"no IP-Adapter here"}));
+  std::vector<std::string> note_lines;
+  for (const auto& line : log)
+    if (line.find("generator note") != std::string::npos) note_lines.push_back(line);
+  EXPECT_EQ(note_lines, (std::vector<std::string>{"generator note (phase 0): no LoRA here",
+                                                  "generator note (phase 0): no IP-Adapter here"}));
 }
 
 TEST_F(GapsTrainingTest, GarbageIsRejectedByTheAdmissionGate) {

@@ -381,12 +381,39 @@ TEST(ReprojectGeneratorTest, RejectsBadInputsNamingTheProblem) {
   expect_error(q, {"render_alpha", "outside [0, 1]"});
 
   // adapt() learns nothing but checks the views.
-  EXPECT_TRUE(generator.adapt({ref, ref}).ok());
-  EXPECT_FALSE(generator.adapt({}).ok());
+  EXPECT_TRUE(generator.adapt({ref, ref}, std::nullopt).ok());
+  EXPECT_FALSE(generator.adapt({}, std::nullopt).ok());
   ReferenceView bad = ref;
   bad.render_alpha = at::full({kH, kW}, NAN);
-  const absl::Status s = generator.adapt({ref, bad});
+  const absl::Status s = generator.adapt({ref, bad}, std::nullopt);
   EXPECT_TRUE(contains(s, "view 1 render_alpha")) << s;
+}
+
+// The backend has neither LoRA nor an IP-Adapter: asked for either, it says so instead of ignoring it.
+TEST(ReprojectGeneratorTest, ControlsItCannotHonourAreNoted) {
+  const Camera ref_cam = make_camera(kW, kH, kF, {0, 0, 0});
+  const ReferenceView ref = view_of(ref_cam, square_before_plane());
+  ReprojectGenerator generator;
+  ASSERT_TRUE(generator.adapt({ref}, SceneAdaptation{4, 50}).ok());
+  EXPECT_EQ(
+      generator.notes(),
+      std::vector<std::string>{"reproject has no model to adapt: the 50 LoRA steps (rank 4) asked for were not run"});
+  for (const std::optional<SceneAdaptation>& nothing_asked :
+       {std::optional<SceneAdaptation>(SceneAdaptation{4, 0}), std::optional<SceneAdaptation>()}) {
+    ASSERT_TRUE(generator.adapt({ref}, nothing_asked).ok());
+    EXPECT_TRUE(generator.notes().empty());
+  }
+
+  GenerationRequest plain = empty_render_request(make_camera(kW, kH, kF, {0.1, 0, 0}), {ref});
+  GenerationRequest asking = plain;
+  asking.ip_adapter_scale = 0.5;
+  absl::StatusOr<std::vector<at::Tensor>> images = generator.generate({asking, plain});
+  ASSERT_TRUE(images.ok()) << images.status();
+  EXPECT_TRUE(at::equal((*images)[0], (*images)[1]));
+  EXPECT_EQ(generator.notes(), std::vector<std::string>{"reproject has no IP-Adapter: 1/2 requests asked for "
+                                                        "ip_adapter_scale 0.5, generated without an image prompt"});
+  ASSERT_TRUE(generator.generate({plain}).ok());
+  EXPECT_TRUE(generator.notes().empty());
 }
 
 TEST(ReprojectGeneratorTest, RegistryBuildsBackendsByName) {
@@ -463,7 +490,7 @@ TEST(ReprojectGeneratorTest, FernViewsWarpToAMidwayPoseAndReproduceThemselves) {
   const ReferenceView ref10 = fern_reference(cam10, distance);
 
   ReprojectGenerator generator;
-  ASSERT_TRUE(generator.adapt({ref1, ref10}).ok());
+  ASSERT_TRUE(generator.adapt({ref1, ref10}, std::nullopt).ok());
   const Camera pseudo = midway(cam1, cam10);
   absl::StatusOr<ReprojectResult> mid = generator.generate_one(empty_render_request(pseudo, {ref1, ref10}));
   ASSERT_TRUE(mid.ok()) << mid.status();

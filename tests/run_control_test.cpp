@@ -24,7 +24,9 @@ class FailingGenerator : public Generator {
  public:
   explicit FailingGenerator(absl::Status error) : error_(std::move(error)) {}
   std::string name() const override { return "failing (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>&) override {
     ++calls;
     return error_;
@@ -39,7 +41,9 @@ class FailingGenerator : public Generator {
 class EchoGenerator : public Generator {
  public:
   std::string name() const override { return "echo (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
     ++calls;
     std::vector<at::Tensor> out;

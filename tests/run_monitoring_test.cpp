@@ -87,7 +87,9 @@ int count(const std::string& text, const std::string& what) {
 class HalfGarbageGenerator : public Generator {
  public:
   std::string name() const override { return "half-garbage (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
     std::vector<at::Tensor> out;
     for (size_t i = 0; i < requests.size(); ++i)

@@ -296,7 +296,8 @@ TEST(SdxlControlNetGeneratorTest, ConditionsEachRequestOnItsDepth) {
                               controlnet_dir() + "\", \"steps\": 4, \"prompt\": \"a fern\"}";
   auto generator = make_generator("sdxl", options);
   ASSERT_TRUE(generator.ok()) << generator.status();
-  EXPECT_EQ((*generator)->name(), "sdxl 1 controlnet");
+  // LoRA training (when a job asks for it) would take the views' control images from their rendered depth.
+  EXPECT_EQ((*generator)->name(), "sdxl 1 controlnet lora-depth:rendered");
   std::vector<GenerationRequest> requests{depth_request(12, 8, 1.0, 1), depth_request(12, 8, 0.25, 2)};
   auto images = (*generator)->generate(requests);
   ASSERT_TRUE(images.ok()) << images.status();

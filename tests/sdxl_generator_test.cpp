@@ -68,6 +68,28 @@ TEST(SdxlGeneratorTest, RegisteredAndGeneratesAtEachRequestsStrength) {
   test::expect_close((*alone)[0], (*direct)[0].slice(1, 0, 13).permute({1, 2, 0}), 1e-5, "generator vs pipeline");
 }
 
+// Without an IP-Adapter loaded, requests that ask for an image prompt are generated without one and the
+// generator says so; a scale of 0 asks for none.
+TEST(SdxlGeneratorTest, AnImagePromptWithoutAnIpAdapterIsNoted) {
+  auto generator = make_generator("sdxl", options_json(test::sdxl_model_dir()));
+  ASSERT_TRUE(generator.ok()) << generator.status();
+  GenerationRequest asking = request(12, 8, 0.5, 1);
+  ReferenceView nearest;
+  nearest.image = at::rand({12, 8, 3});
+  asking.references = {nearest};
+  GenerationRequest plain = asking;
+  plain.ip_adapter_scale = 0.0;
+  asking.ip_adapter_scale = 0.5;
+  auto images = (*generator)->generate({asking, plain});
+  ASSERT_TRUE(images.ok()) << images.status();
+  EXPECT_TRUE(at::equal((*images)[0], (*images)[1]));
+  EXPECT_EQ((*generator)->notes(),
+            std::vector<std::string>{"sdxl has no IP-Adapter loaded (options ip_adapter, image_encoder): 1/2 requests "
+                                     "asked for ip_adapter_scale 0.5, generated without an image prompt"});
+  ASSERT_TRUE((*generator)->generate({plain}).ok());
+  EXPECT_TRUE((*generator)->notes().empty());
+}
+
 class SdxlGeneratorStartupTest : public test::TempDirTest {};
 
 TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {

@@ -245,5 +245,44 @@ TEST(SdxlGeneratorIpAdapterTest, NearestReferenceViewIsTheImagePrompt) {
   EXPECT_TRUE(contains_all(std::string(bad_scale.status().message()), {"ip_adapter_scale"}));
 }
 
+// A request's ip_adapter_scale (the trainer sends GapsConfig's lambda_ip) wins over the option, which serves
+// requests without one; requests of one batch may differ.
+TEST(SdxlGeneratorIpAdapterTest, TheRequestsScaleWinsOverTheOption) {
+  const std::string options = "{\"weights\": \"" + test::sdxl_model_dir() +
+                              "\", \"steps\": 4, \"prompt\": \"a fern\", " + "\"ip_adapter\": \"" + ip_weights() +
+                              "\", \"image_encoder\": \"" + image_encoder_dir() + "\", \"ip_adapter_scale\": 0.7}";
+  auto generator = make_generator("sdxl", options);
+  ASSERT_TRUE(generator.ok()) << generator.status();
+  GenerationRequest scaled;
+  scaled.render_rgb = at::rand({8, 6, 3});
+  scaled.strength = 0.5;
+  scaled.seed = 3;
+  ReferenceView nearest;
+  nearest.image = at::rand({12, 16, 3});
+  scaled.references = {nearest};
+  scaled.ip_adapter_scale = 0.2;
+  GenerationRequest unscaled = scaled;
+  unscaled.ip_adapter_scale.reset();
+  auto images = (*generator)->generate({scaled, unscaled});
+  ASSERT_TRUE(images.ok()) << images.status();
+  EXPECT_TRUE((*generator)->notes().empty());
+
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), ip_options());
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const at::Tensor render = scaled.render_rgb.permute({2, 0, 1}).unsqueeze(0);
+  for (const auto& [k, scale] : {std::pair<int, double>{0, 0.2}, {1, 0.7}}) {
+    Img2ImgParams params;
+    params.steps = 4;
+    params.reference_images = {nearest.image};
+    params.ip_adapter_scales = {scale};
+    auto direct = (*pipeline)->img2img(render, {"a fern"}, params, {3});
+    ASSERT_TRUE(direct.ok()) << direct.status();
+    expect_close((*images)[k], (*direct)[0].permute({1, 2, 0}), 1e-5, "request " + std::to_string(k));
+  }
+  scaled.ip_adapter_scale = -1;
+  const absl::Status refused = (*generator)->generate({scaled}).status();
+  EXPECT_TRUE(contains_all(std::string(refused.message()), {"request 0", "ip_adapter_scale"})) << refused;
+}
+
 }  // namespace
 }  // namespace gaps::sdxl

@@ -1,7 +1,8 @@
 // Scene adaptation by LoRA in the `sdxl` backend on the tiny fixture model: adapt() with lora_steps > 0
 // trains adapters on the ground-truth views (with and without the tiny depth ControlNet) that change the
 // generated images, saves them with lora_save, and a generator started with that file (option lora)
-// generates the same images; LoRA together with the IP-Adapter; the LoRA options' errors.
+// generates the same images; the job's SceneAdaptation wins over the options (and a LoRA file over it, with
+// a note); LoRA together with the IP-Adapter; the LoRA options' errors.
 #include <string>
 
 #include <ATen/ATen.h>
@@ -66,12 +67,12 @@ class SdxlLoraGeneratorTest : public test::TempDirTest {
         "sdxl", options_json(extra + ", \"lora_steps\": 3, \"lora_lr\": 0.01, \"lora_save\": \"" + path + "\""));
     ASSERT_TRUE(generator.ok()) << generator.status();
     const at::Tensor before = generate_one(**generator);
-    ASSERT_TRUE((*generator)->adapt(views(2, 12, 8)).ok());
+    ASSERT_TRUE((*generator)->adapt(views(2, 12, 8), std::nullopt).ok());
     const at::Tensor after = generate_one(**generator);
     EXPECT_GT((after - before).abs().max().item<double>(), 1e-3);
     // The adapters are merged into the UNet; adapting again (the next scene) starts from the base weights,
     // so the same views and seed give the same images again.
-    ASSERT_TRUE((*generator)->adapt(views(2, 12, 8)).ok());
+    ASSERT_TRUE((*generator)->adapt(views(2, 12, 8), std::nullopt).ok());
     test::expect_close(generate_one(**generator), after, 1e-6, "generator adapted a second time");
 
     // Trained adapters sit on the cross-attention layers only, as the paper places them.
@@ -92,6 +93,53 @@ TEST_F(SdxlLoraGeneratorTest, AdaptTrainsWithDepthControl) {
   check_adaptation(", \"controlnet\": \"" + controlnet_dir() + "\"");
 }
 
+// The job's adaptation decides: its steps and rank train the same adapters as a generator whose options
+// ask for them; 0 steps trains none and removes an earlier scene's adapters; out of range is refused.
+TEST_F(SdxlLoraGeneratorTest, TheJobsAdaptationWinsOverTheOptions) {
+  auto by_job = make_generator("sdxl", options_json(", \"lora_lr\": 0.01"));  // lora_steps 0: no adaptation
+  auto by_options = make_generator("sdxl", options_json(", \"lora_steps\": 3, \"lora_rank\": 2, \"lora_lr\": 0.01"));
+  ASSERT_TRUE(by_job.ok()) << by_job.status();
+  ASSERT_TRUE(by_options.ok()) << by_options.status();
+  const std::vector<ReferenceView> gt = views(2, 12, 8);
+  const at::Tensor base = generate_one(**by_job);
+  ASSERT_TRUE((*by_job)->adapt(gt, std::nullopt).ok());
+  test::expect_close(generate_one(**by_job), base, 1e-6, "the options' 0 steps");
+
+  ASSERT_TRUE((*by_job)->adapt(gt, SceneAdaptation{2, 3}).ok());
+  EXPECT_TRUE((*by_job)->notes().empty());
+  const at::Tensor adapted = generate_one(**by_job);
+  EXPECT_GT((adapted - base).abs().max().item<double>(), 1e-3);
+  ASSERT_TRUE((*by_options)->adapt(gt, std::nullopt).ok());
+  test::expect_close(adapted, generate_one(**by_options), 1e-6, "3 steps of rank 2 asked by the job and the options");
+  ASSERT_TRUE((*by_job)->adapt(gt, SceneAdaptation{2, 2}).ok());
+  EXPECT_GT((generate_one(**by_job) - adapted).abs().max().item<double>(), 1e-5) << "2 steps are not 3";
+
+  ASSERT_TRUE((*by_options)->adapt(gt, SceneAdaptation{2, 0}).ok());
+  test::expect_close(generate_one(**by_options), base, 1e-6, "0 steps after an adapted scene");
+  const absl::Status refused = (*by_job)->adapt(gt, SceneAdaptation{0, 3});
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(contains_all(std::string(refused.message()), {"lora_rank must be >= 1"})) << refused;
+}
+
+// A LoRA file attached at start-up stays: a job asking for LoRA steps trains none, and the note says so.
+TEST_F(SdxlLoraGeneratorTest, ALoraFileAttachedAtStartUpStaysAndANoteSaysSo) {
+  const std::string path = (dir_ / "scene_lora.safetensors").string();
+  auto saving = make_generator("sdxl", options_json(", \"lora_lr\": 0.01, \"lora_save\": \"" + path + "\""));
+  ASSERT_TRUE(saving.ok()) << saving.status();
+  ASSERT_TRUE((*saving)->adapt(views(2, 12, 8), SceneAdaptation{4, 3}).ok());
+  const at::Tensor saved = generate_one(**saving);
+  auto loaded = make_generator("sdxl", options_json(", \"lora\": \"" + path + "\""));
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  ASSERT_TRUE((*loaded)->adapt(views(2, 12, 8), SceneAdaptation{4, 50}).ok());
+  EXPECT_EQ((*loaded)->notes(),
+            std::vector<std::string>{"sdxl keeps the LoRA file attached at start-up (option lora: " + path +
+                                     "): the 50 LoRA steps asked for were not trained"});
+  test::expect_close(generate_one(**loaded), saved, 1e-6, "the file's adapters after a job asked for 50 steps");
+  ASSERT_TRUE((*loaded)->adapt(views(2, 12, 8), SceneAdaptation{4, 0}).ok());
+  EXPECT_TRUE((*loaded)->notes().empty());
+  test::expect_close(generate_one(**loaded), saved, 1e-6, "the file's adapters after a job asked for none");
+}
+
 // With depth_anything, LoRA training conditions the ControlNet on Depth-Anything's depth of each view (the
 // tiny random fixture model) instead of the views' rendered depth: the adapters, hence the images, differ.
 TEST_F(SdxlLoraGeneratorTest, DepthAnythingGivesTheTrainingViewsTheirDepth) {
@@ -106,9 +154,9 @@ TEST_F(SdxlLoraGeneratorTest, DepthAnythingGivesTheTrainingViewsTheirDepth) {
   EXPECT_EQ((*estimated)->weights_identity(),
             "sdxl=" + test::sdxl_model_dir() + "\ncontrolnet=" + controlnet_dir() + "\ndepth_anything=" + depth_model);
   std::vector<ReferenceView> gt = views(2, 12, 8);
-  ASSERT_TRUE((*rendered)->adapt(gt).ok());
+  ASSERT_TRUE((*rendered)->adapt(gt, std::nullopt).ok());
   for (auto& v : gt) v.render_depth = v.render_alpha = at::Tensor();  // not needed with Depth-Anything
-  const absl::Status adapted = (*estimated)->adapt(gt);
+  const absl::Status adapted = (*estimated)->adapt(gt, std::nullopt);
   ASSERT_TRUE(adapted.ok()) << adapted;
   EXPECT_GT((generate_one(**estimated) - generate_one(**rendered)).abs().max().item<double>(), 1e-4);
 }
@@ -138,9 +186,9 @@ TEST_F(SdxlLoraGeneratorTest, AdaptsWithTheIpAdapterLoadedAndGeneratesWithBoth) 
   const std::vector<at::Tensor> before = generate_both(**full);  // sets an image prompt before training
 
   const std::vector<ReferenceView> gt = views(2, 12, 8);
-  const absl::Status adapted = (*full)->adapt(gt);
+  const absl::Status adapted = (*full)->adapt(gt, std::nullopt);
   ASSERT_TRUE(adapted.ok()) << adapted;
-  ASSERT_TRUE((*without_ip)->adapt(gt).ok());
+  ASSERT_TRUE((*without_ip)->adapt(gt, std::nullopt).ok());
   const std::vector<at::Tensor> after = generate_both(**full);
   EXPECT_GT((after[0] - before[0]).abs().max().item<double>(), 1e-3) << "the adapters change the images";
   EXPECT_GT((after[0] - after[1]).abs().max().item<double>(), 1e-3) << "the image prompt still acts after adapting";
@@ -159,18 +207,18 @@ TEST_F(SdxlLoraGeneratorTest, DepthAnythingMapsOfTheViewsAreCached) {
   auto generator = SdxlGenerator::create(*options);
   ASSERT_TRUE(generator.ok()) << generator.status();
   const std::vector<ReferenceView> gt = views(2, 12, 8);
-  ASSERT_TRUE((*generator)->adapt(gt).ok());
+  ASSERT_TRUE((*generator)->adapt(gt, std::nullopt).ok());
   EXPECT_EQ((*generator)->depth_cache().computed(), 2);
-  ASSERT_TRUE((*generator)->adapt(gt).ok());
+  ASSERT_TRUE((*generator)->adapt(gt, std::nullopt).ok());
   EXPECT_EQ((*generator)->depth_cache().computed(), 2) << "the same views again";
   std::vector<ReferenceView> changed = gt;
   changed[1].image = 1 - changed[1].image;
-  ASSERT_TRUE((*generator)->adapt(changed).ok());
+  ASSERT_TRUE((*generator)->adapt(changed, std::nullopt).ok());
   EXPECT_EQ((*generator)->depth_cache().computed(), 3) << "only the changed view misses";
 
   auto restarted = SdxlGenerator::create(*options);
   ASSERT_TRUE(restarted.ok()) << restarted.status();
-  ASSERT_TRUE((*restarted)->adapt(gt).ok());
+  ASSERT_TRUE((*restarted)->adapt(gt, std::nullopt).ok());
   EXPECT_EQ((*restarted)->depth_cache().computed(), 0);
   EXPECT_EQ((*restarted)->depth_cache().disk_reads(), 2);
   EXPECT_TRUE(contains_all(std::string(parse_sdxl_options(options_json(", \"depth_cache\": \"d\"")).status().message()),
@@ -182,12 +230,13 @@ TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {
     auto generator = make_generator("sdxl", options_json(extra));
     return generator.ok() ? std::string("accepted") : std::string(generator.status().message());
   };
-  EXPECT_TRUE(contains_all(error(", \"lora_save\": \"x.safetensors\""), {"lora_save", "lora_steps"}));
+  EXPECT_TRUE(contains_all(error(", \"lora_save\": \"x.safetensors\", \"lora\": \"y.safetensors\""),
+                           {"lora_save", "nothing is trained"}));
   EXPECT_TRUE(contains_all(error(", \"lora_steps\": -1"), {"lora_steps", ">= 0"}));
   EXPECT_TRUE(contains_all(error(", \"lora_rank\": 0"), {"lora_rank"}));
   EXPECT_TRUE(contains_all(error(", \"lora_lr\": 0"), {"lora_lr"}));
   EXPECT_TRUE(contains_all(error(", \"lora_steps\": 2, \"lora\": \"x.safetensors\""), {"lora", "not both"}));
-  EXPECT_TRUE(contains_all(error(", \"lora_steps\": 2, \"depth_anything\": \"d\""), {"depth_anything", "controlnet"}));
+  EXPECT_TRUE(contains_all(error(", \"depth_anything\": \"d\""), {"depth_anything", "controlnet"}));
   EXPECT_TRUE(contains_all(error(", \"controlnet\": \"" + controlnet_dir() +
                                  "\", \"lora_steps\": 2, \"depth_anything\": \"" + (dir_ / "absent").string() + "\""),
                            {"depth_anything", "absent"}));
@@ -198,7 +247,7 @@ TEST_F(SdxlLoraGeneratorTest, LoraOptionsAndViewsAreChecked) {
   ASSERT_TRUE(generator.ok()) << generator.status();
   std::vector<ReferenceView> mixed = views(2, 12, 8);
   mixed[1] = views(1, 10, 8)[0];
-  const absl::Status status = (*generator)->adapt(mixed);
+  const absl::Status status = (*generator)->adapt(mixed, std::nullopt);
   EXPECT_TRUE(contains_all(std::string(status.message()), {"one size", "view 1", "10x8"}));
 }
 

@@ -1,13 +1,18 @@
-// The client-server building blocks in one process: message codecs and chunking, the worker service
-// (remote generation equals in-process generation, bounded queue, deadlines, tokens), the worker pool's
-// give-up path, the SQLite job store across reopening and when it refuses writes, the trainer service's
-// answers to a job store that refuses writes, and upload validation.
+// The client-server building blocks in one process: message codecs and chunking (with the generation
+// controls), the worker service (remote generation equals in-process generation, the backend's notes,
+// bounded queue, deadlines, tokens), the worker pool's give-up path, the SQLite job store across reopening
+// and when it refuses writes, the trainer service's answers to a job store that refuses writes, a job whose
+// worker cannot honour its controls, and upload validation.
 #include <sqlite3.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <condition_variable>
 #include <fstream>
+#include <functional>
+#include <optional>
+#include <set>
 #include <thread>
 
 #include <ATen/ATen.h>
@@ -15,6 +20,7 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <gtest/gtest.h>
 #include <Eigen/Geometry>
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/match.h"
 #include "client/remote_client.h"
@@ -153,6 +159,48 @@ TEST(Codec, InpaintSettingsTravelWithThePose) {
   EXPECT_EQ(rpc::decode_generation_batch(batch).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+// The job's generation controls travel: the IP-Adapter scale with each pose, the scene adaptation with
+// AdaptScene (both fields or none); values out of range are INVALID_ARGUMENT naming the field.
+TEST(Codec, GenerationControlsTravelAndAreChecked) {
+  std::vector<GenerationRequest> requests = test_requests();
+  requests[0].ip_adapter_scale = 0.35;
+  v1::GenerateBatch batch;
+  rpc::encode_generation_batch(requests, &batch);
+  auto back = rpc::decode_generation_batch(batch);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ((*back)[0].ip_adapter_scale, std::optional<double>(0.35));
+  EXPECT_FALSE((*back)[1].ip_adapter_scale.has_value());
+  for (double bad : {-0.5, std::nan("")}) {
+    batch.mutable_poses(1)->set_ip_adapter_scale(bad);
+    const absl::Status refused = rpc::decode_generation_batch(batch).status();
+    EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_TRUE(absl::StrContains(refused.message(), "pose 1: ip_adapter_scale")) << refused;
+  }
+
+  v1::AdaptSceneBatch adapt;
+  rpc::encode_adapt_batch("job-1", requests[0].references, SceneAdaptation{2, 7}, &adapt);
+  auto scene = rpc::decode_adapt_batch(adapt);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  EXPECT_EQ(adapt.scene_id(), "job-1");
+  ASSERT_EQ(scene->views.size(), 2u);
+  EXPECT_TRUE(at::equal(scene->views[1].image, requests[0].references[1].image));
+  ASSERT_TRUE(scene->adaptation.has_value());
+  EXPECT_EQ(scene->adaptation->lora_rank, 2);
+  EXPECT_EQ(scene->adaptation->lora_steps, 7);
+  v1::AdaptSceneBatch without;
+  rpc::encode_adapt_batch("job-1", requests[0].references, std::nullopt, &without);
+  EXPECT_FALSE(rpc::decode_adapt_batch(without)->adaptation.has_value());
+  const auto refusal = [](v1::AdaptSceneBatch b, const std::function<void(v1::AdaptSceneBatch&)>& change) {
+    change(b);
+    const absl::Status s = rpc::decode_adapt_batch(b).status();
+    EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << s;
+    return std::string(s.message());
+  };
+  EXPECT_TRUE(absl::StrContains(refusal(adapt, [](auto& b) { b.clear_lora_steps(); }), "lora_rank and lora_steps"));
+  EXPECT_TRUE(absl::StrContains(refusal(adapt, [](auto& b) { b.set_lora_steps(-1); }), "lora_steps must be >= 0"));
+  EXPECT_TRUE(absl::StrContains(refusal(adapt, [](auto& b) { b.set_lora_rank(0); }), "lora_rank must be >= 1"));
+}
+
 TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   v1::TrainConfig config;
   ASSERT_TRUE(rpc::set_fields({{"iterations", 123}, {"lambda_dssim", 0.3}}, config.mutable_training()).ok());
@@ -186,7 +234,9 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
 class GatedGenerator : public Generator {
  public:
   std::string name() const override { return "gated (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
     std::unique_lock<std::mutex> lock(mutex);
     ++entered;
@@ -251,7 +301,7 @@ TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   auto remote = pool({worker.address()});
   ASSERT_TRUE(remote.ok()) << remote.status();
   const auto requests = test_requests();
-  ASSERT_TRUE((*remote)->adapt(requests[0].references).ok());
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
   auto got = (*remote)->generate(requests);
   ASSERT_TRUE(got.ok()) << got.status();
   auto want = (*local)->generate(requests);
@@ -259,6 +309,30 @@ TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   ASSERT_EQ(got->size(), want->size());
   for (size_t k = 0; k < got->size(); ++k) EXPECT_TRUE(at::equal((*got)[k], (*want)[k])) << "pose " << k;
   EXPECT_EQ((*remote)->name(), "remote " + (*local)->name());
+}
+
+// What the hosted backend cannot honour comes back with the answer that asked for it: the adaptation's notes
+// with the Generate call that adapted the worker, each generation's with its own.
+TEST(WorkerService, BackendNotesReachTheCaller) {
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  RunningWorker worker(std::move(*hosted), options);
+  auto remote = pool({worker.address()});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  std::vector<GenerationRequest> requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  EXPECT_TRUE((*remote)->notes().empty()) << "nothing reached a worker yet";
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+  EXPECT_EQ((*remote)->notes(),
+            std::vector<std::string>{worker.address() + ": reproject has no model to adapt: the 50 LoRA steps (rank 4) "
+                                                        "asked for were not run"});
+  requests[1].ip_adapter_scale = 0.5;
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+  EXPECT_EQ((*remote)->notes(),
+            std::vector<std::string>{worker.address() + ": reproject has no IP-Adapter: 1/2 requests asked for "
+                                                        "ip_adapter_scale 0.5, generated without an image prompt"});
 }
 
 TEST(WorkerService, FullQueueIsResourceExhaustedAndQueuedCallsHonourDeadlines) {
@@ -385,6 +459,40 @@ TEST(WorkerPool, NoReachableWorkerIsUnavailableNamingEachAddress) {
   EXPECT_EQ(result.status().code(), absl::StatusCode::kUnavailable);
   EXPECT_NE(result.status().message().find("127.0.0.1:1"), std::string_view::npos);
   EXPECT_NE(result.status().message().find("127.0.0.1:2"), std::string_view::npos);
+}
+
+// Fails its first generate() with UNAVAILABLE, as a worker going away would, and counts its adaptations.
+class FlakyGenerator : public Generator {
+ public:
+  std::string name() const override { return "flaky (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    ++adaptations;
+    return absl::OkStatus();
+  }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    if (++generations == 1) return absl::UnavailableError("going away (test)");
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back(r.render_rgb);
+    return out;
+  }
+  std::atomic<int> adaptations{0}, generations{0};
+};
+
+// A worker that failed may have restarted and forgotten the scene: it is adapted again before it generates.
+TEST(WorkerPool, AWorkerThatFailedIsAdaptedAgainBeforeItGenerates) {
+  auto flaky = std::make_unique<FlakyGenerator>();
+  const FlakyGenerator& backend = *flaky;
+  WorkerServiceOptions options;
+  options.backend = "flaky";
+  RunningWorker worker(std::move(flaky), options);
+  auto remote = pool({worker.address()});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  const auto images = (*remote)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  EXPECT_EQ(backend.generations, 2);
+  EXPECT_EQ(backend.adaptations, 2);
 }
 
 using JobStoreTest = test::TempDirTest;
@@ -515,13 +623,11 @@ TEST_F(JobStoreTest, AReadOnlyDatabaseIsRefusedAtOpening) {
   EXPECT_TRUE(absl::StrContains(store.status().message(), (dir_ / "jobs.db").string())) << store.status();
 }
 
-// A trainer service in this process, its client and a saboteur of its job store.
-struct TrainerStoreErrors : test::TempDirTest {
-  void SetUp() override {
-    test::TempDirTest::SetUp();
-    TrainerServiceOptions options;
+// A trainer service in this process, its client and a small scene to submit.
+struct TrainerInProcess : test::TempDirTest {
+  // Starts the service with `options` (its data folder set here).
+  void start(TrainerServiceOptions options) {
     options.data_dir = dir_ / "data";
-    options.store_retry_interval = std::chrono::milliseconds(100);
     auto made = TrainerService::create(options);
     ASSERT_TRUE(made.ok()) << made.status();
     service = std::move(*made);
@@ -534,7 +640,6 @@ struct TrainerStoreErrors : test::TempDirTest {
     auto connected = client::TrainerClient::connect("127.0.0.1:" + std::to_string(port), {});
     ASSERT_TRUE(connected.ok()) << connected.status();
     trainer = std::make_unique<client::TrainerClient>(std::move(*connected));
-    sabotage = std::make_unique<StoreSabotage>(dir_ / "data" / "jobs.db");
     SyntheticSceneOptions s;
     s.images = 9;
     s.width = 32;
@@ -576,8 +681,19 @@ struct TrainerStoreErrors : test::TempDirTest {
   std::unique_ptr<grpc::Server> server;
   int port = 0;
   std::unique_ptr<client::TrainerClient> trainer;
-  std::unique_ptr<StoreSabotage> sabotage;
   client::PreparedScene scene;
+};
+
+// ... and a saboteur of its job store.
+struct TrainerStoreErrors : TrainerInProcess {
+  void SetUp() override {
+    TrainerInProcess::SetUp();
+    TrainerServiceOptions options;
+    options.store_retry_interval = std::chrono::milliseconds(100);
+    ASSERT_NO_FATAL_FAILURE(start(options));
+    sabotage = std::make_unique<StoreSabotage>(dir_ / "data" / "jobs.db");
+  }
+  std::unique_ptr<StoreSabotage> sabotage;
 };
 
 TEST_F(TrainerStoreErrors, ARefusedSubmissionFailsAndLeavesNoJobFolder) {
@@ -653,6 +769,71 @@ TEST_F(TrainerStoreErrors, ARefusedCancellationKeepsTheJobQueued) {
   const auto watched = trainer->watch(*queued, [](const v1::JobEvent&) {});
   ASSERT_TRUE(watched.ok()) << watched.status();
   EXPECT_EQ(watched->state(), v1::CANCELLED);
+}
+
+// ... with a reproject worker in this process (it has neither LoRA nor an IP-Adapter).
+struct TrainerWithWorker : TrainerInProcess {
+  void SetUp() override {
+    TrainerInProcess::SetUp();
+    auto backend = make_generator("reproject", "");
+    ASSERT_TRUE(backend.ok()) << backend.status();
+    WorkerServiceOptions w;
+    w.backend = "reproject";
+    worker = std::make_unique<RunningWorker>(std::move(*backend), w);
+    ASSERT_GT(worker->port, 0);
+    TrainerServiceOptions options;
+    options.workers.addresses = {worker->address()};
+    ASSERT_NO_FATAL_FAILURE(start(options));
+  }
+  void TearDown() override {
+    TrainerInProcess::TearDown();  // the jobs first: they call the worker
+    worker.reset();
+  }
+  std::unique_ptr<RunningWorker> worker;
+};
+
+// The job's generation controls reach the worker; what its backend cannot honour comes back as notes, which
+// land in the phase's entry (PhaseEvent.details_json, phases.json) and, once each, in the job's log.
+TEST_F(TrainerWithWorker, BackendNotesReachThePhaseEntryAndTheJobLog) {
+  v1::JobSpec s = spec(40);
+  s.mutable_config()->set_variant("full");
+  ASSERT_TRUE(rpc::set_fields({{"warmup_iterations", 20},
+                               {"phase_interval", 10},
+                               {"n_active", 2},
+                               {"lora_steps", 30},
+                               {"ip_adapter_scale", 0.4}},
+                              s.mutable_config()->mutable_gaps())
+                  .ok());
+  const auto job = trainer->submit(s, scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  std::vector<nlohmann::json> phases;
+  std::vector<std::string> note_lines;
+  const auto final_status = trainer->watch(*job, [&](const v1::JobEvent& e) {
+    if (e.has_phase_finished()) phases.push_back(nlohmann::json::parse(e.phase_finished().details_json()));
+    if (e.has_log() && absl::StrContains(e.log(), "generator note")) note_lines.push_back(e.log());
+  });
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  ASSERT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  ASSERT_EQ(phases.size(), 2u);  // iterations 20 and 30
+  const auto notes = [](const nlohmann::json& phase) {
+    return phase.value("generator_notes", nlohmann::json::array()).dump();
+  };
+  // Phase 0 adapted the worker (LoRA asked, none run) and generated (an image prompt asked, none given).
+  for (const std::string part : {worker->address() + ": reproject has no model to adapt: the 30 LoRA steps",
+                                 std::string("asked for ip_adapter_scale 0.4")})
+    EXPECT_TRUE(absl::StrContains(notes(phases[0]), part)) << notes(phases[0]);
+  EXPECT_FALSE(absl::StrContains(notes(phases[1]), "LoRA")) << notes(phases[1]);
+  EXPECT_TRUE(absl::StrContains(notes(phases[1]), "asked for ip_adapter_scale 0.4")) << notes(phases[1]);
+  std::set<std::string> distinct;
+  for (const auto& phase : phases)
+    for (const auto& note : phase["generator_notes"]) distinct.insert(note.get<std::string>());
+  EXPECT_EQ(note_lines.size(), distinct.size()) << "one log line per distinct note";
+  ASSERT_FALSE(note_lines.empty());
+  EXPECT_TRUE(absl::StrContains(note_lines[0], "generator note (phase 0): " + worker->address())) << note_lines[0];
+  const auto fetched = trainer->fetch(*job, dir_ / "fetched");
+  ASSERT_TRUE(fetched.ok()) << fetched.status();
+  std::ifstream phases_file(dir_ / "fetched" / "phases.json");
+  EXPECT_EQ(nlohmann::json::parse(phases_file)[0]["generator_notes"], phases[0]["generator_notes"]);
 }
 
 struct UploadTest : test::TempDirTest {

@@ -30,7 +30,9 @@ nlohmann::json read_json(const std::filesystem::path& p) {
 class NoiseGenerator : public Generator {
  public:
   std::string name() const override { return "noise (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
     std::vector<at::Tensor> out;
     for (const auto& r : requests) out.push_back(at::rand_like(r.render_rgb));

@@ -108,6 +108,9 @@ class SdxlPipeline {
   absl::Status load_lora(const std::string& path);
   // The applied LoRA (merged into the UNet); null when none.
   const UNetLora* lora() const { return lora_ ? &*lora_ : nullptr; }
+  // Detaches the current LoRA, restoring the base UNet weights exactly, and drops captured UNet graphs
+  // (they recorded the previous layers).
+  absl::Status reset_lora();
 
   // Switches UNet graph capture and replay on or off (see PipelineOptions::cuda_graphs).
   absl::Status set_cuda_graphs(bool on);
@@ -134,9 +137,6 @@ class SdxlPipeline {
   std::optional<ClipVisionEncoder> image_encoder_;
   std::unique_ptr<IpAdapter> ip_adapter_;
   std::optional<UNetLora> lora_;
-
-  // Detaches the current LoRA and drops captured UNet graphs (they recorded the previous layers).
-  absl::Status reset_lora();
 
   absl::Status load_ip_adapter(at::TensorOptions model_options);
   // Encodes and projects the reference images and hands them to the UNet's decoupled cross-attention

@@ -96,14 +96,14 @@ grpc::Status WorkerService::wait_for_backend(grpc::ServerContext* context, std::
 
 absl::Status WorkerService::ensure_adapted(const std::string& handle) {
   if (handle.empty() || handle == adapted_handle_) return absl::OkStatus();
-  std::vector<ReferenceView> views;
+  rpc::AdaptRequest scene;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     const auto it = scenes_.find(handle);
     if (it == scenes_.end()) return absl::NotFoundError(absl::StrCat("unknown scene handle '", handle, "'"));
-    views = it->second;
+    scene = it->second;
   }
-  GAPS_RETURN_IF_ERROR(generator_->adapt(views));
+  GAPS_RETURN_IF_ERROR(generator_->adapt(scene.views, scene.adaptation));
   adapted_handle_ = handle;
   return absl::OkStatus();
 }
@@ -120,8 +120,8 @@ grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetI
   info->set_device_memory_total(memory.total);
   info->set_device_memory_free(memory.free);
   info->set_weights_identity(generator_->weights_identity());
-  for (const char* c :
-       {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale", "prompt", "seed"})
+  for (const char* c : {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale",
+                        "ip_adapter_scale", "prompt", "seed"})
     info->add_supported_constraints(c);
   return grpc::Status::OK;
 }
@@ -133,23 +133,19 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   if (auto st = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, options_.max_request_bytes, &batch);
       !st.ok())
     return rpc::to_grpc(st);
-  std::vector<ReferenceView> views;
-  for (int i = 0; i < batch.references_size(); ++i) {
-    auto view = rpc::decode_reference(batch.references(i), absl::StrCat("reference ", i));
-    if (!view.ok()) return rpc::to_grpc(view.status());
-    views.push_back(std::move(*view));
-  }
-  if (views.empty()) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "AdaptScene needs reference views");
+  absl::StatusOr<rpc::AdaptRequest> scene = rpc::decode_adapt_batch(batch);
+  if (!scene.ok()) return rpc::to_grpc(scene.status());
+  if (scene->views.empty()) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "AdaptScene needs reference views");
   std::unique_ptr<BackendTurn> turn;
   if (auto st = wait_for_backend(context, &turn); !st.ok()) return st;
   std::string handle;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     handle = absl::StrCat(batch.scene_id().empty() ? "scene" : batch.scene_id(), "#", next_handle_++);
-    scenes_[handle] = views;
+    scenes_[handle] = *scene;
   }
   v1::AdaptSceneProgress progress;
-  progress.set_message(absl::StrCat("adapting ", generator_->name(), " to ", views.size(), " views"));
+  progress.set_message(absl::StrCat("adapting ", generator_->name(), " to ", scene->views.size(), " views"));
   stream->Write(progress);
   if (auto st = ensure_adapted(handle); !st.ok()) {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -159,6 +155,7 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   progress.set_fraction(1.0);
   progress.set_message("adapted");
   progress.set_scene_handle(handle);
+  for (const std::string& note : generator_->notes()) progress.add_notes(note);
   stream->Write(progress);
   return grpc::Status::OK;
 }
@@ -184,11 +181,14 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   const auto start = std::chrono::steady_clock::now();
   auto images = generator_->generate(*requests);
   if (!images.ok()) return rpc::to_grpc(images.status());
+  // Re-adapting above repeats what this scene's AdaptScene already reported; only generate()'s notes are new.
+  const std::vector<std::string> notes = generator_->notes();
   turn.reset();
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "caller gave up during generation");
   v1::GenerateResult result;
   result.set_backend_seconds(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
   for (const auto& image : *images) rpc::encode_raw(image, result.add_images());
+  for (const std::string& note : notes) result.add_notes(note);
   if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))
     return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
   return grpc::Status::OK;

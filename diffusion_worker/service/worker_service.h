@@ -2,7 +2,7 @@
 // The DiffusionWorker gRPC service: hosts one in-process generator backend (diffusion_worker/) for remote
 // trainers. Calls run one at a time on the backend; up to `queue_capacity` more wait, later ones are
 // answered RESOURCE_EXHAUSTED at once. A call whose deadline passes while it waits is answered
-// DEADLINE_EXCEEDED without running.
+// DEADLINE_EXCEEDED without running. The backend's notes (Generator::notes()) go back with each answer.
 #include <condition_variable>
 #include <cstdint>
 #include <map>
@@ -13,6 +13,7 @@
 
 #include "gaps/v1/diffusion_worker.grpc.pb.h"
 #include "gs_trainer/gaps/generator.h"
+#include "rpc/generation_codec.h"
 
 namespace gaps {
 
@@ -51,8 +52,9 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   std::condition_variable backend_free_;
   bool backend_busy_ = false;
   int waiting_ = 0;
-  // Adapted scenes: their reference views, so the backend can be re-adapted when scenes alternate.
-  std::map<std::string, std::vector<ReferenceView>> scenes_;
+  // Adapted scenes: their reference views and adaptation, so the backend can be re-adapted when scenes
+  // alternate.
+  std::map<std::string, rpc::AdaptRequest> scenes_;
   std::string adapted_handle_;
   uint64_t next_handle_ = 1;
 };

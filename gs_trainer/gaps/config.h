@@ -108,6 +108,9 @@ inline InpaintSettings inpaint_settings(const GapsConfig& c) {
   return {c.inpaint_depth_threshold, c.inpaint_uncovered_fraction, c.inpaint_dilation};
 }
 
+// The scene adaptation the generator's adapt() is asked for (ip_adapter_scale travels with each request).
+inline SceneAdaptation scene_adaptation(const GapsConfig& c) { return {c.lora_rank, c.lora_steps}; }
+
 // Range checks from the option table, the tier layout (equal lengths, nested ranges containing [0, 1]) and
 // the inpainting settings.
 absl::Status validate_gaps_config(const GapsConfig& c);

@@ -120,6 +120,15 @@ absl::Status GapsTraining::run_phase(int phase) {
   return absl::OkStatus();
 }
 
+namespace {
+
+// What the generator's last call could not honour of the job's controls, kept with the phase.
+void record_generator_notes(const Generator& generator, nlohmann::json& entry) {
+  for (const std::string& note : generator.notes()) entry["generator_notes"].push_back(note);
+}
+
+}  // namespace
+
 absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry) {
   const GaussianModel& model = trainer_.model();
   const int t = trainer_.iteration(), T = trainer_.config().iterations;
@@ -131,7 +140,8 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
     gt_renders_.push_back({v.camera, v.image.cpu(), r.depth.cpu(), r.alpha.cpu()});
   }
   if (!adapted_) {
-    GAPS_RETURN_IF_ERROR(generator_->adapt(gt_renders_));
+    GAPS_RETURN_IF_ERROR(generator_->adapt(gt_renders_, scene_adaptation(config_)));
+    record_generator_notes(*generator_, entry);
     adapted_ = true;
   }
 
@@ -187,10 +197,12 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     q.references = references_for(c.camera);
     q.seed = rng_();
     q.inpaint = inpaint_settings(config_);
+    q.ip_adapter_scale = config_.ip_adapter_scale;
     requests.push_back(std::move(q));
     renders.push_back(std::move(r));
   }
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
+  record_generator_notes(*generator_, entry);
   if (images.size() != requests.size())
     return absl::InternalError(absl::StrCat("generator ", generator_->name(), " returned ", images.size(),
                                             " images for ", requests.size(), " requests"));

@@ -38,7 +38,8 @@ class GapsTraining {
 
   // One iteration: a diffusion phase first when one is due, then a pseudo or GT step.
   absl::StatusOr<at::Tensor> step();
-  // Per phase: candidates and scores, the selection, admissions with reasons, tier, beta, drop ratio.
+  // Per phase: candidates and scores, the selection, admissions with reasons, tier, beta, drop ratio, and
+  // "generator_notes" when the generator could not honour all of the job's controls (Generator::notes()).
   const nlohmann::json& phase_log() const { return log_; }
   const std::map<int, PseudoView>& admitted() const { return admitted_; }
   // When set, every phase's generated images are written there as phase_PP/cand_III_{admitted,rejected}.png.
