@@ -15,10 +15,9 @@ absl::Status check_point_cloud(const PointCloud& points, const std::string& wher
   const at::Tensor beyond = (xyz.abs() > kMaxCoordinate).any(1);
   if (beyond.any().item<bool>()) {
     const int64_t first = beyond.nonzero()[0][0].item<int64_t>();
-    return absl::InvalidArgumentError(absl::StrCat(where, ": point ", first, " has a coordinate beyond +-",
-                                                   kMaxCoordinate, " (", xyz[first][0].item<double>(), ", ",
-                                                   xyz[first][1].item<double>(), ", ", xyz[first][2].item<double>(),
-                                                   ")"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        where, ": point ", first, " has a coordinate beyond +-", kMaxCoordinate, " (", xyz[first][0].item<double>(),
+        ", ", xyz[first][1].item<double>(), ", ", xyz[first][2].item<double>(), ")"));
   }
   return absl::OkStatus();
 }

@@ -83,8 +83,9 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
                             "side of the uncovered mask's dilation (requests without inpaint settings)"),
           integer_option<O>("lora_steps", &O::lora_steps, at_least(0),
                             "LoRA scene adaptation steps of adapt() calls without the job's; 0 = none"),
-          integer_option<O>("lora_rank", &O::lora_rank, at_least(1),
-                            "rank of the LoRA adapters (cross-attention to_q/to_k/to_v/to_out) of adapt() calls without the job's"),
+          integer_option<O>(
+              "lora_rank", &O::lora_rank, at_least(1),
+              "rank of the LoRA adapters (cross-attention to_q/to_k/to_v/to_out) of adapt() calls without the job's"),
           number_option<O>("lora_lr", &O::lora_lr, above(0), "Adam learning rate of the adapters"),
           string_option<O>("lora_save", &O::lora_save, "file the trained adapters are saved to; not with lora"),
           string_option<O>("lora", &O::lora, "LoRA file attached at start-up (all its adapters); not with lora_steps"),

@@ -61,9 +61,9 @@ struct SdxlOptions {
   double inpaint_uncovered_fraction = 0.02;  // inpaint views with more uncovered pixels than this
   int64_t inpaint_dilation = 15;             // side of the square dilation kernel (odd)
   // Scene adaptation by LoRA (sdxl/lora_training.h): adapt() trains rank-r adapters (alpha = rank) on
-  // to_q/to_k/to_v/to_out of every cross-attention layer (attn2, as the paper) for the Adam steps the job's SceneAdaptation asks
-  // (lora_steps and lora_rank: for adapt() calls without one; 0 steps = no training) at lora_lr, and writes
-  // them to lora_save when set. lora: a LoRA file (diffusers/PEFT safetensors) attached at startup instead,
+  // to_q/to_k/to_v/to_out of every cross-attention layer (attn2, as the paper) for the Adam steps the job's
+  // SceneAdaptation asks (lora_steps and lora_rank: for adapt() calls without one; 0 steps = no training) at lora_lr,
+  // and writes them to lora_save when set. lora: a LoRA file (diffusers/PEFT safetensors) attached at startup instead,
   // e.g. one saved by an earlier run, with every adapter it holds (self-attention ones too, sdxl/lora.h); it
   // stays for every job, which then trains none (a note says so).
   int64_t lora_steps = 0;

@@ -64,7 +64,9 @@ class EchoGenerator : public Generator {
 class ContraryGenerator : public Generator {
  public:
   std::string name() const override { return "contrary (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&) override { return absl::OkStatus(); }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
     std::vector<at::Tensor> out;
     for (const auto& r : requests) out.push_back((r.render_rgb < 0.5).to(r.render_rgb.scalar_type()));
