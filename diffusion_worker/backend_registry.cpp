@@ -12,6 +12,8 @@ namespace gaps {
 
 std::vector<std::string> known_generator_backends() { return {"reproject", "sdxl"}; }
 
+bool generator_backend_uses_device(const std::string& backend) { return backend == "sdxl"; }
+
 absl::StatusOr<std::unique_ptr<Generator>> make_generator(const std::string& backend,
                                                           const std::string& options_json_or_empty) {
   if (backend == "reproject") {

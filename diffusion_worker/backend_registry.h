@@ -13,6 +13,10 @@ namespace gaps {
 // Backend names make_generator accepts: {"reproject", "sdxl"}.
 std::vector<std::string> known_generator_backends();
 
+// Whether the backend computes on a device it is given (its "device" option): sdxl does; reproject is a CPU
+// algorithm (OpenCV warping and inpainting) and runs on the CPU whatever the worker's device.
+bool generator_backend_uses_device(const std::string& backend);
+
 // options_json_or_empty: the backend's options as a JSON object (see e.g. parse_reproject_options), or
 // empty for its defaults. An unknown backend name is an error listing the known ones.
 absl::StatusOr<std::unique_ptr<Generator>> make_generator(const std::string& backend,

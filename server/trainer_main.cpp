@@ -24,6 +24,8 @@ ABSL_FLAG(std::string, workers, "", "comma-separated diffusion worker addresses 
 ABSL_FLAG(std::string, data_dir, "gaps-trainer-data", "folder of the job database, uploaded scenes and outputs");
 ABSL_FLAG(std::string, device, "cpu", "training device (cpu, cuda, cuda:N)");
 ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
+ABSL_FLAG(int, max_crashes, 2,
+          "a job whose trainer died this many times while running it is FAILED at the next start instead of run again");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
 ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
@@ -72,6 +74,8 @@ int main(int argc, char** argv) {
   options.data_dir = absl::GetFlag(FLAGS_data_dir);
   options.device = device;
   options.concurrency = absl::GetFlag(FLAGS_concurrency);
+  options.max_crashes = absl::GetFlag(FLAGS_max_crashes);
+  if (options.max_crashes < 1) return fail("--max_crashes must be at least 1");
   options.token = *token;
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
@@ -86,6 +90,8 @@ int main(int argc, char** argv) {
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
+  // gRPC would otherwise let a second server bind the same port and take a share of the calls.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   const std::string address = gaps::rpc::listen_address(absl::GetFlag(FLAGS_listen));
   int port = 0;
   builder.AddListeningPort(address, *credentials, &port);

@@ -99,8 +99,9 @@ std::vector<JobStore::Artifact> list_artifacts(const fs::path& out_dir) {
 
 }  // namespace
 
-TrainerService::TrainerService(TrainerServiceOptions options, std::unique_ptr<JobStore> store)
-    : options_(std::move(options)), store_(std::move(store)) {}
+TrainerService::TrainerService(TrainerServiceOptions options, std::unique_ptr<DataDirLock> lock,
+                               std::unique_ptr<JobStore> store)
+    : options_(std::move(options)), lock_(std::move(lock)), store_(std::move(store)) {}
 
 TrainerService::~TrainerService() { shutdown(); }
 
@@ -110,8 +111,9 @@ absl::StatusOr<std::unique_ptr<TrainerService>> TrainerService::create(TrainerSe
   std::error_code ec;
   fs::create_directories(options.data_dir / "jobs", ec);
   if (ec) return absl::PermissionDeniedError(absl::StrCat(options.data_dir.string(), ": ", ec.message()));
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<DataDirLock> lock, DataDirLock::acquire(options.data_dir));
   GAPS_ASSIGN_OR_RETURN(std::unique_ptr<JobStore> store, JobStore::open(options.data_dir / "jobs.db"));
-  return std::unique_ptr<TrainerService>(new TrainerService(std::move(options), std::move(store)));
+  return std::unique_ptr<TrainerService>(new TrainerService(std::move(options), std::move(lock), std::move(store)));
 }
 
 fs::path TrainerService::job_dir(const std::string& job_id) const { return options_.data_dir / "jobs" / job_id; }
@@ -122,23 +124,39 @@ absl::Status TrainerService::start() {
   for (v1::JobState state : {v1::RUNNING, v1::QUEUED}) {
     GAPS_ASSIGN_OR_RETURN(std::vector<v1::JobStatus> jobs, store_->in_state(state));
     for (v1::JobStatus& job : jobs) {
-      if (state == v1::RUNNING) {
-        job.set_resumes(job.resumes() + 1);
-        job.set_state(v1::QUEUED);
-        GAPS_RETURN_IF_ERROR(store_->update(job));
-        v1::JobEvent e = event_for(job.job_id());
-        e.set_log(
-            absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from "
-                         "the start without one (resume ",
-                         job.resumes(), ")"));
-        publish(e);
-      }
+      if (state == v1::RUNNING && !requeue_interrupted(job)) continue;
       enqueue(job.job_id());
     }
   }
   for (int i = 0; i < options_.concurrency; ++i) threads_.emplace_back([this] { job_loop(); });
   threads_.emplace_back([this] { retry_loop(); });
   return absl::OkStatus();
+}
+
+bool TrainerService::requeue_interrupted(v1::JobStatus& job) {
+  job.set_resumes(job.resumes() + 1);
+  if (!job.stopped_cleanly()) job.set_crashes(job.crashes() + 1);
+  job.set_stopped_cleanly(false);
+  if (job.crashes() >= options_.max_crashes) {
+    job.set_state(v1::FAILED);
+    job.set_finished_at(now_seconds());
+    job.set_error(absl::StrCat("the trainer died ", job.crashes(),
+                               " times while running this job (last seen at iteration ", job.iteration(),
+                               "); it is not run again, as it may be what killed the trainer. The "
+                               "trainer's log has the cause; resubmit the job to try again"));
+    std::cerr << "gaps-trainer: job " << job.job_id() << " quarantined: " << job.error() << "\n";
+    end_job({job, list_artifacts(job_dir(job.job_id()) / "out"), absl::OkStatus()});
+    return false;
+  }
+  job.set_state(v1::QUEUED);
+  if (absl::Status st = store_->update(job); !st.ok()) log_store_error(job.job_id(), "its restart", st);
+  v1::JobEvent e = event_for(job.job_id());
+  e.set_log(
+      absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from the start "
+                   "without one (resume ",
+                   job.resumes(), job.crashes() > 0 ? absl::StrCat(", after ", job.crashes(), " crash(es)") : "", ")"));
+  publish(e);
+  return true;
 }
 
 void TrainerService::shutdown() {
@@ -218,6 +236,7 @@ void TrainerService::run_job(const std::string& job_id) {
 
   v1::JobStatus final_status = train(*status, *cancelled);
   if (!terminal(final_status.state())) {  // interrupted by shutdown: stays RUNNING for the next process
+    final_status.set_stopped_cleanly(true);
     if (absl::Status st = store_->update(final_status); !st.ok())
       log_store_error(job_id, "its progress before the shutdown (it resumes from its last recorded checkpoint)", st);
     return;

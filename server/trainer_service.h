@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "gaps/v1/trainer.grpc.pb.h"
+#include "server/data_dir_lock.h"
 #include "server/job_store.h"
 #include "server/remote_generator.h"
 
@@ -29,8 +30,11 @@ struct TrainerServiceOptions {
   std::filesystem::path data_dir;  // jobs.db, jobs/<id>/{scene,out}, the initialiser cache
   std::string device = "cpu";      // training device of every job
   int concurrency = 1;             // jobs trained at once
-  WorkerPoolOptions workers;       // diffusion workers (addresses may be empty: vanilla jobs only)
-  std::string token;               // required bearer token (empty: none)
+  // A job found RUNNING at start-up whose trainer died (no clean stop) this many times is FAILED, not run
+  // again: it may be what killed the trainer.
+  int max_crashes = 2;
+  WorkerPoolOptions workers;  // diffusion workers (addresses may be empty: vanilla jobs only)
+  std::string token;          // required bearer token (empty: none)
   uint64_t max_upload_bytes = uint64_t{8} << 30;
   std::chrono::milliseconds store_retry_interval{10000};  // between attempts to record a refused job end
 };
@@ -61,7 +65,7 @@ class TrainerService final : public v1::Trainer::Service {
                           v1::RenderViewResponse* response) override;
 
  private:
-  TrainerService(TrainerServiceOptions options, std::unique_ptr<JobStore> store);
+  TrainerService(TrainerServiceOptions options, std::unique_ptr<DataDirLock> lock, std::unique_ptr<JobStore> store);
   std::filesystem::path job_dir(const std::string& job_id) const;
   void job_loop();
   void run_job(const std::string& job_id);
@@ -79,6 +83,9 @@ class TrainerService final : public v1::Trainer::Service {
     std::vector<JobStore::Artifact> artifacts;
     absl::Status error;  // for clients: the store's latest refusal, naming the job and its outcome
   };
+  // A job a previous process left RUNNING: counted as a resume (and a crash unless it stopped cleanly) and
+  // queued again; false when it reached max_crashes and was FAILED instead.
+  bool requeue_interrupted(v1::JobStatus& job);
   // Records the end (status, artifacts, closing event) or keeps it as unrecorded.
   void end_job(UnrecordedEnd end);
   absl::Status record_end(const UnrecordedEnd& end);
@@ -90,6 +97,7 @@ class TrainerService final : public v1::Trainer::Service {
   void note_unrecorded_end(v1::JobStatus& status);
 
   TrainerServiceOptions options_;
+  std::unique_ptr<DataDirLock> lock_;  // held for the service's lifetime
   std::unique_ptr<JobStore> store_;
   std::mutex mutex_;
   std::condition_variable queue_changed_;

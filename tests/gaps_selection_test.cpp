@@ -120,8 +120,10 @@ TEST(GapsConfig, GenerationControlsArePapersAndChecked) {
     change(bad);
     return std::string(validate_gaps_config(bad).message());
   };
-  EXPECT_NE(refusal([](GapsConfig& g) { g.lora_rank = 0; }).find("lora_rank must be >= 1"), std::string::npos);
-  EXPECT_NE(refusal([](GapsConfig& g) { g.lora_steps = -1; }).find("lora_steps must be >= 0"), std::string::npos);
+  EXPECT_NE(refusal([](GapsConfig& g) { g.lora_rank = 0; }).find("option 'lora_rank' = 0 is outside [1, 1024]"),
+            std::string::npos);
+  EXPECT_NE(refusal([](GapsConfig& g) { g.lora_steps = -1; }).find("option 'lora_steps' = -1 is outside [0, 100000]"),
+            std::string::npos);
   EXPECT_NE(refusal([](GapsConfig& g) { g.ip_adapter_scale = -0.1; }).find("ip_adapter_scale"), std::string::npos);
   EXPECT_TRUE(refusal([](GapsConfig& g) { g.lora_steps = 0; }).empty()) << "no scene adaptation is allowed";
 }

@@ -123,7 +123,8 @@ TEST(GaussiansPly, ErrorsNameTheFileAndProblem) {
   auto r = load_gaussians_ply(path);
   ASSERT_FALSE(r.ok());
   EXPECT_NE(std::string(r.status().message()).find(path.string()), std::string::npos);
-  EXPECT_NE(std::string(r.status().message()).find("truncated"), std::string::npos);
+  // The count is checked against the bytes present before anything is read.
+  EXPECT_NE(std::string(r.status().message()).find("announces 10 vertices"), std::string::npos) << r.status();
   auto missing = load_gaussians_ply(temp_path("does_not_exist.ply"));
   ASSERT_FALSE(missing.ok());
   EXPECT_NE(std::string(missing.status().message()).find("does_not_exist.ply"), std::string::npos);

@@ -346,6 +346,54 @@ TEST_F(Services, KilledTrainerResumesItsJobFromTheCheckpointAfterRestart) {
   EXPECT_EQ(first_progress_after_resume, 30);  // not from iteration 0
 }
 
+// A job whose trainer keeps dying while it runs (a poison job) is FAILED at the second crash instead of
+// taking every restart down with it; the trainer then serves on.
+TEST_F(Services, AJobThatKeepsKillingItsTrainerIsQuarantined) {
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  std::string job_id;
+  for (int crash = 0; crash < 2; ++crash) {
+    client::TrainerClient client = connect();
+    if (job_id.empty()) {
+      auto job = client.submit(spec("vanilla", 100000), synthetic_scene());
+      ASSERT_TRUE(job.ok()) << job.status();
+      job_id = *job;
+    }
+    // Progress of this trainer's run, not the history the watch replays first.
+    const double since = std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+    (void)client.watch(job_id, [&](const v1::JobEvent& e) {
+      if (e.has_progress() && e.time() > since) trainer->kill(SIGKILL);
+    });
+    trainer = start_trainer();
+    ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  }
+  client::TrainerClient client = connect();
+  auto status = client.watch(job_id, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(status.ok()) << status.status();
+  EXPECT_EQ(status->state(), v1::FAILED);
+  EXPECT_EQ(status->crashes(), 2);
+  EXPECT_NE(status->error().find("the trainer died 2 times while running this job"), std::string::npos)
+      << status->error();
+  EXPECT_TRUE(client.list().ok());
+}
+
+// One data folder, one trainer; one port, one server.
+TEST_F(Services, ASecondTrainerOnTheSameDataFolderOrPortIsRefused) {
+  auto worker = start_worker();
+  auto first = start_trainer();
+  ASSERT_GT(trainer_port, 0) << first->log_text();
+  const int first_port = trainer_port;
+  auto second = start_trainer();
+  EXPECT_EQ(trainer_port, -1);
+  EXPECT_NE(second->log_text().find("is in use by another gaps-trainer"), std::string::npos) << second->log_text();
+  Process same_port({GAPS_TRAINER_BIN, "--listen", "127.0.0.1:" + std::to_string(first_port), "--data_dir",
+                     (dir_ / "other_data").string(), "--device", "cpu"},
+                    dir_ / "same_port.log");
+  EXPECT_EQ(same_port.wait_for_port(std::chrono::seconds(30)), -1) << same_port.log_text();
+  EXPECT_FALSE(same_port.running());
+}
+
 TEST_F(Services, SigtermStopsTheTrainerGracefullyAndTheJobRunsAgainOnRestart) {
   auto worker = start_worker();
   auto trainer = start_trainer();

@@ -39,10 +39,11 @@ int fail(const std::string& message) {
   return 2;
 }
 
-// --device reaches the backend as its "device" option (the sdxl backend takes one); a backend without
-// that option, such as reproject, then refuses it by name instead of silently computing elsewhere.
-std::string options_with_device(const std::string& options_json, const std::string& device, std::string* error) {
-  if (device == "cpu") return options_json;
+// --device reaches a backend that computes on a device (sdxl) as its "device" option. A CPU backend
+// (reproject) gets nothing: the worker says at start-up that it computes on the CPU and reports "cpu".
+std::string options_with_device(const std::string& backend, const std::string& options_json, const std::string& device,
+                                std::string* error) {
+  if (device == "cpu" || !gaps::generator_backend_uses_device(backend)) return options_json;
   nlohmann::json options =
       options_json.empty() ? nlohmann::json::object() : nlohmann::json::parse(options_json, nullptr, false);
   if (!options.is_object()) {
@@ -63,9 +64,15 @@ int main(int argc, char** argv) {
   absl::SetProgramUsageMessage("gaps-worker --listen ADDR --backend NAME [--device cpu]");
   absl::ParseCommandLine(argc, argv);
   const std::string backend = absl::GetFlag(FLAGS_backend);
-  const std::string device = absl::GetFlag(FLAGS_device);
+  const std::string requested_device = absl::GetFlag(FLAGS_device);
+  const bool uses_device = gaps::generator_backend_uses_device(backend);
+  if (!uses_device && requested_device != "cpu")
+    std::cerr << "gaps-worker: the " << backend << " backend computes on the CPU; --device " << requested_device
+              << " applies to device backends (sdxl) only\n";
+  const std::string device = uses_device ? requested_device : "cpu";
   std::string error;
-  const std::string backend_options = options_with_device(absl::GetFlag(FLAGS_backend_options), device, &error);
+  const std::string backend_options =
+      options_with_device(backend, absl::GetFlag(FLAGS_backend_options), requested_device, &error);
   if (!error.empty()) return fail(error);
   auto generator = gaps::make_generator(backend, backend_options);
   if (!generator.ok())
@@ -90,6 +97,8 @@ int main(int argc, char** argv) {
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
+  // gRPC would otherwise let a second server bind the same port and take a share of the calls.
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   const std::string address = gaps::rpc::listen_address(absl::GetFlag(FLAGS_listen));
   int port = 0;
   builder.AddListeningPort(address, *credentials, &port);
