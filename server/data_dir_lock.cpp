@@ -22,9 +22,9 @@ absl::StatusOr<std::unique_ptr<DataDirLock>> DataDirLock::acquire(const std::fil
     const ssize_t n = ::pread(fd, holder, sizeof(holder) - 1, 0);
     ::close(fd);
     if (error == EWOULDBLOCK)
-      return absl::FailedPreconditionError(absl::StrCat(
-          data_dir.string(), " is in use by another gaps-trainer", n > 0 ? absl::StrCat(" (pid ", holder, ")") : "",
-          "; give each trainer its own --data_dir"));
+      return absl::FailedPreconditionError(absl::StrCat(data_dir.string(), " is in use by another gaps-trainer",
+                                                        n > 0 ? absl::StrCat(" (pid ", holder, ")") : "",
+                                                        "; give each trainer its own --data_dir"));
     return absl::InternalError(absl::StrCat(path.string(), ": cannot lock: ", std::strerror(error)));
   }
   const std::string pid = std::to_string(::getpid());
