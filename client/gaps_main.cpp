@@ -148,6 +148,9 @@ int report(const absl::StatusOr<gaps::RunResult>& result, const gaps::RunOptions
   std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training\n", m.psnr,
                                m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : "n/a (no backbone)",
                                result->num_gaussians, result->train_seconds);
+  if (result->degraded())
+    std::cout << "DEGRADED: " << result->phases_skipped << " of " << result->phases
+              << " diffusion phases were skipped (no generator answered)\n";
   std::cout << "outputs in " << o.out_dir.string() << " (point_cloud.ply, renders/, metrics.json"
             << (o.html_report ? ", report.html)\n" : ")\n");
   return 0;

@@ -183,6 +183,9 @@ nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
   j["random_points"] = o.random_points;
   j["variant"] = variant_name(o.variant);
   if (o.variant != Variant::kVanilla) {
+    j["phases"] = r.phases;
+    j["phases_skipped"] = r.phases_skipped;
+    j["degraded"] = r.degraded();
     j["gaps"] = r.gaps;
     j["generator"] = o.generator ? o.generator->name() : "";
   }
@@ -275,6 +278,15 @@ class TrainingRun {
     if (absl::IsCancelled(trained)) save_checkpoint_and_tell();
     if (method_) GAPS_RETURN_IF_ERROR(write_json(o_.out_dir / "phases.json", method_->phase_log()));
     return absl::OkStatus();
+  }
+
+  // Phases run and skipped so far, into *result.
+  void count_phases(RunResult* result) const {
+    if (!method_) return;
+    for (const auto& entry : method_->phase_log()) {
+      ++result->phases;
+      if (entry.value("skipped", false)) ++result->phases_skipped;
+    }
   }
 
  private:
@@ -417,6 +429,11 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   result.num_gaussians = run.trainer().model().size();
   result.peak_memory = memory.read();
   result.generator_seconds = run.generator_seconds();
+  run.count_phases(&result);
+  if (result.degraded())
+    log(absl::StrCat("warning: degraded run: ", result.phases_skipped, " of ", result.phases,
+                     " diffusion phases were skipped (no generator answered); it trained on fewer pseudo-views "
+                     "than the method asks for"));
   // Whatever happened, keep what was computed.
   GAPS_RETURN_IF_ERROR(save_gaussians_ply(run.trainer().model(), o.out_dir / "point_cloud.ply"));
   if (is_divergence(trained)) {

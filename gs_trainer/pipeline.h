@@ -66,6 +66,12 @@ struct RunResult {
   PeakMemory peak_memory;
   std::optional<double> generator_seconds;  // method variants only
   std::string init_method;  // what made the initial points: RunOptions::init with "auto" resolved, fallbacks taken
+  // The method's diffusion phases: how many ran and how many were skipped because no generator answered.
+  // A run with skipped phases trained on fewer pseudo-views than it was asked to: metrics.json says
+  // "degraded": true, and the services mark the job DEGRADED.
+  int phases = 0;
+  int phases_skipped = 0;
+  bool degraded() const { return phases_skipped > 0; }
   // The options the run used, automatic values resolved (the Gaussian budget in config.max_gaussians, the
   // pseudo-views per phase in gaps.n_active): what metrics.json records.
   TrainConfig config;

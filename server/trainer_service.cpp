@@ -386,6 +386,9 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
     status.set_psnr(result->metrics.psnr);
     status.set_ssim(result->metrics.ssim);
     status.set_num_gaussians(result->num_gaussians);
+    status.set_phases(result->phases);
+    status.set_phases_skipped(result->phases_skipped);
+    status.set_degraded(result->degraded());
     return status;
   }
   if (result.status().code() == absl::StatusCode::kCancelled) {

@@ -238,6 +238,18 @@ TEST_F(Services, KilledWorkerSkipsTheRemainingPhasesAndTheJobFinishes) {
     return l.find("skipped, training continues") != std::string::npos;
   });
   EXPECT_TRUE(warned);
+  // Succeeded, but not a full run of the method: the status, list and metrics.json say so.
+  EXPECT_TRUE(final_status->degraded());
+  EXPECT_EQ(final_status->phases(), 3);
+  EXPECT_EQ(final_status->phases_skipped(), 2);
+  auto listed = client.list();
+  ASSERT_TRUE(listed.ok());
+  ASSERT_EQ(listed->size(), 1u);
+  EXPECT_TRUE((*listed)[0].degraded());
+  ASSERT_TRUE(client.fetch(*job, dir_ / "fetched").ok());
+  const auto metrics = read_json(dir_ / "fetched" / "metrics.json");
+  EXPECT_EQ(metrics["degraded"], true);
+  EXPECT_EQ(metrics["phases_skipped"], 2);
 }
 
 TEST_F(Services, KilledTrainerResumesItsJobFromTheCheckpointAfterRestart) {

@@ -45,7 +45,8 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
   spec.mutable_config()->set_init("random");
   spec.mutable_config()->set_random_points(3000);
   spec.mutable_config()->set_variant("full");
-  ASSERT_TRUE(rpc::set_fields({{"iterations", 300}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
+  ASSERT_TRUE(
+      rpc::set_fields({{"iterations", 300}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
   ASSERT_TRUE(rpc::set_fields({{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 4}},
                               spec.mutable_config()->mutable_gaps())
                   .ok());
