@@ -78,7 +78,7 @@ void attach_token(grpc::ClientContext& context, const std::string& token) {
   if (!token.empty()) context.AddMetadata("authorization", "Bearer " + token);
 }
 
-absl::StatusOr<std::string> load_token(const std::string& file) {
+absl::StatusOr<std::string> load_token(const std::string& file, const char* env_variable) {
   if (!file.empty()) {
     GAPS_ASSIGN_OR_RETURN(std::string text, read_file_bytes(file, "token file"));
     const size_t newline = text.find('\n');
@@ -86,7 +86,7 @@ absl::StatusOr<std::string> load_token(const std::string& file) {
     if (token.empty()) return absl::InvalidArgumentError(absl::StrCat(file, ": token file is empty"));
     return token;
   }
-  const char* env = std::getenv("GAPS_TOKEN");
+  const char* env = std::getenv(env_variable);
   return env ? std::string(env) : std::string();
 }
 

@@ -38,8 +38,9 @@ grpc::Status check_token(const grpc::ServerContext& context, const std::string& 
 void attach_token(grpc::ClientContext& context, const std::string& token);
 
 // The token from a file (first line, whitespace trimmed) when `file` is set, else from the environment
-// variable GAPS_TOKEN, else empty.
-absl::StatusOr<std::string> load_token(const std::string& file);
+// variable `env_variable` (GAPS_TOKEN; the trainer reads its workers' token from GAPS_WORKER_TOKEN), else
+// empty.
+absl::StatusOr<std::string> load_token(const std::string& file, const char* env_variable = "GAPS_TOKEN");
 
 // Addresses without a host (":50051" or "50051") bind 127.0.0.1; anything else is used as given.
 std::string listen_address(const std::string& address);

@@ -31,7 +31,9 @@ ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serv
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
 ABSL_FLAG(std::string, tls_client_ca, "",
           "CA certificate that must have signed every client's certificate (mutual TLS)");
-ABSL_FLAG(std::string, worker_token_file, "", "token sent to the workers (default: the trainer's own token)");
+ABSL_FLAG(std::string, worker_token_file, "",
+          "token sent to the workers (default: $GAPS_WORKER_TOKEN, else none; the trainer's own token is never sent, "
+          "so that whoever runs a worker address cannot drive the trainer)");
 ABSL_FLAG(std::string, worker_tls_ca, "", "CA certificate of the workers' TLS (default: plaintext)");
 ABSL_FLAG(std::string, worker_tls_server_name, "", "name the workers' certificates are checked against");
 ABSL_FLAG(std::string, worker_tls_cert, "", "this trainer's client certificate, for workers that require one");
@@ -59,12 +61,8 @@ int main(int argc, char** argv) {
   if (at::Device(device).is_cuda() && !at::hasCUDA()) return fail("--device " + device + ": no CUDA device available");
   auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
   if (!token.ok()) return fail(std::string(token.status().message()));
-  std::string worker_token = *token;
-  if (!absl::GetFlag(FLAGS_worker_token_file).empty()) {
-    auto t = gaps::rpc::load_token(absl::GetFlag(FLAGS_worker_token_file));
-    if (!t.ok()) return fail(std::string(t.status().message()));
-    worker_token = *t;
-  }
+  auto worker_token = gaps::rpc::load_token(absl::GetFlag(FLAGS_worker_token_file), "GAPS_WORKER_TOKEN");
+  if (!worker_token.ok()) return fail(std::string(worker_token.status().message()));
   gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
                                      absl::GetFlag(FLAGS_tls_client_ca)};
   auto credentials = gaps::rpc::server_credentials(security);
@@ -80,7 +78,7 @@ int main(int argc, char** argv) {
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
     options.workers.addresses.emplace_back(a);
-  options.workers.security = {worker_token, absl::GetFlag(FLAGS_worker_tls_ca),
+  options.workers.security = {*worker_token, absl::GetFlag(FLAGS_worker_tls_ca),
                               absl::GetFlag(FLAGS_worker_tls_server_name), absl::GetFlag(FLAGS_worker_tls_cert),
                               absl::GetFlag(FLAGS_worker_tls_key)};
   options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));

@@ -60,6 +60,8 @@ struct Services : test::TempDirTest {
                                      "cpu",
                                      "--token_file",
                                      (dir_ / "token").string(),
+                                     "--worker_token_file",
+                                     (dir_ / "token").string(),
                                      "--workers",
                                      "127.0.0.1:" + std::to_string(worker_port),
                                      "--worker_rounds",
@@ -323,6 +325,29 @@ TEST_F(Services, AJobThatKeepsKillingItsTrainerIsQuarantined) {
   EXPECT_NE(status->error().find("the trainer died 2 times while running this job"), std::string::npos)
       << status->error();
   EXPECT_TRUE(client.list().ok());
+}
+
+// The trainer's own token (what clients present to it) is not what it presents to workers: without
+// --worker_token_file it sends none, so a worker requiring one refuses and the phases are skipped.
+TEST_F(Services, TheTrainersOwnTokenIsNeverSentToWorkers) {
+  auto worker = start_worker();
+  ASSERT_GT(worker_port, 0) << worker->log_text();
+  Process trainer({GAPS_TRAINER_BIN, "--listen", "127.0.0.1:0", "--data_dir", (dir_ / "data").string(), "--device",
+                   "cpu", "--token_file", (dir_ / "token").string(), "--workers",
+                   "127.0.0.1:" + std::to_string(worker_port), "--worker_rounds", "1"},
+                  dir_ / "trainer_no_worker_token.log");
+  trainer_port = trainer.wait_for_port();
+  ASSERT_GT(trainer_port, 0) << trainer.log_text();
+  client::TrainerClient client = connect();
+  auto job = client.submit(spec("full", 60, {{"warmup_iterations", 20}, {"phase_interval", 40}, {"n_active", 2}}),
+                           synthetic_scene());
+  ASSERT_TRUE(job.ok()) << job.status();
+  Seen seen;
+  auto status = client.watch(*job, [&](const v1::JobEvent& e) { count(e, seen); });
+  ASSERT_TRUE(status.ok()) << status.status();
+  EXPECT_EQ(seen.phases_done, 0);
+  EXPECT_EQ(seen.phases_skipped, 1);  // the one phase, at iteration 20
+  EXPECT_TRUE(status->degraded());
 }
 
 // One data folder, one trainer; one port, one server.
