@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "common/io_util.h"
+#include "common/status_macros.h"
 
 // stb is compiled here with internal linkage, so no other library that bundles its own copy (or
 // Debian's libstb.so, absent on the GPU machines) can clash with or be required for these symbols.
@@ -49,11 +50,23 @@ at::Tensor to_rgb_float(const T* pixels, int width, int height, int channels, fl
   return image;
 }
 
+// From the header, before a pixel is decoded: a small file can announce a huge image (a decompression bomb).
+absl::Status check_image_size(const std::string& what, int width, int height) {
+  if (width <= 0 || height <= 0)
+    return absl::InvalidArgumentError(absl::StrCat(what, ": image of ", width, "x", height, " pixels"));
+  if (int64_t{width} * height > kMaxImagePixels)
+    return absl::InvalidArgumentError(
+        absl::StrCat(what, ": image of ", width, "x", height, " pixels (", int64_t{width} * height / 1000000,
+                     " megapixels) is over the limit of ", kMaxImagePixels / 1000000, " megapixels"));
+  return absl::OkStatus();
+}
+
 absl::StatusOr<at::Tensor> decode(const fs::path& path, const std::string& bytes) {
   const auto* data = reinterpret_cast<const stbi_uc*>(bytes.data());
   const int size = static_cast<int>(bytes.size());
   int width = 0, height = 0, channels = 0;
   if (!stbi_info_from_memory(data, size, &width, &height, &channels)) return corrupt(path);
+  GAPS_RETURN_IF_ERROR(check_image_size(path.string(), width, height));
   if (channels < 1 || channels > 4)
     return absl::InvalidArgumentError(absl::StrCat(path.string(), ": unsupported channel count ", channels));
   at::Tensor image;
@@ -92,6 +105,7 @@ absl::StatusOr<std::pair<int, int>> read_image_size(const fs::path& path) {
   const int ok = stbi_info_from_file(file, &width, &height, &channels);
   std::fclose(file);
   if (!ok) return corrupt(path);
+  GAPS_RETURN_IF_ERROR(check_image_size(path.string(), width, height));
   return std::make_pair(width, height);
 }
 

@@ -179,5 +179,22 @@ TEST_F(ImageIoTest, ReadsRealPngAndJpeg) {
   }
 }
 
+// A PNG header announcing 16000 x 16000 pixels (a decompression bomb: the pixels would follow as a few
+// hundred kilobytes of zlib) is refused from the header, before anything is allocated for the pixels.
+TEST(ImageIo, AHugeImageIsRefusedFromItsHeader) {
+  const auto be32 = [](uint32_t v) {
+    return std::string{static_cast<char>(v >> 24), static_cast<char>(v >> 16), static_cast<char>(v >> 8),
+                       static_cast<char>(v)};
+  };
+  const std::string png = std::string("\x89PNG\r\n\x1a\n", 8) + be32(13) + "IHDR" + be32(16000) + be32(16000) +
+                          std::string("\x08\x02\x00\x00\x00", 5) + be32(0);
+  const auto decoded = decode_image(png, "upload.png");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_EQ(decoded.status().code(), absl::StatusCode::kInvalidArgument) << decoded.status();
+  EXPECT_NE(decoded.status().message().find("16000x16000 pixels (256 megapixels) is over the limit of 100"),
+            std::string_view::npos)
+      << decoded.status();
+}
+
 }  // namespace
 }  // namespace gaps
