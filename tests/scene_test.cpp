@@ -530,6 +530,17 @@ TEST_F(SyntheticSceneTest, TransformsErrorsNameTheFile) {
   scene = load_scene(root_);
   ASSERT_FALSE(scene.ok());
   EXPECT_TRUE(contains(scene.status(), "focal")) << scene.status();
+
+  // An image path leading out of the scene folder is refused (gaps submit would upload that file).
+  for (const std::string outside : {std::string("../outside.png"), std::string("images/../../outside.png"),
+                                    (root_.parent_path() / "outside.png").string()}) {
+    doc = {{"fl_x", 20.0}, {"frames", {{{"file_path", outside}, {"transform_matrix", pose}}}}};
+    std::ofstream(json_path, std::ios::trunc) << doc.dump();
+    scene = load_scene(root_);
+    ASSERT_FALSE(scene.ok()) << outside;
+    EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << scene.status();
+    EXPECT_TRUE(contains(scene.status(), "leads outside the scene folder")) << scene.status();
+  }
 }
 
 }  // namespace

@@ -83,9 +83,15 @@ absl::StatusOr<std::vector<Frame>> read_frames(const json& doc, const fs::path& 
   return frames;
 }
 
-// file_path is relative to the json and, in NeRF-synthetic style files, lacks the extension.
+// file_path is relative to the json and, in NeRF-synthetic style files, lacks the extension. It must stay
+// inside the json's folder: a scene is a folder, and `gaps submit` uploads what the scene names, so a path
+// leading elsewhere (absolute, or climbing out with "..") would send any readable file to the server.
 absl::StatusOr<fs::path> resolve_image(const fs::path& base, const std::string& file_path, const std::string& where) {
-  const fs::path path = (base / file_path).lexically_normal();
+  const fs::path relative = fs::path(file_path).lexically_normal();
+  if (relative.is_absolute() || relative.empty() || *relative.begin() == "..")
+    return absl::InvalidArgumentError(
+        absl::StrCat(where, ": file_path '", file_path, "' leads outside the scene folder ", base.string()));
+  const fs::path path = (base / relative).lexically_normal();
   std::error_code ec;
   if (fs::is_regular_file(path, ec)) return path;
   for (const char* ext : {".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG"}) {
