@@ -3,6 +3,7 @@
 #include <cstdlib>
 
 #include "absl/strings/ascii.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
 #include "common/io_util.h"
@@ -11,8 +12,18 @@
 namespace gaps::rpc {
 namespace {
 
+// gRPC takes any bytes here and fails later with messages that name neither the file nor the problem
+// ("empty address list", "cannot listen"), so the PEM block a file must hold is checked as it is read.
 absl::StatusOr<std::string> read_pem(const std::string& path, const std::string& what) {
-  return read_file_bytes(path, what);
+  GAPS_ASSIGN_OR_RETURN(std::string pem, read_file_bytes(path, what));
+  const bool key = absl::StrContains(what, "private key");
+  const bool has_block = key ? absl::StrContains(pem, "-----BEGIN") && absl::StrContains(pem, "PRIVATE KEY-----")
+                             : absl::StrContains(pem, "-----BEGIN CERTIFICATE-----");
+  if (!has_block)
+    return absl::InvalidArgumentError(absl::StrCat(path, ": not a PEM ", key ? "private key" : "certificate", " (the ",
+                                                   what, " must hold a '-----BEGIN ",
+                                                   key ? "... PRIVATE KEY" : "CERTIFICATE", "-----' block)"));
+  return pem;
 }
 
 // Same duration whatever the first differing byte, so the token cannot be guessed byte by byte (its

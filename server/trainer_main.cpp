@@ -95,7 +95,9 @@ int main(int argc, char** argv) {
   builder.AddListeningPort(address, *credentials, &port);
   builder.RegisterService(service->get());
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
-  if (!server || port == 0) return fail("cannot listen on " + address);
+  if (!server || port == 0)
+    return fail("cannot listen on " + address +
+                ": the address is in use or not local, or the TLS private key does not belong to the certificate");
   if (auto st = (*service)->start(); !st.ok()) return fail(std::string(st.message()));
   std::signal(SIGTERM, on_signal);
   std::signal(SIGINT, on_signal);

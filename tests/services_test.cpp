@@ -451,6 +451,23 @@ TEST_F(MutualTls, OnlyClientsWithACertificateSignedByTheClientCaGetIn) {
             absl::StatusCode::kInvalidArgument);
 }
 
+// A file that holds no PEM block is named as such when it is read, not later by gRPC as "empty address
+// list" or "cannot listen".
+TEST(Security, FilesWithoutAPemBlockAreRefusedNamingTheFile) {
+  const std::filesystem::path garbage = std::filesystem::temp_directory_path() / "gaps_garbage.pem";
+  std::ofstream(garbage) << "this is not a certificate\n";
+  const auto channel = rpc::make_channel("127.0.0.1:1", {"", garbage.string(), ""});
+  ASSERT_FALSE(channel.ok());
+  EXPECT_EQ(channel.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(channel.status().message().find(garbage.string() + ": not a PEM certificate"), std::string_view::npos)
+      << channel.status();
+  rpc::ServerSecurity server{"", garbage.string(), garbage.string(), ""};
+  const auto credentials = rpc::server_credentials(server);
+  ASSERT_FALSE(credentials.ok());
+  EXPECT_NE(credentials.status().message().find("not a PEM"), std::string_view::npos) << credentials.status();
+  std::filesystem::remove(garbage);
+}
+
 TEST(WorkerPool, NoReachableWorkerIsUnavailableNamingEachAddress) {
   auto remote = pool({"127.0.0.1:1", "127.0.0.1:2"});
   ASSERT_TRUE(remote.ok());

@@ -105,7 +105,9 @@ int main(int argc, char** argv) {
   builder.RegisterService(&service);
   builder.SetMaxReceiveMessageSize(4 << 20);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
-  if (!server || port == 0) return fail("cannot listen on " + address);
+  if (!server || port == 0)
+    return fail("cannot listen on " + address +
+                ": the address is in use or not local, or the TLS private key does not belong to the certificate");
   std::signal(SIGTERM, on_signal);
   std::signal(SIGINT, on_signal);
   // The resolved port, so a caller that asked for port 0 learns which one it got.
