@@ -96,12 +96,4 @@ absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& tra
   return given;
 }
 
-bool option_flag_given(const std::string& name) {
-  for (const FlagEntry& e : kTrainingFlags)
-    if (name == e.name) return absl::GetFlag(*e.flag).given;
-  for (const FlagEntry& e : kGapsFlags)
-    if (name == e.name) return absl::GetFlag(*e.flag).given;
-  return false;
-}
-
 }  // namespace gaps::client

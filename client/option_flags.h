@@ -29,7 +29,4 @@ struct GivenOptions {
 absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& training_file,
                                                           const std::string& gaps_file);
 
-// Whether the option flag `name` was given on the command line.
-bool option_flag_given(const std::string& name);
-
 }  // namespace gaps::client

@@ -221,7 +221,6 @@ class TrainingRun {
   // Wall-clock seconds since train() began, without the evaluations of the curve.
   double train_seconds() const { return seconds_since_start(std::chrono::steady_clock::now()); }
 
-  // The paper's method on top of the trainer; nothing for the vanilla variant.
   // The method's options as used: n_active resolved from the training views' layout when 0.
   GapsConfig effective_gaps() const {
     GapsConfig gaps = o_.gaps;
@@ -231,12 +230,12 @@ class TrainingRun {
     return gaps;
   }
 
-  absl::Status attach_method() {
+  // The paper's method, with `gaps` (effective_gaps()), on top of the trainer; nothing for the vanilla variant.
+  absl::Status attach_method(const GapsConfig& gaps) {
     if (o_.variant == Variant::kVanilla) return absl::OkStatus();
     if (!o_.generator)
       return absl::InvalidArgumentError(
           absl::StrCat("variant ", variant_name(o_.variant), " needs a generator backend"));
-    const GapsConfig gaps = effective_gaps();
     if (o_.gaps.n_active == 0)
       log_(absl::StrCat("pseudo-views per phase: ", gaps.n_active, " (the training views ",
                         gaps.n_active == kNActiveMip360 ? "surround the scene" : "face one way", ")"));
@@ -420,7 +419,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   result.max_gaussians = run.trainer().config().max_gaussians;
   result.config = run.trainer().config();
   result.gaps = run.effective_gaps();
-  GAPS_RETURN_IF_ERROR(run.attach_method());
+  GAPS_RETURN_IF_ERROR(run.attach_method(result.gaps));
   GAPS_RETURN_IF_ERROR(run.resume());
   const absl::Status trained = run.train(on_progress, test, lpips_model, &result.curve);
   GAPS_RETURN_IF_ERROR(run.keep_state(trained));

@@ -34,9 +34,6 @@ absl::Status validate_gaps_config(const GapsConfig& c) {
   if (c.strength_min > c.strength_max) return invalid("strength_min is above strength_max");
   const absl::Status inpaint = check_inpaint_settings(inpaint_settings(c));
   if (!inpaint.ok()) return invalid(std::string(inpaint.message()));
-  for (const absl::Status& s :
-       {check_scene_adaptation(scene_adaptation(c)), check_ip_adapter_scale(c.ip_adapter_scale)})
-    if (!s.ok()) return invalid(std::string(s.message()));
   return absl::OkStatus();
 }
 
