@@ -15,24 +15,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// Sends a file as FileChunks (at least one, so empty files arrive too).
-bool send_file(grpc::ClientWriter<v1::SubmitJobRequest>& writer, v1::FileChunk::Kind kind, int index,
-               const std::string& bytes) {
-  size_t offset = 0;
-  do {
-    v1::SubmitJobRequest request;
-    v1::FileChunk* chunk = request.mutable_file();
-    chunk->set_kind(kind);
-    chunk->set_index(index);
-    const size_t n = std::min(rpc::kChunkBytes, bytes.size() - offset);
-    chunk->set_data(bytes.data() + offset, n);
-    offset += n;
-    chunk->set_last(offset == bytes.size());
-    if (!writer.Write(request)) return false;
-  } while (offset < bytes.size());
-  return true;
-}
-
 // Artifact paths come from the server: never let one escape the output folder.
 bool safe_relative(const std::string& path) {
   const fs::path p(path);
@@ -82,9 +64,11 @@ absl::StatusOr<std::string> TrainerClient::submit(v1::JobSpec spec, const Prepar
   v1::SubmitJobRequest first;
   *first.mutable_spec() = spec;
   bool open = writer->Write(first);
+  const auto write = [&writer](const v1::SubmitJobRequest& request) { return writer->Write(request); };
   for (size_t i = 0; open && i < scene.images.size(); ++i)
-    open = send_file(*writer, v1::FileChunk::IMAGE, static_cast<int>(i), scene.images[i]);
-  if (open && !scene.points_ply.empty()) open = send_file(*writer, v1::FileChunk::POINTS, 0, scene.points_ply);
+    open = rpc::write_file_chunks(v1::FileChunk::IMAGE, static_cast<int>(i), scene.images[i], write);
+  if (open && !scene.points_ply.empty())
+    open = rpc::write_file_chunks(v1::FileChunk::POINTS, 0, scene.points_ply, write);
   if (open) writer->WritesDone();
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(writer->Finish(), "SubmitJob"));
   return response.job_id();

@@ -1,6 +1,7 @@
 #include "common/image_io.h"
 
 #include <cstdio>
+#include <limits>
 #include <string>
 
 #include <ATen/ATen.h>
@@ -61,12 +62,28 @@ absl::Status check_image_size(const std::string& what, int width, int height) {
   return absl::OkStatus();
 }
 
+struct ImageHeader {
+  int width = 0, height = 0, channels = 0;
+};
+
+absl::StatusOr<ImageHeader> read_header(const fs::path& path, const std::string& bytes) {
+  // stb takes an int length; a larger file cannot be a PNG/JPEG we would accept anyway.
+  if (bytes.size() > static_cast<size_t>(std::numeric_limits<int>::max()))
+    return absl::InvalidArgumentError(
+        absl::StrCat(path.string(), ": ", bytes.size(), " bytes is too large an image file"));
+  ImageHeader h;
+  if (!stbi_info_from_memory(reinterpret_cast<const stbi_uc*>(bytes.data()), static_cast<int>(bytes.size()), &h.width,
+                             &h.height, &h.channels))
+    return corrupt(path);
+  GAPS_RETURN_IF_ERROR(check_image_size(path.string(), h.width, h.height));
+  return h;
+}
+
 absl::StatusOr<at::Tensor> decode(const fs::path& path, const std::string& bytes) {
+  GAPS_ASSIGN_OR_RETURN(const ImageHeader header, read_header(path, bytes));
   const auto* data = reinterpret_cast<const stbi_uc*>(bytes.data());
   const int size = static_cast<int>(bytes.size());
-  int width = 0, height = 0, channels = 0;
-  if (!stbi_info_from_memory(data, size, &width, &height, &channels)) return corrupt(path);
-  GAPS_RETURN_IF_ERROR(check_image_size(path.string(), width, height));
+  int width = header.width, height = header.height, channels = header.channels;
   if (channels < 1 || channels > 4)
     return absl::InvalidArgumentError(absl::StrCat(path.string(), ": unsupported channel count ", channels));
   at::Tensor image;
@@ -138,6 +155,11 @@ absl::Status write_png(const fs::path& path, const at::Tensor& image) {
 
 absl::StatusOr<at::Tensor> decode_image(const std::string& bytes, const std::string& what) {
   return decode(what, bytes);
+}
+
+absl::StatusOr<std::pair<int, int>> decode_image_size(const std::string& bytes, const std::string& what) {
+  GAPS_ASSIGN_OR_RETURN(const ImageHeader header, read_header(what, bytes));
+  return std::make_pair(header.width, header.height);
 }
 
 at::Tensor resize_image(const at::Tensor& image, int width, int height) {

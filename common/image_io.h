@@ -24,6 +24,8 @@ absl::Status write_png(const std::filesystem::path& path, const at::Tensor& imag
 // names the image in errors.
 absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::string& what);
 absl::StatusOr<at::Tensor> decode_image(const std::string& bytes, const std::string& what);
+// (width, height) from the header alone, checked as decode_image checks it; `what` names the image.
+absl::StatusOr<std::pair<int, int>> decode_image_size(const std::string& bytes, const std::string& what);
 // Area-averaging resize (exact box filter for integer factors), as used to build images_N folders.
 at::Tensor resize_image(const at::Tensor& image, int width, int height);
 

@@ -2,6 +2,7 @@
 // Conversions between the project's types and the gaps.v1 messages, chunked transfer of large messages,
 // and status mapping between absl and gRPC. Every decoder checks what it reads and names the offending
 // item in its error, because the data comes from another process.
+#include <algorithm>
 #include <string>
 
 #include <ATen/Tensor.h>
@@ -9,6 +10,7 @@
 #include <grpcpp/grpcpp.h>
 #include "absl/status/statusor.h"
 #include "gaps/v1/common.pb.h"
+#include "gaps/v1/trainer.pb.h"
 #include "gs_trainer/scene/camera.h"
 
 namespace gaps::rpc {
@@ -45,6 +47,26 @@ bool write_chunked(const google::protobuf::Message& message, WriteFn&& write) {
     chunk.set_data(bytes.data() + offset, n);
     offset += n;
     if (!write(chunk)) return false;
+  } while (offset < bytes.size());
+  return true;
+}
+
+// Sends a file of SubmitJob as FileChunks of at most `chunk_bytes` through `write` (at least one, so empty
+// files arrive too; returns false when the stream broke).
+template <typename WriteFn>
+bool write_file_chunks(v1::FileChunk::Kind kind, int index, const std::string& bytes, WriteFn&& write,
+                       size_t chunk_bytes = kChunkBytes) {
+  size_t offset = 0;
+  do {
+    v1::SubmitJobRequest request;
+    v1::FileChunk* chunk = request.mutable_file();
+    chunk->set_kind(kind);
+    chunk->set_index(index);
+    const size_t n = std::min(chunk_bytes, bytes.size() - offset);
+    chunk->set_data(bytes.data() + offset, n);
+    offset += n;
+    chunk->set_last(offset == bytes.size());
+    if (!write(request)) return false;
   } while (offset < bytes.size());
   return true;
 }

@@ -1,5 +1,8 @@
 #include "server/scene_upload.h"
 
+#include <cerrno>
+#include <cstring>
+#include <fstream>
 #include <set>
 
 #include <nlohmann/json.hpp>
@@ -41,11 +44,133 @@ nlohmann::json frame_json(const Camera& c, const std::string& file) {
           {"cy", c.cy},        {"w", c.width},          {"h", c.height}};
 }
 
+absl::Status store_failed(absl::string_view what, absl::string_view why) {
+  // The data folder's path is the server's business; the client learns what failed and why.
+  return absl::ResourceExhaustedError(absl::StrCat("the trainer could not store the upload (", what, ": ", why, ")"));
+}
+
+// Appends SubmitJob's file chunks to their files as they arrive: images in order, each complete before the
+// next begins, and at most one point cloud.
+class UploadWriter {
+ public:
+  UploadWriter(SceneUpload* upload, uint64_t max_bytes) : upload_(upload), max_bytes_(max_bytes) {}
+
+  absl::Status add(const v1::FileChunk& chunk) {
+    received_ += chunk.data().size();
+    if (received_ > max_bytes_)
+      return absl::ResourceExhaustedError(absl::StrCat("upload exceeds the limit of ", max_bytes_, " bytes"));
+    switch (chunk.kind()) {
+      case v1::FileChunk::IMAGE:
+        return add_image(chunk);
+      case v1::FileChunk::POINTS:
+        return add_points(chunk);
+      default:
+        return absl::InvalidArgumentError(absl::StrCat("file chunk of unknown kind ", chunk.kind()));
+    }
+  }
+
+  // Checks every announced file arrived complete.
+  absl::Status finish() {
+    GAPS_RETURN_IF_ERROR(switch_to(fs::path()));
+    if (started_images_ != upload_->images)
+      return absl::InvalidArgumentError(absl::StrCat("image ", started_images_ - 1, " is incomplete (no last chunk)"));
+    if (upload_->spec.has_points() && !points_complete_)
+      return absl::InvalidArgumentError("the announced point cloud is missing or incomplete");
+    return absl::OkStatus();
+  }
+
+ private:
+  absl::Status add_image(const v1::FileChunk& chunk) {
+    const int index = chunk.index();
+    if (index != upload_->images)
+      return absl::InvalidArgumentError(absl::StrCat("image chunk for index ", index, " while image ", upload_->images,
+                                                     " is expected (images arrive in order)"));
+    if (index >= upload_->spec.cameras_size())
+      return absl::InvalidArgumentError(absl::StrCat("camera count mismatch: image ", index, " has no camera (",
+                                                     upload_->spec.cameras_size(), " cameras)"));
+    if (index == started_images_) ++started_images_;
+    GAPS_RETURN_IF_ERROR(append(upload_->image_file(index), chunk.data()));
+    if (chunk.last()) ++upload_->images;
+    return absl::OkStatus();
+  }
+
+  absl::Status add_points(const v1::FileChunk& chunk) {
+    if (!upload_->spec.has_points()) return absl::InvalidArgumentError("point cloud sent but the spec announced none");
+    if (points_complete_) return absl::InvalidArgumentError("point cloud sent twice");
+    GAPS_RETURN_IF_ERROR(append(upload_->points_file(), chunk.data()));
+    points_complete_ = chunk.last();
+    return absl::OkStatus();
+  }
+
+  absl::Status append(const fs::path& file, const std::string& data) {
+    if (file != open_) GAPS_RETURN_IF_ERROR(switch_to(file));
+    if (!out_.write(data.data(), static_cast<std::streamsize>(data.size())))
+      return store_failed("write", std::strerror(errno));
+    return absl::OkStatus();
+  }
+
+  // Closes the file being written (a failed close is a failed write) and opens `file`, if any, afresh.
+  absl::Status switch_to(const fs::path& file) {
+    if (out_.is_open()) {
+      out_.close();
+      if (!out_) return store_failed("write", std::strerror(errno));
+    }
+    open_ = file;
+    if (file.empty()) return absl::OkStatus();
+    out_.clear();
+    out_.open(file, std::ios::binary | std::ios::trunc);
+    if (!out_) return store_failed("create", std::strerror(errno));
+    return absl::OkStatus();
+  }
+
+  SceneUpload* upload_;
+  uint64_t max_bytes_;
+  uint64_t received_ = 0;
+  int started_images_ = 0;
+  bool points_complete_ = false;
+  std::ofstream out_;
+  fs::path open_;
+};
+
+// One uploaded image: read back (one at a time), its header checked against the camera before decoding.
+absl::Status check_uploaded_image(const fs::path& file, const Camera& camera, const std::string& what) {
+  absl::StatusOr<std::string> bytes = read_file_bytes(file, "uploaded image");
+  if (!bytes.ok()) return store_failed("read back", absl::StatusCodeToString(bytes.status().code()));
+  absl::StatusOr<std::pair<int, int>> size = decode_image_size(*bytes, what);
+  if (!size.ok()) return invalid(size.status());
+  if (size->first != camera.width || size->second != camera.height)
+    return absl::InvalidArgumentError(absl::StrCat(what, ": image is ", size->first, "x", size->second,
+                                                   " but its camera says ", camera.width, "x", camera.height));
+  return invalid(decode_image(*bytes, what).status());
+}
+
 }  // namespace
 
-absl::Status write_uploaded_scene(const SceneUpload& upload, const fs::path& scene_dir) {
+fs::path SceneUpload::image_file(int index) const { return dir / "upload" / absl::StrCat("image_", index); }
+fs::path SceneUpload::points_file() const { return dir / "upload" / "points.ply"; }
+
+absl::StatusOr<SceneUpload> receive_upload(const UploadMessageSource& next, uint64_t max_bytes, const fs::path& dir) {
+  v1::SubmitJobRequest part;
+  if (!next(&part) || !part.has_spec())
+    return absl::InvalidArgumentError("SubmitJob's first message must carry the JobSpec");
+  SceneUpload upload;
+  upload.spec = part.spec();
+  upload.dir = dir;
+  std::error_code ec;
+  fs::create_directories(dir / "upload", ec);
+  if (ec) return store_failed("create folder", ec.message());
+  UploadWriter writer(&upload, max_bytes);
+  while (next(&part)) {
+    if (!part.has_file()) return absl::InvalidArgumentError("only file chunks may follow the JobSpec");
+    GAPS_RETURN_IF_ERROR(writer.add(part.file()));
+  }
+  GAPS_RETURN_IF_ERROR(writer.finish());
+  return upload;
+}
+
+absl::Status write_uploaded_scene(const SceneUpload& upload) {
   const v1::JobSpec& spec = upload.spec;
-  const int cameras = spec.cameras_size(), images = static_cast<int>(upload.images.size());
+  const int cameras = spec.cameras_size(), images = upload.images;
   if (cameras == 0) return absl::InvalidArgumentError("the upload has no cameras");
   if (cameras != images)
     return absl::InvalidArgumentError(
@@ -64,71 +189,35 @@ absl::Status write_uploaded_scene(const SceneUpload& upload, const fs::path& sce
       return absl::InvalidArgumentError(absl::StrCat(what, ": image name must be a plain file name"));
     if (!names.insert(camera.name).second)
       return absl::InvalidArgumentError(absl::StrCat(what, ": duplicate image name"));
-    const std::string image_what = absl::StrCat("image ", i, " (", camera.name, ")");
-    absl::StatusOr<at::Tensor> decoded_image = decode_image(upload.images[i], image_what);
-    if (!decoded_image.ok()) return invalid(decoded_image.status());
-    const at::Tensor& image = *decoded_image;
-    if (image.size(0) != camera.height || image.size(1) != camera.width)
-      return absl::InvalidArgumentError(absl::StrCat(image_what, ": image is ", image.size(1), "x", image.size(0),
-                                                     " but its camera says ", camera.width, "x", camera.height));
+    GAPS_RETURN_IF_ERROR(
+        check_uploaded_image(upload.image_file(i), camera, absl::StrCat("image ", i, " (", camera.name, ")")));
     decoded.push_back(std::move(camera));
   }
-
-  fs::create_directories(scene_dir / "images");
-  nlohmann::json frames = nlohmann::json::array();
-  for (int i = 0; i < cameras; ++i) {
-    const std::string file = "images/" + decoded[i].name;
-    GAPS_RETURN_IF_ERROR(write_file_bytes(scene_dir / file, upload.images[i]));
-    frames.push_back(frame_json(decoded[i], file));
-  }
   if (spec.has_points()) {
-    const fs::path ply = scene_dir / "points.ply";
-    GAPS_RETURN_IF_ERROR(write_file_bytes(ply, upload.points_ply));
     // The reader names the file it read; the client knows it as the uploaded point cloud, not by our path.
+    const fs::path ply = upload.points_file();
     if (auto points = read_point_cloud_ply(ply); !points.ok())
       return absl::InvalidArgumentError(absl::StrCat(
           "uploaded point cloud: ", absl::StrReplaceAll(points.status().message(), {{ply.string() + ": ", ""}})));
   }
-  const std::string doc = nlohmann::json{{"camera_model", "PINHOLE"}, {"frames", frames}}.dump(2);
-  return write_file_bytes(scene_dir / "transforms.json", doc);
-}
 
-absl::Status UploadAssembler::add(const v1::FileChunk& chunk) {
-  received_ += chunk.data().size();
-  if (received_ > max_bytes_)
-    return absl::ResourceExhaustedError(absl::StrCat("upload exceeds the limit of ", max_bytes_, " bytes"));
-  const v1::JobSpec& spec = upload_->spec;
-  switch (chunk.kind()) {
-    case v1::FileChunk::IMAGE: {
-      if (chunk.index() != complete_images_)
-        return absl::InvalidArgumentError(absl::StrCat("image chunk for index ", chunk.index(), " while image ",
-                                                       complete_images_, " is expected (images arrive in order)"));
-      if (chunk.index() >= spec.cameras_size())
-        return absl::InvalidArgumentError(absl::StrCat("camera count mismatch: image ", chunk.index(),
-                                                       " has no camera (", spec.cameras_size(), " cameras)"));
-      if (static_cast<int>(upload_->images.size()) <= chunk.index()) upload_->images.emplace_back();
-      upload_->images[chunk.index()] += chunk.data();
-      if (chunk.last()) ++complete_images_;
-      return absl::OkStatus();
-    }
-    case v1::FileChunk::POINTS:
-      if (!spec.has_points()) return absl::InvalidArgumentError("point cloud sent but the spec announced none");
-      if (points_complete_) return absl::InvalidArgumentError("point cloud sent twice");
-      upload_->points_ply += chunk.data();
-      points_complete_ = chunk.last();
-      return absl::OkStatus();
-    default:
-      return absl::InvalidArgumentError(absl::StrCat("file chunk of unknown kind ", chunk.kind()));
+  std::error_code ec;
+  fs::create_directories(upload.dir / "images", ec);
+  if (ec) return store_failed("create folder", ec.message());
+  nlohmann::json frames = nlohmann::json::array();
+  for (int i = 0; i < cameras; ++i) {
+    const std::string file = "images/" + decoded[i].name;
+    fs::rename(upload.image_file(i), upload.dir / file, ec);
+    if (ec) return store_failed("rename", ec.message());
+    frames.push_back(frame_json(decoded[i], file));
   }
-}
-
-absl::Status UploadAssembler::finish() const {
-  if (complete_images_ != static_cast<int>(upload_->images.size()))
-    return absl::InvalidArgumentError(
-        absl::StrCat("image ", upload_->images.size() - 1, " is incomplete (no last chunk)"));
-  if (upload_->spec.has_points() && !points_complete_)
-    return absl::InvalidArgumentError("the announced point cloud is missing or incomplete");
-  return absl::OkStatus();
+  if (spec.has_points()) {
+    fs::rename(upload.points_file(), upload.dir / "points.ply", ec);
+    if (ec) return store_failed("rename", ec.message());
+  }
+  remove_tree(upload.dir / "upload");
+  const std::string doc = nlohmann::json{{"camera_model", "PINHOLE"}, {"frames", frames}}.dump(2);
+  return write_file_bytes(upload.dir / "transforms.json", doc);
 }
 
 }  // namespace gaps

@@ -1,41 +1,39 @@
 #pragma once
-// A scene uploaded through SubmitJob: checked, then written as a transforms.json scene the pipeline loads
-// (images/ as uploaded, camera-to-world matrices in the OpenGL convention, per-frame intrinsics) plus the
-// optional initial point cloud. Every problem is INVALID_ARGUMENT naming the image or camera at fault.
+// A scene uploaded through SubmitJob: streamed to files as it arrives, checked, then written as a
+// transforms.json scene the pipeline loads.
+#include <cstdint>
 #include <filesystem>
-#include <string>
-#include <vector>
+#include <functional>
 
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "gaps/v1/trainer.pb.h"
 
 namespace gaps {
 
+// A scene as SubmitJob delivers it: the spec, and the files its chunks carried, already on disk in
+// `dir`/upload (so an upload never sits in memory whole): image_<i> for camera i, points.ply.
 struct SceneUpload {
   v1::JobSpec spec;
-  std::vector<std::string> images;  // encoded PNG/JPEG bytes, one per camera
-  std::string points_ply;           // empty unless spec.has_points
+  std::filesystem::path dir;
+  int images = 0;  // how many arrived complete
+  std::filesystem::path image_file(int index) const;
+  std::filesystem::path points_file() const;
 };
 
-// Checks the upload against itself and the spec's config (camera/image counts, decodable images of the
-// cameras' sizes, finite poses with proper rotations, unique plain file names, a readable point cloud, a
-// config the pipeline accepts and a view count the split can provide), then writes it to `scene_dir`.
-absl::Status write_uploaded_scene(const SceneUpload& upload, const std::filesystem::path& scene_dir);
+// Reads SubmitJob's messages from `next` (false at the end of the stream): the JobSpec first, then file
+// chunks in order, each appended to its file under `dir`/upload as it arrives. `max_bytes` bounds the
+// files' total. Errors: INVALID_ARGUMENT for a malformed stream, RESOURCE_EXHAUSTED over the limit.
+using UploadMessageSource = std::function<bool(v1::SubmitJobRequest*)>;
+absl::StatusOr<SceneUpload> receive_upload(const UploadMessageSource& next, uint64_t max_bytes,
+                                           const std::filesystem::path& dir);
 
-// Reads the per-file chunks of SubmitJob into `upload` (after the spec). `max_bytes` bounds the total.
-class UploadAssembler {
- public:
-  UploadAssembler(SceneUpload* upload, uint64_t max_bytes) : upload_(upload), max_bytes_(max_bytes) {}
-  absl::Status add(const v1::FileChunk& chunk);
-  // Checks every announced file arrived complete.
-  absl::Status finish() const;
-
- private:
-  SceneUpload* upload_;
-  uint64_t max_bytes_;
-  uint64_t received_ = 0;
-  int complete_images_ = 0;
-  bool points_complete_ = false;
-};
+// Checks the received upload against itself and the spec's config (camera/image counts, decodable images
+// of the cameras' sizes, finite poses with proper rotations, unique plain file names, a readable point
+// cloud, a config the pipeline accepts and a view count the split can provide), then makes `dir` the
+// transforms.json scene the pipeline loads (images/ as uploaded, camera-to-world matrices in the OpenGL
+// convention, per-frame intrinsics, points.ply) and removes upload/. Every problem is INVALID_ARGUMENT
+// naming the image or camera at fault.
+absl::Status write_uploaded_scene(const SceneUpload& upload);
 
 }  // namespace gaps

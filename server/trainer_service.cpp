@@ -38,6 +38,14 @@ std::string new_job_id() {
   return absl::StrFormat("job-%012x", rng() & 0xffffffffffffULL);
 }
 
+absl::Status move_folder(const fs::path& from, const fs::path& to) {
+  std::error_code ec;
+  fs::create_directories(to.parent_path(), ec);
+  if (!ec) fs::rename(from, to, ec);
+  if (ec) return absl::ResourceExhaustedError(absl::StrCat("the trainer could not store the upload: ", ec.message()));
+  return absl::OkStatus();
+}
+
 bool terminal(v1::JobState s) { return s == v1::SUCCEEDED || s == v1::FAILED || s == v1::CANCELLED; }
 
 v1::JobEvent event_for(const std::string& job_id) {
@@ -119,6 +127,9 @@ absl::StatusOr<std::unique_ptr<TrainerService>> TrainerService::create(TrainerSe
 fs::path TrainerService::job_dir(const std::string& job_id) const { return options_.data_dir / "jobs" / job_id; }
 
 absl::Status TrainerService::start() {
+  // Uploads a previous process was receiving when it stopped never became jobs (the data folder lock
+  // says no other process is receiving any).
+  remove_tree(options_.data_dir / "uploads");
   // Jobs another process left behind: running ones go on from their checkpoint (counted as a resume),
   // queued ones wait.
   for (v1::JobState state : {v1::RUNNING, v1::QUEUED}) {
@@ -406,24 +417,21 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
 grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::ServerReader<v1::SubmitJobRequest>* reader,
                                        v1::SubmitJobResponse* response) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
-  v1::SubmitJobRequest part;
-  if (!reader->Read(&part) || !part.has_spec())
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "SubmitJob's first message must carry the JobSpec");
-  SceneUpload upload;
-  upload.spec = part.spec();
-  UploadAssembler assembler(&upload, options_.max_upload_bytes);
-  while (reader->Read(&part)) {
-    if (!part.has_file())
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "only file chunks may follow the JobSpec");
-    if (auto st = assembler.add(part.file()); !st.ok()) return rpc::to_grpc(st);
-  }
-  if (auto st = assembler.finish(); !st.ok()) return rpc::to_grpc(st);
+  // The upload streams into a staging folder and becomes the job's scene only once checked whole, so a
+  // trainer that dies mid-upload leaves no half-written job behind (start() clears what it left).
   const std::string job_id = new_job_id();
+  const fs::path staging = options_.data_dir / "uploads" / job_id;
   const fs::path dir = job_dir(job_id);
-  if (auto st = write_uploaded_scene(upload, dir / "scene"); !st.ok()) {
+  absl::StatusOr<SceneUpload> received = receive_upload(
+      [reader](v1::SubmitJobRequest* part) { return reader->Read(part); }, options_.max_upload_bytes, staging);
+  absl::Status stored_scene = received.ok() ? write_uploaded_scene(*received) : received.status();
+  if (stored_scene.ok()) stored_scene = move_folder(staging, dir / "scene");
+  if (!stored_scene.ok()) {
+    remove_tree(staging);
     remove_tree(dir);
-    return rpc::to_grpc(st);
+    return rpc::to_grpc(stored_scene);
   }
+  const SceneUpload& upload = *received;
   v1::JobStatus status;
   status.set_job_id(job_id);
   status.set_name(upload.spec.name());
@@ -432,8 +440,7 @@ grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::Serve
   absl::StatusOr<RunOptions> o =
       run_options_from_proto(upload.spec.config(), upload.spec.has_points(), "", options_.device);
   status.set_iterations(o.ok() ? o->config.iterations : 0);
-  v1::JobSpec stored = upload.spec;  // images live in the scene folder, not in the database
-  if (auto st = store_->insert(status, stored); !st.ok()) {
+  if (auto st = store_->insert(status, upload.spec); !st.ok()) {
     remove_tree(dir);
     return rpc::to_grpc(st);
   }

@@ -27,6 +27,7 @@
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/ply.h"
+#include "common/status_macros.h"
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
 #include "gs_trainer/synthetic.h"
@@ -43,6 +44,8 @@
 
 namespace gaps {
 namespace {
+
+namespace fs = std::filesystem;
 
 Camera test_camera(double x, int width = 24, int height = 18) {
   Camera c;
@@ -449,6 +452,22 @@ TEST_F(MutualTls, OnlyClientsWithACertificateSignedByTheClientCaGetIn) {
             absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(rpc::make_channel(worker.address(), {"", "", "", d + "client.pem", d + "client.key"}).status().code(),
             absl::StatusCode::kInvalidArgument);
+  // A key that belongs to another certificate is named with both files, on either side, before gRPC sees it
+  // (which would only say that the server "cannot listen" or that a handshake failed).
+  const auto mismatch = [&](const absl::Status& st) {
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
+    EXPECT_TRUE(absl::StrContains(st.message(), "the TLS private key " + d +
+                                                    "rogue.key does not belong to the "
+                                                    "certificate " +
+                                                    d + "localhost.pem"))
+        << st;
+  };
+  mismatch(rpc::server_credentials({"", d + "localhost.pem", d + "rogue.key", ""}).status());
+  mismatch(rpc::make_channel(worker.address(), {"", d + "ca.pem", "", d + "localhost.pem", d + "rogue.key"}).status());
+  std::ofstream(d + "truncated.key") << "-----BEGIN PRIVATE KEY-----\nAAAA\n-----END PRIVATE KEY-----\n";
+  const auto unreadable = rpc::server_credentials({"", d + "localhost.pem", d + "truncated.key", ""}).status();
+  EXPECT_TRUE(absl::StrContains(unreadable.message(), d + "truncated.key: the private key cannot be read"))
+      << unreadable;
 }
 
 // A file that holds no PEM block is named as such when it is read, not later by gRPC as "empty address
@@ -853,6 +872,38 @@ TEST_F(TrainerWithWorker, BackendNotesReachThePhaseEntryAndTheJobLog) {
   EXPECT_EQ(nlohmann::json::parse(phases_file)[0]["generator_notes"], phases[0]["generator_notes"]);
 }
 
+// What a client sends through SubmitJob, before it is cut into messages.
+struct UploadParts {
+  v1::JobSpec spec;
+  std::vector<std::string> images;
+  std::string points_ply;
+};
+
+std::vector<v1::SubmitJobRequest> submit_messages(const UploadParts& parts, size_t chunk_bytes) {
+  std::vector<v1::SubmitJobRequest> messages(1);
+  *messages[0].mutable_spec() = parts.spec;
+  const auto keep = [&](const v1::SubmitJobRequest& m) {
+    messages.push_back(m);
+    return true;
+  };
+  for (size_t i = 0; i < parts.images.size(); ++i)
+    rpc::write_file_chunks(v1::FileChunk::IMAGE, static_cast<int>(i), parts.images[i], keep, chunk_bytes);
+  if (!parts.points_ply.empty()) rpc::write_file_chunks(v1::FileChunk::POINTS, 0, parts.points_ply, keep, chunk_bytes);
+  return messages;
+}
+
+absl::StatusOr<SceneUpload> receive(const std::vector<v1::SubmitJobRequest>& messages, const fs::path& dir,
+                                    uint64_t max_bytes = uint64_t{1} << 30) {
+  size_t next = 0;
+  return receive_upload(
+      [&](v1::SubmitJobRequest* m) {
+        if (next == messages.size()) return false;
+        *m = messages[next++];
+        return true;
+      },
+      max_bytes, dir);
+}
+
 struct UploadTest : test::TempDirTest {
   void SetUp() override {
     test::TempDirTest::SetUp();
@@ -867,8 +918,11 @@ struct UploadTest : test::TempDirTest {
     for (const auto& c : scene->cameras) *upload.spec.add_cameras() = c;
     upload.images = scene->images;
   }
-  absl::Status write() { return write_uploaded_scene(upload, dir_ / "scene"); }
-  SceneUpload upload;
+  absl::Status write(const std::string& folder = "scene") {
+    GAPS_ASSIGN_OR_RETURN(SceneUpload received, receive(submit_messages(upload, 700), dir_ / folder));
+    return write_uploaded_scene(received);
+  }
+  UploadParts upload;
 };
 
 TEST_F(UploadTest, AValidUploadLoadsAsTheSameScene) {
@@ -888,13 +942,53 @@ TEST_F(UploadTest, AValidUploadLoadsAsTheSameScene) {
   }
 }
 
+TEST_F(UploadTest, FilesStreamToDiskAsTheyArriveAndBecomeTheScene) {
+  // Chunks of 100 bytes: every image arrives in several pieces, each appended to its file as it comes.
+  auto received = receive(submit_messages(upload, 100), dir_ / "streamed");
+  ASSERT_TRUE(received.ok()) << received.status();
+  EXPECT_EQ(received->images, 9);
+  for (int i = 0; i < 9; ++i) {
+    ASSERT_GT(upload.images[i].size(), 200u);
+    EXPECT_EQ(*read_file_bytes(received->image_file(i)), upload.images[i]) << i;
+  }
+  ASSERT_TRUE(write_uploaded_scene(*received).ok());
+  EXPECT_FALSE(fs::exists(dir_ / "streamed" / "upload")) << "the staging files are gone once the scene is made";
+  EXPECT_EQ(*read_file_bytes(dir_ / "streamed" / "images" / upload.spec.cameras(0).name()), upload.images[0]);
+}
+
+TEST_F(UploadTest, MalformedStreamsAreRefusedNamingTheProblem) {
+  const auto refused = [&](std::vector<v1::SubmitJobRequest> messages, absl::StatusCode code, const std::string& needle,
+                           uint64_t max_bytes = uint64_t{1} << 30) {
+    const auto st = receive(messages, dir_ / "bad", max_bytes).status();
+    EXPECT_EQ(st.code(), code) << st;
+    EXPECT_TRUE(absl::StrContains(st.message(), needle)) << st;
+    EXPECT_FALSE(absl::StrContains(st.message(), dir_.string())) << "the server's path leaks: " << st;
+  };
+  const auto good = submit_messages(upload, 500);
+  refused({good.begin() + 1, good.end()}, absl::StatusCode::kInvalidArgument, "first message must carry the JobSpec");
+  auto spec_twice = good;
+  spec_twice.insert(spec_twice.begin() + 2, good[0]);
+  refused(spec_twice, absl::StatusCode::kInvalidArgument, "only file chunks may follow");
+  auto out_of_order = good;
+  out_of_order[1].mutable_file()->set_index(3);
+  refused(out_of_order, absl::StatusCode::kInvalidArgument, "image chunk for index 3 while image 0 is expected");
+  refused({good.begin(), good.end() - 1}, absl::StatusCode::kInvalidArgument, "image 8 is incomplete");
+  auto stray_points = good;
+  stray_points.back().mutable_file()->set_kind(v1::FileChunk::POINTS);
+  refused(stray_points, absl::StatusCode::kInvalidArgument, "point cloud sent but the spec announced none");
+  auto too_many = upload;
+  too_many.images.push_back(upload.images[0]);
+  refused(submit_messages(too_many, 500), absl::StatusCode::kInvalidArgument, "image 9 has no camera (9 cameras)");
+  refused(good, absl::StatusCode::kResourceExhausted, "upload exceeds the limit of 1000 bytes", 1000);
+}
+
 TEST_F(UploadTest, CorruptUploadsAreInvalidArgumentsNamingTheProblem) {
   const auto expect_invalid = [&](const std::string& needle) {
     const absl::Status st = write();
     EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
     EXPECT_NE(st.message().find(needle), std::string_view::npos) << st;
   };
-  const SceneUpload good = upload;
+  const UploadParts good = upload;
   upload.images[4] = "definitely not an image";
   expect_invalid("image 4");
   upload = good;
@@ -937,7 +1031,7 @@ TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {
       "property float z\nend_header\n";
   const auto refused = [&](const std::string& ply, const std::string& needle) {
     upload.points_ply = ply;
-    const absl::Status st = write_uploaded_scene(upload, dir_ / "scene2");
+    const absl::Status st = write("scene2");
     EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
     EXPECT_NE(st.message().find("uploaded point cloud"), std::string_view::npos) << st;
     EXPECT_NE(st.message().find(needle), std::string_view::npos) << st;
