@@ -1,6 +1,13 @@
 #include "rpc/security.h"
 
 #include <cstdlib>
+#include <memory>
+
+#include <openssl/bio.h>
+#include <openssl/err.h>
+#include <openssl/evp.h>
+#include <openssl/pem.h>
+#include <openssl/x509.h>
 
 #include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
@@ -24,6 +31,45 @@ absl::StatusOr<std::string> read_pem(const std::string& path, const std::string&
                                                    what, " must hold a '-----BEGIN ",
                                                    key ? "... PRIVATE KEY" : "CERTIFICATE", "-----' block)"));
   return pem;
+}
+
+std::string openssl_error() {
+  const unsigned long code = ERR_get_error();
+  ERR_clear_error();
+  if (code == 0) return "no detail";
+  char text[256];
+  ERR_error_string_n(code, text, sizeof(text));
+  return text;
+}
+
+// gRPC reports a key that does not belong to its certificate, or one it cannot parse, only as a server
+// that "cannot listen" (or a handshake that fails later), so the pair is checked here, naming the files.
+absl::Status check_key_pair(const std::string& cert_pem, const std::string& cert_path, const std::string& key_pem,
+                            const std::string& key_path) {
+  const auto bio = [](const std::string& pem) {
+    return std::unique_ptr<BIO, decltype(&BIO_free)>(BIO_new_mem_buf(pem.data(), static_cast<int>(pem.size())),
+                                                     &BIO_free);
+  };
+  auto cert_bio = bio(cert_pem), key_bio = bio(key_pem);
+  std::unique_ptr<X509, decltype(&X509_free)> cert(PEM_read_bio_X509(cert_bio.get(), nullptr, nullptr, nullptr),
+                                                   &X509_free);
+  if (!cert)
+    return absl::InvalidArgumentError(
+        absl::StrCat(cert_path, ": the certificate cannot be read (", openssl_error(), ")"));
+  std::unique_ptr<EVP_PKEY, decltype(&EVP_PKEY_free)> key(
+      PEM_read_bio_PrivateKey(key_bio.get(), nullptr, nullptr, nullptr), &EVP_PKEY_free);
+  if (!key)
+    return absl::InvalidArgumentError(absl::StrCat(key_path, ": the private key cannot be read (", openssl_error(),
+                                                   "; an encrypted key is not supported)"));
+  if (X509_check_private_key(cert.get(), key.get()) != 1) {
+    ERR_clear_error();
+    return absl::InvalidArgumentError(absl::StrCat("the TLS private key ", key_path,
+                                                   " does not belong to the certificate ", cert_path,
+                                                   " (their public keys differ)"));
+  }
+  if (X509_cmp_current_time(X509_get0_notAfter(cert.get())) < 0)
+    return absl::InvalidArgumentError(absl::StrCat(cert_path, ": the certificate has expired"));
+  return absl::OkStatus();
 }
 
 // Same duration whatever the first differing byte, so the token cannot be guessed byte by byte (its
@@ -51,6 +97,7 @@ absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> server_credentials(cons
   grpc::SslServerCredentialsOptions::PemKeyCertPair pair;
   GAPS_ASSIGN_OR_RETURN(pair.cert_chain, read_pem(s.tls_cert, "TLS certificate"));
   GAPS_ASSIGN_OR_RETURN(pair.private_key, read_pem(s.tls_key, "TLS private key"));
+  GAPS_RETURN_IF_ERROR(check_key_pair(pair.cert_chain, s.tls_cert, pair.private_key, s.tls_key));
   options.pem_key_cert_pairs.push_back(std::move(pair));
   return grpc::SslServerCredentials(options);
 }
@@ -68,6 +115,7 @@ absl::StatusOr<std::shared_ptr<grpc::Channel>> make_channel(const std::string& a
   if (!s.tls_cert.empty()) {
     GAPS_ASSIGN_OR_RETURN(options.pem_cert_chain, read_pem(s.tls_cert, "TLS client certificate"));
     GAPS_ASSIGN_OR_RETURN(options.pem_private_key, read_pem(s.tls_key, "TLS client private key"));
+    GAPS_RETURN_IF_ERROR(check_key_pair(options.pem_cert_chain, s.tls_cert, options.pem_private_key, s.tls_key));
   }
   if (!s.tls_server_name.empty()) args.SetSslTargetNameOverride(s.tls_server_name);
   return grpc::CreateCustomChannel(address, grpc::SslCredentials(options), args);
