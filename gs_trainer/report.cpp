@@ -91,6 +91,9 @@ std::string metrics_table(const json& m) {
       {"seed", std::to_string(m.value("seed", 0))},
       {"initial points", m.value("init_method", m.value("init", ""))},
       {"device", m.value("device", "")},
+      {"diffusion phases", m.contains("phases")
+                               ? absl::StrCat(m.value("phases", 0), " run, ", m.value("phases_skipped", 0), " skipped")
+                               : "none (vanilla)"},
       {"test PSNR (dB)", json_number(m.value("psnr", json()), "%.2f")},
       {"test SSIM", json_number(m.value("ssim", json()), "%.4f")},
       {"test LPIPS", json_number(m.value("lpips", json()), "%.4f")},
@@ -188,7 +191,8 @@ constexpr char kStyle[] =
     "th,td{border:1px solid #ccc;padding:4px 8px;text-align:left;vertical-align:top}"
     ".charts{display:flex;flex-wrap:wrap;gap:1em}.grid{display:flex;flex-wrap:wrap;gap:8px}"
     "figure{margin:0;padding:4px;width:170px;font-size:12px}figure.admitted{border:3px solid #2ca02c}"
-    "figure.rejected{border:3px solid #d62728}";
+    "figure.rejected{border:3px solid #d62728}"
+    ".degraded{background:#fde0dc;border:2px solid #d62728;padding:8px 12px;font-weight:bold}";
 
 }  // namespace
 
@@ -257,6 +261,11 @@ absl::Status write_run_report(const fs::path& out_dir, const std::vector<Trainin
                                          metrics.value("views", 0), " views, ", metrics.value("variant", ""));
   std::string html = absl::StrCat("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>", escape(title),
                                   "</title><style>", kStyle, "</style></head><body>\n<h1>", escape(title), "</h1>\n");
+  if (metrics.value("degraded", false))
+    absl::StrAppend(&html, "<p class=\"degraded\">DEGRADED: ", metrics.value("phases_skipped", 0), " of ",
+                    metrics.value("phases", 0),
+                    " diffusion phases were skipped (the generator failed or could not be reached), so this is "
+                    "not a full run of the method.</p>\n");
   absl::StrAppend(&html, "<h2>Metrics</h2>\n", metrics_table(metrics));
   absl::StrAppend(&html, "<h2>Evaluation curve</h2>\n", curve_section(metrics));
   GAPS_ASSIGN_OR_RETURN(const std::string renders, renders_section(out_dir, test_views, metrics));

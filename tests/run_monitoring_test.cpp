@@ -171,6 +171,8 @@ TEST_F(RunMonitoring, ReportShowsAdmittedAndRejectedPseudoViewsAndGeneratorTime)
   EXPECT_EQ(count(html, "<figure class=\"admitted\"><img"), admitted);
   EXPECT_EQ(count(html, "<figure class=\"rejected\"><img"), rejected);
   EXPECT_EQ(count(html, "<h3>Phase "), static_cast<int>(phases.size()));
+  EXPECT_EQ(count(html, "DEGRADED"), 0);
+  EXPECT_EQ(count(html, "<tr><th>diffusion phases</th><td>2 run, 0 skipped</td></tr>"), 1);
 }
 
 TEST_F(RunMonitoring, AbsurdLearningRateStopsTheRunAsDiverged) {

@@ -18,8 +18,10 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/match.h"
 #include "client/remote_client.h"
 #include "common/image_io.h"
+#include "common/io_util.h"
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
@@ -252,6 +254,10 @@ TEST_F(Services, KilledWorkerSkipsTheRemainingPhasesAndTheJobFinishes) {
   const auto metrics = read_json(dir_ / "fetched" / "metrics.json");
   EXPECT_EQ(metrics["degraded"], true);
   EXPECT_EQ(metrics["phases_skipped"], 2);
+  const auto report = read_file_bytes(dir_ / "fetched" / "report.html");
+  ASSERT_TRUE(report.ok()) << report.status();
+  EXPECT_TRUE(absl::StrContains(*report, "DEGRADED: 2 of 3 diffusion phases were skipped")) << *report;
+  EXPECT_TRUE(absl::StrContains(*report, "<tr><th>diffusion phases</th><td>3 run, 2 skipped</td></tr>"));
 }
 
 TEST_F(Services, KilledTrainerResumesItsJobFromTheCheckpointAfterRestart) {
