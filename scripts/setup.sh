@@ -11,8 +11,9 @@ DEBIAN_PACKAGES=(
   build-essential cmake ninja-build ccache git python3 python3-venv
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
   libopencv-dev libeigen3-dev libstb-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
-  openssl  # the TLS end-to-end test makes its certificate with it
+  openssl libssl-dev  # TLS key checks; the TLS end-to-end test makes its certificate with openssl
   clang-format  # scripts/check_format.sh (the format check in the test suite)
+  clang libclang-rt-14-dev  # scripts/fuzz.sh: libFuzzer and the sanitizers
 )
 PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib)
 

@@ -77,6 +77,7 @@ class Process {
     }
     return -1;
   }
+  pid_t pid() const { return pid_; }
   std::string log_text() const {
     std::ifstream f(log_);
     return std::string(std::istreambuf_iterator<char>(f), {});
