@@ -98,7 +98,10 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
 
   TensorMap tensors;
   std::vector<std::pair<uint64_t, uint64_t>> ranges;
-  for (const auto& [name, entry] : header.items()) {
+  for (const auto& item : header.items()) {
+    // Named, not a structured binding: the lambda below captures it (C++17 forbids capturing bindings).
+    const std::string& name = item.key();
+    const nlohmann::json& entry = item.value();
     if (name == "__metadata__") continue;
     const auto fail = [&](const std::string& what) {
       return header_error(path, absl::StrCat("tensor '", name, "': ", what));

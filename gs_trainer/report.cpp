@@ -76,8 +76,8 @@ std::string format_number(double v) {
   return absl::StrFormat("%g", std::round(v * 1000) / 1000);
 }
 
-std::string json_number(const json& v, const char* format) {
-  return v.is_number() ? absl::StrFormat(format, v.get<double>()) : std::string("n/a");
+std::string json_number(const json& v, int decimals) {
+  return v.is_number() ? absl::StrFormat("%.*f", decimals, v.get<double>()) : std::string("n/a");
 }
 
 std::string metrics_table(const json& m) {
@@ -94,12 +94,12 @@ std::string metrics_table(const json& m) {
       {"diffusion phases", m.contains("phases")
                                ? absl::StrCat(m.value("phases", 0), " run, ", m.value("phases_skipped", 0), " skipped")
                                : "none (vanilla)"},
-      {"test PSNR (dB)", json_number(m.value("psnr", json()), "%.2f")},
-      {"test SSIM", json_number(m.value("ssim", json()), "%.4f")},
-      {"test LPIPS", json_number(m.value("lpips", json()), "%.4f")},
+      {"test PSNR (dB)", json_number(m.value("psnr", json()), 2)},
+      {"test SSIM", json_number(m.value("ssim", json()), 4)},
+      {"test LPIPS", json_number(m.value("lpips", json()), 4)},
       {"Gaussians", std::to_string(m.value("num_gaussians", int64_t{0}))},
-      {"training seconds", json_number(m.value("train_seconds", json()), "%.1f")},
-      {"generator seconds", json_number(m.value("generator_seconds", json()), "%.1f")},
+      {"training seconds", json_number(m.value("train_seconds", json()), 1)},
+      {"generator seconds", json_number(m.value("generator_seconds", json()), 1)},
       {absl::StrCat("peak memory (", peak.value("kind", "n/a"), ", MiB)"),
        peak.contains("bytes") ? absl::StrFormat("%.0f", peak["bytes"].get<double>() / (1 << 20)) : "n/a"},
   };
@@ -126,10 +126,9 @@ std::string curve_section(const json& metrics) {
       "</div>\n<table><tr><th>iteration</th><th>training "
       "s</th><th>PSNR</th><th>SSIM</th><th>LPIPS</th><th>Gaussians</th></tr>\n";
   for (const auto& p : curve)
-    absl::StrAppend(&html, "<tr><td>", p["iteration"].get<int>(), "</td><td>", json_number(p["train_seconds"], "%.1f"),
-                    "</td><td>", json_number(p["psnr"], "%.2f"), "</td><td>", json_number(p["ssim"], "%.4f"),
-                    "</td><td>", json_number(p["lpips"], "%.4f"), "</td><td>", p["num_gaussians"].get<int64_t>(),
-                    "</td></tr>\n");
+    absl::StrAppend(&html, "<tr><td>", p["iteration"].get<int>(), "</td><td>", json_number(p["train_seconds"], 1),
+                    "</td><td>", json_number(p["psnr"], 2), "</td><td>", json_number(p["ssim"], 4), "</td><td>",
+                    json_number(p["lpips"], 4), "</td><td>", p["num_gaussians"].get<int64_t>(), "</td></tr>\n");
   return html + "</table>\n";
 }
 
@@ -146,8 +145,8 @@ absl::StatusOr<std::string> renders_section(const fs::path& out_dir, const std::
     if (fs::exists(render_path)) {
       GAPS_ASSIGN_OR_RETURN(render, thumbnail_file(render_path));
     }
-    const std::string scores = i < per_view.size() ? absl::StrCat(json_number(per_view[i]["psnr"], "%.2f"), " dB / ",
-                                                                  json_number(per_view[i]["ssim"], "%.4f"))
+    const std::string scores = i < per_view.size() ? absl::StrCat(json_number(per_view[i]["psnr"], 2), " dB / ",
+                                                                  json_number(per_view[i]["ssim"], 4))
                                                    : "";
     absl::StrAppend(&html, "<tr><td>", escape(stem), "</td><td>", gt, "</td><td>", render, "</td><td>", scores,
                     "</td></tr>\n");
@@ -178,7 +177,7 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
       }
       absl::StrAppend(&html, "<figure class=\"", admitted ? "admitted" : "rejected", "\">", img,
                       "<figcaption>candidate ", s.value("id", -1), ", coverage ",
-                      json_number(s.value("coverage", json()), "%.2f"), "<br><b>", admitted ? "admitted" : "rejected",
+                      json_number(s.value("coverage", json()), 2), "<br><b>", admitted ? "admitted" : "rejected",
                       "</b>: ", escape(s.value("reason", "")), "</figcaption></figure>\n");
     }
     html += "</div>\n";

@@ -1,7 +1,8 @@
 #pragma once
-// One trainer per data folder: its SQLite job store and job folders belong to one process. A second
-// gaps-trainer on the same folder would take over jobs the first is running and train them into the same
-// folders, so it is refused at start-up, naming the process that holds the folder.
+// One trainer per data folder, unless the trainers share a PostgreSQL job store: an SQLite store and its job
+// folders belong to one process (a second gaps-trainer on the folder would take over jobs the first is
+// running and train them into the same folders), so it holds the folder exclusively and another trainer is
+// refused at start-up, naming the process that holds it. Replicas of a shared store hold it together.
 #include <filesystem>
 #include <memory>
 
@@ -11,9 +12,11 @@ namespace gaps {
 
 class DataDirLock {
  public:
-  // An exclusive, non-blocking lock on DIR/trainer.lock (which records the holder's pid); FAILED_PRECONDITION
-  // when another process holds it. The lock goes with the process, so a killed trainer leaves none behind.
-  static absl::StatusOr<std::unique_ptr<DataDirLock>> acquire(const std::filesystem::path& data_dir);
+  // A non-blocking lock on DIR/trainer.lock: exclusive (recording the holder's pid) or `shared`;
+  // FAILED_PRECONDITION when a process holds it the other way. The lock goes with the process, so a killed
+  // trainer leaves none behind.
+  static absl::StatusOr<std::unique_ptr<DataDirLock>> acquire(const std::filesystem::path& data_dir,
+                                                              bool shared = false);
   ~DataDirLock();
   DataDirLock(const DataDirLock&) = delete;
   DataDirLock& operator=(const DataDirLock&) = delete;

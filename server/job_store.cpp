@@ -1,222 +1,192 @@
 #include "server/job_store.h"
 
-#include <sqlite3.h>
-
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "common/status_macros.h"
 
 namespace gaps {
 namespace {
 
-constexpr char kSchema[] = R"sql(
+// Migration N brings the schema from version N-1 to N; a store records each it applied. Never edit one
+// that has shipped: add the next.
+constexpr const char* kMigrations[] = {
+    // 1: jobs, their events and artifacts (the schema before versioning; IF NOT EXISTS adopts such stores).
+    R"sql(
 CREATE TABLE IF NOT EXISTS jobs (
   id TEXT PRIMARY KEY,
   state INTEGER NOT NULL,
-  submitted_at REAL NOT NULL,
-  spec BLOB NOT NULL,    -- gaps.v1.JobSpec: name, TrainConfig, cameras
-  status BLOB NOT NULL   -- gaps.v1.JobStatus
+  submitted_at {REAL} NOT NULL,
+  spec {BLOB} NOT NULL,    -- gaps.v1.JobSpec: name, TrainConfig, cameras
+  status {BLOB} NOT NULL   -- gaps.v1.JobStatus
 );
 CREATE TABLE IF NOT EXISTS events (
   job_id TEXT NOT NULL REFERENCES jobs(id),
-  seq INTEGER NOT NULL,
-  event BLOB NOT NULL,   -- gaps.v1.JobEvent
+  seq BIGINT NOT NULL,
+  event {BLOB} NOT NULL,   -- gaps.v1.JobEvent
   PRIMARY KEY (job_id, seq)
 );
 CREATE TABLE IF NOT EXISTS artifacts (
   job_id TEXT NOT NULL REFERENCES jobs(id),
   path TEXT NOT NULL,
-  size INTEGER NOT NULL,
+  size BIGINT NOT NULL,
   PRIMARY KEY (job_id, path)
 );
-)sql";
-
-// The code says whether trying again can help; the message is SQLite's.
-absl::Status sqlite_error(int rc, absl::string_view message) {
-  const std::string text = absl::StrCat("job store: ", message);
-  switch (rc & 0xff) {  // the primary result code
-    case SQLITE_BUSY:
-    case SQLITE_LOCKED:
-      return absl::UnavailableError(text);
-    case SQLITE_FULL:
-      return absl::ResourceExhaustedError(text);
-    case SQLITE_READONLY:
-    case SQLITE_PERM:
-      return absl::PermissionDeniedError(text);
-    default:
-      return absl::InternalError(text);
-  }
-}
-
-// A prepared statement that finalises itself. A failed preparation or binding is kept and reported by
-// done(), and step() does not run the statement after one.
-class Statement {
- public:
-  Statement(sqlite3* db, const char* sql) : db_(db) { check(sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr)); }
-  // Finalising reports the last step's error again, which done() already returned.
-  ~Statement() { sqlite3_finalize(stmt_); }
-  absl::Status prepared() const { return error_; }
-  void bind(int i, const std::string& text) {
-    check(sqlite3_bind_text64(stmt_, i, text.data(), text.size(), SQLITE_TRANSIENT, SQLITE_UTF8));
-  }
-  void bind_blob(int i, const std::string& bytes) {
-    check(sqlite3_bind_blob64(stmt_, i, bytes.data(), bytes.size(), SQLITE_TRANSIENT));
-  }
-  void bind(int i, int64_t v) { check(sqlite3_bind_int64(stmt_, i, v)); }
-  void bind(int i, double v) { check(sqlite3_bind_double(stmt_, i, v)); }
-  // SQLITE_ROW, SQLITE_DONE or an error code.
-  int step() { return error_.ok() ? sqlite3_step(stmt_) : SQLITE_ERROR; }
-  absl::Status done(int rc) const {
-    if (!error_.ok()) return error_;
-    return rc == SQLITE_DONE || rc == SQLITE_ROW ? absl::OkStatus() : sqlite_error(rc, sqlite3_errmsg(db_));
-  }
-  std::string blob(int column) const {
-    const void* p = sqlite3_column_blob(stmt_, column);
-    return p ? std::string(static_cast<const char*>(p), sqlite3_column_bytes(stmt_, column)) : std::string();
-  }
-  std::string text(int column) const {
-    const unsigned char* p = sqlite3_column_text(stmt_, column);
-    return p ? std::string(reinterpret_cast<const char*>(p)) : std::string();
-  }
-  int64_t integer(int column) const { return sqlite3_column_int64(stmt_, column); }
-
- private:
-  // Keeps the first failure: the message of a later successful call would replace SQLite's.
-  void check(int rc) {
-    if (rc != SQLITE_OK && error_.ok()) error_ = sqlite_error(rc, sqlite3_errmsg(db_));
-  }
-
-  sqlite3* db_;
-  sqlite3_stmt* stmt_ = nullptr;
-  absl::Status error_;
+)sql",
+    // 2: leases and cancel requests, so that replicas share the queue.
+    R"sql(
+ALTER TABLE jobs ADD COLUMN lease_owner TEXT;
+ALTER TABLE jobs ADD COLUMN lease_expires {REAL};
+ALTER TABLE jobs ADD COLUMN cancel_requested INTEGER NOT NULL DEFAULT 0;
+CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, submitted_at);
+)sql",
 };
+constexpr int kSchemaVersion = sizeof(kMigrations) / sizeof(kMigrations[0]);
+
+bool terminal(int64_t state) { return state == v1::SUCCEEDED || state == v1::FAILED || state == v1::CANCELLED; }
 
 template <typename Message>
-absl::StatusOr<Message> parse(const std::string& bytes, const std::string& what) {
+absl::StatusOr<Message> parse(const std::optional<std::string>& bytes, const std::string& what) {
   Message m;
-  if (!m.ParseFromString(bytes)) return absl::DataLossError(absl::StrCat("job store: corrupt ", what));
+  if (!bytes || !m.ParseFromString(*bytes)) return absl::DataLossError(absl::StrCat("job store: corrupt ", what));
   return m;
 }
 
-absl::StatusOr<std::vector<v1::JobStatus>> read_statuses(Statement& s) {
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  std::vector<v1::JobStatus> out;
-  int rc;
-  while ((rc = s.step()) == SQLITE_ROW) {
-    GAPS_ASSIGN_OR_RETURN(v1::JobStatus status, parse<v1::JobStatus>(s.blob(0), "job status"));
-    out.push_back(std::move(status));
-  }
-  GAPS_RETURN_IF_ERROR(s.done(rc));
-  return out;
+absl::Status no_job(const std::string& job_id) { return absl::NotFoundError(absl::StrCat("no job '", job_id, "'")); }
+
+absl::Status lease_lost(const std::string& job_id, const std::string& owner) {
+  return absl::AbortedError(absl::StrCat("job ", job_id, ": trainer ", owner,
+                                         " no longer holds its lease (another trainer took it over, or it ended)"));
 }
 
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<JobStore>> JobStore::open(const std::filesystem::path& file) {
-  sqlite3* db = nullptr;
-  if (sqlite3_open(file.c_str(), &db) != SQLITE_OK) {
-    const std::string message = db ? sqlite3_errmsg(db) : "out of memory";
-    sqlite3_close(db);
-    return absl::UnavailableError(absl::StrCat(file.string(), ": cannot open job database (", message, ")"));
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<SqlDriver> driver, open_sqlite(file.string()));
+  return open_driver(std::move(driver), false);
+}
+
+absl::StatusOr<std::unique_ptr<JobStore>> JobStore::open_location(const std::string& location,
+                                                                  const std::filesystem::path& data_dir) {
+  if (location.empty() || location == "sqlite") return open(data_dir / "jobs.db");
+  if (absl::StartsWith(location, "postgresql://") || absl::StartsWith(location, "postgres://")) {
+    GAPS_ASSIGN_OR_RETURN(std::unique_ptr<SqlDriver> driver, open_postgres(location));
+    return open_driver(std::move(driver), true);
   }
-  std::unique_ptr<JobStore> store(new JobStore(db));
-  // SQLite falls back to read-only for a file it may not write; every job would then fail at its first
-  // write instead of the trainer at its start.
-  if (sqlite3_db_readonly(db, "main") == 1)
-    return absl::PermissionDeniedError(absl::StrCat(file.string(), ": the job database is read-only"));
-  sqlite3_busy_timeout(db, 5000);
-  // WAL with synchronous=NORMAL: no fsync per event; a killed process loses nothing, a power loss at most
-  // the last transactions, and the database stays consistent either way.
-  GAPS_RETURN_IF_ERROR(store->exec("PRAGMA journal_mode=WAL; PRAGMA synchronous=NORMAL; PRAGMA foreign_keys=ON;"));
-  GAPS_RETURN_IF_ERROR(store->exec(kSchema));
+  return absl::InvalidArgumentError(
+      "--job_store must be empty (SQLite in the data folder) or a PostgreSQL URI (postgresql://USER:PASSWORD@HOST/DB)");
+}
+
+absl::StatusOr<std::unique_ptr<JobStore>> JobStore::open_driver(std::unique_ptr<SqlDriver> driver, bool shared) {
+  std::unique_ptr<JobStore> store(new JobStore(std::move(driver), shared));
+  GAPS_RETURN_IF_ERROR(store->migrate());
   return store;
 }
 
-JobStore::~JobStore() { sqlite3_close(db_); }
-
-absl::Status JobStore::exec(const std::string& sql) {
-  char* error = nullptr;
-  const int rc = sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error);
-  if (rc == SQLITE_OK) return absl::OkStatus();
-  const std::string message = error ? error : sqlite3_errstr(rc);
-  sqlite3_free(error);
-  return sqlite_error(rc, message);
-}
-
 absl::Status JobStore::transaction(const std::function<absl::Status()>& body) {
-  GAPS_RETURN_IF_ERROR(exec("BEGIN IMMEDIATE"));
+  GAPS_RETURN_IF_ERROR(driver_->begin());
   absl::Status status = body();
-  if (status.ok()) status = exec("COMMIT");
-  // A failed COMMIT can leave the transaction open: every later write would join it and be lost with it.
-  if (!status.ok() && sqlite3_get_autocommit(db_) == 0) {
-    if (absl::Status undo = exec("ROLLBACK"); !undo.ok())
+  if (status.ok()) status = driver_->run("COMMIT").status();
+  if (!status.ok()) {
+    if (absl::Status undo = driver_->rollback(); !undo.ok())
       status =
           absl::Status(status.code(), absl::StrCat(status.message(), "; rolling back failed too: ", undo.message()));
   }
   return status;
 }
 
+absl::Status JobStore::migrate() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return transaction([&]() -> absl::Status {
+    // Replicas starting together migrate one after the other (PostgreSQL: a transaction-scoped advisory
+    // lock; SQLite: the immediate transaction itself).
+    if (shared_) GAPS_RETURN_IF_ERROR(driver_->run("SELECT pg_advisory_xact_lock(4702751)", {}).status());
+    GAPS_RETURN_IF_ERROR(driver_
+                             ->run("CREATE TABLE IF NOT EXISTS schema_migrations (version INTEGER PRIMARY KEY, "
+                                   "applied_at {REAL} NOT NULL)",
+                                   {})
+                             .status());
+    GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT COALESCE(MAX(version), 0) FROM schema_migrations", {}));
+    const int64_t version = sql_int(r.rows.at(0).at(0));
+    if (version > kSchemaVersion)
+      return absl::FailedPreconditionError(absl::StrCat("job store ", driver_->describe(), " is at schema version ",
+                                                        version, ", newer than this trainer's ", kSchemaVersion,
+                                                        ": upgrade the trainer"));
+    for (int64_t next = version + 1; next <= kSchemaVersion; ++next) {
+      const absl::Status applied = driver_->run(kMigrations[next - 1]).status();
+      if (!applied.ok())
+        return absl::Status(applied.code(), absl::StrCat("job store migration ", next, ": ", applied.message()));
+      GAPS_RETURN_IF_ERROR(
+          driver_->run("INSERT INTO schema_migrations (version, applied_at) VALUES ($1, {NOW})", {SqlParam::Int(next)})
+              .status());
+    }
+    return absl::OkStatus();
+  });
+}
+
+absl::StatusOr<int> JobStore::schema_version() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT COALESCE(MAX(version), 0) FROM schema_migrations", {}));
+  return static_cast<int>(sql_int(r.rows.at(0).at(0)));
+}
+
 absl::Status JobStore::insert(const v1::JobStatus& status, const v1::JobSpec& spec) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "INSERT INTO jobs (id, state, submitted_at, spec, status) VALUES (?, ?, ?, ?, ?)");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, status.job_id());
-  s.bind(2, int64_t{status.state()});
-  s.bind(3, status.submitted_at());
-  s.bind_blob(4, spec.SerializeAsString());
-  s.bind_blob(5, status.SerializeAsString());
-  return s.done(s.step());
+  return driver_
+      ->run("INSERT INTO jobs (id, state, submitted_at, spec, status) VALUES ($1, $2, $3, $4, $5)",
+            {SqlParam::Text(status.job_id()), SqlParam::Int(status.state()), SqlParam::Real(status.submitted_at()),
+             SqlParam::Blob(spec.SerializeAsString()), SqlParam::Blob(status.SerializeAsString())})
+      .status();
 }
 
-absl::Status JobStore::update(const v1::JobStatus& status) {
+absl::Status JobStore::update(const v1::JobStatus& status, const std::string& owner) {
   std::lock_guard<std::mutex> lock(mutex_);
-  return update_locked(status);
+  return update_locked(status, owner);
 }
 
-absl::Status JobStore::update_locked(const v1::JobStatus& status) {
-  Statement s(db_, "UPDATE jobs SET state = ?, status = ? WHERE id = ?");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, int64_t{status.state()});
-  s.bind_blob(2, status.SerializeAsString());
-  s.bind(3, status.job_id());
-  GAPS_RETURN_IF_ERROR(s.done(s.step()));
-  if (sqlite3_changes(db_) == 0) return absl::NotFoundError(absl::StrCat("no job '", status.job_id(), "'"));
-  return absl::OkStatus();
+absl::Status JobStore::update_locked(const v1::JobStatus& status, const std::string& owner) {
+  GAPS_ASSIGN_OR_RETURN(
+      SqlResult r,
+      driver_->run("UPDATE jobs SET state = $1, status = $2 WHERE id = $3 AND ($4 = '' OR lease_owner = $4)",
+                   {SqlParam::Int(status.state()), SqlParam::Blob(status.SerializeAsString()),
+                    SqlParam::Text(status.job_id()), SqlParam::Text(owner)}));
+  if (r.affected > 0) return absl::OkStatus();
+  GAPS_ASSIGN_OR_RETURN(SqlResult exists,
+                        driver_->run("SELECT 1 FROM jobs WHERE id = $1", {SqlParam::Text(status.job_id())}));
+  return exists.rows.empty() ? no_job(status.job_id()) : lease_lost(status.job_id(), owner);
 }
 
 absl::StatusOr<v1::JobStatus> JobStore::get(const std::string& job_id) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "SELECT status FROM jobs WHERE id = ?");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, job_id);
-  const int rc = s.step();
-  if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("no job '", job_id, "'"));
-  GAPS_RETURN_IF_ERROR(s.done(rc));
-  return parse<v1::JobStatus>(s.blob(0), "job status");
+  GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT status FROM jobs WHERE id = $1", {SqlParam::Text(job_id)}));
+  if (r.rows.empty()) return no_job(job_id);
+  return parse<v1::JobStatus>(r.rows[0][0], "job status");
 }
 
 absl::StatusOr<v1::JobSpec> JobStore::spec(const std::string& job_id) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "SELECT spec FROM jobs WHERE id = ?");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, job_id);
-  const int rc = s.step();
-  if (rc == SQLITE_DONE) return absl::NotFoundError(absl::StrCat("no job '", job_id, "'"));
-  GAPS_RETURN_IF_ERROR(s.done(rc));
-  return parse<v1::JobSpec>(s.blob(0), "job spec");
+  GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT spec FROM jobs WHERE id = $1", {SqlParam::Text(job_id)}));
+  if (r.rows.empty()) return no_job(job_id);
+  return parse<v1::JobSpec>(r.rows[0][0], "job spec");
+}
+
+absl::StatusOr<std::vector<v1::JobStatus>> JobStore::statuses(absl::string_view sql,
+                                                              const std::vector<SqlParam>& params) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run(sql, params));
+  std::vector<v1::JobStatus> out;
+  for (const auto& row : r.rows) {
+    GAPS_ASSIGN_OR_RETURN(v1::JobStatus status, parse<v1::JobStatus>(row[0], "job status"));
+    out.push_back(std::move(status));
+  }
+  return out;
 }
 
 absl::StatusOr<std::vector<v1::JobStatus>> JobStore::list() {
-  std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "SELECT status FROM jobs ORDER BY submitted_at, id");
-  return read_statuses(s);
+  return statuses("SELECT status FROM jobs ORDER BY submitted_at, id", {});
 }
 
 absl::StatusOr<std::vector<v1::JobStatus>> JobStore::in_state(v1::JobState state) {
-  std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "SELECT status FROM jobs WHERE state = ? ORDER BY submitted_at, id");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, int64_t{state});
-  return read_statuses(s);
+  return statuses("SELECT status FROM jobs WHERE state = $1 ORDER BY submitted_at, id", {SqlParam::Int(state)});
 }
 
 absl::StatusOr<int64_t> JobStore::append_event(v1::JobEvent& event) {
@@ -226,35 +196,28 @@ absl::StatusOr<int64_t> JobStore::append_event(v1::JobEvent& event) {
 }
 
 absl::Status JobStore::append_event_locked(v1::JobEvent& event) {
-  {
-    Statement next(db_, "SELECT COALESCE(MAX(seq) + 1, 0) FROM events WHERE job_id = ?");
-    GAPS_RETURN_IF_ERROR(next.prepared());
-    next.bind(1, event.job_id());
-    const int rc = next.step();
-    GAPS_RETURN_IF_ERROR(next.done(rc));
-    event.set_sequence(next.integer(0));
-  }
-  Statement s(db_, "INSERT INTO events (job_id, seq, event) VALUES (?, ?, ?)");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, event.job_id());
-  s.bind(2, event.sequence());
-  s.bind_blob(3, event.SerializeAsString());
-  return s.done(s.step());
+  const SqlParam job = SqlParam::Text(event.job_id());
+  // Appenders of one job (its runner, a submitting or cancelling replica) take their numbers in turn.
+  GAPS_RETURN_IF_ERROR(driver_->run("SELECT id FROM jobs WHERE id = $1 {LOCK}", {job}).status());
+  GAPS_ASSIGN_OR_RETURN(SqlResult next,
+                        driver_->run("SELECT COALESCE(MAX(seq) + 1, 0) FROM events WHERE job_id = $1", {job}));
+  event.set_sequence(sql_int(next.rows.at(0).at(0)));
+  return driver_
+      ->run("INSERT INTO events (job_id, seq, event) VALUES ($1, $2, $3)",
+            {job, SqlParam::Int(event.sequence()), SqlParam::Blob(event.SerializeAsString())})
+      .status();
 }
 
 absl::StatusOr<std::vector<v1::JobEvent>> JobStore::events(const std::string& job_id, int64_t from_sequence) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "SELECT event FROM events WHERE job_id = ? AND seq >= ? ORDER BY seq");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, job_id);
-  s.bind(2, from_sequence);
+  GAPS_ASSIGN_OR_RETURN(SqlResult r,
+                        driver_->run("SELECT event FROM events WHERE job_id = $1 AND seq >= $2 ORDER BY seq",
+                                     {SqlParam::Text(job_id), SqlParam::Int(from_sequence)}));
   std::vector<v1::JobEvent> out;
-  int rc;
-  while ((rc = s.step()) == SQLITE_ROW) {
-    GAPS_ASSIGN_OR_RETURN(v1::JobEvent e, parse<v1::JobEvent>(s.blob(0), "job event"));
+  for (const auto& row : r.rows) {
+    GAPS_ASSIGN_OR_RETURN(v1::JobEvent e, parse<v1::JobEvent>(row[0], "job event"));
     out.push_back(std::move(e));
   }
-  GAPS_RETURN_IF_ERROR(s.done(rc));
   return out;
 }
 
@@ -264,41 +227,104 @@ absl::Status JobStore::set_artifacts(const std::string& job_id, const std::vecto
 }
 
 absl::Status JobStore::set_artifacts_locked(const std::string& job_id, const std::vector<Artifact>& artifacts) {
-  Statement clear(db_, "DELETE FROM artifacts WHERE job_id = ?");
-  GAPS_RETURN_IF_ERROR(clear.prepared());
-  clear.bind(1, job_id);
-  GAPS_RETURN_IF_ERROR(clear.done(clear.step()));
-  for (const auto& a : artifacts) {
-    Statement s(db_, "INSERT INTO artifacts (job_id, path, size) VALUES (?, ?, ?)");
-    GAPS_RETURN_IF_ERROR(s.prepared());
-    s.bind(1, job_id);
-    s.bind(2, a.path);
-    s.bind(3, a.size);
-    GAPS_RETURN_IF_ERROR(s.done(s.step()));
-  }
+  GAPS_RETURN_IF_ERROR(driver_->run("DELETE FROM artifacts WHERE job_id = $1", {SqlParam::Text(job_id)}).status());
+  for (const auto& a : artifacts)
+    GAPS_RETURN_IF_ERROR(driver_
+                             ->run("INSERT INTO artifacts (job_id, path, size) VALUES ($1, $2, $3)",
+                                   {SqlParam::Text(job_id), SqlParam::Text(a.path), SqlParam::Int(a.size)})
+                             .status());
   return absl::OkStatus();
 }
 
-absl::Status JobStore::end_job(const v1::JobStatus& status, const std::vector<Artifact>& artifacts,
-                               v1::JobEvent& event) {
+absl::Status JobStore::end_job(const v1::JobStatus& status, const std::vector<Artifact>& artifacts, v1::JobEvent& event,
+                               const std::string& owner) {
   std::lock_guard<std::mutex> lock(mutex_);
   return transaction([&]() -> absl::Status {
+    GAPS_RETURN_IF_ERROR(update_locked(status, owner));
     GAPS_RETURN_IF_ERROR(set_artifacts_locked(status.job_id(), artifacts));
-    GAPS_RETURN_IF_ERROR(update_locked(status));
+    GAPS_RETURN_IF_ERROR(driver_
+                             ->run("UPDATE jobs SET lease_owner = NULL, lease_expires = NULL WHERE id = $1",
+                                   {SqlParam::Text(status.job_id())})
+                             .status());
     return append_event_locked(event);
   });
 }
 
 absl::StatusOr<std::vector<JobStore::Artifact>> JobStore::artifacts(const std::string& job_id) {
   std::lock_guard<std::mutex> lock(mutex_);
-  Statement s(db_, "SELECT path, size FROM artifacts WHERE job_id = ? ORDER BY path");
-  GAPS_RETURN_IF_ERROR(s.prepared());
-  s.bind(1, job_id);
+  GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT path, size FROM artifacts WHERE job_id = $1 ORDER BY path",
+                                                  {SqlParam::Text(job_id)}));
   std::vector<Artifact> out;
-  int rc;
-  while ((rc = s.step()) == SQLITE_ROW) out.push_back({s.text(0), s.integer(1)});
-  GAPS_RETURN_IF_ERROR(s.done(rc));
+  for (const auto& row : r.rows) out.push_back({row[0].value_or(""), sql_int(row[1])});
   return out;
+}
+
+absl::StatusOr<std::optional<v1::JobStatus>> JobStore::claim(const std::string& owner, double lease_seconds) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::optional<v1::JobStatus> claimed;
+  GAPS_RETURN_IF_ERROR(transaction([&]() -> absl::Status {
+    // Replicas claiming at once skip each other's rows instead of waiting for them.
+    GAPS_ASSIGN_OR_RETURN(SqlResult next,
+                          driver_->run("SELECT id, status FROM jobs WHERE state IN ($1, $2) AND (lease_expires IS NULL "
+                                       "OR lease_expires < {NOW}) ORDER BY submitted_at, id LIMIT 1 {SKIP_LOCKED}",
+                                       {SqlParam::Int(v1::QUEUED), SqlParam::Int(v1::RUNNING)}));
+    if (next.rows.empty()) return absl::OkStatus();
+    GAPS_RETURN_IF_ERROR(
+        driver_
+            ->run("UPDATE jobs SET lease_owner = $1, lease_expires = {NOW} + $2 WHERE id = $3",
+                  {SqlParam::Text(owner), SqlParam::Real(lease_seconds), SqlParam::Text(next.rows[0][0].value_or(""))})
+            .status());
+    GAPS_ASSIGN_OR_RETURN(claimed, parse<v1::JobStatus>(next.rows[0][1], "job status"));
+    return absl::OkStatus();
+  }));
+  return claimed;
+}
+
+absl::StatusOr<bool> JobStore::renew(const std::string& job_id, const std::string& owner, double lease_seconds) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  GAPS_ASSIGN_OR_RETURN(SqlResult r,
+                        driver_->run("UPDATE jobs SET lease_expires = {NOW} + $1 WHERE id = $2 AND "
+                                     "lease_owner = $3 RETURNING cancel_requested",
+                                     {SqlParam::Real(lease_seconds), SqlParam::Text(job_id), SqlParam::Text(owner)}));
+  if (r.rows.empty()) return lease_lost(job_id, owner);
+  return sql_int(r.rows[0][0]) != 0;
+}
+
+absl::Status JobStore::release(const std::string& job_id, const std::string& owner) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return driver_
+      ->run("UPDATE jobs SET lease_owner = NULL, lease_expires = NULL WHERE id = $1 AND lease_owner = $2",
+            {SqlParam::Text(job_id), SqlParam::Text(owner)})
+      .status();
+}
+
+absl::Status JobStore::expire_leases() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return driver_->run("UPDATE jobs SET lease_owner = NULL, lease_expires = NULL WHERE lease_owner IS NOT NULL", {})
+      .status();
+}
+
+absl::StatusOr<bool> JobStore::cancel(const v1::JobStatus& cancelled, v1::JobEvent& closing) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  bool ended = false;
+  GAPS_RETURN_IF_ERROR(transaction([&]() -> absl::Status {
+    const SqlParam job = SqlParam::Text(cancelled.job_id());
+    GAPS_ASSIGN_OR_RETURN(SqlResult r,
+                          driver_->run("SELECT state, lease_expires, {NOW} FROM jobs WHERE id = $1 {LOCK}", {job}));
+    if (r.rows.empty()) return no_job(cancelled.job_id());
+    const int64_t state = sql_int(r.rows[0][0]);
+    if (terminal(state))
+      return absl::FailedPreconditionError(absl::StrCat("job ", cancelled.job_id(), " already ended (",
+                                                        v1::JobState_Name(static_cast<v1::JobState>(state)), ")"));
+    const bool leased = r.rows[0][1].has_value() && sql_real(r.rows[0][1]) >= sql_real(r.rows[0][2]);
+    if (state == v1::QUEUED && !leased) {
+      GAPS_RETURN_IF_ERROR(update_locked(cancelled, ""));
+      ended = true;
+      return append_event_locked(closing);
+    }
+    return driver_->run("UPDATE jobs SET cancel_requested = 1 WHERE id = $1", {job}).status();
+  }));
+  return ended;
 }
 
 }  // namespace gaps

@@ -1,9 +1,17 @@
 #include "server/remote_generator.h"
 
+#include <arpa/inet.h>
+#include <netdb.h>
+
+#include <algorithm>
+#include <set>
+
 #include <thread>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "absl/strings/strip.h"
 #include "common/status_macros.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "rpc/codec.h"
@@ -33,6 +41,41 @@ bool retryable(absl::StatusCode code) {
 }
 
 }  // namespace
+
+std::vector<std::string> resolve_worker_addresses(const std::vector<std::string>& targets) {
+  std::vector<std::string> out;
+  for (const std::string& target : targets) {
+    if (!absl::StartsWith(target, "dns:")) {
+      out.push_back(target);
+      continue;
+    }
+    // dns:[//authority]/NAME:PORT or dns:NAME:PORT; the authority (a DNS server) is left to the system.
+    absl::string_view name = absl::StripPrefix(target, "dns:");
+    if (absl::ConsumePrefix(&name, "//")) name = name.substr(std::min(name.size(), name.find('/') + 1));
+    const size_t colon = name.rfind(':');
+    const std::string host(name.substr(0, colon)), port(colon == absl::string_view::npos ? "" : name.substr(colon + 1));
+    addrinfo hints{};
+    hints.ai_family = AF_UNSPEC;
+    hints.ai_socktype = SOCK_STREAM;
+    addrinfo* found = nullptr;
+    std::set<std::string> addresses;
+    if (!host.empty() && !port.empty() && getaddrinfo(host.c_str(), port.c_str(), &hints, &found) == 0) {
+      for (const addrinfo* a = found; a != nullptr; a = a->ai_next) {
+        char ip[INET6_ADDRSTRLEN] = {0};
+        const void* bytes =
+            a->ai_family == AF_INET6
+                ? static_cast<const void*>(&reinterpret_cast<const sockaddr_in6*>(a->ai_addr)->sin6_addr)
+                : static_cast<const void*>(&reinterpret_cast<const sockaddr_in*>(a->ai_addr)->sin_addr);
+        if (inet_ntop(a->ai_family, bytes, ip, sizeof(ip)) == nullptr) continue;
+        addresses.insert(a->ai_family == AF_INET6 ? absl::StrCat("[", ip, "]:", port) : absl::StrCat(ip, ":", port));
+      }
+      freeaddrinfo(found);
+    }
+    if (addresses.empty()) out.push_back(target);
+    out.insert(out.end(), addresses.begin(), addresses.end());
+  }
+  return out;
+}
 
 RemoteGenerator::RemoteGenerator(WorkerPoolOptions options) : options_(std::move(options)) {}
 RemoteGenerator::~RemoteGenerator() = default;

@@ -18,6 +18,8 @@
 namespace gaps {
 
 struct WorkerPoolOptions {
+  // HOST:PORT addresses, or dns:///NAME:PORT names that stand for every address NAME resolves to (a
+  // Kubernetes headless Service: one per worker pod); see resolve_worker_addresses.
   std::vector<std::string> addresses;
   rpc::ClientSecurity security;
   std::chrono::milliseconds generate_timeout{300000};  // per Generate / AdaptScene call
@@ -29,6 +31,13 @@ struct WorkerPoolOptions {
   std::chrono::milliseconds failure_cooldown{10000};
   std::string scene_id;  // passed to AdaptScene (e.g. the job id)
 };
+
+// The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per
+// address NAME resolves to now; anything else stays as it is, and so does a name that resolves to nothing
+// (gRPC then reports it unreachable, like any worker that is down). The pool resolves names itself rather
+// than leave them to gRPC's load balancing, because a worker keeps per-scene state (the adaptation made by
+// AdaptScene) that the scene's Generate calls must find: each address is one worker.
+std::vector<std::string> resolve_worker_addresses(const std::vector<std::string>& targets);
 
 class RemoteGenerator final : public Generator {
  public:

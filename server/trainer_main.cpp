@@ -6,6 +6,7 @@
 // store; the next trainer started on the same data folder resumes them from it.
 #include <atomic>
 #include <csignal>
+#include <cstdlib>
 #include <iostream>
 #include <thread>
 
@@ -20,8 +21,15 @@
 #include "server/trainer_service.h"
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:50051", "address to serve on (a bare port binds 127.0.0.1)");
-ABSL_FLAG(std::string, workers, "", "comma-separated diffusion worker addresses (needed by the method variants)");
+ABSL_FLAG(std::string, workers, "",
+          "diffusion workers (needed by the method variants): HOST:PORT[,HOST:PORT...], or dns:///NAME:PORT for "
+          "every address NAME resolves to at each job's start (e.g. a Kubernetes headless Service)");
 ABSL_FLAG(std::string, data_dir, "gaps-trainer-data", "folder of the job database, uploaded scenes and outputs");
+ABSL_FLAG(std::string, job_store, "",
+          "job store: empty for SQLite in --data_dir (this trainer alone), or postgresql://USER:PASSWORD@HOST:PORT/DB "
+          "shared by trainer replicas that also share --data_dir (default: $GAPS_JOB_STORE)");
+ABSL_FLAG(double, lease_seconds, 30, "a job whose trainer stops renewing its lease for this long is taken over");
+ABSL_FLAG(std::string, replica_id, "", "this trainer's name in leases and logs (default: host-pid-random)");
 ABSL_FLAG(std::string, device, "cpu", "training device (cpu, cuda, cuda:N)");
 ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
 ABSL_FLAG(int, max_crashes, 2,
@@ -70,6 +78,12 @@ int main(int argc, char** argv) {
 
   gaps::TrainerServiceOptions options;
   options.data_dir = absl::GetFlag(FLAGS_data_dir);
+  options.job_store = absl::GetFlag(FLAGS_job_store);
+  // The URI may hold a password: an environment variable keeps it off the command line (and out of `ps`).
+  if (options.job_store.empty() && std::getenv("GAPS_JOB_STORE") != nullptr)
+    options.job_store = std::getenv("GAPS_JOB_STORE");
+  options.lease_seconds = absl::GetFlag(FLAGS_lease_seconds);
+  options.replica_id = absl::GetFlag(FLAGS_replica_id);
   options.device = device;
   options.concurrency = absl::GetFlag(FLAGS_concurrency);
   options.max_crashes = absl::GetFlag(FLAGS_max_crashes);
@@ -103,7 +117,8 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, on_signal);
   std::cout << "gaps-trainer: serving on port " << port << " (device " << device << ", "
             << options.workers.addresses.size() << " worker address(es))" << (security.tls_cert.empty() ? "" : " (TLS)")
-            << (security.token.empty() ? "" : " (token required)") << std::endl;
+            << (security.token.empty() ? "" : " (token required)") << "; trainer " << (*service)->replica_id()
+            << ", job store " << (*service)->store_description() << std::endl;
   while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
   std::cout << "gaps-trainer: stopping; running jobs resume when a trainer starts on " << options.data_dir << std::endl;
   (*service)->shutdown();

@@ -1,5 +1,9 @@
 #include "server/trainer_service.h"
 
+#include <unistd.h>
+
+#include <cstdio>
+
 #include <algorithm>
 #include <chrono>
 #include <fstream>
@@ -36,6 +40,23 @@ std::string new_job_id() {
   static std::mutex mutex;
   std::lock_guard<std::mutex> lock(mutex);
   return absl::StrFormat("job-%012x", rng() & 0xffffffffffffULL);
+}
+
+std::string default_replica_id() {
+  char host[256] = {0};
+  if (gethostname(host, sizeof(host) - 1) != 0) std::snprintf(host, sizeof(host), "trainer");
+  static std::mt19937_64 rng(std::random_device{}());
+  return absl::StrFormat("%s-%d-%06x", host, static_cast<int>(getpid()), rng() & 0xffffff);
+}
+
+// Upload folders not touched for `age`: what a trainer that died while receiving them left behind.
+void remove_stale_uploads(const fs::path& uploads, std::chrono::hours age) {
+  std::error_code ec;
+  const auto now = fs::file_time_type::clock::now();
+  for (const auto& entry : fs::directory_iterator(uploads, ec)) {
+    const auto written = entry.last_write_time(ec);
+    if (!ec && now - written > age) remove_tree(entry.path());
+  }
 }
 
 absl::Status move_folder(const fs::path& from, const fs::path& to) {
@@ -116,35 +137,37 @@ TrainerService::~TrainerService() { shutdown(); }
 absl::StatusOr<std::unique_ptr<TrainerService>> TrainerService::create(TrainerServiceOptions options) {
   if (options.data_dir.empty()) return absl::InvalidArgumentError("the trainer needs a data folder");
   if (options.concurrency < 1) return absl::InvalidArgumentError("concurrency must be at least 1");
+  if (!(options.lease_seconds > 0)) return absl::InvalidArgumentError("the lease must last longer than 0 seconds");
+  if (options.replica_id.empty()) options.replica_id = default_replica_id();
   std::error_code ec;
   fs::create_directories(options.data_dir / "jobs", ec);
   if (ec) return absl::PermissionDeniedError(absl::StrCat(options.data_dir.string(), ": ", ec.message()));
-  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<DataDirLock> lock, DataDirLock::acquire(options.data_dir));
-  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<JobStore> store, JobStore::open(options.data_dir / "jobs.db"));
+  const bool shared = !options.job_store.empty();
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<DataDirLock> lock, DataDirLock::acquire(options.data_dir, shared));
+  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<JobStore> store, JobStore::open_location(options.job_store, options.data_dir));
   return std::unique_ptr<TrainerService>(new TrainerService(std::move(options), std::move(lock), std::move(store)));
 }
 
 fs::path TrainerService::job_dir(const std::string& job_id) const { return options_.data_dir / "jobs" / job_id; }
 
 absl::Status TrainerService::start() {
-  // Uploads a previous process was receiving when it stopped never became jobs (the data folder lock
-  // says no other process is receiving any).
-  remove_tree(options_.data_dir / "uploads");
-  // Jobs another process left behind: running ones go on from their checkpoint (counted as a resume),
-  // queued ones wait.
-  for (v1::JobState state : {v1::RUNNING, v1::QUEUED}) {
-    GAPS_ASSIGN_OR_RETURN(std::vector<v1::JobStatus> jobs, store_->in_state(state));
-    for (v1::JobStatus& job : jobs) {
-      if (state == v1::RUNNING && !requeue_interrupted(job)) continue;
-      enqueue(job.job_id());
-    }
+  if (store_->shared()) {
+    // Other replicas may be receiving uploads right now: only what no upload can still be using goes.
+    remove_stale_uploads(options_.data_dir / "uploads", std::chrono::hours(24));
+  } else {
+    // This process holds the folder alone: uploads being received when an earlier one stopped never
+    // became jobs, and the leases of jobs it ran died with it (they are taken over at once).
+    remove_tree(options_.data_dir / "uploads");
+    GAPS_RETURN_IF_ERROR(store_->expire_leases());
   }
   for (int i = 0; i < options_.concurrency; ++i) threads_.emplace_back([this] { job_loop(); });
   threads_.emplace_back([this] { retry_loop(); });
+  threads_.emplace_back([this] { heartbeat_loop(); });
   return absl::OkStatus();
 }
 
-bool TrainerService::requeue_interrupted(v1::JobStatus& job) {
+void TrainerService::run_claimed(v1::JobStatus job) {
+  if (job.state() != v1::RUNNING) return run_job(std::move(job));
   job.set_resumes(job.resumes() + 1);
   if (!job.stopped_cleanly()) job.set_crashes(job.crashes() + 1);
   job.set_stopped_cleanly(false);
@@ -157,17 +180,16 @@ bool TrainerService::requeue_interrupted(v1::JobStatus& job) {
                                "trainer's log has the cause; resubmit the job to try again"));
     std::cerr << "gaps-trainer: job " << job.job_id() << " quarantined: " << job.error() << "\n";
     end_job({job, list_artifacts(job_dir(job.job_id()) / "out"), absl::OkStatus()});
-    return false;
+    return;
   }
-  job.set_state(v1::QUEUED);
-  if (absl::Status st = store_->update(job); !st.ok()) log_store_error(job.job_id(), "its restart", st);
   v1::JobEvent e = event_for(job.job_id());
-  e.set_log(
-      absl::StrCat("trainer restarted during the job: it resumes from its last checkpoint, or from the start "
-                   "without one (resume ",
-                   job.resumes(), job.crashes() > 0 ? absl::StrCat(", after ", job.crashes(), " crash(es)") : "", ")"));
+  e.set_log(absl::StrCat("trainer ", options_.replica_id,
+                         " takes the job over: it resumes from its last checkpoint, or from the start without one "
+                         "(resume ",
+                         job.resumes(), job.crashes() > 0 ? absl::StrCat(", after ", job.crashes(), " crash(es)") : "",
+                         ")"));
   publish(e);
-  return true;
+  run_job(std::move(job));
 }
 
 void TrainerService::shutdown() {
@@ -189,13 +211,6 @@ void TrainerService::shutdown() {
               << end.error.message() << ")\n";
 }
 
-void TrainerService::enqueue(const std::string& job_id) {
-  std::lock_guard<std::mutex> lock(mutex_);
-  cancel_flags_[job_id] = std::make_shared<std::atomic<bool>>(false);
-  queue_.push_back(job_id);
-  queue_changed_.notify_one();
-}
-
 void TrainerService::publish(v1::JobEvent event) {
   if (const absl::StatusOr<int64_t> seq = store_->append_event(event); !seq.ok())
     log_store_error(event.job_id(), absl::StrCat("its ", event_name(event), " event"), seq.status());
@@ -208,54 +223,89 @@ void TrainerService::log_store_error(const std::string& job_id, const std::strin
 }
 
 void TrainerService::job_loop() {
+  std::string last_error;
   while (true) {
-    std::string job_id;
     {
-      std::unique_lock<std::mutex> lock(mutex_);
-      queue_changed_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+      std::lock_guard<std::mutex> lock(mutex_);
       if (stopping_) return;
-      job_id = queue_.front();
-      queue_.pop_front();
     }
-    run_job(job_id);
+    absl::StatusOr<std::optional<v1::JobStatus>> claimed = store_->claim(options_.replica_id, options_.lease_seconds);
+    if (claimed.ok() && claimed->has_value()) {
+      last_error.clear();
+      run_claimed(std::move(**claimed));
+      continue;
+    }
+    if (!claimed.ok() && claimed.status().ToString() != last_error) {  // once per distinct failure
+      last_error = claimed.status().ToString();
+      std::cerr << "gaps-trainer: cannot take jobs from the job store (trying again): " << last_error << "\n";
+    }
+    std::unique_lock<std::mutex> lock(mutex_);
+    queue_changed_.wait_for(lock, options_.claim_interval);
   }
 }
 
-void TrainerService::run_job(const std::string& job_id) {
-  std::shared_ptr<std::atomic<bool>> cancelled;
+void TrainerService::run_job(v1::JobStatus status) {
+  const std::string job_id = status.job_id();
+  const auto flags = std::make_shared<RunFlags>();
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    cancelled = cancel_flags_[job_id];
+    running_[job_id] = flags;
   }
-  absl::StatusOr<v1::JobStatus> status = store_->get(job_id);
-  if (!status.ok() || terminal(status->state())) {
-    if (!status.ok())
-      std::cerr << "gaps-trainer: job " << job_id << ": cannot read it from the job store, so it stays queued until "
-                << "the trainer restarts: " << status.status() << "\n";
+  const auto done = [&] {
     std::lock_guard<std::mutex> lock(mutex_);
-    cancel_flags_.erase(job_id);
-    return;
+    running_.erase(job_id);
+  };
+  status.set_state(v1::RUNNING);
+  status.set_started_at(now_seconds());
+  status.set_runner(options_.replica_id);
+  // The job runs anyway: a store that recovers records its end, and one that does not lets the lease lapse,
+  // so that the job is taken over.
+  if (absl::Status st = store_->update(status, options_.replica_id); !st.ok()) {
+    if (st.code() == absl::StatusCode::kAborted) return done();
+    log_store_error(job_id, "that it started", st);
   }
-  status->set_state(v1::RUNNING);
-  status->set_started_at(now_seconds());
-  // The job runs anyway: a store that recovers records its end, and one that does not keeps it queued, so
-  // that a restarted trainer runs it again.
-  if (absl::Status st = store_->update(*status); !st.ok()) log_store_error(job_id, "that it started", st);
   v1::JobEvent started = event_for(job_id);
   started.set_state_changed(v1::RUNNING);
   publish(started);
 
-  v1::JobStatus final_status = train(*status, *cancelled);
-  if (!terminal(final_status.state())) {  // interrupted by shutdown: stays RUNNING for the next process
+  v1::JobStatus final_status = train(status, *flags);
+  if (flags->lease_lost) {
+    std::cerr << "gaps-trainer: job " << job_id << ": another trainer took it over; this run stops unrecorded\n";
+    return done();
+  }
+  if (!terminal(final_status.state())) {  // interrupted by shutdown: RUNNING for the next process or replica
     final_status.set_stopped_cleanly(true);
-    if (absl::Status st = store_->update(final_status); !st.ok())
+    if (absl::Status st = store_->update(final_status, options_.replica_id); !st.ok())
       log_store_error(job_id, "its progress before the shutdown (it resumes from its last recorded checkpoint)", st);
-    return;
+    if (absl::Status st = store_->release(job_id, options_.replica_id); !st.ok())
+      log_store_error(job_id, "the release of its lease (it is taken over when the lease expires)", st);
+    return done();
   }
   final_status.set_finished_at(now_seconds());
   const auto artifacts = list_artifacts(job_dir(job_id) / "out");
   for (const auto& a : artifacts) final_status.add_artifacts(a.path);
   end_job({final_status, artifacts, absl::OkStatus()});
+  done();
+}
+
+void TrainerService::heartbeat_loop() {
+  const auto interval = std::chrono::duration<double>(options_.lease_seconds / 4);
+  std::unique_lock<std::mutex> lock(mutex_);
+  while (!stopping_changed_.wait_for(lock, interval, [this] { return stopping_; })) {
+    const auto running = running_;
+    lock.unlock();
+    for (const auto& [job_id, flags] : running) {
+      const absl::StatusOr<bool> renewed = store_->renew(job_id, options_.replica_id, options_.lease_seconds);
+      if (renewed.ok()) {
+        if (*renewed) flags->cancelled = true;
+      } else if (renewed.status().code() == absl::StatusCode::kAborted) {
+        flags->lease_lost = true;
+      } else {
+        log_store_error(job_id, "the renewal of its lease", renewed.status());
+      }
+    }
+    lock.lock();
+  }
 }
 
 void TrainerService::end_job(UnrecordedEnd end) {
@@ -268,17 +318,17 @@ void TrainerService::end_job(UnrecordedEnd end) {
                     st);
     end.error = unrecorded_end_error(end.status, st);
   }
-  {
+  if (!st.ok() && st.code() != absl::StatusCode::kAborted) {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (!st.ok()) unrecorded_ends_[job_id] = std::move(end);
-    cancel_flags_.erase(job_id);
+    unrecorded_ends_[job_id] = std::move(end);
   }
   events_changed_.notify_all();  // watchers get the closing event or the refusal
 }
 
 absl::Status TrainerService::record_end(const UnrecordedEnd& end) {
   v1::JobEvent closing = closing_event(end.status);
-  return store_->end_job(end.status, end.artifacts, closing);
+  // Only while this process holds the lease: a job another replica took over ends there, once.
+  return store_->end_job(end.status, end.artifacts, closing, options_.replica_id);
 }
 
 void TrainerService::retry_loop() {
@@ -300,9 +350,11 @@ void TrainerService::retry_unrecorded_ends() {
   for (const UnrecordedEnd& end : ends) {
     const absl::Status st = record_end(end);
     std::lock_guard<std::mutex> lock(mutex_);
-    if (st.ok()) {
+    if (st.ok() || st.code() == absl::StatusCode::kAborted) {
       unrecorded_ends_.erase(end.status.job_id());
-      std::cerr << "gaps-trainer: job " << end.status.job_id() << ": its end is recorded now\n";
+      std::cerr << "gaps-trainer: job " << end.status.job_id() << ": "
+                << (st.ok() ? "its end is recorded now" : "another trainer took it over; its end here is dropped")
+                << "\n";
     } else {
       unrecorded_ends_[end.status.job_id()].error = unrecorded_end_error(end.status, st);
     }
@@ -320,7 +372,7 @@ void TrainerService::note_unrecorded_end(v1::JobStatus& status) {
   if (absl::Status st = unrecorded_end(status.job_id()); !st.ok()) status.set_error(std::string(st.message()));
 }
 
-v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool>& cancelled) {
+v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags) {
   const std::string job_id = status.job_id();
   const fs::path dir = job_dir(job_id);
   const auto fail = [&](const absl::Status& error) {
@@ -343,6 +395,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
       return fail(absl::FailedPreconditionError(absl::StrCat(
           "variant ", variant_name(o.variant), " needs diffusion workers (start the trainer with --workers)")));
     WorkerPoolOptions pool = options_.workers;
+    pool.addresses = resolve_worker_addresses(pool.addresses);  // per job: workers come and go
     pool.scene_id = job_id;
     absl::StatusOr<std::unique_ptr<RemoteGenerator>> made = RemoteGenerator::create(pool);
     if (!made.ok()) return fail(made.status());
@@ -355,7 +408,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
     e.set_checkpoint_written(iteration);
     publish(e);
   };
-  o.should_stop = [&] { return cancelled.load() || stop_training_.load(); };
+  o.should_stop = [&] { return flags.cancelled.load() || flags.lease_lost.load() || stop_training_.load(); };
   o.on_phase = [&](const std::string& what, const nlohmann::json& entry) {
     v1::JobEvent e = event_for(job_id);
     if (what == "started")
@@ -383,7 +436,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
     status.set_iteration(p.iteration);
     status.set_iterations(p.iterations);
     status.set_num_gaussians(p.num_gaussians);
-    if (absl::Status st = store_->update(status); !st.ok())
+    if (absl::Status st = store_->update(status, options_.replica_id);
+        !st.ok() && st.code() != absl::StatusCode::kAborted)
       log_store_error(job_id, absl::StrCat("its progress at iteration ", p.iteration), st);
   };
   const auto log = [&](const std::string& line) {
@@ -403,7 +457,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const std::atomic<bool
     return status;
   }
   if (result.status().code() == absl::StatusCode::kCancelled) {
-    if (cancelled) {
+    if (flags.cancelled) {
       status.set_state(v1::CANCELLED);
       status.set_error(absl::StrCat("cancelled: ", result.status().message()));
     } else {
@@ -418,7 +472,8 @@ grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::Serve
                                        v1::SubmitJobResponse* response) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   // The upload streams into a staging folder and becomes the job's scene only once checked whole, so a
-  // trainer that dies mid-upload leaves no half-written job behind (start() clears what it left).
+  // trainer that dies mid-upload leaves no half-written job behind (start() clears what it left, with a
+  // shared store once it is a day old).
   const std::string job_id = new_job_id();
   const fs::path staging = options_.data_dir / "uploads" / job_id;
   const fs::path dir = job_dir(job_id);
@@ -447,7 +502,7 @@ grpc::Status TrainerService::SubmitJob(grpc::ServerContext* context, grpc::Serve
   v1::JobEvent queued = event_for(job_id);
   queued.set_state_changed(v1::QUEUED);
   publish(queued);
-  enqueue(job_id);
+  queue_changed_.notify_one();  // an idle job thread of this process claims it at once
   response->set_job_id(job_id);
   return grpc::Status::OK;
 }
@@ -507,36 +562,27 @@ grpc::Status TrainerService::CancelJob(grpc::ServerContext* context, const v1::C
         absl::StrCat("job ", request->job_id(), " already ended (", v1::JobState_Name(job->state()), ")"));
   if (auto st = unrecorded_end(request->job_id()); !st.ok())
     return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION, std::string(st.message()));
-  std::optional<size_t> queue_position;
+  v1::JobStatus cancelled = *job;
+  cancelled.set_state(v1::CANCELLED);
+  cancelled.set_error("cancelled before it started");
+  cancelled.set_finished_at(now_seconds());
+  v1::JobEvent closing = closing_event(cancelled);
+  // A job nobody runs ends here; a running one (here or on another replica) gets the request and stops at
+  // its next iteration, in its own thread.
+  const absl::StatusOr<bool> ended = store_->cancel(cancelled, closing);
+  if (!ended.ok()) {
+    if (ended.status().code() == absl::StatusCode::kFailedPrecondition) return rpc::to_grpc(ended.status());
+    return rpc::to_grpc(absl::Status(
+        ended.status().code(), absl::StrCat("job ", request->job_id(), " stays queued: ", ended.status().message())));
+  }
+  if (*ended) {
+    events_changed_.notify_all();
+    *response = cancelled;
+    return grpc::Status::OK;
+  }
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (auto it = cancel_flags_.find(request->job_id()); it != cancel_flags_.end()) *it->second = true;
-    const auto pos = std::find(queue_.begin(), queue_.end(), request->job_id());
-    if (pos != queue_.end()) {
-      queue_position = pos - queue_.begin();
-      queue_.erase(pos);
-    }
-  }
-  if (queue_position) {  // never started: it ends here; a running job ends in its own thread at the next iteration
-    job->set_state(v1::CANCELLED);
-    job->set_error("cancelled before it started");
-    job->set_finished_at(now_seconds());
-    v1::JobEvent closing = closing_event(*job);
-    const absl::Status st = store_->end_job(*job, {}, closing);
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      if (st.ok()) {
-        cancel_flags_.erase(request->job_id());
-      } else {  // the store still has it queued, so it stays in the queue where it was
-        *cancel_flags_[request->job_id()] = false;
-        queue_.insert(queue_.begin() + std::min(*queue_position, queue_.size()), request->job_id());
-        queue_changed_.notify_one();
-      }
-    }
-    events_changed_.notify_all();
-    if (!st.ok())
-      return rpc::to_grpc(
-          absl::Status(st.code(), absl::StrCat("job ", request->job_id(), " stays queued: ", st.message())));
+    if (auto it = running_.find(request->job_id()); it != running_.end()) it->second->cancelled = true;
   }
   *response = *job;
   return grpc::Status::OK;

@@ -1,16 +1,16 @@
 #pragma once
-// The Trainer gRPC service: validates and stores uploaded scenes, runs training jobs from a queue with a
-// configurable number of concurrent jobs, records everything in the SQLite job store (so a restarted
-// trainer knows its jobs, replays their events and re-runs the ones that were running) and serves events,
-// artifacts and renders. Jobs of the method variants get pseudo-views from a pool of diffusion workers
-// (server/remote_generator.h); a phase no worker answers is skipped and reported, never fatal.
-// A write the job store refuses is never dropped silently: a submission or cancellation fails with the
-// store's error, a lost event or progress update of a running job is logged with the job id, and a job end
-// the store refused is retried in the background while GetJob/ListJobs/WatchJob report it as unrecorded.
+// The Trainer gRPC service: validates and stores uploaded scenes, runs training jobs it claims from the job
+// store's queue (a configurable number at once, each under a lease it renews), records everything in the
+// store (so a restarted trainer, or another replica of a shared PostgreSQL store, knows every job, replays
+// its events and takes over the ones whose runner died) and serves events, artifacts and renders. Jobs of the method
+// variants get pseudo-views from a pool of diffusion workers (server/remote_generator.h); a phase no worker answers is
+// skipped and reported, never fatal. A write the job store refuses is never dropped silently: a submission or
+// cancellation fails with the store's error, a lost event or progress update of a running job is logged with the job
+// id, and a job end the store refused is retried in the background while GetJob/ListJobs/WatchJob report it as
+// unrecorded.
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
-#include <deque>
 #include <filesystem>
 #include <map>
 #include <memory>
@@ -27,9 +27,15 @@
 namespace gaps {
 
 struct TrainerServiceOptions {
-  std::filesystem::path data_dir;  // jobs.db, jobs/<id>/{scene,out}, the initialiser cache
-  std::string device = "cpu";      // training device of every job
-  int concurrency = 1;             // jobs trained at once
+  std::filesystem::path data_dir;  // jobs.db, jobs/<id>/{scene,out}, uploads/, the initialiser cache
+  // "" (SQLite in data_dir, this process alone) or a PostgreSQL URI shared by replicas (server/job_store.h).
+  std::string job_store;
+  // This process in leases and logs; empty: host name, pid and a random suffix.
+  std::string replica_id;
+  double lease_seconds = 30;                       // a job whose runner stops renewing for this long is taken over
+  std::chrono::milliseconds claim_interval{1000};  // how often idle job threads look for work
+  std::string device = "cpu";                      // training device of every job
+  int concurrency = 1;                             // jobs trained at once
   // A job found RUNNING at start-up whose trainer died (no clean stop) this many times is FAILED, not run
   // again: it may be what killed the trainer.
   int max_crashes = 2;
@@ -44,11 +50,14 @@ class TrainerService final : public v1::Trainer::Service {
   static absl::StatusOr<std::unique_ptr<TrainerService>> create(TrainerServiceOptions options);
   ~TrainerService() override;
 
-  // Starts the job threads; jobs left RUNNING or QUEUED by a previous process are queued again.
+  // Starts the job threads, which claim queued jobs and jobs whose runner died (with SQLite: every job a
+  // previous process left running).
   absl::Status start();
-  // Stops taking jobs, interrupts running ones without marking them finished (they run again after a
-  // restart) and joins the threads.
+  // Stops taking jobs, interrupts running ones without marking them finished (they go on after a restart or
+  // on another replica, from their checkpoint) and joins the threads.
   void shutdown();
+  const std::string& replica_id() const { return options_.replica_id; }
+  std::string store_description() const { return store_->describe(); }
 
   grpc::Status SubmitJob(grpc::ServerContext* context, grpc::ServerReader<v1::SubmitJobRequest>* reader,
                          v1::SubmitJobResponse* response) override;
@@ -68,12 +77,21 @@ class TrainerService final : public v1::Trainer::Service {
   TrainerService(TrainerServiceOptions options, std::unique_ptr<DataDirLock> lock, std::unique_ptr<JobStore> store);
   std::filesystem::path job_dir(const std::string& job_id) const;
   void job_loop();
-  void run_job(const std::string& job_id);
+  // Takes over a job a dead or stopped runner left RUNNING (counting a resume, and a crash unless it
+  // stopped cleanly) and runs it; a job that reached max_crashes is FAILED instead.
+  void run_claimed(v1::JobStatus job);
+  void run_job(v1::JobStatus status);
+  // What stops a running job: a cancel, or the loss of its lease to another replica.
+  struct RunFlags {
+    std::atomic<bool> cancelled{false};
+    std::atomic<bool> lease_lost{false};
+  };
   // Runs the pipeline for a job; returns its final status (or the status to keep when shutting down).
-  v1::JobStatus train(v1::JobStatus status, const std::atomic<bool>& cancelled);
+  v1::JobStatus train(v1::JobStatus status, const RunFlags& flags);
+  // Renews the leases of the running jobs and passes on cancel requests and lost leases.
+  void heartbeat_loop();
   // Stores the event (logging a refusal) and wakes the watchers.
   void publish(v1::JobEvent event);
-  void enqueue(const std::string& job_id);
   void log_store_error(const std::string& job_id, const std::string& what, const absl::Status& error) const;
 
   // A job that ended but whose end the store refused: retried by retry_loop, and reported by the RPCs
@@ -83,9 +101,6 @@ class TrainerService final : public v1::Trainer::Service {
     std::vector<JobStore::Artifact> artifacts;
     absl::Status error;  // for clients: the store's latest refusal, naming the job and its outcome
   };
-  // A job a previous process left RUNNING: counted as a resume (and a crash unless it stopped cleanly) and
-  // queued again; false when it reached max_crashes and was FAILED instead.
-  bool requeue_interrupted(v1::JobStatus& job);
   // Records the end (status, artifacts, closing event) or keeps it as unrecorded.
   void end_job(UnrecordedEnd end);
   absl::Status record_end(const UnrecordedEnd& end);
@@ -103,8 +118,7 @@ class TrainerService final : public v1::Trainer::Service {
   std::condition_variable queue_changed_;
   std::condition_variable events_changed_;
   std::condition_variable stopping_changed_;
-  std::deque<std::string> queue_;
-  std::map<std::string, std::shared_ptr<std::atomic<bool>>> cancel_flags_;  // queued and running jobs
+  std::map<std::string, std::shared_ptr<RunFlags>> running_;  // the jobs this process runs
   std::map<std::string, UnrecordedEnd> unrecorded_ends_;
   bool stopping_ = false;
   std::atomic<bool> stop_training_{false};

@@ -531,49 +531,8 @@ TEST(WorkerPool, AWorkerThatFailedIsAdaptedAgainBeforeItGenerates) {
   EXPECT_EQ(backend.adaptations, 2);
 }
 
+// The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).
 using JobStoreTest = test::TempDirTest;
-
-TEST_F(JobStoreTest, JobsEventsAndArtifactsSurviveReopening) {
-  {
-    auto store = JobStore::open(dir_ / "jobs.db");
-    ASSERT_TRUE(store.ok()) << store.status();
-    v1::JobStatus status;
-    status.set_job_id("job-1");
-    status.set_state(v1::QUEUED);
-    v1::JobSpec spec;
-    spec.set_name("fern");
-    spec.mutable_config()->set_views(3);
-    ASSERT_TRUE((*store)->insert(status, spec).ok());
-    EXPECT_FALSE((*store)->insert(status, spec).ok());  // ids are unique
-    status.set_state(v1::RUNNING);
-    status.set_iteration(40);
-    ASSERT_TRUE((*store)->update(status).ok());
-    for (int i = 0; i < 3; ++i) {
-      v1::JobEvent e;
-      e.set_job_id("job-1");
-      e.mutable_progress()->set_iteration(i * 10);
-      auto seq = (*store)->append_event(e);
-      ASSERT_TRUE(seq.ok());
-      EXPECT_EQ(*seq, i);
-    }
-    ASSERT_TRUE((*store)->set_artifacts("job-1", {{"metrics.json", 10}, {"point_cloud.ply", 2000}}).ok());
-  }
-  auto store = JobStore::open(dir_ / "jobs.db");
-  ASSERT_TRUE(store.ok());
-  auto status = (*store)->get("job-1");
-  ASSERT_TRUE(status.ok());
-  EXPECT_EQ(status->state(), v1::RUNNING);
-  EXPECT_EQ(status->iteration(), 40);
-  EXPECT_EQ((*store)->spec("job-1")->config().views(), 3);
-  EXPECT_EQ((*store)->in_state(v1::RUNNING)->size(), 1u);
-  EXPECT_EQ((*store)->in_state(v1::QUEUED)->size(), 0u);
-  auto events = (*store)->events("job-1", 1);
-  ASSERT_TRUE(events.ok());
-  ASSERT_EQ(events->size(), 2u);
-  EXPECT_EQ((*events)[1].progress().iteration(), 20);
-  EXPECT_EQ((*store)->artifacts("job-1")->size(), 2u);
-  EXPECT_EQ((*store)->get("job-2").status().code(), absl::StatusCode::kNotFound);
-}
 
 constexpr char kRefusal[] = "database or disk is full (test)";
 
