@@ -12,6 +12,7 @@ DEBIAN_PACKAGES=(
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
   libopencv-dev libeigen3-dev libstb-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
   openssl libssl-dev  # TLS key checks; the TLS end-to-end test makes its certificate with openssl
+  postgresql libpq-dev  # the shared job store (libpq) and the private servers of its tests
   clang-format  # scripts/check_format.sh (the format check in the test suite)
   clang libclang-rt-14-dev  # scripts/fuzz.sh: libFuzzer and the sanitizers
 )
