@@ -53,11 +53,12 @@ struct ScaleOut : test::TempDirTest {
 
   void start_trainer(int i) {
     std::string worker_list;
-    for (int w = 0; w < kWorkers; ++w) worker_list += (w ? ",127.0.0.1:" : "127.0.0.1:") + std::to_string(worker_ports[w]);
+    for (int w = 0; w < kWorkers; ++w)
+      worker_list += (w ? ",127.0.0.1:" : "127.0.0.1:") + std::to_string(worker_ports[w]);
     trainers[i] = std::make_unique<Process>(
         std::vector<std::string>{GAPS_TRAINER_BIN, "--listen", "127.0.0.1:0", "--data_dir", (dir_ / "data").string(),
-                                 "--job_store", postgres->uri("gaps"), "--replica_id", name(i), "--lease_seconds",
-                                 "3", "--device", "cpu", "--workers", worker_list},
+                                 "--job_store", postgres->uri("gaps"), "--replica_id", name(i), "--lease_seconds", "3",
+                                 "--device", "cpu", "--workers", worker_list},
         dir_ / (name(i) + ".log"));
     trainer_ports[i] = trainers[i]->wait_for_port();
   }

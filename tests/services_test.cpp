@@ -23,6 +23,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/match.h"
+#include "absl/strings/str_join.h"
 #include "client/remote_client.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
@@ -312,6 +313,33 @@ TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   ASSERT_EQ(got->size(), want->size());
   for (size_t k = 0; k < got->size(); ++k) EXPECT_TRUE(at::equal((*got)[k], (*want)[k])) << "pose " << k;
   EXPECT_EQ((*remote)->name(), "remote " + (*local)->name());
+}
+
+// A dns:/// name stands for every address it resolves to (one worker each); a name that resolves to nothing
+// stays in the pool as itself, to be reported unreachable like any worker that is down.
+TEST(WorkerPool, DnsNamesResolveToOneWorkerPerAddress) {
+  const auto resolved =
+      resolve_worker_addresses({"dns:///localhost:1234", "10.0.0.7:50052", "dns:no-such-host.invalid:9"});
+  EXPECT_NE(std::find(resolved.begin(), resolved.end(), "127.0.0.1:1234"), resolved.end())
+      << absl::StrJoin(resolved, " ");
+  EXPECT_NE(std::find(resolved.begin(), resolved.end(), "10.0.0.7:50052"), resolved.end());
+  EXPECT_NE(std::find(resolved.begin(), resolved.end(), "dns:no-such-host.invalid:9"), resolved.end());
+  EXPECT_EQ(std::count_if(resolved.begin(), resolved.end(),
+                          [](const std::string& a) { return absl::StrContains(a, "dns:"); }),
+            1);
+
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  RunningWorker worker(std::move(*hosted), options);
+  auto remote = pool(resolve_worker_addresses({"dns:///localhost:" + std::to_string(worker.port)}));
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  auto got = (*remote)->generate(requests);  // through 127.0.0.1 (and past ::1, where nothing listens)
+  ASSERT_TRUE(got.ok()) << got.status();
+  EXPECT_EQ(got->size(), requests.size());
 }
 
 // What the hosted backend cannot honour comes back with the answer that asked for it: the adaptation's notes
