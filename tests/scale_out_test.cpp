@@ -5,12 +5,14 @@
 // replica, and every job's artifacts must be fetchable through any live replica.
 #include <signal.h>
 
+#include <algorithm>
 #include <map>
 #include <set>
 #include <thread>
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include "absl/strings/match.h"
 #include "client/remote_client.h"
 #include "common/io_util.h"
 #include "gs_trainer/synthetic.h"
@@ -162,6 +164,10 @@ TEST_F(ScaleOut, SixJobsThroughThreeReplicasSurviveAKilledReplicaAndEndOnce) {
       queued += events[s].has_state_changed() && events[s].state_changed() == v1::QUEUED;
     }
     EXPECT_EQ(closings, 1) << jobs[k] << " ended more than once";
+    const bool taken_over = std::any_of(events.begin(), events.end(), [](const v1::JobEvent& e) {
+      return e.has_log() && absl::StrContains(e.log(), "takes the job over");
+    });
+    EXPECT_EQ(taken_over, jobs[k] == victim) << jobs[k];
     EXPECT_TRUE(events.back().has_finished()) << jobs[k];
     EXPECT_EQ(queued, 1) << jobs[k];
     for (int a : alive) {
