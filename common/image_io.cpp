@@ -1,5 +1,6 @@
 #include "common/image_io.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <limits>
 #include <string>
@@ -62,6 +63,38 @@ absl::Status check_image_size(const std::string& what, int width, int height) {
   return absl::OkStatus();
 }
 
+// stb_image (as packaged by Debian) builds a JPEG Huffman table from the 16 code counts of a DHT segment
+// without checking that they sum to at most 256, the size of the table: a crafted file writes past it
+// (found by fuzz/image_fuzz.cpp). Every DHT segment is checked here before stb reads the bytes: markers are
+// walked from SOI, skipping each segment by its length and the entropy-coded data between scans.
+absl::Status check_jpeg_tables(const fs::path& path, const std::string& bytes) {
+  const auto* b = reinterpret_cast<const uint8_t*>(bytes.data());
+  const size_t n = bytes.size();
+  if (n < 2 || b[0] != 0xFF || b[1] != 0xD8) return absl::OkStatus();  // not a JPEG
+  size_t i = 2;
+  while (i + 4 <= n) {
+    if (b[i] != 0xFF || b[i + 1] == 0xFF || b[i + 1] == 0x00 || (b[i + 1] >= 0xD0 && b[i + 1] <= 0xD7)) {
+      ++i;  // entropy-coded data, stuffed bytes, fill bytes and restart markers carry no segment
+      continue;
+    }
+    if (b[i + 1] == 0xD9) break;  // end of image
+    const size_t length = size_t{b[i + 2]} << 8 | b[i + 3];
+    const size_t end = std::min(n, i + 2 + length);
+    if (b[i + 1] == 0xC4) {
+      for (size_t t = i + 4; t + 17 <= end;) {
+        size_t codes = 0;
+        for (int k = 1; k <= 16; ++k) codes += b[t + k];
+        if (codes > 256)
+          return absl::InvalidArgumentError(absl::StrCat(path.string(), ": corrupt JPEG (a Huffman table declares ",
+                                                         codes, " codes; at most 256 exist)"));
+        t += 17 + codes;
+      }
+    }
+    i += 2 + std::max<size_t>(length, 2);
+  }
+  return absl::OkStatus();
+}
+
 struct ImageHeader {
   int width = 0, height = 0, channels = 0;
 };
@@ -71,6 +104,7 @@ absl::StatusOr<ImageHeader> read_header(const fs::path& path, const std::string&
   if (bytes.size() > static_cast<size_t>(std::numeric_limits<int>::max()))
     return absl::InvalidArgumentError(
         absl::StrCat(path.string(), ": ", bytes.size(), " bytes is too large an image file"));
+  GAPS_RETURN_IF_ERROR(check_jpeg_tables(path, bytes));
   ImageHeader h;
   if (!stbi_info_from_memory(reinterpret_cast<const stbi_uc*>(bytes.data()), static_cast<int>(bytes.size()), &h.width,
                              &h.height, &h.channels))
@@ -114,16 +148,10 @@ absl::StatusOr<at::Tensor> read_image(const fs::path& path) {
 }
 
 absl::StatusOr<std::pair<int, int>> read_image_size(const fs::path& path) {
-  std::error_code ec;
-  if (!fs::is_regular_file(path, ec)) return absl::NotFoundError(absl::StrCat(path.string(), ": image file not found"));
-  FILE* file = std::fopen(path.c_str(), "rb");
-  if (file == nullptr) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be opened"));
-  int width = 0, height = 0, channels = 0;
-  const int ok = stbi_info_from_file(file, &width, &height, &channels);
-  std::fclose(file);
-  if (!ok) return corrupt(path);
-  GAPS_RETURN_IF_ERROR(check_image_size(path.string(), width, height));
-  return std::make_pair(width, height);
+  // The whole file, not stb's file reader: the header checks (read_header) need the bytes.
+  GAPS_ASSIGN_OR_RETURN(const std::string bytes, read_file_bytes(path, "image file"));
+  GAPS_ASSIGN_OR_RETURN(const ImageHeader header, read_header(path, bytes));
+  return std::make_pair(header.width, header.height);
 }
 
 absl::StatusOr<std::string> encode_png(const at::Tensor& image, const std::string& what) {

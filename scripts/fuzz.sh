@@ -15,6 +15,6 @@ cmake -S "$root" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCMAKE_
   -DGAPS_FUZZ=ON -DBUILD_TESTING=OFF -DGAPS_FUZZ_SECONDS="$seconds" \
   -DGAPS_PYTHON:FILEPATH="$GAPS_CACHE/venv/bin/python" >/dev/null
 cmake --build "$build" -j "${GAPS_JOBS:-$(nproc)}" --target gaps_fuzzers
-cd "$build"
-rm -rf fuzz/work
+cd "$build/fuzz"  # the fuzz tests live here (the rest of the fuzz build has no tests)
+rm -rf work
 ctest -L fuzz -j "${GAPS_FUZZ_JOBS:-2}" --output-on-failure "$@"

@@ -196,5 +196,36 @@ TEST(ImageIo, AHugeImageIsRefusedFromItsHeader) {
       << decoded.status();
 }
 
+// A DHT segment whose 16 code counts sum past 256 made stb_image write beyond its Huffman table (found by
+// fuzz/image_fuzz.cpp; the input is fuzz/regressions/image/jpeg_huffman_table_overflow.jpg). It is refused,
+// from memory and from a file, before stb reads it.
+TEST(ImageIo, AJpegHuffmanTableWithMoreThan256CodesIsRefused) {
+  // SOI, then a DHT of one table: class/id byte, 16 counts (16 x 17 = 272 codes), the code values.
+  std::string jpeg("\xFF\xD8\xFF\xC4", 4);
+  const size_t length = 2 + 1 + 16 + 272;
+  jpeg += static_cast<char>(length >> 8);
+  jpeg += static_cast<char>(length & 0xFF);
+  jpeg += '\x00';
+  jpeg += std::string(16, '\x11');
+  jpeg += std::string(272, '\x01');
+  jpeg += std::string("\xFF\xD9", 2);
+  for (const absl::Status& st :
+       {decode_image(jpeg, "upload.jpg").status(), decode_image_size(jpeg, "upload.jpg").status()}) {
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
+    EXPECT_NE(st.message().find("upload.jpg: corrupt JPEG (a Huffman table declares 272 codes; at most 256 exist)"),
+              std::string_view::npos)
+        << st;
+  }
+  const auto found = read_file_bytes(std::filesystem::path(GAPS_SOURCE_DIR) /
+                                     "fuzz/regressions/image/jpeg_huffman_table_overflow.jpg");
+  ASSERT_TRUE(found.ok()) << found.status();
+  EXPECT_NE(decode_image(*found, "found.jpg").status().message().find("Huffman table declares"),
+            std::string_view::npos);
+  // A valid JPEG still decodes (its tables sum to at most 256).
+  const auto seed = read_file_bytes(std::filesystem::path(GAPS_SOURCE_DIR) / "fuzz/corpus/image/rgb.jpg");
+  ASSERT_TRUE(seed.ok());
+  EXPECT_TRUE(decode_image(*seed, "rgb.jpg").ok());
+}
+
 }  // namespace
 }  // namespace gaps
