@@ -1,11 +1,14 @@
 #include "common/image_io.h"
 
 #include <algorithm>
+#include <csetjmp>
 #include <cstdio>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include <ATen/ATen.h>
+#include <jpeglib.h>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 #include "absl/strings/str_cat.h"
@@ -13,15 +16,14 @@
 #include "common/io_util.h"
 #include "common/status_macros.h"
 
-// stb is compiled here with internal linkage, so no other library that bundles its own copy (or
-// Debian's libstb.so, absent on the GPU machines) can clash with or be required for these symbols.
+// stb (PNG only; JPEG is libjpeg-turbo's) is compiled here with internal linkage, so no other library that bundles its
+// own copy (or Debian's libstb.so, absent on the GPU machines) can clash with or be required for these symbols.
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wunused-function"
 #pragma GCC diagnostic ignored "-Wmissing-field-initializers"
 #define STB_IMAGE_STATIC
 #define STB_IMAGE_IMPLEMENTATION
 #define STBI_ONLY_PNG
-#define STBI_ONLY_JPEG
 #include <stb/stb_image.h>
 #define STB_IMAGE_WRITE_STATIC
 #define STB_IMAGE_WRITE_IMPLEMENTATION
@@ -63,58 +65,93 @@ absl::Status check_image_size(const std::string& what, int width, int height) {
   return absl::OkStatus();
 }
 
-// stb_image (as packaged by Debian) builds a JPEG Huffman table from the 16 code counts of a DHT segment
-// without checking that they sum to at most 256, the size of the table: a crafted file writes past it
-// (found by fuzz/image_fuzz.cpp). Every DHT segment is checked here before stb reads the bytes: markers are
-// walked from SOI, skipping each segment by its length and the entropy-coded data between scans.
-absl::Status check_jpeg_tables(const fs::path& path, const std::string& bytes) {
-  const auto* b = reinterpret_cast<const uint8_t*>(bytes.data());
-  const size_t n = bytes.size();
-  if (n < 2 || b[0] != 0xFF || b[1] != 0xD8) return absl::OkStatus();  // not a JPEG
-  size_t i = 2;
-  while (i + 4 <= n) {
-    if (b[i] != 0xFF || b[i + 1] == 0xFF || b[i + 1] == 0x00 || (b[i + 1] >= 0xD0 && b[i + 1] <= 0xD7)) {
-      ++i;  // entropy-coded data, stuffed bytes, fill bytes and restart markers carry no segment
-      continue;
-    }
-    if (b[i + 1] == 0xD9) break;  // end of image
-    const size_t length = size_t{b[i + 2]} << 8 | b[i + 3];
-    const size_t end = std::min(n, i + 2 + length);
-    if (b[i + 1] == 0xC4) {
-      for (size_t t = i + 4; t + 17 <= end;) {
-        size_t codes = 0;
-        for (int k = 1; k <= 16; ++k) codes += b[t + k];
-        if (codes > 256)
-          return absl::InvalidArgumentError(absl::StrCat(path.string(), ": corrupt JPEG (a Huffman table declares ",
-                                                         codes, " codes; at most 256 exist)"));
-        t += 17 + codes;
-      }
-    }
-    i += 2 + std::max<size_t>(length, 2);
-  }
-  return absl::OkStatus();
-}
-
 struct ImageHeader {
   int width = 0, height = 0, channels = 0;
 };
 
+bool is_jpeg(const std::string& bytes) {
+  return bytes.size() >= 2 && static_cast<uint8_t>(bytes[0]) == 0xFF && static_cast<uint8_t>(bytes[1]) == 0xD8;
+}
+
+// JPEG goes through libjpeg-turbo, not stb_image: the stb of Debian builds a Huffman table from a DHT
+// segment's code counts without checking that they fit it, so a crafted file writes past the table (found
+// by fuzz/image_fuzz.cpp). libjpeg reports errors through a longjmp; nothing with a destructor lives
+// between the setjmp and the calls that may jump.
+struct JpegErrors {
+  jpeg_error_mgr manager;
+  jmp_buf jump;
+  char message[JMSG_LENGTH_MAX];
+};
+
+void jpeg_fail(j_common_ptr info) {
+  auto* errors = reinterpret_cast<JpegErrors*>(info->err);
+  (*info->err->format_message)(info, errors->message);
+  longjmp(errors->jump, 1);
+}
+
+void jpeg_quiet(j_common_ptr, int) {}  // warnings (e.g. extraneous bytes) do not stop a decode
+
+// The header, and with `rgb` the pixels as 8-bit RGB (`rgb` must hold width * height * 3 bytes: call once
+// without it for the size). `message` receives libjpeg's reason on failure.
+bool jpeg_read(const std::string& bytes, ImageHeader* header, uint8_t* rgb, char* message) {
+  jpeg_decompress_struct info;
+  JpegErrors errors;
+  info.err = jpeg_std_error(&errors.manager);
+  errors.manager.error_exit = jpeg_fail;
+  errors.manager.emit_message = jpeg_quiet;
+  if (setjmp(errors.jump)) {
+    std::snprintf(message, JMSG_LENGTH_MAX, "%s", errors.message);
+    jpeg_destroy_decompress(&info);
+    return false;
+  }
+  jpeg_create_decompress(&info);
+  jpeg_mem_src(&info, reinterpret_cast<const unsigned char*>(bytes.data()), static_cast<unsigned long>(bytes.size()));
+  jpeg_read_header(&info, TRUE);
+  header->width = static_cast<int>(info.image_width);
+  header->height = static_cast<int>(info.image_height);
+  header->channels = info.num_components;
+  if (rgb != nullptr) {
+    info.out_color_space = JCS_RGB;
+    jpeg_start_decompress(&info);
+    while (info.output_scanline < info.output_height) {
+      JSAMPROW row = rgb + static_cast<size_t>(info.output_scanline) * info.output_width * 3;
+      jpeg_read_scanlines(&info, &row, 1);
+    }
+    jpeg_finish_decompress(&info);
+  }
+  jpeg_destroy_decompress(&info);
+  return true;
+}
+
 absl::StatusOr<ImageHeader> read_header(const fs::path& path, const std::string& bytes) {
-  // stb takes an int length; a larger file cannot be a PNG/JPEG we would accept anyway.
+  // stb and libjpeg take an int / long length; a larger file cannot be an image we would accept anyway.
   if (bytes.size() > static_cast<size_t>(std::numeric_limits<int>::max()))
     return absl::InvalidArgumentError(
         absl::StrCat(path.string(), ": ", bytes.size(), " bytes is too large an image file"));
-  GAPS_RETURN_IF_ERROR(check_jpeg_tables(path, bytes));
   ImageHeader h;
-  if (!stbi_info_from_memory(reinterpret_cast<const stbi_uc*>(bytes.data()), static_cast<int>(bytes.size()), &h.width,
-                             &h.height, &h.channels))
+  if (is_jpeg(bytes)) {
+    char message[JMSG_LENGTH_MAX] = {0};
+    if (!jpeg_read(bytes, &h, nullptr, message))
+      return absl::DataLossError(absl::StrCat(path.string(), ": not a readable JPEG image (", message, ")"));
+  } else if (!stbi_info_from_memory(reinterpret_cast<const stbi_uc*>(bytes.data()), static_cast<int>(bytes.size()),
+                                    &h.width, &h.height, &h.channels)) {
     return corrupt(path);
+  }
   GAPS_RETURN_IF_ERROR(check_image_size(path.string(), h.width, h.height));
   return h;
 }
 
+absl::StatusOr<at::Tensor> decode_jpeg(const fs::path& path, const std::string& bytes, ImageHeader header) {
+  std::vector<uint8_t> rgb(static_cast<size_t>(header.width) * header.height * 3);
+  char message[JMSG_LENGTH_MAX] = {0};
+  if (!jpeg_read(bytes, &header, rgb.data(), message))
+    return absl::DataLossError(absl::StrCat(path.string(), ": not a readable JPEG image (", message, ")"));
+  return to_rgb_float(rgb.data(), header.width, header.height, 3, 1.0f / 255.0f);
+}
+
 absl::StatusOr<at::Tensor> decode(const fs::path& path, const std::string& bytes) {
   GAPS_ASSIGN_OR_RETURN(const ImageHeader header, read_header(path, bytes));
+  if (is_jpeg(bytes)) return decode_jpeg(path, bytes, header);
   const auto* data = reinterpret_cast<const stbi_uc*>(bytes.data());
   const int size = static_cast<int>(bytes.size());
   int width = header.width, height = header.height, channels = header.channels;

@@ -1,5 +1,6 @@
 #include "common/npy.h"
 
+#include <algorithm>
 #include <cstring>
 #include <limits>
 #include <sstream>
@@ -150,10 +151,13 @@ absl::StatusOr<NpyArray> parse_header_and_data(absl::string_view header, absl::s
   if (fortran.substr(0, 5) != "False") return absl::InvalidArgumentError("malformed 'fortran_order'");
   GAPS_ASSIGN_OR_RETURN(absl::string_view shape_text, dict_value(header, "shape"));
   GAPS_ASSIGN_OR_RETURN(array.shape, parse_shape(shape_text));
-  int64_t count = 1;
+  // The strides multiply every extent, zero-sized ones included as 1 (a shape with a 0 holds no data but
+  // its other extents must still fit: found by fuzz/npy_fuzz.cpp).
+  int64_t count = 1, strides = 1;
   for (int64_t n : array.shape) {
-    if (n != 0 && count > std::numeric_limits<int64_t>::max() / 16 / n)
+    if (n != 0 && strides > std::numeric_limits<int64_t>::max() / 16 / n)
       return absl::InvalidArgumentError("shape is too large");
+    strides *= std::max<int64_t>(n, 1);
     count *= n;
   }
   const uint64_t expected = static_cast<uint64_t>(count) * dtype.size;

@@ -8,6 +8,7 @@ shift 3
 mkdir -p "$work"
 log="$work.log"
 status=0
+LSAN_OPTIONS=${LSAN_OPTIONS:-suppressions=$(dirname "$0")/lsan.supp:print_suppressions=0} \
 ASAN_OPTIONS=${ASAN_OPTIONS:-detect_leaks=1:allocator_may_return_null=1} \
   "$binary" -max_total_time="$seconds" -timeout=30 -rss_limit_mb=4096 -print_final_stats=1 \
   -artifact_prefix="$work-" "$work" "$@" >"$log" 2>&1 || status=$?

@@ -10,7 +10,7 @@ TORCH_VERSION=2.11.0
 DEBIAN_PACKAGES=(
   build-essential cmake ninja-build ccache git python3 python3-venv
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libabsl-dev
-  libopencv-dev libeigen3-dev libstb-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
+  libopencv-dev libeigen3-dev libstb-dev libjpeg62-turbo-dev nlohmann-json3-dev libsqlite3-dev libgtest-dev
   openssl libssl-dev  # TLS key checks; the TLS end-to-end test makes its certificate with openssl
   postgresql libpq-dev  # the shared job store (libpq) and the private servers of its tests
   clang-format  # scripts/check_format.sh (the format check in the test suite)

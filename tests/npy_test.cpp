@@ -128,6 +128,8 @@ TEST_F(NpyTest, RejectsCorruptFiles) {
       {"noshape.npy", npy_bytes("{'descr': '<f8', 'fortran_order': False}", good_data), "'shape'"},
       {"badshape.npy", npy_bytes(dict("<f8", "(2, x)"), good_data), "shape"},
       {"header.npy", good.substr(0, 30), "truncated header"},
+      // No data, but strides that overflow (found by fuzz/npy_fuzz.cpp: LibTorch threw, the reader aborted).
+      {"zero_extent.npy", npy_bytes(dict("<f8", "(0, 9999, 99999999999999)"), ""), "shape is too large"},
   };
   for (const Case& c : cases) {
     const fs::path path = write(c.name, c.bytes);
