@@ -45,7 +45,8 @@ gaps::v1::JobSpec job_spec(int index) {
   return s;
 }
 
-absl::StatusOr<nlohmann::json> run_setting(int replicas, const fs::path& dir, const gaps::client::PreparedScene& scene) {
+absl::StatusOr<nlohmann::json> run_setting(int replicas, const fs::path& dir,
+                                           const gaps::client::PreparedScene& scene) {
   auto postgres = gaps::test::PostgresServer::start(dir / "pg");
   if (!postgres.ok()) return postgres.status();
   if (auto st = (*postgres)->create_database("gaps"); !st.ok()) return st;

@@ -33,6 +33,7 @@ ABSL_FLAG(int, drain_seconds, 1800, "longest wait for the jobs after the chaos")
 ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
 ABSL_FLAG(int, resolution, 8, "downscale factor");
 ABSL_FLAG(int, iterations, 300, "training iterations per job");
+ABSL_FLAG(std::string, device, "cpu", "device of both services (cpu, cuda, cuda:N)");
 ABSL_FLAG(std::string, work_dir, "/tmp/gaps_soak_bench", "folder for logs, the trainer's data and fetched results");
 ABSL_FLAG(std::string, trainer_bin, GAPS_TRAINER_BIN, "the gaps-trainer executable");
 ABSL_FLAG(std::string, worker_bin, GAPS_WORKER_BIN, "the gaps-worker executable");
@@ -206,12 +207,20 @@ int main(int argc, char** argv) {
   if (!listed.ok()) return (std::cerr << "soak_bench: " << listed.status() << "\n", 1);
   std::map<std::string, gaps::v1::JobStatus> by_id;
   for (const auto& j : *listed) by_id[j.job_id()] = j;
+  // lost: a submitted job the trainer does not know; unfinished: known but not ended by the deadline.
   int succeeded = 0, failed = 0, degraded = 0, phases = 0, skipped = 0, resumes = 0, crashes = 0, lost = 0;
+  int unfinished = 0;
   int incomplete_artifacts = 0;
   nlohmann::json per_job = nlohmann::json::array();
   for (const auto& id : submitted) {
-    if (!by_id.count(id) || !terminal(by_id[id].state())) {
+    if (!by_id.count(id)) {
       ++lost;
+      continue;
+    }
+    if (!terminal(by_id[id].state())) {
+      ++unfinished;
+      per_job.push_back({{"job", id}, {"state", gaps::v1::JobState_Name(by_id[id].state())},
+                         {"iteration", by_id[id].iteration()}, {"resumes", by_id[id].resumes()}});
       continue;
     }
     const auto& j = by_id[id];
@@ -265,5 +274,5 @@ int main(int argc, char** argv) {
                                   {"per_job", per_job},
                                   {"memory", memory}};
   std::cout << summary.dump() << "\n";
-  return lost == 0 && incomplete_artifacts == 0 ? 0 : 1;
+  return lost == 0 && unfinished == 0 && incomplete_artifacts == 0 ? 0 : 1;
 }
