@@ -10,6 +10,7 @@
 #include "absl/strings/str_join.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "common/tensor_shape.h"
 
 namespace gaps {
 namespace {
@@ -151,15 +152,8 @@ absl::StatusOr<NpyArray> parse_header_and_data(absl::string_view header, absl::s
   if (fortran.substr(0, 5) != "False") return absl::InvalidArgumentError("malformed 'fortran_order'");
   GAPS_ASSIGN_OR_RETURN(absl::string_view shape_text, dict_value(header, "shape"));
   GAPS_ASSIGN_OR_RETURN(array.shape, parse_shape(shape_text));
-  // The strides multiply every extent, zero-sized ones included as 1 (a shape with a 0 holds no data but
-  // its other extents must still fit: found by fuzz/npy_fuzz.cpp).
-  int64_t count = 1, strides = 1;
-  for (int64_t n : array.shape) {
-    if (n != 0 && strides > std::numeric_limits<int64_t>::max() / 16 / n)
-      return absl::InvalidArgumentError("shape is too large");
-    strides *= std::max<int64_t>(n, 1);
-    count *= n;
-  }
+  GAPS_ASSIGN_OR_RETURN(const int64_t count,
+                        checked_element_count(array.shape, std::numeric_limits<int64_t>::max() / 16));
   const uint64_t expected = static_cast<uint64_t>(count) * dtype.size;
   if (payload.size() != expected)
     return absl::InvalidArgumentError(absl::StrCat("data has ", payload.size(), " bytes but shape (",

@@ -8,6 +8,7 @@
 #include "absl/strings/str_join.h"
 #include "common/image_io.h"
 #include "common/status_macros.h"
+#include "common/tensor_shape.h"
 #include "gs_trainer/scene/scene.h"
 
 namespace gaps::rpc {
@@ -33,16 +34,11 @@ absl::Status encode_png(const at::Tensor& image, v1::Tensor* out) {
 
 absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::string& what) {
   std::vector<int64_t> shape(tensor.shape().begin(), tensor.shape().end());
-  for (int64_t d : shape)
-    if (d < 0) return absl::InvalidArgumentError(absl::StrCat(what, ": negative dimension in its shape"));
+  const absl::StatusOr<int64_t> checked = checked_element_count(shape, int64_t{1} << 40);
+  if (!checked.ok()) return absl::InvalidArgumentError(absl::StrCat(what, ": ", checked.status().message()));
   switch (tensor.encoding()) {
     case v1::Tensor::RAW_F32: {
-      int64_t count = 1;
-      for (int64_t d : shape) {
-        if (d > 0 && count > (int64_t{1} << 40) / d)
-          return absl::InvalidArgumentError(absl::StrCat(what, ": shape too large"));
-        count *= d;
-      }
+      const int64_t count = *checked;
       if (static_cast<uint64_t>(count) * sizeof(float) != tensor.data().size())
         return absl::InvalidArgumentError(absl::StrCat(what, ": shape [", absl::StrJoin(shape, ", "), "] needs ",
                                                        count * sizeof(float), " bytes, got ", tensor.data().size()));

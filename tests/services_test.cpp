@@ -100,6 +100,13 @@ TEST(Codec, TensorsAndCamerasRoundTrip) {
   EXPECT_LE((*decoded - t).abs().max().item<float>(), 0.5f / 255 + 1e-6);
   raw.mutable_shape()->Set(0, 6);
   EXPECT_EQ(rpc::decode_tensor(raw, "t").status().code(), absl::StatusCode::kInvalidArgument);
+  // No data, but extents whose strides overflow (found by fuzz/generation_request_fuzz.cpp: LibTorch threw).
+  v1::Tensor empty;
+  empty.set_encoding(v1::Tensor::RAW_F32);
+  for (int64_t extent : {int64_t{0}, int64_t{10000000}, int64_t{10000000}}) empty.add_shape(extent);
+  const auto refused = rpc::decode_tensor(empty, "reference rgb");
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "reference rgb: shape is too large")) << refused.status();
 
   Camera c = test_camera(0.3);
   c.R = Eigen::AngleAxisd(0.4, Eigen::Vector3d(0, 1, 0)).toRotationMatrix();
