@@ -219,8 +219,10 @@ int main(int argc, char** argv) {
     }
     if (!terminal(by_id[id].state())) {
       ++unfinished;
-      per_job.push_back({{"job", id}, {"state", gaps::v1::JobState_Name(by_id[id].state())},
-                         {"iteration", by_id[id].iteration()}, {"resumes", by_id[id].resumes()}});
+      per_job.push_back({{"job", id},
+                         {"state", gaps::v1::JobState_Name(by_id[id].state())},
+                         {"iteration", by_id[id].iteration()},
+                         {"resumes", by_id[id].resumes()}});
       continue;
     }
     const auto& j = by_id[id];

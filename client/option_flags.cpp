@@ -2,6 +2,8 @@
 
 #include "absl/flags/flag.h"
 #include "absl/strings/str_cat.h"
+#include "common/cli/command_line.h"
+#include "common/error_kind.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
 #include "gs_trainer/gaps/config.h"
@@ -46,12 +48,21 @@ const FlagEntry kTrainingFlags[] = {GAPS_TRAIN_CONFIG_OPTIONS(GAPS_FLAG_ENTRY)};
 const FlagEntry kGapsFlags[] = {GAPS_GAPS_CONFIG_OPTIONS(GAPS_FLAG_ENTRY)};
 #undef GAPS_FLAG_ENTRY
 
+std::vector<std::string> names_of(const FlagEntry* begin, const FlagEntry* end) {
+  std::vector<std::string> names;
+  for (const FlagEntry* e = begin; e != end; ++e) names.push_back(e->name);
+  return names;
+}
+
+// Unreadable or malformed files are input data errors; their values are checked with the flags'.
 absl::StatusOr<nlohmann::json> read_options_file(const std::string& path) {
   if (path.empty()) return nlohmann::json::object();
-  GAPS_ASSIGN_OR_RETURN(const std::string text, read_file_bytes(path, "options file"));
-  nlohmann::json j = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
-  if (j.is_discarded()) return absl::InvalidArgumentError(absl::StrCat(path, ": invalid JSON"));
-  if (!j.is_object()) return absl::InvalidArgumentError(absl::StrCat(path, ": options must be a JSON object"));
+  absl::StatusOr<std::string> text = read_file_bytes(path, "options file");
+  if (!text.ok()) return input_data_error(text.status());
+  nlohmann::json j = nlohmann::json::parse(*text, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded()) return input_data_error(absl::InvalidArgumentError(absl::StrCat(path, ": invalid JSON")));
+  if (!j.is_object())
+    return input_data_error(absl::InvalidArgumentError(absl::StrCat(path, ": options must be a JSON object")));
   return j;
 }
 
@@ -63,7 +74,7 @@ absl::StatusOr<nlohmann::json> flag_value(const std::string& name, const std::st
   std::string json_text = text;
   if (default_value.is_array() && (json_text.empty() || json_text.front() != '[')) json_text = "[" + text + "]";
   nlohmann::json j = nlohmann::json::parse(json_text, nullptr, /*allow_exceptions=*/false);
-  if (j.is_discarded()) return absl::InvalidArgumentError(absl::StrCat("--", name, "=", text, ": not a valid value"));
+  if (j.is_discarded()) return usage_error(absl::StrCat(cli::display_name(name), " ", text, ": not a valid value"));
   return j;
 }
 
@@ -83,6 +94,11 @@ absl::Status apply_flags(const FlagEntry* begin, const FlagEntry* end, const nlo
 }
 
 }  // namespace
+
+std::vector<std::string> training_option_flag_names() {
+  return names_of(std::begin(kTrainingFlags), std::end(kTrainingFlags));
+}
+std::vector<std::string> gaps_option_flag_names() { return names_of(std::begin(kGapsFlags), std::end(kGapsFlags)); }
 
 absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& training_file,
                                                           const std::string& gaps_file) {

@@ -29,4 +29,8 @@ struct GivenOptions {
 absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& training_file,
                                                           const std::string& gaps_file);
 
+// The flags' names, in table order: the training options and the GAPS options.
+std::vector<std::string> training_option_flag_names();
+std::vector<std::string> gaps_option_flag_names();
+
 }  // namespace gaps::client

@@ -4,6 +4,7 @@
 #include <optional>
 
 #include "absl/strings/str_cat.h"
+#include "common/error_kind.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
@@ -43,12 +44,33 @@ absl::StatusOr<PreparedScene> prepare_scene(const fs::path& scene_dir, int resol
   return out;
 }
 
-TrainerClient::TrainerClient(std::shared_ptr<grpc::Channel> channel, std::string token)
-    : channel_(std::move(channel)), stub_(v1::Trainer::NewStub(channel_)), token_(std::move(token)) {}
+TrainerClient::TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, std::string token)
+    : address_(std::move(address)),
+      channel_(std::move(channel)),
+      stub_(v1::Trainer::NewStub(channel_)),
+      token_(std::move(token)) {}
 
 absl::StatusOr<TrainerClient> TrainerClient::connect(const std::string& address, const rpc::ClientSecurity& security) {
   GAPS_ASSIGN_OR_RETURN(std::shared_ptr<grpc::Channel> channel, rpc::make_channel(address, security));
-  return TrainerClient(std::move(channel), security.token);
+  return TrainerClient(address, std::move(channel), security.token);
+}
+
+absl::Status TrainerClient::check_reachable(std::chrono::milliseconds timeout) const {
+  const auto deadline = std::chrono::system_clock::now() + timeout;
+  grpc_connectivity_state state = channel_->GetState(/*try_to_connect=*/true);
+  while (state != GRPC_CHANNEL_READY) {
+    if (state == GRPC_CHANNEL_TRANSIENT_FAILURE || state == GRPC_CHANNEL_SHUTDOWN ||
+        !channel_->WaitForStateChange(state, deadline))
+      return with_error_kind(
+          absl::UnavailableError(absl::StrCat(
+              "cannot reach a gaps-trainer at ", address_,
+              ": none is listening there, or it speaks TLS and --tls-ca is missing or wrong (start one with "
+              "gaps-trainer --listen ",
+              address_, ", or point --trainer at it)")),
+          ErrorKind::kUnreachable);
+    state = channel_->GetState(/*try_to_connect=*/true);
+  }
+  return absl::OkStatus();
 }
 
 void TrainerClient::prepare(grpc::ClientContext& context) const { rpc::attach_token(context, token_); }
@@ -155,9 +177,11 @@ absl::StatusOr<std::vector<std::string>> TrainerClient::fetch(const std::string&
       }
       current = chunk.path();
       const fs::path target = out_dir / current;
-      fs::create_directories(target.parent_path());
+      std::error_code ec;
+      fs::create_directories(target.parent_path(), ec);
       file = std::ofstream(target, std::ios::binary | std::ios::trunc);
-      if (!file) status = absl::PermissionDeniedError(absl::StrCat(target.string(), ": cannot write"));
+      if (!file)
+        status = usage_error(absl::StrCat(target.string(), ": cannot write (", ec ? ec.message() : "file", ")"));
       paths.push_back(current);
     }
     file.write(chunk.data().data(), chunk.data().size());

@@ -2,6 +2,7 @@
 // Client side of the Trainer service: scene upload (a scene folder loaded as `gaps train` would load it,
 // images sent as PNG at the chosen resolution), event watching, job queries, cancellation and artifact
 // download. The `gaps submit|watch|list|cancel|fetch` commands and the service tests use it.
+#include <chrono>
 #include <filesystem>
 #include <functional>
 #include <memory>
@@ -29,6 +30,11 @@ class TrainerClient {
  public:
   static absl::StatusOr<TrainerClient> connect(const std::string& address, const rpc::ClientSecurity& security);
 
+  // Whether the trainer answers within `timeout` (the connection, TLS handshake included; not the token): an
+  // UNAVAILABLE error tagged unreachable (common/error_kind.h) saying what to do otherwise. A refused
+  // connection fails at once.
+  absl::Status check_reachable(std::chrono::milliseconds timeout) const;
+
   // Uploads the scene with the spec (its cameras are replaced by the scene's); returns the job id.
   absl::StatusOr<std::string> submit(v1::JobSpec spec, const PreparedScene& scene);
   // Streams events to `on_event` until the job ends; returns its final status.
@@ -44,9 +50,10 @@ class TrainerClient {
   absl::StatusOr<std::vector<std::string>> fetch(const std::string& job_id, const std::filesystem::path& out_dir);
 
  private:
-  TrainerClient(std::shared_ptr<grpc::Channel> channel, std::string token);
+  TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, std::string token);
   void prepare(grpc::ClientContext& context) const;
 
+  std::string address_;
   std::shared_ptr<grpc::Channel> channel_;
   std::shared_ptr<v1::Trainer::Stub> stub_;
   std::string token_;

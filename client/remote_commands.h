@@ -1,12 +1,18 @@
 #pragma once
 // The remote subcommands of `gaps`: submit, watch, list, cancel, fetch (see client/README.md).
 #include <string>
-#include <vector>
+
+#include "common/cli/command_line.h"
 
 namespace gaps::client {
 
+// --trainer, --token-file and the --tls-* flags of every remote command.
+cli::FlagGroup remote_flags();
+// What only `gaps submit` takes besides the scene and run flags: --name, --watch, --quiet.
+cli::FlagGroup submit_flags();
+
 bool is_remote_command(const std::string& command);
-// `args` are the positional arguments after the command name. Returns the process exit code.
-int run_remote_command(const std::string& command, const std::vector<std::string>& args);
+// Runs a remote command whose flags `line` has parsed. Returns the process exit code.
+int run_remote_command(const std::string& command, const cli::CommandLine& line);
 
 }  // namespace gaps::client

@@ -176,13 +176,13 @@ struct CheckpointAccess {
   }
 };
 
-absl::Status save_checkpoint(const fs::path& dir, const Trainer& trainer, const GapsTraining* method) {
+absl::Status save_checkpoint(const fs::path& dir, const Trainer& trainer, const GapsTraining* method, const json& run) {
   const fs::path staging = fs::path(dir.string() + ".partial");
   remove_tree(staging);
   std::error_code ec;
   fs::create_directories(staging, ec);
   if (ec) return absl::PermissionDeniedError(absl::StrCat(staging.string(), ": ", ec.message()));
-  json state = {{"version", kVersion}, {"tensors", json::object()}};
+  json state = {{"version", kVersion}, {"tensors", json::object()}, {"run", run}};
   try {
     GAPS_RETURN_IF_ERROR(CheckpointAccess::save(staging, trainer, method, state));
   } catch (const std::exception& e) {
@@ -200,7 +200,7 @@ absl::Status save_checkpoint(const fs::path& dir, const Trainer& trainer, const 
   return absl::OkStatus();
 }
 
-absl::StatusOr<int> load_checkpoint(const fs::path& dir, Trainer& trainer, GapsTraining* method) {
+absl::StatusOr<int> load_checkpoint(const fs::path& dir, Trainer& trainer, GapsTraining* method, json* run) {
   std::error_code ec;
   fs::path from = dir;
   // A crash between the two renames of save_checkpoint leaves only the previous checkpoint, as ".old".
@@ -209,6 +209,7 @@ absl::StatusOr<int> load_checkpoint(const fs::path& dir, Trainer& trainer, GapsT
   GAPS_ASSIGN_OR_RETURN(std::string text, read_file_bytes(from / "state.json", "checkpoint state"));
   json state = json::parse(text, nullptr, /*allow_exceptions=*/false);
   if (state.is_discarded()) return absl::DataLossError(absl::StrCat((from / "state.json").string(), ": invalid JSON"));
+  if (run != nullptr) *run = state.value("run", json::object());
   try {
     return CheckpointAccess::load(from, state, trainer, method);
   } catch (const std::exception& e) {

@@ -10,6 +10,8 @@
 #include <ATen/core/grad_mode.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "common/device.h"
+#include "common/error_kind.h"
 #include "common/image_io.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
@@ -32,10 +34,44 @@ absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const s
                                                      const at::Device& device) {
   std::vector<TrainingView> views;
   for (int i : indices) {
-    GAPS_ASSIGN_OR_RETURN(at::Tensor image, load_camera_image(scene.cameras[i]));
-    views.push_back({scene.cameras[i], image.to(device)});
+    absl::StatusOr<at::Tensor> image = load_camera_image(scene.cameras[i]);
+    if (!image.ok()) return input_data_error(image.status());
+    views.push_back({scene.cameras[i], image->to(device)});
   }
   return views;
+}
+
+absl::StatusOr<Scene> load_scene_at(const RunOptions& o, int resolution) {
+  SceneLoadOptions load;
+  load.resolution = resolution;
+  absl::StatusOr<Scene> scene = load_scene(o.scene_dir, load);
+  if (!scene.ok()) return input_data_error(scene.status());
+  return scene;
+}
+
+// The protocol's split of the scene for o.views; asking for more views than there are is a usage error
+// that says how many there are.
+absl::StatusOr<Split> protocol_split(const Scene& scene, int views) {
+  const int images = static_cast<int>(scene.cameras.size());
+  absl::StatusOr<Split> split = benchmark_split(images, views);
+  if (split.ok()) return split;
+  constexpr int kHold = 8;  // benchmark_split's: every 8th image is a test view
+  const int test = (images + kHold - 1) / kHold;
+  const int available = images - test;
+  if (views <= available || available <= 0) return input_data_error(split.status());
+  return usage_error(absl::StrCat(views, " training views asked for, but ", scene.root.string(), " has ", available,
+                                  " besides its ", test, " test views (", images, " images, every ", kHold,
+                                  "th held out): ask for at most ", available, " (0: all)"));
+}
+
+// out_dir and the folders above it, as a status instead of the exception of create_directories.
+absl::Status make_folder(const std::filesystem::path& dir) {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec || !std::filesystem::is_directory(dir))
+    return absl::PermissionDeniedError(
+        absl::StrCat(dir.string(), ": cannot create the folder (", ec ? ec.message() : "not a folder", ")"));
+  return absl::OkStatus();
 }
 
 // The training views as the initialisation reads them: `train` itself, or the same views loaded again at
@@ -44,13 +80,8 @@ absl::StatusOr<std::vector<TrainingView>> load_views(const Scene& scene, const s
 absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOptions& o,
                                                                    const std::vector<TrainingView>& train,
                                                                    const Log& log) {
-  if (o.init_resolution < 0)
-    return absl::InvalidArgumentError(
-        absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));
   if (o.init_resolution == 0 || o.init_resolution == o.resolution || train.empty()) return train;
-  SceneLoadOptions load;
-  load.resolution = o.init_resolution;
-  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene(o.scene_dir, load));
+  GAPS_ASSIGN_OR_RETURN(Scene scene, load_scene_at(o, o.init_resolution));
   std::vector<int> indices;
   for (const auto& v : train) {
     const auto same = std::find_if(scene.cameras.begin(), scene.cameras.end(),
@@ -123,9 +154,12 @@ absl::Status write_metrics(const RunOptions& o, const RunResult& r, const std::s
   if (!failure.empty()) {
     for (const char* key : {"psnr", "ssim", "lpips"}) j[key] = nullptr;
   }
-  for (const auto& v : r.per_view) {
-    j["per_view"].push_back(
-        {{"psnr", v.psnr}, {"ssim", v.ssim}, {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
+  for (size_t i = 0; i < r.per_view.size(); ++i) {
+    const ImageMetrics& v = r.per_view[i];
+    j["per_view"].push_back({{"image", i < r.per_view_images.size() ? r.per_view_images[i] : ""},
+                             {"psnr", v.psnr},
+                             {"ssim", v.ssim},
+                             {"lpips", v.lpips ? nlohmann::json(*v.lpips) : nlohmann::json(nullptr)}});
   }
   return write_json(o.out_dir / "metrics.json", j);
 }
@@ -149,11 +183,9 @@ struct LoadedScene {
 
 absl::StatusOr<LoadedScene> load_scene_and_training_views(const RunOptions& o, const at::Device& device,
                                                           const Log& log) {
-  SceneLoadOptions load;
-  load.resolution = o.resolution;
   LoadedScene loaded;
-  GAPS_ASSIGN_OR_RETURN(loaded.scene, load_scene(o.scene_dir, load));
-  GAPS_ASSIGN_OR_RETURN(loaded.split, benchmark_split(static_cast<int>(loaded.scene.cameras.size()), o.views));
+  GAPS_ASSIGN_OR_RETURN(loaded.scene, load_scene_at(o, o.resolution));
+  GAPS_ASSIGN_OR_RETURN(loaded.split, protocol_split(loaded.scene, o.views));
   loaded.summary = describe(loaded.scene, loaded.split);
   log(loaded.summary);
   GAPS_ASSIGN_OR_RETURN(loaded.train, load_views(loaded.scene, loaded.split.train, device));
@@ -163,12 +195,40 @@ absl::StatusOr<LoadedScene> load_scene_and_training_views(const RunOptions& o, c
 // Nothing when no backbone is given (LPIPS is then reported as null).
 absl::StatusOr<std::optional<Lpips>> load_lpips(const RunOptions& o, const at::Device& device) {
   if (o.lpips_backbone.empty()) return std::nullopt;
-  GAPS_ASSIGN_OR_RETURN(Lpips lpips, Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string()));
-  lpips.to(device);
-  return std::optional<Lpips>(std::move(lpips));
+  absl::StatusOr<Lpips> lpips = Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string());
+  if (!lpips.ok()) return input_data_error(lpips.status());
+  lpips->to(device);
+  return std::optional<Lpips>(std::move(*lpips));
 }
 
 }  // namespace
+
+absl::Status check_scene(const RunOptions& o) {
+  if (o.init != "ply" && o.init != "scene" && !is_init_method(o.init))
+    return usage_error(absl::StrCat("--init ", o.init, ": unknown; use auto, mvs, sparse, random, scene or ply"));
+  if (o.init == "ply") {
+    if (o.init_ply.empty()) return usage_error("initialisation 'ply' needs a point cloud file (--init-ply FILE)");
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(o.init_ply, ec))
+      return input_data_error(absl::NotFoundError(absl::StrCat(o.init_ply.string(), ": point cloud file not found")));
+  }
+  if (o.resolution <= 0) return usage_error(absl::StrCat("resolution must be positive, got ", o.resolution));
+  if (o.init_resolution < 0)
+    return usage_error(
+        absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));
+  GAPS_ASSIGN_OR_RETURN(const Scene scene, load_scene_at(o, o.resolution));
+  GAPS_RETURN_IF_ERROR(protocol_split(scene, o.views).status());
+  if (o.init == "scene" && !scene.points)
+    return usage_error(absl::StrCat(scene.root.string(), " ships no points to initialise from; use another --init"));
+  return absl::OkStatus();
+}
+
+std::vector<std::string> run_output_names() {
+  return {"point_cloud.ply",      "metrics.json", "report.html",          "renders",
+          "phases.json",          "pseudo_views", "checkpoint",           "checkpoint.old",
+          "checkpoint.partial",   "points.ply",   "sparse/0/cameras.txt", "sparse/0/images.txt",
+          "sparse/0/points3D.txt"};
+}
 
 nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
   nlohmann::json j;
@@ -207,9 +267,14 @@ class TrainingRun {
         references_(train),
         trainer_(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config),
         guard_(kDivergenceCheckEvery, o.config.iterations) {
-    if (o.config.gaussians_per_variation > 0)
-      log(absl::StrCat("automatic budget: ", trainer_.config().max_gaussians, " Gaussians (",
-                       o.config.gaussians_per_variation, " per unit of the training views' total variation)"));
+    const int64_t budget = trainer_.config().max_gaussians;
+    if (o.config.max_gaussians == 0 && o.config.gaussians_per_variation > 0)
+      log(absl::StrCat("automatic budget: ", budget, " Gaussians (", o.config.gaussians_per_variation,
+                       " per unit of the training views' total variation)"));
+    if (budget > 0 && points.xyz.size(0) >= budget)
+      log(absl::StrCat("warning: the ", points.xyz.size(0), " initial points already fill the budget of ", budget,
+                       " Gaussians, so densification will add none (raise --gaussians-per-variation, set "
+                       "--max-gaussians, or start from fewer points)"));
   }
   TrainingRun(const TrainingRun&) = delete;
   TrainingRun& operator=(const TrainingRun&) = delete;
@@ -218,8 +283,11 @@ class TrainingRun {
   std::optional<double> generator_seconds() const {
     return generator_ ? std::optional<double>(generator_->seconds()) : std::nullopt;
   }
-  // Wall-clock seconds since train() began, without the evaluations of the curve.
+  // Wall-clock training time, without the curve's evaluations and the checkpoints, including a resumed run's
+  // earlier part.
   double train_seconds() const { return seconds_since_start(std::chrono::steady_clock::now()); }
+  // The evaluations so far (a resumed run's earlier ones first).
+  const std::vector<CurvePoint>& curve() const { return curve_; }
 
   // The method's options as used: n_active resolved from the training views' layout when 0.
   GapsConfig effective_gaps() const {
@@ -252,23 +320,29 @@ class TrainingRun {
     return absl::OkStatus();
   }
 
-  // Goes on from the checkpoint in o.checkpoint_dir, if there is one.
+  // Goes on from the checkpoint in o.checkpoint_dir, if there is one, with the curve and training time
+  // it kept.
   absl::Status resume() {
     if (o_.checkpoint_dir.empty()) return absl::OkStatus();
-    const absl::StatusOr<int> resumed = load_checkpoint(o_.checkpoint_dir, trainer_, method());
-    if (resumed.ok())
-      log_(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
-    else if (!absl::IsNotFound(resumed.status()))
-      return resumed.status();
+    nlohmann::json kept;
+    const absl::StatusOr<int> resumed = load_checkpoint(o_.checkpoint_dir, trainer_, method(), &kept);
+    if (absl::IsNotFound(resumed.status())) return absl::OkStatus();
+    if (!resumed.ok()) return resumed.status();
+    try {
+      curve_ = kept.value("curve", std::vector<CurvePoint>());
+      seconds_before_ = kept.value("train_seconds", 0.0);
+    } catch (const std::exception& e) {
+      return absl::DataLossError(absl::StrCat(o_.checkpoint_dir.string(), ": run state: ", e.what()));
+    }
+    log_(absl::StrCat("resumed from the checkpoint at iteration ", *resumed));
     return absl::OkStatus();
   }
 
   // Trains to the last iteration unless stopped (should_stop) or diverged; every o.eval_every iterations
-  // the test views are evaluated into *curve.
-  absl::Status train(const ProgressCallback& on_progress, const std::vector<TrainingView>& test, const Lpips* lpips,
-                     std::vector<CurvePoint>* curve) {
+  // the test views are evaluated into the curve.
+  absl::Status train(const ProgressCallback& on_progress, const std::vector<TrainingView>& test, const Lpips* lpips) {
     start_ = std::chrono::steady_clock::now();
-    return trainer_.run(on_progress, 10, [&] { return monitored_step(test, lpips, curve); });
+    return trainer_.run(on_progress, 10, [&] { return monitored_step(test, lpips); });
   }
 
   // After train(): a stopped run (cancelled, or its service shutting down) leaves its state for a later
@@ -304,14 +378,18 @@ class TrainingRun {
   // The training state to o.checkpoint_dir (when set); a failure costs the checkpoint only, with a warning.
   void save_checkpoint_and_tell() {
     if (o_.checkpoint_dir.empty()) return;
-    if (const absl::Status saved = save_checkpoint(o_.checkpoint_dir, trainer_, method()); !saved.ok())
+    const auto save_start = std::chrono::steady_clock::now();
+    const nlohmann::json kept = {{"curve", curve_}, {"train_seconds", seconds_since_start(save_start)}};
+    const absl::Status saved = save_checkpoint(o_.checkpoint_dir, trainer_, method(), kept);
+    excluded_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - save_start).count();
+    if (!saved.ok())
       log_(absl::StrCat("warning: checkpoint not written: ", saved.message()));
     else if (o_.on_checkpoint)
       o_.on_checkpoint(trainer_.iteration());
   }
 
   double seconds_since_start(std::chrono::steady_clock::time_point t) const {
-    return std::chrono::duration<double>(t - start_).count() - eval_seconds_;
+    return seconds_before_ + std::chrono::duration<double>(t - start_).count() - excluded_seconds_;
   }
 
   // One iteration of the method (or of the trainer alone), unless should_stop says otherwise.
@@ -322,22 +400,30 @@ class TrainingRun {
     return trainer_.step();
   }
 
-  // The step, the divergence guard, and at the curve's iterations an evaluation whose time is left out of the
-  // training time (the last iteration's is the run's final evaluation).
-  absl::StatusOr<at::Tensor> monitored_step(const std::vector<TrainingView>& test, const Lpips* lpips,
-                                            std::vector<CurvePoint>* curve) {
+  // The step, the divergence guard, at the curve's iterations an evaluation whose time is left out of the
+  // training time (the last iteration's is the run's final evaluation), and the periodic checkpoint.
+  absl::StatusOr<at::Tensor> monitored_step(const std::vector<TrainingView>& test, const Lpips* lpips) {
     GAPS_ASSIGN_OR_RETURN(at::Tensor loss, next_step());
     const int it = trainer_.iteration();
     GAPS_RETURN_IF_ERROR(guard_.observe(it, loss, trainer_.model()));
-    if (o_.eval_every <= 0 || it % o_.eval_every != 0 || it >= o_.config.iterations) return loss;
+    if (it < o_.config.iterations) {
+      GAPS_RETURN_IF_ERROR(evaluate_for_curve(it, loss, test, lpips));
+      if (o_.checkpoint_every > 0 && it % o_.checkpoint_every == 0) save_checkpoint_and_tell();
+    }
+    return loss;
+  }
+
+  absl::Status evaluate_for_curve(int it, const at::Tensor& loss, const std::vector<TrainingView>& test,
+                                  const Lpips* lpips) {
+    if (o_.eval_every <= 0 || it % o_.eval_every != 0) return absl::OkStatus();
     (void)loss.item<double>();  // the queued training work belongs to the training time
     const auto eval_start = std::chrono::steady_clock::now();
     GAPS_ASSIGN_OR_RETURN(const std::vector<ImageMetrics> views,
                           evaluate_views(trainer_.model(), test, o_.config.background, lpips, {}));
     GAPS_ASSIGN_OR_RETURN(const ImageMetrics average, average_metrics(views));
-    curve->push_back({it, seconds_since_start(eval_start), average, trainer_.model().size()});
-    eval_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - eval_start).count();
-    return loss;
+    curve_.push_back({it, seconds_since_start(eval_start), average, trainer_.model().size()});
+    excluded_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - eval_start).count();
+    return absl::OkStatus();
   }
 
   const RunOptions& o_;
@@ -348,8 +434,11 @@ class TrainingRun {
   std::optional<GapsTraining> method_;
   std::set<std::string> logged_notes_;
   DivergenceGuard guard_;
+  std::vector<CurvePoint> curve_;
   std::chrono::steady_clock::time_point start_;
-  double eval_seconds_ = 0.0;  // spent on the curve's evaluations since start_
+  double seconds_before_ = 0.0;  // training time of a resumed run before its checkpoint
+  // Spent since start_ on the curve's evaluations and on checkpoints: not training time.
+  double excluded_seconds_ = 0.0;
 };
 
 // The run's final evaluation on the test views: per view (renders written when asked for), averaged, and as
@@ -360,6 +449,8 @@ absl::Status evaluate_final(const RunOptions& o, const GaussianModel& model, con
                         evaluate_views(model, test, o.config.background, lpips,
                                        o.save_renders ? o.out_dir / "renders" : std::filesystem::path()));
   GAPS_ASSIGN_OR_RETURN(result->metrics, average_metrics(result->per_view));
+  result->per_view_images.clear();
+  for (const TrainingView& v : test) result->per_view_images.push_back(v.camera.name);
   if (o.eval_every > 0)
     result->curve.push_back({o.config.iterations, result->train_seconds, result->metrics, result->num_gaussians});
   return absl::OkStatus();
@@ -378,7 +469,7 @@ absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& mo
     const at::Tensor rgb = render(model, v.camera, options).rgb.clamp(0.0, 1.0);
     out.push_back(evaluate_image(rgb, v.image, lpips));
     if (!render_dir.empty()) {
-      std::filesystem::create_directories(render_dir);
+      GAPS_RETURN_IF_ERROR(make_folder(render_dir));
       GAPS_RETURN_IF_ERROR(
           write_png(render_dir / (std::filesystem::path(v.camera.name).stem().string() + ".png"), rgb.to(at::kCPU)));
     }
@@ -387,9 +478,11 @@ absl::StatusOr<std::vector<ImageMetrics>> evaluate_views(const GaussianModel& mo
 }
 
 absl::Status run_init_only(const RunOptions& o, const Log& log) {
+  GAPS_RETURN_IF_ERROR(check_device(o.config.device));
+  GAPS_RETURN_IF_ERROR(check_scene(o));
   GAPS_ASSIGN_OR_RETURN(const LoadedScene loaded, load_scene_and_training_views(o, at::Device(o.config.device), log));
   GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, loaded.scene, loaded.train, log));
-  std::filesystem::create_directories(o.out_dir);
+  GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
   std::vector<Camera> cameras;
   for (const auto& v : loaded.train) cameras.push_back(v.camera);
@@ -400,9 +493,9 @@ absl::Status run_init_only(const RunOptions& o, const Log& log) {
 }
 
 absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallback& on_progress, const Log& log) {
+  GAPS_RETURN_IF_ERROR(check_device(o.config.device));
+  GAPS_RETURN_IF_ERROR(check_scene(o));
   const at::Device device(o.config.device);
-  if (device.is_cuda() && !at::hasCUDA())
-    return absl::FailedPreconditionError("--device cuda requested but no CUDA device is available");
   GAPS_ASSIGN_OR_RETURN(const std::optional<Lpips> lpips, load_lpips(o, device));
   const Lpips* lpips_model = lpips ? &*lpips : nullptr;
   GAPS_ASSIGN_OR_RETURN(LoadedScene loaded, load_scene_and_training_views(o, device, log));
@@ -413,7 +506,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
                         initial_points(o, loaded.scene, loaded.train, log, &result.init_method));
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
 
-  std::filesystem::create_directories(o.out_dir);
+  GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   const PeakMemoryMeter memory(device);
   TrainingRun run(o, log, points, std::move(loaded.train), device);
   result.max_gaussians = run.trainer().config().max_gaussians;
@@ -421,8 +514,9 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   result.gaps = run.effective_gaps();
   GAPS_RETURN_IF_ERROR(run.attach_method(result.gaps));
   GAPS_RETURN_IF_ERROR(run.resume());
-  const absl::Status trained = run.train(on_progress, test, lpips_model, &result.curve);
+  const absl::Status trained = run.train(on_progress, test, lpips_model);
   GAPS_RETURN_IF_ERROR(run.keep_state(trained));
+  result.curve = run.curve();
 
   result.train_seconds = run.train_seconds();
   result.num_gaussians = run.trainer().model().size();

@@ -15,6 +15,9 @@
 
 namespace gaps {
 
+// The evaluation interval of `gaps train` and of submitted jobs when none is given.
+inline constexpr int kDefaultEvalEvery = 1000;
+
 struct RunOptions {
   std::filesystem::path scene_dir;
   int views = 3;       // training views (<= 0: every non-test view)
@@ -53,14 +56,17 @@ struct RunOptions {
   // from it; `on_checkpoint` hears the saved iteration.
   std::filesystem::path checkpoint_dir;
   std::function<void(int iteration)> on_checkpoint;
+  // Every this many iterations the training state is saved to checkpoint_dir as well (0: never).
+  int checkpoint_every = 0;
 };
 
 struct RunResult {
   ImageMetrics metrics;
   std::vector<ImageMetrics> per_view;
+  std::vector<std::string> per_view_images;  // the test images of per_view, in the same order
   int64_t num_gaussians = 0;
   int64_t max_gaussians = 0;      // the budget the run trained under (resolved when automatic); 0 = none
-  double train_seconds = 0.0;     // without the evaluations of the curve
+  double train_seconds = 0.0;     // without the evaluations of the curve and the checkpoints
   std::string summary;            // what was loaded
   std::vector<CurvePoint> curve;  // ends with the final evaluation when eval_every > 0
   PeakMemory peak_memory;
@@ -83,6 +89,17 @@ struct RunResult {
 nlohmann::json run_configuration_json(const RunOptions& options, const RunResult& result);
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;
+
+// The cheap checks of a run, made before anything expensive (images, initialisation, a generator's weights):
+// run_pipeline starts with them (and with common/device.h's check_device), and the command line calls them
+// before loading a generator. The initialisation method is known (with its point cloud file), the resolutions
+// are valid, the scene folder holds a scene (input data errors otherwise, common/error_kind.h) and has enough
+// images for the views asked for (a usage error).
+absl::Status check_scene(const RunOptions& options);
+
+// What run_pipeline and run_init_only write into out_dir (files and folders, checkpoints included), so that
+// a command reusing the folder can remove an earlier run's results first.
+std::vector<std::string> run_output_names();
 
 // A run stopped by divergence (non-finite loss or parameters) returns an Aborted status (is_divergence())
 // and still writes metrics.json, with "status": "diverged", the error and the curve up to then.

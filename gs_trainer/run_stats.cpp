@@ -33,6 +33,15 @@ void to_json(nlohmann::json& j, const CurvePoint& p) {
        {"ssim", p.metrics.ssim},   {"lpips", optional_json(p.metrics.lpips)}, {"num_gaussians", p.num_gaussians}};
 }
 
+void from_json(const nlohmann::json& j, CurvePoint& p) {
+  p.iteration = j.at("iteration");
+  p.train_seconds = j.at("train_seconds");
+  p.metrics.psnr = j.at("psnr");
+  p.metrics.ssim = j.at("ssim");
+  p.metrics.lpips = j.at("lpips").is_null() ? std::nullopt : std::optional<double>(j.at("lpips").get<double>());
+  p.num_gaussians = j.at("num_gaussians");
+}
+
 void to_json(nlohmann::json& j, const PeakMemory& m) {
   j = {{"kind", m.kind}, {"bytes", m.bytes}};
   if (m.reserved_bytes) j["reserved_bytes"] = *m.reserved_bytes;

@@ -21,6 +21,7 @@ struct CurvePoint {
   int64_t num_gaussians = 0;
 };
 void to_json(nlohmann::json& j, const CurvePoint& p);
+void from_json(const nlohmann::json& j, CurvePoint& p);
 
 // Peak memory of a run. On CUDA: the caching allocator's peak of allocated bytes (and of reserved bytes,
 // closer to what nvidia-smi shows) since start(); on the CPU: the process's peak resident set size, which

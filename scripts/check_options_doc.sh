@@ -14,7 +14,7 @@ trap 'rm -f "$generated"' EXIT
   echo
   echo "Every training and GAPS option, as \`gaps options\` prints it from the option tables"
   echo "(\`gs_trainer/train/train_config.h\`, \`gs_trainer/gaps/config.h\`). Each is a key of the \`--config\`"
-  echo "(training) or \`--gaps-config\` (gaps) JSON file, a flag of \`gaps train\`/\`init\`/\`demo\`/\`submit\`"
+  echo "(training) or \`--gaps-config\` (gaps) JSON file, a flag of \`gaps train\`/\`demo\`/\`submit\`"
   echo "(\`--lambda-dssim 0.3\`; lists as \`--tier-alpha-max 1,1.25\`), and a field of the same name in"
   echo "\`gaps.v1.TrainHyperparameters\`/\`GapsHyperparameters\`. A flag given on the command line wins over the"
   echo "file, and the run says so. metrics.json records the values a run used, automatic ones resolved."

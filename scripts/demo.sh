@@ -4,4 +4,5 @@ set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 bash "$root/scripts/setup.sh"
 bash "$root/scripts/build.sh"
-exec "${GAPS_BUILD_DIR:-$root/build}/client/gaps" demo "$@"
+# The demo reuses its folder: --overwrite replaces the previous demo's results.
+exec "${GAPS_BUILD_DIR:-$root/build}/client/gaps" demo --overwrite "$@"

@@ -28,6 +28,8 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
   }
   if (c.random_points() < 0) return absl::InvalidArgumentError("config: random_points must not be negative");
   if (c.random_points() > 0) o.random_points = c.random_points();
+  o.eval_every = c.has_eval_every() ? c.eval_every() : kDefaultEvalEvery;
+  if (o.eval_every < 0) return absl::InvalidArgumentError("config: eval_every must be 0 or positive");
   GAPS_ASSIGN_OR_RETURN(o.variant, parse_variant(c.variant().empty() ? "full" : c.variant()));
   try {
     o.config = rpc::present_fields(c.training()).get<TrainConfig>();

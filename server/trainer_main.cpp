@@ -1,22 +1,23 @@
 // gaps-trainer: the training service (gaps.v1.Trainer) with its job queue and SQLite job store.
-//   gaps-trainer --listen 127.0.0.1:50051 --workers 127.0.0.1:50052[,ADDR...] --data_dir DIR --device cpu|cuda:0
-//                [--concurrency N] [--token_file F] [--tls_cert F --tls_key F [--tls_client_ca F]]
-//                [--worker_token_file F] [--worker_tls_ca F [--worker_tls_cert F --worker_tls_key F]]
+//   gaps-trainer --listen 127.0.0.1:50051 --workers 127.0.0.1:50052[,ADDR...] --data-dir DIR --device cpu|cuda:0
+//                [--concurrency N] [--token-file F] [--tls-cert F --tls-key F [--tls-client-ca F]]
+//                [--worker-token-file F] [--worker-tls-ca F [--worker-tls-cert F --worker-tls-key F]]
 // SIGTERM/SIGINT: running jobs stop at their next iteration, write a checkpoint and stay RUNNING in the
 // store; the next trainer started on the same data folder resumes them from it.
 #include <atomic>
 #include <csignal>
 #include <cstdlib>
+#include <filesystem>
 #include <iostream>
 #include <thread>
 
-#include <ATen/Context.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
 #include "absl/strings/str_split.h"
+#include "common/cli/command_line.h"
+#include "common/device.h"
+#include "common/error_kind.h"
 #include "rpc/security.h"
 #include "server/trainer_service.h"
 
@@ -35,7 +36,7 @@ ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
 ABSL_FLAG(int, max_crashes, 2,
           "a job whose trainer died this many times while running it is FAILED at the next start instead of run again");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
-ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
+ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls-key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
 ABSL_FLAG(std::string, tls_client_ca, "",
           "CA certificate that must have signed every client's certificate (mutual TLS)");
@@ -45,7 +46,7 @@ ABSL_FLAG(std::string, worker_token_file, "",
 ABSL_FLAG(std::string, worker_tls_ca, "", "CA certificate of the workers' TLS (default: plaintext)");
 ABSL_FLAG(std::string, worker_tls_server_name, "", "name the workers' certificates are checked against");
 ABSL_FLAG(std::string, worker_tls_cert, "", "this trainer's client certificate, for workers that require one");
-ABSL_FLAG(std::string, worker_tls_key, "", "private key of --worker_tls_cert");
+ABSL_FLAG(std::string, worker_tls_key, "", "private key of --worker-tls-cert");
 ABSL_FLAG(int, worker_timeout_s, 300, "deadline of each generation call");
 ABSL_FLAG(int, worker_rounds, 3, "passes over the worker pool (with backoff) before a phase is skipped");
 ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
@@ -55,29 +56,53 @@ namespace {
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
 
-int fail(const std::string& message) {
-  std::cerr << "gaps-trainer: " << message << "\n";
-  return 2;
+gaps::cli::CommandSpec command() {
+  gaps::cli::CommandSpec spec;
+  spec.name = "gaps-trainer";
+  spec.synopsis = "gaps-trainer --listen ADDR --workers ADDR[,ADDR...] --data-dir DIR --device DEV [flags]";
+  spec.summary =
+      "The training service: accepts scenes from gaps submit, trains them as jobs (the method variants with\n"
+      "pseudo-views from gaps-worker services) and serves their results. SIGTERM/SIGINT stop it gracefully;\n"
+      "a trainer started again on the same --data-dir resumes the interrupted jobs.";
+  spec.groups = {
+      {"service", {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb"}},
+      {"security", {"token_file", "tls_cert", "tls_key", "tls_client_ca"}},
+      {"diffusion workers",
+       {"workers", "worker_token_file", "worker_tls_ca", "worker_tls_server_name", "worker_tls_cert", "worker_tls_key",
+        "worker_timeout_s", "worker_rounds"}},
+  };
+  spec.epilogue = gaps::cli::exit_code_table();
+  return spec;
 }
 
-}  // namespace
+int fail(const absl::Status& status) {
+  std::cerr << "gaps-trainer: " << status.message() << "\n";
+  return gaps::exit_code(status);
+}
 
-int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage("gaps-trainer --listen ADDR --workers ADDR[,ADDR...] --data_dir DIR --device DEV");
-  absl::ParseCommandLine(argc, argv);
+int usage(const std::string& message) { return fail(gaps::usage_error(message)); }
+
+// Token and TLS files are the input data of a service.
+int fail_reading(const absl::Status& status) { return fail(gaps::input_data_error(status)); }
+
+int serve() {
   const std::string device = absl::GetFlag(FLAGS_device);
-  if (at::Device(device).is_cuda() && !at::hasCUDA()) return fail("--device " + device + ": no CUDA device available");
+  if (absl::Status st = gaps::check_device(device); !st.ok()) return fail(st);
+  const std::filesystem::path data_dir = absl::GetFlag(FLAGS_data_dir);
+  std::error_code ec;
+  if (std::filesystem::exists(data_dir, ec) && !std::filesystem::is_directory(data_dir, ec))
+    return usage("--data-dir " + data_dir.string() + ": a file, not a folder");
   auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
-  if (!token.ok()) return fail(std::string(token.status().message()));
+  if (!token.ok()) return fail_reading(token.status());
   auto worker_token = gaps::rpc::load_token(absl::GetFlag(FLAGS_worker_token_file), "GAPS_WORKER_TOKEN");
-  if (!worker_token.ok()) return fail(std::string(worker_token.status().message()));
+  if (!worker_token.ok()) return fail_reading(worker_token.status());
   gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
                                      absl::GetFlag(FLAGS_tls_client_ca)};
   auto credentials = gaps::rpc::server_credentials(security);
-  if (!credentials.ok()) return fail(std::string(credentials.status().message()));
+  if (!credentials.ok()) return fail_reading(credentials.status());
 
   gaps::TrainerServiceOptions options;
-  options.data_dir = absl::GetFlag(FLAGS_data_dir);
+  options.data_dir = data_dir;
   options.job_store = absl::GetFlag(FLAGS_job_store);
   // The URI may hold a password: an environment variable keeps it off the command line (and out of `ps`).
   if (options.job_store.empty() && std::getenv("GAPS_JOB_STORE") != nullptr)
@@ -87,7 +112,8 @@ int main(int argc, char** argv) {
   options.device = device;
   options.concurrency = absl::GetFlag(FLAGS_concurrency);
   options.max_crashes = absl::GetFlag(FLAGS_max_crashes);
-  if (options.max_crashes < 1) return fail("--max_crashes must be at least 1");
+  if (options.max_crashes < 1) return usage("--max-crashes must be at least 1");
+  if (options.concurrency < 1) return usage("--concurrency must be at least 1");
   options.token = *token;
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
@@ -98,7 +124,7 @@ int main(int argc, char** argv) {
   options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));
   options.workers.max_rounds = absl::GetFlag(FLAGS_worker_rounds);
   auto service = gaps::TrainerService::create(options);
-  if (!service.ok()) return fail(std::string(service.status().message()));
+  if (!service.ok()) return fail(service.status());
 
   grpc::EnableDefaultHealthCheckService(true);
   grpc::ServerBuilder builder;
@@ -110,9 +136,10 @@ int main(int argc, char** argv) {
   builder.RegisterService(service->get());
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (!server || port == 0)
-    return fail("cannot listen on " + address +
-                ": the address is in use or not local, or the TLS private key does not belong to the certificate");
-  if (auto st = (*service)->start(); !st.ok()) return fail(std::string(st.message()));
+    return fail(absl::FailedPreconditionError(
+        "cannot listen on " + address +
+        ": the address is in use or not local, or the TLS private key does not belong to the certificate"));
+  if (auto st = (*service)->start(); !st.ok()) return fail(st);
   std::signal(SIGTERM, on_signal);
   std::signal(SIGINT, on_signal);
   std::cout << "gaps-trainer: serving on port " << port << " (device " << device << ", "
@@ -124,4 +151,13 @@ int main(int argc, char** argv) {
   (*service)->shutdown();
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  return gaps::cli::run_main("gaps-trainer", [&] {
+    if (const std::optional<int> done = gaps::cli::parse_program_command_line(argc, argv, command())) return *done;
+    return serve();
+  });
 }

@@ -1,5 +1,5 @@
 #pragma once
-// Child processes for tests that start the real services (gaps-worker, gaps-trainer).
+// Child processes for tests that start the real programs (gaps, gaps-worker, gaps-trainer).
 #include <fcntl.h>
 #include <signal.h>
 #include <spawn.h>

@@ -36,6 +36,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using test::Process;
+using test::run_command;
 
 struct Services : test::TempDirTest {
   void SetUp() override {
@@ -433,16 +434,6 @@ TEST_F(Services, CancelStopsARunningJob) {
 }
 
 // Runs a command line, returning its exit code and output.
-std::pair<int, std::string> run_command(const std::string& command) {
-  std::string output;
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (pipe == nullptr) return {-1, ""};
-  char buffer[4096];
-  while (size_t n = fread(buffer, 1, sizeof(buffer), pipe)) output.append(buffer, n);
-  const int status = pclose(pipe);
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
-}
-
 TEST_F(Services, CommandLineSubmitWatchListFetch) {
   auto worker = start_worker();
   auto trainer = start_trainer();

@@ -1,6 +1,7 @@
 // gaps-worker: serves a pseudo-view generation backend over gRPC (gaps.v1.DiffusionWorker).
-//   gaps-worker --listen 127.0.0.1:50052 --backend reproject [--backend_options JSON] [--token_file F]
-//               [--tls_cert F --tls_key F [--tls_client_ca F]] [--queue_capacity N] [--max_batch N]
+//   gaps-worker --listen 127.0.0.1:50052 --backend reproject [--backend-options JSON] [--token-file F]
+//               [--tls-cert F --tls-key F [--tls-client-ca F]] [--queue-capacity N] [--max-batch N]
+#include <algorithm>
 #include <csignal>
 #include <iostream>
 #include <thread>
@@ -9,9 +10,11 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
-#include "absl/flags/parse.h"
-#include "absl/flags/usage.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "common/cli/command_line.h"
+#include "common/device.h"
+#include "common/error_kind.h"
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
 #include "rpc/security.h"
@@ -24,7 +27,7 @@ ABSL_FLAG(int, max_batch, 64, "most poses per Generate call");
 ABSL_FLAG(int, queue_capacity, 4, "calls that may wait behind the running one before RESOURCE_EXHAUSTED");
 ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
-ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls_key serves TLS");
+ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls-key serves TLS");
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
 ABSL_FLAG(std::string, tls_client_ca, "",
           "CA certificate that must have signed every client's certificate (mutual TLS)");
@@ -34,9 +37,36 @@ namespace {
 std::atomic<bool> g_stop{false};
 void on_signal(int) { g_stop = true; }
 
-int fail(const std::string& message) {
-  std::cerr << "gaps-worker: " << message << "\n";
-  return 2;
+gaps::cli::CommandSpec command() {
+  gaps::cli::CommandSpec spec;
+  spec.name = "gaps-worker";
+  spec.synopsis = "gaps-worker --listen ADDR --backend NAME [--backend-options JSON] [--device DEV] [flags]";
+  spec.summary =
+      "A diffusion worker: generates pseudo-views for a gaps-trainer's jobs with an in-process backend\n"
+      "(reproject, or sdxl with its weights; see diffusion_worker/README.md). SIGTERM/SIGINT stop it.";
+  spec.groups = {
+      {"service", {"listen", "max_batch", "queue_capacity", "max_request_mb"}},
+      {"backend", {"backend", "backend_options", "device"}},
+      {"security", {"token_file", "tls_cert", "tls_key", "tls_client_ca"}},
+  };
+  spec.epilogue = gaps::cli::exit_code_table();
+  return spec;
+}
+
+int fail(const absl::Status& status) {
+  std::cerr << "gaps-worker: " << status.message() << "\n";
+  return gaps::exit_code(status);
+}
+
+int usage(const std::string& message) { return fail(gaps::usage_error(message)); }
+
+// The backend's name and device, checked before its weights are loaded.
+absl::Status check_backend(const std::string& backend, const std::string& device) {
+  const std::vector<std::string> known = gaps::known_generator_backends();
+  if (std::find(known.begin(), known.end(), backend) == known.end())
+    return gaps::usage_error(absl::StrCat("--backend ", backend, ": unknown; one of ", absl::StrJoin(known, ", ")));
+  // A CPU backend only warns about a device it will not use, but the name must still be one.
+  return gaps::generator_backend_uses_device(backend) ? gaps::check_device(device) : gaps::check_device_name(device);
 }
 
 // --device reaches a backend that computes on a device (sdxl) as its "device" option. A CPU backend
@@ -47,24 +77,21 @@ std::string options_with_device(const std::string& backend, const std::string& o
   nlohmann::json options =
       options_json.empty() ? nlohmann::json::object() : nlohmann::json::parse(options_json, nullptr, false);
   if (!options.is_object()) {
-    *error = "--backend_options is not a JSON object";
+    *error = "--backend-options is not a JSON object";
     return "";
   }
   if (options.contains("device") && options["device"] != device) {
-    *error = "--device " + device + " contradicts --backend_options' device " + options["device"].dump();
+    *error = "--device " + device + " contradicts --backend-options' device " + options["device"].dump();
     return "";
   }
   options["device"] = device;
   return options.dump();
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  absl::SetProgramUsageMessage("gaps-worker --listen ADDR --backend NAME [--device cpu]");
-  absl::ParseCommandLine(argc, argv);
+int serve() {
   const std::string backend = absl::GetFlag(FLAGS_backend);
   const std::string requested_device = absl::GetFlag(FLAGS_device);
+  if (absl::Status st = check_backend(backend, requested_device); !st.ok()) return fail(st);
   const bool uses_device = gaps::generator_backend_uses_device(backend);
   if (!uses_device && requested_device != "cpu")
     std::cerr << "gaps-worker: the " << backend << " backend computes on the CPU; --device " << requested_device
@@ -73,16 +100,22 @@ int main(int argc, char** argv) {
   std::string error;
   const std::string backend_options =
       options_with_device(backend, absl::GetFlag(FLAGS_backend_options), requested_device, &error);
-  if (!error.empty()) return fail(error);
-  auto generator = gaps::make_generator(backend, backend_options);
-  if (!generator.ok())
-    return fail((device == "cpu" ? "" : "--device " + device + ": ") + std::string(generator.status().message()));
+  if (!error.empty()) return usage(error);
   auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
-  if (!token.ok()) return fail(std::string(token.status().message()));
+  if (!token.ok()) return fail(gaps::input_data_error(token.status()));
   gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
                                      absl::GetFlag(FLAGS_tls_client_ca)};
   auto credentials = gaps::rpc::server_credentials(security);
-  if (!credentials.ok()) return fail(std::string(credentials.status().message()));
+  if (!credentials.ok()) return fail(gaps::input_data_error(credentials.status()));
+  auto generator = gaps::make_generator(backend, backend_options);
+  if (!generator.ok()) {
+    // Option values are the user's to fix; otherwise the backend's files (weights) are at fault.
+    const absl::Status& st = generator.status();
+    const absl::Status located(st.code(),
+                               (device == "cpu" ? "" : "--device " + device + ": ") + std::string(st.message()));
+    return fail(absl::IsInvalidArgument(st) ? gaps::with_error_kind(located, gaps::ErrorKind::kUsage)
+                                            : gaps::input_data_error(located));
+  }
 
   gaps::WorkerServiceOptions options;
   options.backend = backend;
@@ -92,7 +125,7 @@ int main(int argc, char** argv) {
   options.max_request_bytes = absl::GetFlag(FLAGS_max_request_mb) << 20;
   options.token = *token;
   if (options.max_batch <= 0 || options.queue_capacity < 0)
-    return fail("--max_batch must be positive, --queue_capacity >= 0");
+    return usage("--max-batch must be positive, --queue-capacity >= 0");
   gaps::WorkerService service(std::move(*generator), options);
 
   grpc::EnableDefaultHealthCheckService(true);
@@ -106,8 +139,9 @@ int main(int argc, char** argv) {
   builder.SetMaxReceiveMessageSize(4 << 20);
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (!server || port == 0)
-    return fail("cannot listen on " + address +
-                ": the address is in use or not local, or the TLS private key does not belong to the certificate");
+    return fail(absl::FailedPreconditionError(
+        "cannot listen on " + address +
+        ": the address is in use or not local, or the TLS private key does not belong to the certificate"));
   std::signal(SIGTERM, on_signal);
   std::signal(SIGINT, on_signal);
   // The resolved port, so a caller that asked for port 0 learns which one it got.
@@ -117,4 +151,13 @@ int main(int argc, char** argv) {
   while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
   server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  return gaps::cli::run_main("gaps-worker", [&] {
+    if (const std::optional<int> done = gaps::cli::parse_program_command_line(argc, argv, command())) return *done;
+    return serve();
+  });
 }

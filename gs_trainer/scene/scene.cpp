@@ -12,6 +12,7 @@
 #include "common/image_io.h"
 #include "common/status_macros.h"
 #include "gs_trainer/scene/colmap.h"
+#include "gs_trainer/scene/scene_internal.h"
 
 namespace gaps {
 namespace {
@@ -68,6 +69,22 @@ std::string camera_summary(const Camera& c) {
 
 namespace {
 
+// A folder of photos without poses: where to make a scene from them (COLMAP, into the layout load_colmap_scene
+// reads). `photos` is the folder holding them: root/images, or root itself.
+absl::Status photos_without_poses(const fs::path& root, const fs::path& photos) {
+  const std::string images = (root / "images").string(), db = (root / "database.db").string();
+  return absl::NotFoundError(absl::StrCat(
+      root.string(),
+      ": photos without camera poses. A scene is one of: transforms.json (nerfstudio, instant-ngp), a COLMAP model "
+      "(sparse/0/ or sparse/, photos in images/), or LLFF's poses_bounds.npy (photos in images/). To make a COLMAP "
+      "model from the photos",
+      photos == root ? absl::StrCat(" (move them into ", images, "/ first)") : "", ":\n",
+      "  colmap feature_extractor --database_path ", db, " --image_path ", images, "\n",
+      "  colmap exhaustive_matcher --database_path ", db, "\n", "  mkdir -p ", (root / "sparse").string(),
+      " && colmap mapper --database_path ", db, " --image_path ", images, " --output_path ",
+      (root / "sparse").string()));
+}
+
 absl::StatusOr<Scene> checked(absl::StatusOr<Scene> scene) {
   if (!scene.ok()) return scene;
   for (const Camera& c : scene->cameras) GAPS_RETURN_IF_ERROR(check_camera(c, (scene->root / c.name).string()));
@@ -83,6 +100,8 @@ absl::StatusOr<Scene> load_scene(const fs::path& root, const SceneLoadOptions& o
   if (fs::is_regular_file(root / "transforms.json", ec)) return checked(load_transforms_scene(root, options));
   if (find_colmap_model(root)) return checked(load_colmap_scene(root, options));
   if (fs::is_regular_file(root / "poses_bounds.npy", ec)) return checked(load_llff_scene(root, options));
+  for (const fs::path& photos : {root / "images", root})
+    if (scene_internal::list_images(photos).ok()) return photos_without_poses(root, photos);
   return absl::NotFoundError(absl::StrCat(root.string(),
                                           ": no scene found (expected transforms.json, a COLMAP model with images "
                                           "in sparse/0/ or sparse/, or poses_bounds.npy)"));

@@ -4,6 +4,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "common/error_kind.h"
 
 namespace gaps {
 namespace {
@@ -23,8 +24,9 @@ absl::Status DivergenceGuard::observe(int iteration, const at::Tensor& loss, con
   const std::string what = describe_non_finite(model, pending_losses_, first_pending_);
   pending_losses_.clear();
   if (what.empty()) return absl::OkStatus();
-  return absl::AbortedError(
-      absl::StrCat(kDivergencePrefix, iteration, " (", model.size(), " Gaussians): non-finite ", what));
+  return with_error_kind(absl::AbortedError(absl::StrCat(kDivergencePrefix, iteration, " (", model.size(),
+                                                         " Gaussians): non-finite ", what)),
+                         ErrorKind::kDiverged);
 }
 
 std::string describe_non_finite(const GaussianModel& model, const std::vector<at::Tensor>& losses,

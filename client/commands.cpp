@@ -1,0 +1,103 @@
+#include "client/commands.h"
+
+#include "absl/strings/str_cat.h"
+#include "client/remote_commands.h"
+#include "client/run_flags.h"
+
+namespace gaps::client {
+namespace {
+
+// 3DGS's train.py spellings (-s source, -m model folder, -r resolution) and -o, as every command that takes
+// the long flag accepts them.
+const std::map<std::string, std::string>& short_names() {
+  static const auto* names =
+      new std::map<std::string, std::string>{{"r", "resolution"}, {"s", "scene"}, {"m", "out"}, {"o", "out"}};
+  return *names;
+}
+
+cli::CommandSpec command(std::string name, std::string synopsis, std::string summary,
+                         std::vector<cli::FlagGroup> groups, int max_positional = 0, std::string positional_name = "") {
+  cli::CommandSpec spec;
+  spec.name = "gaps " + name;
+  spec.synopsis = std::move(synopsis);
+  spec.summary = std::move(summary);
+  spec.groups = std::move(groups);
+  // Only the short forms of flags the command takes.
+  for (const auto& [short_name, long_name] : short_names())
+    for (const cli::FlagGroup& group : spec.groups)
+      for (const std::string& flag : group.names)
+        if (flag == long_name) spec.short_names[short_name] = long_name;
+  spec.max_positional = max_positional;
+  spec.positional_name = std::move(positional_name);
+  spec.epilogue = cli::exit_code_table();
+  return spec;
+}
+
+cli::FlagGroup only(std::string title, std::vector<std::string> names) { return {std::move(title), std::move(names)}; }
+
+}  // namespace
+
+std::vector<cli::CommandSpec> gaps_commands() {
+  return {
+      command("train",
+              "gaps train --scene DIR --out DIR [flags]    (the scene may also be the argument: gaps train DIR ...)\n"
+              "       gaps train --resume OUT [--save-every N] [--quiet]",
+              "Reconstructs a scene from N training views (the sparse-view split: every 8th image is a test view) and\n"
+              "evaluates on the test views: point_cloud.ply, renders/, metrics.json and report.html in --out. The\n"
+              "state is saved to OUT/checkpoint every --save-every iterations and on SIGINT/SIGTERM; --resume OUT\n"
+              "continues such a run with the settings it was started with.",
+              {scene_flags(), local_init_flags(), run_flags(), generator_flags(), output_flags(), checkpoint_flags(),
+               training_option_flags(), gaps_option_flags()},
+              1, "the scene folder"),
+      command("init", "gaps init --scene DIR --views N --out DIR [flags]",
+              "Writes only the initial point cloud of the training views, as points.ply and a COLMAP text model\n"
+              "(sparse/0/) in --out.",
+              {scene_flags(), local_init_flags(), only("outputs", {"out", "overwrite"}),
+               only("options", {"device", "seed"})},
+              1, "the scene folder"),
+      command("demo", "gaps demo [--out DIR] [flags]",
+              "Renders a small synthetic scene (16 views, 160x120) with known cameras, reconstructs it from 3 of them\n"
+              "and prints the PSNR on the held-out views (default --out gaps-demo).",
+              {only("initialisation", {"init", "random_points"}), run_flags(), generator_flags(), output_flags(),
+               training_option_flags(), gaps_option_flags()}),
+      command(
+          "submit", "gaps submit SCENE [flags]    (or --scene DIR)",
+          "Uploads a scene (its images at --resolution, undistorted, with their cameras) to a gaps-trainer as a\n"
+          "job with the same scene and run flags as gaps train, and prints the job id.",
+          {scene_flags(), run_flags(), submit_flags(), remote_flags(), training_option_flags(), gaps_option_flags()}, 1,
+          "the scene folder"),
+      command("watch", "gaps watch JOB [flags]",
+              "Follows a job: progress, phases, log lines, final status; exit status 0 when it succeeded.",
+              {only("display", {"quiet"}), remote_flags()}, 1, "the job id"),
+      command("list", "gaps list [flags]", "Lists the trainer's jobs.", {remote_flags()}),
+      command("cancel", "gaps cancel JOB [flags]", "Stops a queued or running job.", {remote_flags()}, 1, "the job id"),
+      command("fetch", "gaps fetch JOB -o DIR [flags]",
+              "Downloads a finished job's results (point_cloud.ply, metrics.json, renders/, phases.json) into DIR.",
+              {only("outputs", {"out"}), remote_flags()}, 1, "the job id"),
+      command("options", "gaps options",
+              "Prints every training and GAPS option (name, type, default, range, meaning) as a Markdown table;\n"
+              "docs/options.md is its output.",
+              {}),
+  };
+}
+
+std::string gaps_overview() {
+  return absl::StrCat(
+      "usage: gaps <command> [flags]      gaps <command> --help lists the command's flags\n"
+      "\n"
+      "  train     reconstruct a scene from N views and evaluate on the test views (--resume continues a run)\n"
+      "  init      only the initial point cloud of the training views (PLY + COLMAP text model)\n"
+      "  demo      build a synthetic scene, reconstruct it from 3 views, print test PSNR\n"
+      "  submit    upload a scene to a gaps-trainer (--trainer ADDR) as a job and print its id\n"
+      "  watch | list | cancel | fetch    follow, list, stop or download remote jobs\n"
+      "  options   every training and GAPS option: name, type, default, range, meaning (a Markdown table)\n"
+      "\n"
+      "Every option is also a flag (--lambda-dssim 0.3, --n-active 24, --tier-alpha-max 1,1.5) and a key of the\n"
+      "--config (training) or --gaps-config (GAPS) JSON files; a flag given on the command line wins over the file.\n"
+      "Flags take dashes or underscores (--init-ply, --init_ply), --name=value or --name value; -r is --resolution,\n"
+      "-s --scene, -m and -o --out. gaps --version prints the version and commit.\n"
+      "\n",
+      cli::exit_code_table());
+}
+
+}  // namespace gaps::client

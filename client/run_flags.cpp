@@ -1,0 +1,126 @@
+#include "client/run_flags.h"
+
+#include <cstdlib>
+#include <filesystem>
+#include <iostream>
+
+#include <ATen/Context.h>
+#include "absl/flags/flag.h"
+#include "absl/strings/str_cat.h"
+#include "common/error_kind.h"
+#include "common/status_macros.h"
+
+ABSL_FLAG(
+    std::string, scene, "",
+    "scene folder (LLFF poses_bounds.npy, COLMAP sparse/, or transforms.json); may also be the command's argument");
+ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
+ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
+ABSL_FLAG(std::string, init, "auto",
+          "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from "
+          "the training views), sparse, random, scene or ply");
+ABSL_FLAG(std::string, init_ply, "", "PLY point cloud for --init ply (given alone, implies it)");
+ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
+ABSL_FLAG(int, init_resolution, 0,
+          "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger "
+          "images than -r 8 trains on (0: --resolution)");
+ABSL_FLAG(std::string, init_cache, "",
+          "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
+ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), no-gaps or no-dropgaussian");
+ABSL_FLAG(std::string, config, "",
+          "JSON file of training options (the names `gaps options` lists under training); flags win over it");
+ABSL_FLAG(std::string, gaps_config, "",
+          "JSON file of GAPS options (the names `gaps options` lists under gaps); flags win over it");
+ABSL_FLAG(int, eval_every, gaps::kDefaultEvalEvery,
+          "evaluate the test views every N iterations into metrics.json's curve (0: only at the end)");
+ABSL_FLAG(std::string, backend, "reproject", "pseudo-view generator backend for the method variants");
+ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
+ABSL_FLAG(std::string, out, "", "output folder");
+ABSL_FLAG(bool, overwrite, false,
+          "reuse a non-empty output folder: first remove what an earlier run wrote there (other files stay)");
+ABSL_FLAG(bool, report, true, "write report.html (metrics, curve, renders next to ground truth, pseudo-views)");
+ABSL_FLAG(bool, quiet, false, "no progress output");
+ABSL_FLAG(std::string, lpips_backbone, "", "VGG16 weights (torchvision vgg16-397923af.pth); LPIPS is null without");
+ABSL_FLAG(std::string, lpips_weights, "", "LPIPS v0.1 linear weights (vgg.pth)");
+ABSL_FLAG(std::string, resume, "",
+          "continue the interrupted run in this output folder, with the settings it was started with");
+ABSL_FLAG(int, save_every, 2000,
+          "save the training state to OUT/checkpoint every N iterations, besides on SIGINT/SIGTERM (0: only then)");
+
+namespace gaps::client {
+namespace {
+
+std::filesystem::path default_init_cache() {
+  if (const char* cache = std::getenv("GAPS_CACHE")) return std::filesystem::path(cache) / "init";
+  if (const char* home = std::getenv("HOME")) return std::filesystem::path(home) / ".cache" / "gaps" / "init";
+  return {};
+}
+
+}  // namespace
+
+cli::FlagGroup scene_flags() {
+  return {"scene", {"scene", "views", "resolution", "init", "init_ply", "random_points"}};
+}
+cli::FlagGroup local_init_flags() { return {"initialisation", {"init_resolution", "init_cache"}}; }
+cli::FlagGroup run_flags() { return {"run", {"variant", "config", "gaps_config", "eval_every"}}; }
+cli::FlagGroup training_option_flags() {
+  return {"training options (gaps options lists them; also keys of --config)", training_option_flag_names()};
+}
+cli::FlagGroup gaps_option_flags() {
+  return {"GAPS options (gaps options lists them; also keys of --gaps-config)", gaps_option_flag_names()};
+}
+cli::FlagGroup generator_flags() { return {"pseudo-view generator", {"backend", "backend_options"}}; }
+cli::FlagGroup output_flags() {
+  return {"outputs", {"out", "overwrite", "report", "quiet", "lpips_backbone", "lpips_weights"}};
+}
+cli::FlagGroup checkpoint_flags() { return {"checkpoints", {"save_every", "resume"}}; }
+
+absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults) {
+  FlagRun run;
+  RunOptions& o = run.options;
+  o.scene_dir = absl::GetFlag(FLAGS_scene);
+  o.views = absl::GetFlag(FLAGS_views);
+  o.resolution = absl::GetFlag(FLAGS_resolution);
+  o.init = absl::GetFlag(FLAGS_init);
+  o.init_ply = absl::GetFlag(FLAGS_init_ply);
+  if (!o.init_ply.empty()) o.init = "ply";
+  o.random_points = absl::GetFlag(FLAGS_random_points);
+  o.init_resolution = absl::GetFlag(FLAGS_init_resolution);
+  o.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
+  if (o.init_cache_dir.empty()) o.init_cache_dir = default_init_cache();
+  o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);
+  o.lpips_weights = absl::GetFlag(FLAGS_lpips_weights);
+  o.eval_every = absl::GetFlag(FLAGS_eval_every);
+  o.html_report = absl::GetFlag(FLAGS_report);
+  if (o.eval_every < 0) return usage_error("--eval-every must be 0 or positive");
+  if (o.resolution <= 0) return usage_error("--resolution must be positive");
+  if (o.random_points <= 0) return usage_error("--random-points must be positive");
+  const absl::StatusOr<Variant> variant = parse_variant(absl::GetFlag(FLAGS_variant));
+  if (!variant.ok()) return usage_error(absl::StrCat("--variant: ", variant.status().message()));
+  o.variant = *variant;
+  GAPS_ASSIGN_OR_RETURN(run.given,
+                        options_from_files_and_flags(absl::GetFlag(FLAGS_config), absl::GetFlag(FLAGS_gaps_config)));
+  for (const std::string& note : run.given.notes) std::cerr << "gaps: " << note << "\n";
+  // Options neither the file nor a flag gives: the command's own defaults, and the GPU when there is one.
+  nlohmann::json training = run.given.training;
+  for (auto it = command_defaults.begin(); it != command_defaults.end(); ++it)
+    if (!training.contains(it.key())) training[it.key()] = it.value();
+  if (!training.contains("device")) training["device"] = at::hasCUDA() ? "cuda" : "cpu";
+  try {
+    o.config = training.get<TrainConfig>();
+    o.gaps = run.given.gaps.get<GapsConfig>();
+  } catch (const std::exception& e) {
+    return usage_error(json_error_message(e));
+  }
+  return run;
+}
+
+absl::Status take_scene_argument(const cli::CommandLine& line) {
+  if (line.positional.empty()) return absl::OkStatus();
+  if (line.has("scene"))
+    return usage_error(absl::StrCat("two scene folders: --scene ", absl::GetFlag(FLAGS_scene), " and ",
+                                    line.positional[0], "; give one"));
+  absl::SetFlag(&FLAGS_scene, line.positional[0]);
+  return absl::OkStatus();
+}
+
+}  // namespace gaps::client
