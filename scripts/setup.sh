@@ -6,7 +6,8 @@
 #   bash scripts/setup.sh --build-only        # what compiling needs (the build stage of deploy/images/)
 #   bash scripts/setup.sh --build-only --cuda # the same for a CUDA build: torch with its CUDA wheels
 # --build-only installs the torch wheel without its dependencies: LibTorch's CPU libraries are in the wheel
-# itself, while its CUDA dependencies are other wheels of several GiB that a CPU build does not use.
+# itself, while its CUDA dependencies are other wheels of several GiB that a CPU build does not use (all
+# but the CUDA runtime and CUPTI, which libtorch_cpu.so links).
 set -euo pipefail
 
 build_only=0
@@ -61,10 +62,19 @@ fi
 if [ "$build_only" = 1 ]; then
   # torch is not imported here: without its CUDA wheels `import torch` fails; the build only needs its files.
   if ! "$VENV/bin/pip" show torch 2>/dev/null | grep -qx "Version: $TORCH_VERSION"; then
-    echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI$([ "$cuda" = 1 ] || echo ', wheel alone')) into $VENV"
+    echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI$([ "$cuda" = 1 ] || echo ', not its CUDA wheels') into $VENV"
     mkdir -p "$GAPS_CACHE"
     [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
-    "$VENV/bin/pip" install -q --no-cache-dir $([ "$cuda" = 1 ] || echo --no-deps) "torch==$TORCH_VERSION"
+    if [ "$cuda" = 1 ]; then
+      "$VENV/bin/pip" install -q --no-cache-dir "torch==$TORCH_VERSION"
+    else
+      "$VENV/bin/pip" install -q --no-cache-dir --no-deps "torch==$TORCH_VERSION"
+      # libtorch_cpu.so itself needs two small CUDA libraries (the runtime and CUPTI, for its profiler), of
+      # the CUDA release torch asks for.
+      toolkit=$("$VENV/bin/python" -c "import importlib.metadata as m
+print(next(r.split(';')[0].split('==')[1].strip() for r in m.requires('torch') if r.startswith('cuda-toolkit')))")
+      "$VENV/bin/pip" install -q --no-cache-dir "cuda-toolkit[cudart,cupti]==$toolkit"
+    fi
   fi
   echo "setup: ready to build (Torch_DIR=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/torch/share/cmake/Torch)"
   exit 0
