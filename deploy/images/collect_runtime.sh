@@ -3,8 +3,9 @@
 #   collect_runtime.sh DEST TORCH_SITE BINARY...
 # DEST/bin: the binaries. DEST/lib: the shared libraries they load from the torch wheel's folders and the
 # CUDA toolkit (for a CUDA build all of torch/lib and of the nvidia/ wheels, since LibTorch dlopens parts of
-# them, e.g. cuDNN's engines and NVRTC's builtins, which ldd cannot see). DEST/debian-packages.txt: the Debian packages that
-# own every other library the binaries load, so the runtime stage installs exactly those.
+# them, e.g. cuDNN's engines and NVRTC's builtins, which ldd cannot see), and libGLX (below).
+# DEST/debian-packages.txt: the Debian packages that own every other library the binaries load, so the
+# runtime stage installs exactly those.
 set -euo pipefail
 dest=$1 torch_site=$2
 shift 2
@@ -22,6 +23,10 @@ if [ -d "$torch_site/nvidia" ] && [ -e "$torch_site/torch/lib/libtorch_cuda.so" 
   find "$torch_site/nvidia" -name '*.so*' -path '*/lib/*' -exec cp -a {} "$dest/lib/" \;
 fi
 
+# Debian's OpenCV links libGLX (OpenGL interop, never called here), whose package depends on Mesa's drivers
+# and LLVM (about 170 MB installed): the library file itself is carried instead of its package.
+carried=(libglx0)
+
 packages=()
 for lib in $libraries; do
   case $lib in
@@ -35,9 +40,14 @@ for lib in $libraries; do
     echo "collect_runtime: no Debian package owns $lib" >&2
     exit 1
   fi
-  packages+=("${owner%%:*}")
+  owner=${owner%%:*}
+  if [[ " ${carried[*]} " == *" $owner "* ]]; then
+    cp -L "$lib" "$dest/lib/$(basename "$lib")"
+    continue
+  fi
+  packages+=("$owner")
 done
 printf '%s\n' "${packages[@]}" | sort -u >"$dest/debian-packages.txt"
-echo "collect_runtime: $(ls "$dest/lib" | wc -l) libraries from the torch wheel ($(du -sh "$dest/lib" | cut -f1)); Debian packages:"
+echo "collect_runtime: $(ls "$dest/lib" | wc -l) libraries carried ($(du -sh "$dest/lib" | cut -f1)); Debian packages:"
 tr '\n' ' ' <"$dest/debian-packages.txt"
 echo
