@@ -285,7 +285,11 @@ def check_objects(objs):
 
 # --------------------------------------------------------------------------------------- render, validate
 def validate_schema(objs, versions):
-    import kubernetes_validate  # PyPI; scripts/setup.sh installs it into the virtual environment
+    try:
+        import kubernetes_validate
+    except ImportError:
+        sys.exit("check_k8s: this Python has no kubernetes_validate (scripts/setup.sh installs PyPI's "
+                 "kubernetes-validate into ~/.cache/gaps/venv)")
     problems = []
     for version in versions:
         for o in objs:
