@@ -32,6 +32,18 @@ COMBINATIONS = (
 # What the files interpolate and make_secrets.sh would provide.
 STAND_INS = {"GAPS_POSTGRES_PASSWORD": "stand-in"}
 DEFAULT_PORTS = {"gaps-trainer": 50051, "gaps-worker": 50052}
+# The trainer's default --worker_timeout_s (server/trainer_main.cpp): the longest an iteration can wait on
+# one generation call, so the least time a stopping trainer may need before it can checkpoint.
+DEFAULT_WORKER_TIMEOUT_S = 300
+
+
+def seconds(duration):
+    """Compose's durations ("360s", "6m", "1m30s", "1h"); compose's default grace period is 10 s."""
+    if duration is None:
+        return 10
+    parts = re.findall(r"(\d+(?:\.\d+)?)(h|ms|m|s|us)", str(duration))
+    scale = {"h": 3600, "m": 60, "s": 1, "ms": 1e-3, "us": 1e-6}
+    return sum(float(n) * scale[unit] for n, unit in parts)
 
 
 def gaps_services(config):
@@ -80,6 +92,11 @@ def check_service(name, s, prog, flags):
     argv = (s.get("entrypoint") or []) + (s.get("command") or []) + [str(v) for v in env.values()]
     for secret in sorted({m for a in argv for m in re.findall(r"/run/secrets/([\w.-]+)", a)} - attached):
         problems.append(f"{name}: reads /run/secrets/{secret} but the secret is not attached")
+    if prog == "gaps-trainer":
+        timeout = int(flags.get("worker_timeout_s", DEFAULT_WORKER_TIMEOUT_S))
+        if seconds(s.get("stop_grace_period")) <= timeout:
+            problems.append(f"{name}: stop_grace_period {s.get('stop_grace_period', '10s')} leaves no time to "
+                            f"checkpoint after a generation call of up to --worker_timeout_s={timeout}")
     devices = s.get("deploy", {}).get("resources", {}).get("reservations", {}).get("devices", [])
     if uses_cuda(flags) and not any("gpu" in d.get("capabilities", []) for d in devices):
         problems.append(f"{name}: --device={flags['device']} without a GPU reservation")

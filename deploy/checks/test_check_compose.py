@@ -23,6 +23,7 @@ def trainer(port):
         "ports": [{"published": port, "target": 50051}],
         "volumes": ["trainer-data:/var/lib/gaps:rw"],
         "deploy": copy.deepcopy(GPU),
+        "stop_grace_period": "6m",
     }
 
 
@@ -61,6 +62,11 @@ class ChecksTest(unittest.TestCase):
 
     def test_secret_attached(self):
         self.assertFault(lambda s: s["trainer"]["secrets"].pop(0), "/run/secrets/tls_cert")
+
+    def test_grace_period_covers_a_generation_call(self):
+        self.assertEqual(cc.seconds("1m30s"), 90)
+        self.assertFault(lambda s: s["trainer"].pop("stop_grace_period"), "stop_grace_period 10s")
+        self.assertFault(lambda s: s["trainer"].update(stop_grace_period="120s"), "stop_grace_period 120s")
 
     def test_gpu_reserved(self):
         self.assertFault(lambda s: s["worker"].pop("deploy"), "without a GPU reservation")
