@@ -3,7 +3,7 @@
 #   collect_runtime.sh DEST TORCH_SITE BINARY...
 # DEST/bin: the binaries. DEST/lib: the shared libraries they load from the torch wheel's folders and the
 # CUDA toolkit (for a CUDA build all of torch/lib and of the nvidia/ wheels, since LibTorch dlopens parts of
-# them, e.g. cuDNN's engines and NVRTC's builtins, which ldd cannot see), and libGLX (below).
+# them, e.g. cuDNN's engines and NVRTC's builtins, which ldd cannot see), and OpenCV's and libGLX (below).
 # DEST/debian-packages.txt: the Debian packages that own every other library the binaries load, so the
 # runtime stage installs exactly those.
 set -euo pipefail
@@ -23,9 +23,11 @@ if [ -d "$torch_site/nvidia" ] && [ -e "$torch_site/torch/lib/libtorch_cuda.so" 
   find "$torch_site/nvidia" -name '*.so*' -path '*/lib/*' -exec cp -a {} "$dest/lib/" \;
 fi
 
-# Debian's OpenCV links libGLX (OpenGL interop, never called here), whose package depends on Mesa's drivers
-# and LLVM (about 170 MB installed): the library file itself is carried instead of its package.
-carried=(libglx0)
+# Debian's OpenCV packages depend on libglx0 (OpenGL interop, never called here), whose dependencies are
+# Mesa's drivers and LLVM (about 200 MB installed): OpenCV's libraries and libGLX are carried as files
+# instead. What they load in turn (TBB, BLAS, LAPACK, X11's client library) ldd lists too, so those still
+# come as packages.
+carried=('libglx0' 'libopencv-*')
 
 packages=()
 for lib in $libraries; do
@@ -41,10 +43,13 @@ for lib in $libraries; do
     exit 1
   fi
   owner=${owner%%:*}
-  if [[ " ${carried[*]} " == *" $owner "* ]]; then
-    cp -L "$lib" "$dest/lib/$(basename "$lib")"
-    continue
-  fi
+  for pattern in "${carried[@]}"; do
+    # shellcheck disable=SC2053 # the pattern is meant to match as a glob
+    if [[ $owner == $pattern ]]; then
+      cp -L "$lib" "$dest/lib/$(basename "$lib")"
+      continue 2
+    fi
+  done
   packages+=("$owner")
 done
 printf '%s\n' "${packages[@]}" | sort -u >"$dest/debian-packages.txt"
