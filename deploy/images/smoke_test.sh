@@ -38,7 +38,7 @@ stats_pid=
 cleanup() {
   [ -z "$stats_pid" ] || kill "$stats_pid" 2>/dev/null || true
   if [ "$keep" = 0 ]; then
-    podman rm -f -t 0 "$name-worker" "$name-trainer" >/dev/null 2>&1 || true
+    podman rm -f -v -t 0 "$name-worker" "$name-trainer" >/dev/null 2>&1 || true
     podman volume rm -f "$name-data" >/dev/null 2>&1 || true
     rm -rf "$scratch"
   else
