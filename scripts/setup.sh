@@ -2,7 +2,23 @@
 # Installs whatever is missing on a Debian machine: build tools and libraries from Debian's archive,
 # LibTorch (PyPI's torch==2.11.0 wheel) in a virtual environment shared by every checkout
 # (${GAPS_CACHE:-~/.cache/gaps}/venv). Idempotent: a second run only checks and returns.
+#   bash scripts/setup.sh                     # everything: build, tests, checks (format, fuzzing, deploy/)
+#   bash scripts/setup.sh --build-only        # what compiling needs (the build stage of deploy/images/)
+#   bash scripts/setup.sh --build-only --cuda # the same for a CUDA build: torch with its CUDA wheels
+# --build-only installs the torch wheel without its dependencies: LibTorch's CPU libraries are in the wheel
+# itself, while its CUDA dependencies are other wheels of several GiB that a CPU build does not use (all
+# but the CUDA runtime and CUPTI, which libtorch_cpu.so links).
 set -euo pipefail
+
+build_only=0
+cuda=0
+for arg in "$@"; do
+  case $arg in
+    --build-only) build_only=1 ;;
+    --cuda) cuda=1 ;;
+    *) echo "setup: unknown argument $arg (--build-only, --cuda)" >&2; exit 2 ;;
+  esac
+done
 
 GAPS_CACHE=${GAPS_CACHE:-$HOME/.cache/gaps}
 VENV=$GAPS_CACHE/venv
@@ -16,12 +32,26 @@ DEBIAN_PACKAGES=(
   clang-format  # scripts/check_format.sh (the format check in the test suite)
   clang libclang-rt-14-dev  # scripts/fuzz.sh: libFuzzer and the sanitizers
 )
-PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib)
+# The checks of deploy/ (tests/deploy/): compose files validated offline; the image's health check run
+# against a real worker (Debian's python3, which has gRPC's Python module).
+CHECK_PACKAGES=(docker-compose python3-grpcio)
+# Not needed to compile (--build-only leaves them out).
+NOT_FOR_BUILD=(clang-format clang libclang-rt-14-dev)
+PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib
+                 kubernetes-validate==1.37.0)
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
+if [ "$build_only" = 1 ]; then
+  wanted=()
+  for p in "${DEBIAN_PACKAGES[@]}"; do [[ " ${NOT_FOR_BUILD[*]} " == *" $p "* ]] || wanted+=("$p"); done
+else
+  wanted=("${DEBIAN_PACKAGES[@]}" "${CHECK_PACKAGES[@]}")
+fi
 missing=()
-for p in "${DEBIAN_PACKAGES[@]}"; do
+# kubectl renders deploy/k8s/ (kubectl kustomize); Debian's is kubernetes-client, but any kubectl will do.
+if [ "$build_only" = 0 ] && ! command -v kubectl >/dev/null; then missing+=(kubernetes-client); fi
+for p in "${wanted[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
 done
 if [ ${#missing[@]} -gt 0 ]; then
@@ -30,7 +60,27 @@ if [ ${#missing[@]} -gt 0 ]; then
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
 fi
 
-if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
+if [ "$build_only" = 1 ]; then
+  # torch is not imported here: without its CUDA wheels `import torch` fails; the build only needs its files.
+  if ! "$VENV/bin/pip" show torch 2>/dev/null | grep -qx "Version: $TORCH_VERSION"; then
+    echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI$([ "$cuda" = 1 ] || echo ', not its CUDA wheels') into $VENV"
+    mkdir -p "$GAPS_CACHE"
+    [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
+    if [ "$cuda" = 1 ]; then
+      "$VENV/bin/pip" install -q --no-cache-dir "torch==$TORCH_VERSION"
+    else
+      "$VENV/bin/pip" install -q --no-cache-dir --no-deps "torch==$TORCH_VERSION"
+      # libtorch_cpu.so itself needs two small CUDA libraries (the runtime and CUPTI, for its profiler), of
+      # the CUDA release torch asks for.
+      toolkit=$("$VENV/bin/python" -c "import importlib.metadata as m
+print(next(r.split(';')[0].split('==')[1].strip() for r in m.requires('torch') if r.startswith('cuda-toolkit')))")
+      "$VENV/bin/pip" install -q --no-cache-dir "cuda-toolkit[cudart,cupti]==$toolkit"
+    fi
+  fi
+  echo "setup: ready to build (Torch_DIR=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/torch/share/cmake/Torch)"
+  exit 0
+fi
+if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib, kubernetes_validate; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
   echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI) into $VENV"
   mkdir -p "$GAPS_CACHE"
   [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
