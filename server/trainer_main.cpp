@@ -63,9 +63,12 @@ gaps::cli::CommandSpec command() {
   spec.summary =
       "The training service: accepts scenes from gaps submit, trains them as jobs (the method variants with\n"
       "pseudo-views from gaps-worker services) and serves their results. SIGTERM/SIGINT stop it gracefully;\n"
-      "a trainer started again on the same --data-dir resumes the interrupted jobs.";
+      "a trainer started again on the same --data-dir resumes the interrupted jobs. Replicas sharing a PostgreSQL\n"
+      "--job-store (and one --data-dir) share the queue: a replica that dies has its jobs taken over.\n"
+      "--tryfromenv=NAME,... takes those flags from FLAGS_NAME environment variables when set.";
   spec.groups = {
       {"service", {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb"}},
+      {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
       {"security", {"token_file", "tls_cert", "tls_key", "tls_client_ca"}},
       {"diffusion workers",
        {"workers", "worker_token_file", "worker_tls_ca", "worker_tls_server_name", "worker_tls_cert", "worker_tls_key",

@@ -255,6 +255,13 @@ TEST_F(Cli, FlagSpellingsShortFormsSuggestionsAndStrayArguments) {
                  "unexpected argument 'extra'");
   expect_failure(test::run_command(kGaps + " list stray"), 2, "unexpected argument 'stray'");
   expect_failure(test::run_command(kGaps + " train --views three"), 2, "--views three: not a valid value");
+  // --tryfromenv (how the deployment files lay settings over a command line) takes named flags from FLAGS_*.
+  expect_failure(test::run_command("FLAGS_concurrency=many " + kTrainer + " --tryfromenv=workers,concurrency"), 2,
+                 "FLAGS_concurrency=many: not a valid value for --concurrency");
+  expect_failure(test::run_command(kTrainer + " --tryfromenv=workerz"), 2, "--tryfromenv: gaps-trainer has no flag");
+  expect_failure(
+      test::run_command("FLAGS_data_dir=" + (dir_ / "a_file").string() + " " + kTrainer + " --tryfromenv=data_dir"), 2,
+      "a file, not a folder");
   // train and submit name the scene alike: --scene DIR or the argument.
   expect_failure(test::run_command(kGaps + " submit --scene " + scene().string() + " --trainer 127.0.0.1:1"), 5,
                  "cannot reach a gaps-trainer");

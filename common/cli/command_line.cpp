@@ -104,6 +104,25 @@ absl::Status set_flag(const std::string& typed, const std::string& name, const s
   return absl::OkStatus();
 }
 
+// --tryfromenv=a,b (Abseil's spelling): each named flag of the command takes the value of the environment
+// variable FLAGS_<name> when that is set, so that a deployment can lay settings over a command line (compose
+// merges environments key by key, but appends to command lines).
+absl::Status flags_from_environment(const std::string& list, const CommandSpec& spec, CommandLine& line) {
+  for (absl::string_view item : absl::StrSplit(list, ',', absl::SkipEmpty())) {
+    const std::string name = flag_name(item);
+    if (!takes(spec, name))
+      return usage_error(absl::StrCat("--tryfromenv: ", spec.name, " has no flag ", display_name(name)));
+    const char* value = std::getenv(("FLAGS_" + name).c_str());
+    if (value == nullptr) continue;
+    std::string error;
+    if (!registered(name).ParseFrom(value, &error))
+      return usage_error(
+          absl::StrCat("FLAGS_", name, "=", value, ": not a valid value for ", display_name(name), " (", error, ")"));
+    line.given.insert(name);
+  }
+  return absl::OkStatus();
+}
+
 // --no-report / --noreport: the name of the boolean flag it negates, or "".
 std::string negated_bool(const std::string& name, const CommandSpec& spec) {
   for (const char* prefix : {"no_", "no"}) {
@@ -228,6 +247,18 @@ absl::StatusOr<CommandLine> parse_command_line(const std::vector<std::string>& a
       if (short_name == spec.short_names.end())
         return usage_error(absl::StrCat("unknown flag ", typed, " (", spec.name, " --help lists its flags)"));
       name = short_name->second;
+    }
+    if (name == "tryfromenv" && is_long) {
+      std::string list;
+      if (inline_value) {
+        list = *inline_value;
+      } else if (i + 1 < args.size()) {
+        list = args[++i];
+      } else {
+        return usage_error("--tryfromenv needs a list of flag names");
+      }
+      if (absl::Status st = flags_from_environment(list, spec, line); !st.ok()) return st;
+      continue;
     }
     if (!takes(spec, name)) {
       const std::string negated = inline_value ? "" : negated_bool(name, spec);
