@@ -88,6 +88,8 @@ absl::StatusOr<PlyHeader> parse_header(std::istream& in, const std::filesystem::
     } else if (word == "end_header") {
       if (!seen_vertex) return err("no vertex element");
       if (!h.vertex_first) return err("vertex element must come first");
+      // Rows of no bytes cannot be bounded by the file's size (found by fuzz/ply_fuzz.cpp: 6e12 empty rows).
+      if (h.properties.empty() && h.vertex_count > 0) return err("the vertex element has no properties");
       if (h.format != "binary_little_endian" && h.format != "ascii")
         return err(absl::StrCat("unsupported PLY format '", h.format, "'"));
       return h;

@@ -1,5 +1,7 @@
 #include "common/torch_pickle.h"
 
+#include <set>
+
 #include <ATen/ATen.h>
 #include <c10/util/Exception.h>
 #include <caffe2/serialize/inline_container.h>
@@ -181,6 +183,26 @@ ObjPtr make_sequence(Kind kind, std::vector<ObjPtr> items) {
 
 bool is_sequence(const PyObj& obj) { return obj.kind == Kind::kTuple || obj.kind == Kind::kList; }
 
+// Whether `target` is `from` or lies inside it. Objects are shared_ptrs: a container put into itself
+// (directly or through others) would never be freed (found by fuzz/torch_pickle_fuzz.cpp), so APPEND and
+// SETITEM refuse to close such a cycle; checkpoints never hold one.
+bool reaches(const ObjPtr& from, const PyObj* target) {
+  std::vector<const PyObj*> pending{from.get()};
+  std::set<const PyObj*> seen;
+  while (!pending.empty()) {
+    const PyObj* obj = pending.back();
+    pending.pop_back();
+    if (obj == nullptr || !seen.insert(obj).second) continue;
+    if (obj == target) return true;
+    for (const ObjPtr& item : obj->items) pending.push_back(item.get());
+    for (const auto& [key, value] : obj->entries) {
+      pending.push_back(key.get());
+      pending.push_back(value.get());
+    }
+  }
+  return false;
+}
+
 // torch.<Name>Storage (or the old torch.cuda.<Name>Storage) -> element type.
 std::optional<at::ScalarType> storage_dtype(const std::string& global) {
   static const std::unordered_map<std::string, at::ScalarType> kTypes = {{"FloatStorage", at::kFloat},
@@ -347,12 +369,16 @@ class Unpickler {
   }
   absl::Status append_items(std::vector<ObjPtr> values) {
     GAPS_ASSIGN_OR_RETURN(ObjPtr list, top_of_kind(Kind::kList, "APPEND"));
+    for (const ObjPtr& value : values)
+      if (reaches(value, list.get())) return fail("APPEND would put a list inside itself (a cycle)");
     for (ObjPtr& value : values) list->items.push_back(std::move(value));
     return absl::OkStatus();
   }
   absl::Status set_items(std::vector<ObjPtr> kv) {
     if (kv.size() % 2 != 0) return fail("SETITEMS with an odd number of keys and values");
     GAPS_ASSIGN_OR_RETURN(ObjPtr dict, top_of_kind(Kind::kDict, "SETITEM"));
+    for (const ObjPtr& item : kv)
+      if (reaches(item, dict.get())) return fail("SETITEM would put a dict inside itself (a cycle)");
     for (size_t i = 0; i < kv.size(); i += 2) dict->entries.emplace_back(kv[i], kv[i + 1]);
     return absl::OkStatus();
   }

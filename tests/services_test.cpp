@@ -1032,6 +1032,8 @@ TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {
     EXPECT_EQ(st.message().find(dir_.string()), std::string_view::npos) << "the server's path leaks: " << st;
   };
   refused("ply\nnot really", "end_header");
+  refused("ply\nformat binary_little_endian 1.0\nelement vertex 5999999999999\nend_header\n",
+          "the vertex element has no properties");
   const std::string one_point(12, '\0');
   for (const char* count : {"-5", "abc", "4294967296"}) {
     std::string ply = ply_header;
