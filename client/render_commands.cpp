@@ -61,8 +61,7 @@ absl::StatusOr<nlohmann::json> read_json_file(const fs::path& path, const std::s
   absl::StatusOr<std::string> text = read_file_bytes(path, what);
   if (!text.ok()) return input_data_error(text.status());
   nlohmann::json j = nlohmann::json::parse(*text, nullptr, /*allow_exceptions=*/false);
-  if (!j.is_object())
-    return input_data_error(absl::DataLossError(absl::StrCat(path.string(), ": not a JSON object")));
+  if (!j.is_object()) return input_data_error(absl::DataLossError(absl::StrCat(path.string(), ": not a JSON object")));
   return j;
 }
 
@@ -174,7 +173,8 @@ absl::StatusOr<std::vector<Camera>> path_cameras(PathScene& scene, const at::Ten
   const std::string path = absl::GetFlag(FLAGS_path);
   if (absl::GetFlag(FLAGS_frames) < 1) return usage_error("--frames must be at least 1");
   absl::StatusOr<std::vector<Camera>> cameras = camera_path(path, scene, absl::GetFlag(FLAGS_frames));
-  if (absl::IsInvalidArgument(cameras.status())) return usage_error(absl::StrCat("--path ", cameras.status().message()));
+  if (absl::IsInvalidArgument(cameras.status()))
+    return usage_error(absl::StrCat("--path ", cameras.status().message()));
   if (!cameras.ok()) return input_data_error(cameras.status());
   return cameras;
 }
@@ -184,8 +184,9 @@ absl::Status prepare_render_folder(const fs::path& out) {
   std::error_code ec;
   if (fs::exists(out, ec) && !fs::is_empty(out, ec)) {
     if (!absl::GetFlag(FLAGS_overwrite))
-      return usage_error(absl::StrCat(out.string(), " is not empty: pass --overwrite to replace an earlier render, "
-                                                    "or choose another --out"));
+      return usage_error(absl::StrCat(out.string(),
+                                      " is not empty: pass --overwrite to replace an earlier render, "
+                                      "or choose another --out"));
     for (const auto& entry : fs::directory_iterator(out, ec)) {
       const std::string name = entry.path().filename().string();
       const bool frame = entry.path().extension() == ".png" && name.size() == 9;
@@ -227,11 +228,12 @@ absl::Status write_video(const fs::path& out, const std::string& name) {
     return absl::OkStatus();
   }
   const fs::path video = out / (name + ".mp4");
-  const int code = run_program({"ffmpeg", "-y", "-loglevel", "error", "-framerate",
-                                std::to_string(absl::GetFlag(FLAGS_fps)), "-i", (out / "%05d.png").string(), "-c:v",
-                                "libx264", "-pix_fmt", "yuv420p", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2",
-                                video.string()});
-  if (code != 0) return absl::InternalError(absl::StrCat("ffmpeg failed (exit status ", code, ") writing ", video.string()));
+  const int code =
+      run_program({"ffmpeg", "-y", "-loglevel", "error", "-framerate", std::to_string(absl::GetFlag(FLAGS_fps)), "-i",
+                   (out / "%05d.png").string(), "-c:v", "libx264", "-pix_fmt", "yuv420p", "-vf",
+                   "pad=ceil(iw/2)*2:ceil(ih/2)*2", video.string()});
+  if (code != 0)
+    return absl::InternalError(absl::StrCat("ffmpeg failed (exit status ", code, ") writing ", video.string()));
   std::cout << "video: " << video.string() << "\n";
   return absl::OkStatus();
 }
@@ -331,9 +333,7 @@ nlohmann::json lpips_json(const std::optional<double>& value) {
   return value ? nlohmann::json(*value) : nlohmann::json(nullptr);
 }
 
-std::string lpips_text(const std::optional<double>& value) {
-  return value ? absl::StrFormat("%.4f", *value) : "n/a";
-}
+std::string lpips_text(const std::optional<double>& value) { return value ? absl::StrFormat("%.4f", *value) : "n/a"; }
 
 absl::Status evaluate(const cli::CommandLine& line) {
   GAPS_ASSIGN_OR_RETURN(const SavedRun run, saved_run(line));
@@ -366,8 +366,9 @@ absl::Status evaluate(const cli::CommandLine& line) {
                                mean.ssim, mean.lpips ? lpips_text(mean.lpips) : "n/a (no backbone)", per_view.size(),
                                model.size());
   const std::string out_flag = absl::GetFlag(FLAGS_out);
-  const fs::path out = !out_flag.empty() ? fs::path(out_flag) : run.folder.empty() ? run.model_file.parent_path()
-                                                                                   : run.folder;
+  const fs::path out = !out_flag.empty()    ? fs::path(out_flag)
+                       : run.folder.empty() ? run.model_file.parent_path()
+                                            : run.folder;
   std::error_code ec;
   fs::create_directories(out, ec);
   GAPS_RETURN_IF_ERROR(write_file_bytes(out / "eval.json", j.dump(2) + "\n"));

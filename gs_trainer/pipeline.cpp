@@ -138,8 +138,8 @@ absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& sc
     GAPS_ASSIGN_OR_RETURN(const PlyVertices vertices, read_ply_vertices(o.init_ply));
     if (holds_gaussians(vertices)) {
       GAPS_ASSIGN_OR_RETURN(GaussianModel model, gaussians_from_ply_vertices(vertices, o.init_ply.string()));
-      log(absl::StrCat("init: ", o.init_ply.string(), " is a full 3DGS model: ", model.size(),
-                       " Gaussians, SH degree ", model.max_sh_degree, ", every property kept"));
+      log(absl::StrCat("init: ", o.init_ply.string(), " is a full 3DGS model: ", model.size(), " Gaussians, SH degree ",
+                       model.max_sh_degree, ", every property kept"));
       if (model.max_sh_degree != o.config.max_sh_degree)
         log(absl::StrCat("init: SH degree ", model.max_sh_degree, " -> ", o.config.max_sh_degree,
                          " (max_sh_degree): bands ",

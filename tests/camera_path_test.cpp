@@ -55,9 +55,12 @@ std::vector<Camera> forward_facing() {
   return cameras;
 }
 
-// The angle between the camera's viewing direction and the direction to `target`.
+// The sine of the angle between the camera's viewing direction and the direction to `target` (1 and more
+// when `target` is behind the camera).
 double look_error(const Camera& c, const Eigen::Vector3d& target) {
-  return std::acos(std::clamp(c.forward().dot((target - c.center()).normalized()), -1.0, 1.0));
+  const Eigen::Vector3d to_target = (target - c.center()).normalized();
+  if (c.forward().dot(to_target) <= 0) return 1.0 + c.forward().cross(to_target).norm();
+  return c.forward().cross(to_target).norm();
 }
 
 TEST(CameraPath, OrbitCirclesTheCentreAtTheCamerasMeanDistanceAndHeightLookingAtIt) {
@@ -208,7 +211,7 @@ TEST(CameraPath, DepthBoundsComeFromTheCamerasElseFromThePointsInFront) {
   points.select(1, 2).slice(0, 100).fill_(-5);
   auto bounds = path_depth_bounds(one, points);
   ASSERT_TRUE(bounds.ok()) << bounds.status();
-  EXPECT_NEAR(bounds->first, 2.0, 1e-6);   // the 1st percentile (nearest rank of 100 values)
+  EXPECT_NEAR(bounds->first, 2.0, 1e-6);    // the 1st percentile (nearest rank of 100 values)
   EXPECT_NEAR(bounds->second, 99.0, 1e-6);  // the 99th
 }
 

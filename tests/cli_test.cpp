@@ -33,7 +33,7 @@ const std::string kTrainer = GAPS_TRAINER_BIN;
 const std::string kWorker = GAPS_WORKER_BIN;
 const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
 const fs::path kReadme = fs::path(GAPS_TEST_SCRIPTS_DIR) / ".." / "README.md";
-const std::vector<std::string> kCommands = {"train",  "init",    "demo",   "submit", "watch", "list",
+const std::vector<std::string> kCommands = {"train",  "init",  "demo",    "submit", "watch", "list",
                                             "cancel", "fetch", "options", "render", "eval"};
 
 bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }

@@ -188,7 +188,8 @@ TEST(GaussiansPly, LoadsEveryPropertyOfTheReferenceLayoutsAtEverySHDegree) {
     ASSERT_TRUE(loaded.ok()) << loaded.status();
     EXPECT_EQ(loaded->max_sh_degree, degree);
     auto a = GaussianModel(m).parameters(), b = loaded->parameters();
-    for (size_t i = 0; i < a.size(); ++i) EXPECT_TRUE(at::equal(*a[i], *b[i])) << "degree " << degree << ", parameter " << i;
+    for (size_t i = 0; i < a.size(); ++i)
+      EXPECT_TRUE(at::equal(*a[i], *b[i])) << "degree " << degree << ", parameter " << i;
     auto vertices = read_ply_vertices(path);
     ASSERT_TRUE(vertices.ok());
     EXPECT_TRUE(holds_gaussians(*vertices));

@@ -72,7 +72,7 @@ class RenderEval : public ::testing::Test {
     test::remove_tree(run_);
     const auto [code, log] =
         test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun +
-                          " --iterations 300 --init random --random-points 3000 --eval-every 0 --report=false "
+                          " --iterations 40 --init random --random-points 3000 --eval-every 0 --report=false "
                           "--save-every 0 --out " +
                           run_.string());
     trained_ = code == 0;
@@ -122,9 +122,8 @@ TEST_F(RenderEval, EvalReproducesTheRunsOwnMetricsAndLeavesThemAlone) {
   EXPECT_EQ(eval["num_gaussians"], metrics["num_gaussians"]);
 
   // The same model given as a file, with its scene and split as flags; the metrics go to --out.
-  const auto [code2, out2] =
-      test::run_command(kGaps + " eval --model " + (run_ / "point_cloud.ply").string() + " --scene " +
-                        kFern.string() + kFernRun + " --out " + dir_.string());
+  const auto [code2, out2] = test::run_command(kGaps + " eval --model " + (run_ / "point_cloud.ply").string() +
+                                               " --scene " + kFern.string() + kFernRun + " --out " + dir_.string());
   ASSERT_EQ(code2, 0) << out2;
   EXPECT_NEAR(read_json(dir_ / "eval.json")["psnr"].get<double>(), metrics["psnr"].get<double>(), 1e-4);
   EXPECT_NE(test::run_command(kGaps + " eval " + dir_.string()).first, 0);  // not a run folder
@@ -132,9 +131,8 @@ TEST_F(RenderEval, EvalReproducesTheRunsOwnMetricsAndLeavesThemAlone) {
 
 TEST_F(RenderEval, OrbitFramesCircleThePointTheyLookAtAndMakeAVideo) {
   const fs::path out = dir_ / "orbit";
-  const auto [code, log] =
-      test::run_command(kGaps + " render " + run_.string() + " --path orbit --frames 6 --device cpu --quiet --out " +
-                        out.string());
+  const auto [code, log] = test::run_command(kGaps + " render " + run_.string() +
+                                             " --path orbit --frames 6 --device cpu --quiet --out " + out.string());
   ASSERT_EQ(code, 0) << log;
   for (int k = 0; k < 6; ++k) {
     char name[16];
@@ -163,9 +161,9 @@ TEST_F(RenderEval, OrbitFramesCircleThePointTheyLookAtAndMakeAVideo) {
     EXPECT_NEAR(c.fx, train[0].fx, 1e-9);
   }
   // A second render into the same folder needs --overwrite.
-  EXPECT_EQ(test::run_command(kGaps + " render " + run_.string() + " --frames 2 --device cpu --out " + out.string())
-                .first,
-            2);
+  EXPECT_EQ(
+      test::run_command(kGaps + " render " + run_.string() + " --frames 2 --device cpu --out " + out.string()).first,
+      2);
   if (!on_path("ffmpeg")) {
     EXPECT_TRUE(contains(log, "ffmpeg is not on PATH")) << log;
     GTEST_SKIP() << "ffmpeg is not installed: the video is not checked (frames only)";
@@ -211,8 +209,8 @@ TEST_F(RenderEval, TheTestPathRendersWhatTheRunRenderedAndInterpPassesTheTrainin
     EXPECT_LT((frames[2 * i].center() - train[i].center()).norm(), 1e-6) << "training camera " << i;
     EXPECT_LT((frames[2 * i].R - train[i].R).norm(), 1e-6) << "training camera " << i;
   }
-  std::tie(code, log) = test::run_command(kGaps + " render " + run_.string() + " --path circle --out " +
-                                          (dir_ / "circle").string());
+  std::tie(code, log) =
+      test::run_command(kGaps + " render " + run_.string() + " --path circle --out " + (dir_ / "circle").string());
   EXPECT_EQ(code, 2) << log;
   EXPECT_TRUE(contains(log, "orbit, spiral, interp, test")) << log;
 }
@@ -223,12 +221,13 @@ TEST_F(RenderEval, InitPlyWithAFullModelContinuesIt) {
   const std::string tiny_steps =
       " --iterations 1 --position-lr-init 1e-12 --position-lr-final 1e-12 --feature-lr 1e-12 --opacity-lr 1e-12 "
       "--scaling-lr 1e-12 --rotation-lr 1e-12 --eval-every 0 --report=false --save-every 0";
-  auto [code, log] = test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun + tiny_steps +
-                                       " --init-ply " + (run_ / "point_cloud.ply").string() + " --out " +
-                                       (dir_ / "continued").string());
+  auto [code, log] =
+      test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun + tiny_steps + " --init-ply " +
+                        (run_ / "point_cloud.ply").string() + " --out " + (dir_ / "continued").string());
   ASSERT_EQ(code, 0) << log;
   EXPECT_TRUE(contains(log, "is a full 3DGS model: ")) << log;
-  const nlohmann::json saved = read_json(run_ / "metrics.json"), continued = read_json(dir_ / "continued" / "metrics.json");
+  const nlohmann::json saved = read_json(run_ / "metrics.json"),
+                       continued = read_json(dir_ / "continued" / "metrics.json");
   EXPECT_EQ(continued["init_method"], "ply-model");
   EXPECT_EQ(continued["num_gaussians"], saved["num_gaussians"]);
   EXPECT_NEAR(continued["psnr"].get<double>(), saved["psnr"].get<double>(), 1e-4);
@@ -237,9 +236,9 @@ TEST_F(RenderEval, InitPlyWithAFullModelContinuesIt) {
   ASSERT_TRUE(ply.ok());
   const at::Tensor xyz = at::stack({ply->properties["x"], ply->properties["y"], ply->properties["z"]}, 1);
   ASSERT_TRUE(write_point_cloud_ply({xyz, at::full_like(xyz, 0.5)}, dir_ / "points.ply").ok());
-  std::tie(code, log) = test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun + tiny_steps +
-                                          " --init-ply " + (dir_ / "points.ply").string() + " --out " +
-                                          (dir_ / "from_points").string());
+  std::tie(code, log) =
+      test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun + tiny_steps + " --init-ply " +
+                        (dir_ / "points.ply").string() + " --out " + (dir_ / "from_points").string());
   ASSERT_EQ(code, 0) << log;
   EXPECT_TRUE(contains(log, "is a point cloud")) << log;
   const nlohmann::json from_points = read_json(dir_ / "from_points" / "metrics.json");
