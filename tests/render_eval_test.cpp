@@ -25,7 +25,7 @@ namespace fs = std::filesystem;
 
 const std::string kGaps = GAPS_CLI_BIN;
 const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
-const std::string kFernRun = " --views 3 -r 8 --device cpu --quiet";
+const std::string kFernRun = " --views 3 -r 8 --device cpu";
 
 bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
@@ -72,7 +72,7 @@ class RenderEval : public ::testing::Test {
     test::remove_tree(run_);
     const auto [code, log] =
         test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun +
-                          " --iterations 40 --init random --random-points 3000 --eval-every 0 --report=false "
+                          " --quiet --iterations 15 --init random --random-points 2000 --eval-every 0 --report=false "
                           "--save-every 0 --out " +
                           run_.string());
     trained_ = code == 0;
@@ -219,7 +219,8 @@ TEST_F(RenderEval, TheTestPathRendersWhatTheRunRenderedAndInterpPassesTheTrainin
 // ends where the saved model was; the same points as a plain point cloud start over from new Gaussians.
 TEST_F(RenderEval, InitPlyWithAFullModelContinuesIt) {
   const std::string tiny_steps =
-      " --iterations 1 --position-lr-init 1e-12 --position-lr-final 1e-12 --feature-lr 1e-12 --opacity-lr 1e-12 "
+      " --quiet --iterations 1 --position-lr-init 1e-12 --position-lr-final 1e-12 --feature-lr 1e-12 --opacity-lr "
+      "1e-12 "
       "--scaling-lr 1e-12 --rotation-lr 1e-12 --eval-every 0 --report=false --save-every 0";
   auto [code, log] =
       test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun + tiny_steps + " --init-ply " +
