@@ -19,6 +19,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/match.h"
+#include "absl/strings/str_join.h"
 #include "client/remote_client.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
@@ -483,8 +484,8 @@ TEST_F(Services, CommandLineSubmitWatchListFetch) {
 
 // `gaps render --job` draws a path through a finished fern job on its trainer (RenderView per frame, cameras from
 // GetJobCameras): the test path gives the job's own test renders, and an orbit's frames circle the point they
-// look at at the training cameras' mean distance.
-TEST_F(Services, RenderJobDrawsPathsWithTheJobsCameras) {
+// look at at the training cameras' mean distance. Submitted as a job's points, the job's PLY is a full model.
+TEST_F(Services, RenderJobDrawsPathsWithTheJobsCamerasAndAJobFromItsPlyContinuesIt) {
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
   auto worker = start_worker();
@@ -536,6 +537,23 @@ TEST_F(Services, RenderJobDrawsPathsWithTheJobsCameras) {
   for (const Camera& c : train) distance += (c.center() - *centre).norm() / train.size();
   for (const Camera& c : orbit) EXPECT_NEAR((c.center() - *centre).norm(), distance, 1e-6 * distance);
   for (int k = 0; k < 4; ++k) EXPECT_TRUE(fs::exists(dir_ / "orbit" / ("0000" + std::to_string(k) + ".png")));
+  // A job submitted with the finished model's PLY as its points continues that model.
+  client::PreparedScene continued = *scene;
+  auto ply = read_file_bytes(dir_ / "fetched" / "point_cloud.ply", "model");
+  ASSERT_TRUE(ply.ok()) << ply.status();
+  continued.points_ply = *ply;
+  v1::JobSpec from_model = spec("vanilla", 1);
+  from_model.mutable_config()->set_init("points");
+  auto job2 = client.submit(from_model, continued);
+  ASSERT_TRUE(job2.ok()) << job2.status();
+  Seen seen;
+  auto status2 = client.watch(*job2, [&](const v1::JobEvent& e) { count(e, seen); });
+  ASSERT_TRUE(status2.ok() && status2->state() == v1::SUCCEEDED) << trainer->log_text();
+  EXPECT_EQ(status2->num_gaussians(), status->num_gaussians());
+  EXPECT_TRUE(std::any_of(seen.logs.begin(), seen.logs.end(), [](const std::string& l) {
+    return absl::StrContains(l, "is a full 3DGS model");
+  })) << absl::StrJoin(seen.logs, "\n");
+
   std::tie(code, out) = run_command(std::string(GAPS_CLI_BIN) + " render --out " + (dir_ / "none").string() +
                                     " --job job-unknown --trainer 127.0.0.1:" + std::to_string(trainer_port) +
                                     " --token-file " + (dir_ / "token").string());
