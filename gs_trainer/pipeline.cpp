@@ -20,6 +20,7 @@
 #include "gs_trainer/init/initializer.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/report.h"
+#include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/train/divergence.h"
 
 namespace gaps {
@@ -192,6 +193,15 @@ absl::StatusOr<LoadedScene> load_scene_and_training_views(const RunOptions& o, c
   return loaded;
 }
 
+// cameras.json (gs_trainer/scene/cameras_json.h): the training views, then the test views.
+absl::Status write_run_cameras(const std::filesystem::path& path, const std::vector<TrainingView>& train,
+                               const std::vector<TrainingView>& test) {
+  std::vector<CameraRecord> cameras;
+  for (const TrainingView& v : train) cameras.push_back({v.camera, "train"});
+  for (const TrainingView& v : test) cameras.push_back({v.camera, "test"});
+  return write_cameras_json(path, cameras);
+}
+
 // Nothing when no backbone is given (LPIPS is then reported as null).
 absl::StatusOr<std::optional<Lpips>> load_lpips(const RunOptions& o, const at::Device& device) {
   if (o.lpips_backbone.empty()) return std::nullopt;
@@ -224,10 +234,10 @@ absl::Status check_scene(const RunOptions& o) {
 }
 
 std::vector<std::string> run_output_names() {
-  return {"point_cloud.ply",      "metrics.json", "report.html",          "renders",
-          "phases.json",          "pseudo_views", "checkpoint",           "checkpoint.old",
-          "checkpoint.partial",   "points.ply",   "sparse/0/cameras.txt", "sparse/0/images.txt",
-          "sparse/0/points3D.txt"};
+  return {
+      "point_cloud.ply", "cameras.json",         "metrics.json",        "report.html",          "renders",
+      "phases.json",     "pseudo_views",         "checkpoint",          "checkpoint.old",       "checkpoint.partial",
+      "points.ply",      "sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt"};
 }
 
 nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
@@ -507,6 +517,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
 
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
+  GAPS_RETURN_IF_ERROR(write_run_cameras(o.out_dir / "cameras.json", loaded.train, test));
   const PeakMemoryMeter memory(device);
   TrainingRun run(o, log, points, std::move(loaded.train), device);
   result.max_gaussians = run.trainer().config().max_gaussians;

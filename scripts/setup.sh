@@ -33,8 +33,9 @@ DEBIAN_PACKAGES=(
   clang libclang-rt-14-dev  # scripts/fuzz.sh: libFuzzer and the sanitizers
 )
 # The checks of deploy/ (tests/deploy/): compose files validated offline; the image's health check run
-# against a real worker (Debian's python3, which has gRPC's Python module).
-CHECK_PACKAGES=(docker-compose python3-grpcio)
+# against a real worker (Debian's python3, which has gRPC's Python module). The viewer's browser test
+# drives Debian's headless chromium; `gaps render` makes its mp4 with ffmpeg, and its test checks the video.
+CHECK_PACKAGES=(docker-compose python3-grpcio chromium ffmpeg)
 # Not needed to compile (--build-only leaves them out).
 NOT_FOR_BUILD=(clang-format clang libclang-rt-14-dev)
 PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib

@@ -8,6 +8,7 @@
 
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/pipeline.h"
+#include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/synthetic_run.h"
 #include "tests/test_util.h"
@@ -31,7 +32,7 @@ Recorded run(RunOptions o) {
   return r;
 }
 
-void expect_outputs(const std::filesystem::path& out, int test_views) {
+void expect_outputs(const std::filesystem::path& out, int train_views, int test_views) {
   std::ifstream f(out / "metrics.json");
   ASSERT_TRUE(f.good());
   const auto j = nlohmann::json::parse(f);
@@ -47,6 +48,14 @@ void expect_outputs(const std::filesystem::path& out, int test_views) {
   int renders = 0;
   for (const auto& e : std::filesystem::directory_iterator(out / "renders")) renders += e.path().extension() == ".png";
   EXPECT_EQ(renders, test_views);
+  // cameras.json: the training views, then the test views in per_view's order.
+  const auto cameras = read_cameras_json(out / "cameras.json");
+  ASSERT_TRUE(cameras.ok()) << cameras.status();
+  ASSERT_EQ(cameras->size(), static_cast<size_t>(train_views + test_views));
+  for (int i = 0; i < train_views + test_views; ++i)
+    EXPECT_EQ((*cameras)[i].split, i < train_views ? "train" : "test") << i;
+  for (int i = 0; i < test_views; ++i)
+    EXPECT_EQ((*cameras)[train_views + i].camera.name, j["per_view"][i]["image"].get<std::string>()) << i;
 }
 
 TEST_F(EndToEnd, SyntheticSceneFromThreeViews) {
@@ -59,7 +68,7 @@ TEST_F(EndToEnd, SyntheticSceneFromThreeViews) {
   ASSERT_FALSE(r.progress.empty());
   EXPECT_LT(r.progress.back().loss, 0.6 * r.progress.front().loss);
   EXPECT_GT(r.result.metrics.psnr, 14.0);
-  expect_outputs(o.out_dir, 2);
+  expect_outputs(o.out_dir, 3, 2);
 }
 
 TEST_F(EndToEnd, FernThreeViewsLossFallsAndPsnrClearsAFloor) {
@@ -80,7 +89,7 @@ TEST_F(EndToEnd, FernThreeViewsLossFallsAndPsnrClearsAFloor) {
   EXPECT_LT(r.progress.back().loss, 0.8 * r.progress.front().loss);
   EXPECT_GT(r.result.metrics.psnr, 14.0);
   EXPECT_GT(r.result.metrics.ssim, 0.3);
-  expect_outputs(o.out_dir, 3);
+  expect_outputs(o.out_dir, 3, 3);
 }
 
 }  // namespace

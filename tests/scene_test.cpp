@@ -16,6 +16,7 @@
 
 #include "common/image_io.h"
 #include "common/npy.h"
+#include "gs_trainer/scene/cameras_json.h"
 
 namespace gaps {
 namespace {
@@ -541,6 +542,86 @@ TEST_F(SyntheticSceneTest, TransformsErrorsNameTheFile) {
     EXPECT_EQ(scene.status().code(), absl::StatusCode::kInvalidArgument) << scene.status();
     EXPECT_TRUE(contains(scene.status(), "leads outside the scene folder")) << scene.status();
   }
+}
+
+// cameras.json: what we write reads back as the same cameras; an entry of the reference code (no cx, cy,
+// no split) reads with the principal point at the image centre.
+TEST(CamerasJson, RoundTripKeepsPosesIntrinsicsAndSplits) {
+  Camera a;
+  a.name = "IMG_0001.JPG";
+  a.width = 504;
+  a.height = 378;
+  a.fx = 407.5;
+  a.fy = 408.25;
+  a.cx = 250.5;
+  a.cy = 190.0;
+  a.R = Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.2, 1.0, -0.4).normalized()).toRotationMatrix();
+  a.t = Eigen::Vector3d(0.3, -1.2, 4.0);
+  Camera b = a;
+  b.name = "IMG_0009.JPG";
+  b.t.x() += 1.0;
+  const auto path = fs::path(::testing::TempDir()) / "cameras_round_trip.json";
+  ASSERT_TRUE(write_cameras_json(path, {{a, "train"}, {b, "test"}}).ok());
+  const auto read = read_cameras_json(path);
+  ASSERT_TRUE(read.ok()) << read.status();
+  ASSERT_EQ(read->size(), 2u);
+  const std::vector<Camera> written = {a, b};
+  for (size_t i = 0; i < 2; ++i) {
+    const Camera& c = (*read)[i].camera;
+    EXPECT_EQ(c.name, written[i].name);
+    EXPECT_EQ(c.width, 504);
+    EXPECT_EQ(c.height, 378);
+    EXPECT_DOUBLE_EQ(c.fx, a.fx);
+    EXPECT_DOUBLE_EQ(c.fy, a.fy);
+    EXPECT_DOUBLE_EQ(c.cx, a.cx);
+    EXPECT_DOUBLE_EQ(c.cy, a.cy);
+    EXPECT_LT((c.R - written[i].R).norm(), 1e-12);
+    EXPECT_LT((c.t - written[i].t).norm(), 1e-12);
+  }
+  EXPECT_EQ((*read)[0].split, "train");
+  EXPECT_EQ((*read)[1].split, "test");
+  // Inria's layout: position is the camera centre, rotation the camera-to-world rotation.
+  const auto entry = camera_json(a, 0);
+  EXPECT_EQ(entry["img_name"], "IMG_0001");
+  EXPECT_NEAR(entry["position"][0].get<double>(), a.center().x(), 1e-12);
+  EXPECT_NEAR(entry["rotation"][0][2].get<double>(), a.R(2, 0), 1e-12);
+  EXPECT_FALSE(entry.contains("split"));
+}
+
+TEST(CamerasJson, ReferenceEntriesUseTheImageCentre) {
+  const auto entry = nlohmann::json::parse(R"({"id": 0, "img_name": "00000", "width": 800, "height": 600,
+      "position": [0, 0, -4], "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "fx": 1111.0, "fy": 1111.0})");
+  const auto record = parse_camera_json(entry, "cameras.json: camera 0");
+  ASSERT_TRUE(record.ok()) << record.status();
+  EXPECT_DOUBLE_EQ(record->camera.cx, 400.0);
+  EXPECT_DOUBLE_EQ(record->camera.cy, 300.0);
+  EXPECT_EQ(record->camera.name, "00000");
+  EXPECT_LT((record->camera.t - Eigen::Vector3d(0, 0, 4)).norm(), 1e-12);
+  EXPECT_TRUE(record->split.empty());
+}
+
+TEST(CamerasJson, BadEntriesAreNamed) {
+  const auto base = nlohmann::json::parse(R"({"width": 8, "height": 6, "position": [0, 0, 0],
+      "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "fx": 10, "fy": 10})");
+  auto no_fx = base;
+  no_fx.erase("fx");
+  EXPECT_TRUE(contains(parse_camera_json(no_fx, "f: camera 3").status(), "f: camera 3: 'fx'"));
+  auto scaled = base;
+  scaled["rotation"][0][0] = 2.0;
+  EXPECT_FALSE(parse_camera_json(scaled, "f: camera 0").ok()) << "a rotation that is not a rotation";
+  auto short_position = base;
+  short_position["position"] = {0, 0};
+  EXPECT_TRUE(contains(parse_camera_json(short_position, "f").status(), "'position' must be a list of 3 numbers"));
+  auto fractional = base;
+  fractional["width"] = 8.5;
+  EXPECT_TRUE(contains(parse_camera_json(fractional, "f").status(), "whole numbers"));
+  EXPECT_TRUE(contains(parse_cameras_json(nlohmann::json::array(), "f").status(), "no cameras"));
+  EXPECT_TRUE(contains(parse_cameras_json(base, "f").status(), "expected a list"));
+  const auto garbage = fs::path(::testing::TempDir()) / "cameras_garbage.json";
+  std::ofstream(garbage) << "[{";
+  EXPECT_TRUE(contains(read_cameras_json(garbage).status(), "not valid JSON"));
+  EXPECT_EQ(read_cameras_json(fs::path(::testing::TempDir()) / "missing.json").status().code(),
+            absl::StatusCode::kNotFound);
 }
 
 }  // namespace

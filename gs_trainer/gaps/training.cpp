@@ -12,6 +12,7 @@
 #include "gs_trainer/gaps/admission.h"
 #include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/model/render.h"
+#include "gs_trainer/scene/cameras_json.h"
 
 namespace gaps {
 
@@ -223,7 +224,8 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
                                   {"strength", requests[k].strength},
                                   {"uncertainty_variance", variance},
                                   {"admitted", admit},
-                                  {"reason", gate ? d.reason : "no admission gate (no-gaps)"}});
+                                  {"reason", gate ? d.reason : "no admission gate (no-gaps)"},
+                                  {"camera", camera_json(chosen[k].camera, chosen[k].id, "pseudo")}});
     GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
     if (!admit) continue;
     admitted_variances.push_back(variance);
