@@ -29,8 +29,8 @@ struct ViewerScene {
 nlohmann::json viewer_camera_json(const Camera& camera, const std::string& split);
 
 // `input`: a run folder (point_cloud.ply, and when present cameras.json, phases.json, metrics.json,
-// pseudo_views/), a .ply or a .splat file. NotFound for a missing folder or file; a PLY or .splat that cannot
-// be read is an InvalidArgument/DataLoss error naming the file.
+// pseudo_views/), a .ply or a .splat file (with the cameras.json of its folder, if any). NotFound for a missing
+// folder or file; a PLY or .splat that cannot be read is an InvalidArgument/DataLoss error naming the file.
 absl::StatusOr<ViewerScene> load_viewer_scene(const std::filesystem::path& input);
 
 }  // namespace gaps::viewer

@@ -1,6 +1,6 @@
 // The gaps viewer page: loads the scene (served by `gaps view` as scene.json + the model, or embedded in
 // report.html), renders it with GapsSplats, draws the cameras with GapsOverlay, and runs the panel, the
-// orbit/fly controls and the URL hash (#camera=test:0&ui=0&mode=fly&frustums=0).
+// orbit/fly controls and the URL hash (#camera=test:0&ui=0&mode=fly&frustums=0&orbit=20,-10,1.5).
 //
 // <html data-state> is "loading", then "ready" once the first frame is drawn (or "error"); with
 // data-errors (errors.js) it is what a headless browser's --dump-dom reads.
@@ -112,13 +112,18 @@
     app.sceneScale = M.median(distances) || 1;
     app.target = middle;
     const cameras = app.items.filter((item) => item.kind !== 'pseudo').map((item) => item.camera);
+    app.frustumDepth = 0.1 * app.sceneScale;
     if (cameras.length) {
       app.up = M.normalize(cameras.map((c) => M.scale(M.row(c.R, 1), -1)).reduce(M.add));
       const first = cameras[0];
       app.frustumDepth = 0.1 * medianDepth(first.R, M.centreOf(first.R, first.t), app.sceneScale);
-    } else {
-      app.frustumDepth = 0.1 * app.sceneScale;
     }
+    // Frustums no larger than the spacing of the cameras, so that close ones (a forward-facing capture) stay
+    // apart.
+    const centres = cameras.map((c) => M.centreOf(c.R, c.t));
+    const nearest = centres.map((a, i) => Math.min(...centres.filter((_, j) => j !== i)
+                                                             .map((b) => M.norm(M.sub(a, b)))));
+    if (centres.length > 1) app.frustumDepth = Math.min(app.frustumDepth, 0.6 * M.median(nearest));
   }
 
   function defaultReference(width, height) {
@@ -403,6 +408,20 @@
     app.exact = !app.ui && item !== null;
     if (item) jumpTo(item);
     resizeCanvas();
+    if (params.orbit) applyOrbit(params.orbit);
+  }
+
+  // #orbit=YAW,PITCH,ZOOM: degrees about the up axis and the camera's right axis around the orbit target, then
+  // the distance to it times e^ZOOM; for links to a view near a camera.
+  function applyOrbit(text) {
+    const [yaw = 0, pitch = 0, zoom = 0] = text.split(',').map(Number);
+    if (![yaw, pitch, zoom].every(Number.isFinite)) {
+      window.gapsReportError(`#orbit=${text}: expected YAW,PITCH,ZOOM (numbers)`);
+      return;
+    }
+    rotateAbout(app.target, M.axisAngle(app.up, yaw * Math.PI / 180));
+    rotateAbout(app.target, M.axisAngle(M.row(app.pose.R, 0), pitch * Math.PI / 180));
+    app.pose.centre = M.add(app.target, M.scale(M.sub(app.pose.centre, app.target), Math.exp(zoom)));
   }
 
   function element(tag, attributes = {}, text = '') {
