@@ -2,11 +2,9 @@
 // headless Chromium (WebGL2 through SwiftShader, on the CPU) at a test camera with the UI hidden
 // (#camera=test:0&ui=0). Its screenshot, at exactly the camera's size, must match the C++ rasterizer's
 // render of the same camera, and the page must have drawn without a JavaScript error. The same for the
-// model exported as a .splat file. Skipped, with a message, without the fern data or a Chromium binary
-// ($GAPS_CHROMIUM, else chromium, chromium-browser or google-chrome on the PATH; scripts/setup.sh installs
-// Debian's chromium).
-//
-// GAPS_VIEWER_SCREENSHOT=FILE.png also saves a screenshot of the viewer with its UI (the README's picture).
+// model exported as a .splat file. The page's error reporting is checked on its own. Skipped, with a
+// message, without the fern data or a Chromium binary ($GAPS_CHROMIUM, else chromium, chromium-browser or
+// google-chrome on the PATH; scripts/setup.sh installs Debian's chromium).
 #include <unistd.h>
 
 #include <cmath>
@@ -61,47 +59,26 @@ std::string chromium_binary() {
   return "";
 }
 
-// A model trained for a few hundred iterations on fern (3 views, 252x189 at -r 16) with every SH degree
-// active and a grey background, shared by the suite.
-class ViewerInBrowser : public ::testing::Test {
+// A browser, a folder per test and `gaps view`. Skips without a Chromium binary.
+class BrowserTest : public ::testing::Test {
  protected:
-  static void SetUpTestSuite() {
-    run_ = fs::path(::testing::TempDir()) / "gaps_viewer_browser_run";
-    remove_tree(run_);
-    if (!fs::exists(kFern)) return;
-    RunOptions o;
-    o.scene_dir = kFern;
-    o.out_dir = run_;
-    o.views = 3;
-    o.resolution = 16;
-    o.init = "random";
-    o.random_points = 3000;
-    o.config.iterations = 200;
-    o.config.sh_increase_interval = 50;  // degree 3 from iteration 150: the viewer's SH is exercised
-    o.config.background = 0.25;
-    const auto result = run_pipeline(o, nullptr, [](const std::string&) {});
-    trained_ = result.ok();
-    EXPECT_TRUE(result.ok()) << result.status();
-  }
-  static void TearDownTestSuite() { remove_tree(run_); }
-
   void SetUp() override {
-    if (!fs::exists(kFern)) GTEST_SKIP() << "benchmark data not found at " << kFern;
     chromium_ = chromium_binary();
     if (chromium_.empty())
       GTEST_SKIP() << "no Chromium to drive (set GAPS_CHROMIUM, or install Debian's chromium: scripts/setup.sh)";
-    ASSERT_TRUE(trained_) << "the model could not be trained";
     const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
     dir_ = fs::path(::testing::TempDir()) / ("gaps_viewer_browser_" + std::string(info->name()));
     remove_tree(dir_);
     fs::create_directories(dir_);
   }
   void TearDown() override {
+    server_.reset();
     if (!dir_.empty()) remove_tree(dir_);
   }
 
-  // `gaps view INPUT --port 0`, running until the test ends; the URL it prints.
+  // `gaps view INPUT --port 0`, running until the next serve() or the end of the test; the URL it prints.
   std::string serve(const fs::path& input) {
+    server_.reset();
     server_ = std::make_unique<test::Process>(
         std::vector<std::string>{GAPS_CLI_BIN, "view", input.string(), "--port", "0"}, dir_ / "view.log");
     const int port = server_->wait_for_port();
@@ -123,14 +100,17 @@ class ViewerInBrowser : public ::testing::Test {
     return output;
   }
 
-  // Opens the page at `hash` and checks it drew a frame without a JavaScript error.
+  // The page at `url` after it settled: its DOM.
+  std::string dom(const std::string& url) { return chromium("--dump-dom", 320, 240, url); }
+
+  // Opens the page at `url` and checks it drew a frame without a JavaScript error.
   void expect_page_ready(const std::string& url) {
-    const std::string dom = chromium("--dump-dom", 320, 240, url);
+    const std::string page = dom(url);
     std::smatch errors;
-    const bool has_errors = std::regex_search(dom, errors, std::regex("<pre id=\"gaps-errors\"[^>]*>([^<]*)</pre>"));
-    EXPECT_TRUE(has_errors && errors[1].str().empty()) << "the page reported errors: " << errors[1];
-    EXPECT_EQ(dom.find("data-errors="), std::string::npos) << dom.substr(0, 400);
-    EXPECT_NE(dom.find("data-state=\"ready\""), std::string::npos) << dom.substr(0, 400);
+    const bool has_box = std::regex_search(page, errors, std::regex("<pre id=\"gaps-errors\"[^>]*>([^<]*)</pre>"));
+    EXPECT_TRUE(has_box && errors[1].str().empty()) << "the page reported errors: " << errors[1];
+    EXPECT_EQ(page.find("data-errors="), std::string::npos) << page.substr(0, 400);
+    EXPECT_NE(page.find("data-state=\"ready\""), std::string::npos) << page.substr(0, 400);
   }
 
   at::Tensor screenshot(const std::string& url, const Camera& camera) {
@@ -139,6 +119,42 @@ class ViewerInBrowser : public ::testing::Test {
     const auto image = read_image(file);
     EXPECT_TRUE(image.ok()) << image.status();
     return image.ok() ? *image : at::Tensor();
+  }
+
+  std::string chromium_;
+  fs::path dir_;
+  std::unique_ptr<test::Process> server_;
+};
+
+// A model trained for 150 iterations on fern (3 views, 252x189 at -r 16) with every SH degree active and a
+// grey background (one training per test process: ctest runs each test in a process of its own).
+class ViewerInBrowser : public BrowserTest {
+ protected:
+  static void SetUpTestSuite() {
+    run_ = fs::path(::testing::TempDir()) / "gaps_viewer_browser_run";
+    remove_tree(run_);
+    if (!fs::exists(kFern) || chromium_binary().empty()) return;
+    RunOptions o;
+    o.scene_dir = kFern;
+    o.out_dir = run_;
+    o.views = 3;
+    o.resolution = 16;
+    o.init = "random";
+    o.random_points = 3000;
+    o.config.iterations = 150;
+    o.config.sh_increase_interval = 40;  // degree 3 from iteration 120: the viewer's SH is exercised
+    o.config.background = 0.25;
+    const auto result = run_pipeline(o, nullptr, [](const std::string&) {});
+    trained_ = result.ok();
+    EXPECT_TRUE(result.ok()) << result.status();
+  }
+  static void TearDownTestSuite() { remove_tree(run_); }
+
+  void SetUp() override {
+    if (!fs::exists(kFern)) GTEST_SKIP() << "benchmark data not found at " << kFern;
+    BrowserTest::SetUp();
+    if (IsSkipped()) return;
+    ASSERT_TRUE(trained_) << "the model could not be trained";
   }
 
   static CameraRecord first_test_camera() {
@@ -152,8 +168,7 @@ class ViewerInBrowser : public ::testing::Test {
 
   static at::Tensor background() {
     const json metrics = json::parse(*read_file_bytes(run_ / "metrics.json"));
-    const float b = metrics["config"]["background"].get<float>();
-    return at::full({3}, b);
+    return at::full({3}, metrics["config"]["background"].get<float>());
   }
 
   // The rasterizer's render of `model` from `camera`, as a saved PNG has it (8 bits).
@@ -170,43 +185,23 @@ class ViewerInBrowser : public ::testing::Test {
     return (image - background().view({1, 1, 3})).abs().amax(2).gt(16.0 / 255).to(at::kDouble).mean().item<double>();
   }
 
-  void expect_matches(const at::Tensor& shot, const at::Tensor& expected, double min_psnr) {
+  void expect_matches(const at::Tensor& shot, const at::Tensor& expected, double min_psnr, const std::string& what) {
     ASSERT_TRUE(shot.defined());
     ASSERT_EQ(shot.sizes(), expected.sizes()) << "the screenshot must have the camera's size";
     const double reference_drawn = drawn_fraction(expected);
     ASSERT_GT(reference_drawn, 0.3) << "the trained model covers too little of the view to test anything";
-    EXPECT_GT(drawn_fraction(shot), 0.5 * reference_drawn) << "the page shows (almost) only the background";
+    EXPECT_GT(drawn_fraction(shot), 0.5 * reference_drawn) << what << ": the page shows (almost) only the background";
     const double p = psnr(shot, expected);
-    EXPECT_GE(p, min_psnr) << "viewer against the rasterizer";
-    std::cout << "viewer vs rasterizer: PSNR " << p << " dB (bar " << min_psnr << ")\n";
+    EXPECT_GE(p, min_psnr) << what;
+    std::cout << what << ": PSNR " << p << " dB (at least " << min_psnr << " required)\n";
   }
 
   static fs::path run_;
   static bool trained_;
-  std::string chromium_;
-  fs::path dir_;
-  std::unique_ptr<test::Process> server_;
 };
 
 fs::path ViewerInBrowser::run_;
 bool ViewerInBrowser::trained_ = false;
-
-TEST_F(ViewerInBrowser, ATestCameraLooksAsTheRasterizerRendersIt) {
-  const std::string url = serve(run_);
-  expect_page_ready(url + "#camera=test:0&ui=0");
-  const CameraRecord camera = first_test_camera();
-  const auto model = load_gaussians_ply(run_ / "point_cloud.ply");
-  ASSERT_TRUE(model.ok()) << model.status();
-  ASSERT_GT(viewer::effective_sh_degree(*model), 0) << "the SH rest must be exercised";
-  expect_matches(screenshot(url + "#camera=test:0&ui=0", camera.camera), reference(*model, camera.camera), kMinPsnr);
-  // The report of the run embeds the same viewer (the model is far below its size limit).
-  EXPECT_NE(read_file_bytes(run_ / "report.html")->find("<iframe class=\"viewer\""), std::string::npos);
-
-  if (const char* docs = std::getenv("GAPS_VIEWER_SCREENSHOT")) {
-    chromium(absl::StrCat("--screenshot='", docs, "'"), 960, 600, url + "#camera=train:1");
-    std::cout << "saved the viewer with its UI to " << docs << "\n";
-  }
-}
 
 // What the viewer decodes a .splat record to (splats.js decodeSplat), as a model the rasterizer renders.
 GaussianModel decode_splat(const std::string& bytes) {
@@ -225,41 +220,68 @@ GaussianModel decode_splat(const std::string& bytes) {
   return m;
 }
 
-TEST_F(ViewerInBrowser, AnExportedSplatFileLoadsAndLooksAsItsValuesRender) {
-  const fs::path splat = dir_ / "model.splat";
+TEST_F(ViewerInBrowser, ATestCameraLooksAsTheRasterizerRendersTheModelAndItsSplatExport) {
+  const CameraRecord camera = first_test_camera();
+  const auto model = load_gaussians_ply(run_ / "point_cloud.ply");
+  ASSERT_TRUE(model.ok()) << model.status();
+  ASSERT_GT(viewer::effective_sh_degree(*model), 0) << "the SH rest must be exercised";
+  const std::string url = serve(run_);
+  expect_page_ready(url + "#camera=test:0&ui=0");
+  expect_matches(screenshot(url + "#camera=test:0&ui=0", camera.camera), reference(*model, camera.camera), kMinPsnr,
+                 "the model in the viewer against the rasterizer");
+  // The report of the run embeds the same viewer (the model is far below its size limit).
+  EXPECT_NE(read_file_bytes(run_ / "report.html")->find("<iframe class=\"viewer\""), std::string::npos);
+
+  // The model exported as a .splat file, served alone (no cameras: the page's default view) and then next to
+  // the run's cameras.json, to look through the test camera.
+  fs::create_directories(dir_ / "export");
+  const fs::path splat = dir_ / "export" / "model.splat";
   const auto [code, output] =
       test::run_command(absl::StrCat(GAPS_CLI_BIN, " export ", run_.string(), " --format splat -o ", splat.string()));
   ASSERT_EQ(code, 0) << output;
-  const std::string url = serve(splat);
-  expect_page_ready(url + "#ui=0");
-  const auto model = load_gaussians_ply(run_ / "point_cloud.ply");
-  ASSERT_TRUE(model.ok()) << model.status();
   const auto bytes = read_file_bytes(splat);
   ASSERT_TRUE(bytes.ok());
   ASSERT_EQ(static_cast<int64_t>(bytes->size()), model->size() * viewer::kSplatRecordBytes);
-
-  // A .splat has no cameras: the page shows its default view, so the test camera's pose goes in the URL of a
-  // page served from the run's cameras. Served alone it must still draw (above); to look through the test
-  // camera, the same bytes are viewed next to the run's cameras.json.
-  fs::create_directories(dir_ / "with_cameras");
-  ASSERT_TRUE(write_file_bytes(dir_ / "with_cameras" / "point_cloud.splat", *bytes).ok());
-  fs::copy_file(run_ / "cameras.json", dir_ / "with_cameras" / "cameras.json");
-  server_.reset();
-  const std::string with_cameras = serve(dir_ / "with_cameras" / "point_cloud.splat");
-  const CameraRecord camera = first_test_camera();
-  const at::Tensor shot = screenshot(with_cameras + "#camera=test:0&ui=0", camera.camera);
+  expect_page_ready(serve(splat) + "#ui=0");
+  fs::copy_file(run_ / "cameras.json", dir_ / "export" / "cameras.json");
+  const at::Tensor shot = screenshot(serve(splat) + "#camera=test:0&ui=0", camera.camera);
   // The .splat's own values, rendered by the rasterizer: the viewer must match them as closely as the model.
-  expect_matches(shot, reference(decode_splat(*bytes), camera.camera), kMinPsnr);
+  expect_matches(shot, reference(decode_splat(*bytes), camera.camera), kMinPsnr,
+                 "the .splat in the viewer against the rasterizer's render of its values");
   // Against the trained model itself: 8-bit values and degree 0 (see kMinSplatVsModelPsnr).
-  expect_matches(shot, reference(*model, camera.camera), kMinSplatVsModelPsnr);
+  expect_matches(shot, reference(*model, camera.camera), kMinSplatVsModelPsnr,
+                 "the .splat in the viewer against the trained model");
 }
 
-TEST_F(ViewerInBrowser, ThePageReportsItsErrors) {
-  // An unknown camera is an error the page reports where the test above looks for errors.
-  const std::string url = serve(run_);
-  const std::string dom = chromium("--dump-dom", 320, 240, url + "#camera=test:99&ui=0");
-  EXPECT_NE(dom.find("data-errors=\"1\""), std::string::npos) << dom.substr(0, 400);
-  EXPECT_NE(dom.find("#camera=test:99: no such camera"), std::string::npos);
+// A run folder with an untrained model (no training, no data set): enough to see errors reported.
+class PageInBrowser : public BrowserTest {};
+
+TEST_F(PageInBrowser, ReportsItsErrorsWhereTheTestsLookForThem) {
+  at::manual_seed(3);
+  GaussianModel m;
+  m.means = at::randn({200, 3}) + at::tensor({0.0f, 0.0f, 4.0f});
+  m.log_scales = at::full({200, 3}, -3.0);
+  m.quats = at::randn({200, 4});
+  m.opacity_logits = at::zeros({200});
+  m.sh_dc = at::randn({200, 1, 3});
+  m.sh_rest = at::zeros({200, 0, 3});
+  m.max_sh_degree = m.sh_degree = 0;
+  fs::create_directories(dir_ / "run");
+  ASSERT_TRUE(save_gaussians_ply(m, dir_ / "run" / "point_cloud.ply").ok());
+  Camera camera;
+  camera.name = "a.png";
+  camera.width = 64;
+  camera.height = 48;
+  camera.fx = camera.fy = 60;
+  camera.cx = 32;
+  camera.cy = 24;
+  ASSERT_TRUE(write_cameras_json(dir_ / "run" / "cameras.json", {{camera, "test"}}).ok());
+  const std::string url = serve(dir_ / "run");
+  expect_page_ready(url + "#camera=test:0&ui=0");
+  // An unknown camera is an error the page reports where the tests look for errors.
+  const std::string page = dom(url + "#camera=test:9&ui=0");
+  EXPECT_NE(page.find("data-errors=\"1\""), std::string::npos) << page.substr(0, 400);
+  EXPECT_NE(page.find("#camera=test:9: no such camera"), std::string::npos);
 }
 
 }  // namespace

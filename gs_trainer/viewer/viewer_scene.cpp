@@ -150,14 +150,17 @@ absl::StatusOr<ViewerScene> load_viewer_scene(const fs::path& input) {
                {"notes", json::array()}};
   if (fs::is_directory(input)) {
     GAPS_RETURN_IF_ERROR(load_run(input, out));
-  } else if (input.extension() == ".splat") {
+    return out;
+  }
+  if (input.extension() == ".splat") {
     GAPS_RETURN_IF_ERROR(load_splat(input, out));
   } else if (input.extension() == ".ply") {
     GAPS_RETURN_IF_ERROR(load_ply(input, out));
-    GAPS_RETURN_IF_ERROR(add_cameras(input.parent_path() / "cameras.json", out));
   } else {
     return absl::InvalidArgumentError(absl::StrCat(input.string(), ": neither a run folder, a .ply nor a .splat file"));
   }
+  // A model file beside a cameras.json (a run's folder, or where it was exported to) shows those cameras.
+  GAPS_RETURN_IF_ERROR(add_cameras(input.parent_path() / "cameras.json", out));
   return out;
 }
 
