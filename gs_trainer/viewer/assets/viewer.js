@@ -123,7 +123,7 @@
     const centres = cameras.map((c) => M.centreOf(c.R, c.t));
     const nearest = centres.map((a, i) => Math.min(...centres.filter((_, j) => j !== i)
                                                              .map((b) => M.norm(M.sub(a, b)))));
-    if (centres.length > 1) app.frustumDepth = Math.min(app.frustumDepth, 0.6 * M.median(nearest));
+    if (centres.length > 1) app.frustumDepth = Math.min(app.frustumDepth, M.median(nearest));
   }
 
   function defaultReference(width, height) {
@@ -441,8 +441,10 @@
                                       `cx ${c.cx.toFixed(1)}, cy ${c.cy.toFixed(1)}`));
     if (item.entry) {
       const e = item.entry;
-      box.append(element('div', {class: e.admitted ? 'admitted' : 'rejected'},
-                         `phase ${item.phase.phase}: ${e.admitted ? 'admitted' : 'rejected'}: ${e.reason || ''}`));
+      // Reasons of the admission gate start with the decision; others (no gate) get it in front.
+      const verdict = e.admitted ? 'admitted' : 'rejected';
+      const reason = (e.reason || '').startsWith(verdict) ? e.reason : `${verdict}: ${e.reason || ''}`;
+      box.append(element('div', {class: verdict}, `phase ${item.phase.phase}: ${reason}`));
       if (typeof e.coverage === 'number') box.append(element('div', {}, `coverage ${e.coverage.toFixed(2)}`));
       if (e.image) box.append(element('img', {src: e.image, alt: `pseudo-view ${e.id}`}));
     }
