@@ -33,6 +33,9 @@ ABSL_FLAG(double, lease_seconds, 30, "a job whose trainer stops renewing its lea
 ABSL_FLAG(std::string, replica_id, "", "this trainer's name in leases and logs (default: host-pid-random)");
 ABSL_FLAG(std::string, device, "cpu", "training device (cpu, cuda, cuda:N)");
 ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
+ABSL_FLAG(double, checkpoint_seconds, 120,
+          "a running job saves its state at least this often (seconds of wall time; 0: only at the diffusion "
+          "phases and on shutdown), so a trainer killed without warning loses at most that much work");
 ABSL_FLAG(int, max_crashes, 2,
           "a job whose trainer died this many times while running it is FAILED at the next start instead of run again");
 ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
@@ -67,7 +70,8 @@ gaps::cli::CommandSpec command() {
       "--job-store (and one --data-dir) share the queue: a replica that dies has its jobs taken over.\n"
       "--tryfromenv=NAME,... takes those flags from FLAGS_NAME environment variables when set.";
   spec.groups = {
-      {"service", {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb"}},
+      {"service",
+       {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb", "checkpoint_seconds"}},
       {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
       {"security", {"token_file", "tls_cert", "tls_key", "tls_client_ca"}},
       {"diffusion workers",
@@ -117,6 +121,8 @@ int serve() {
   options.max_crashes = absl::GetFlag(FLAGS_max_crashes);
   if (options.max_crashes < 1) return usage("--max-crashes must be at least 1");
   if (options.concurrency < 1) return usage("--concurrency must be at least 1");
+  options.checkpoint_seconds = absl::GetFlag(FLAGS_checkpoint_seconds);
+  if (!(options.checkpoint_seconds >= 0)) return usage("--checkpoint-seconds must be 0 or positive");
   options.token = *token;
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
