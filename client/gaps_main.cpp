@@ -1,4 +1,5 @@
-// gaps: the command line. train, init, demo and options run in this process (client/local_commands.h);
+// gaps: the command line. train, init, demo and options run in this process (client/local_commands.h), view
+// and export too (client/view_commands.h);
 // submit, watch, list, cancel and fetch talk to a gaps-trainer service (client/remote_commands.h). Every
 // command's flags are in client/commands.cpp; `gaps <command> --help` lists them.
 #include <iostream>
@@ -8,6 +9,7 @@
 #include "client/commands.h"
 #include "client/local_commands.h"
 #include "client/remote_commands.h"
+#include "client/view_commands.h"
 #include "common/cli/command_line.h"
 #include "common/error_kind.h"
 
@@ -64,6 +66,8 @@ int run(int argc, char** argv) {
   if (first == "init") return client::run_init(*line);
   if (first == "demo") return client::run_demo(*line);
   if (first == "options") return client::print_options();
+  if (first == "view") return client::run_view(*line);
+  if (first == "export") return client::run_export(*line);
   return client::run_remote_command(first, *line);
 }
 
