@@ -34,6 +34,7 @@ ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
 ABSL_FLAG(int, resolution, 8, "downscale factor");
 ABSL_FLAG(int, iterations, 300, "training iterations per job");
 ABSL_FLAG(std::string, device, "cpu", "device of both services (cpu, cuda, cuda:N)");
+ABSL_FLAG(double, checkpoint_seconds, 120, "the trainer's --checkpoint-seconds");
 ABSL_FLAG(std::string, work_dir, "/tmp/gaps_soak_bench", "folder for logs, the trainer's data and fetched results");
 ABSL_FLAG(std::string, trainer_bin, GAPS_TRAINER_BIN, "the gaps-trainer executable");
 ABSL_FLAG(std::string, worker_bin, GAPS_WORKER_BIN, "the gaps-worker executable");
@@ -59,9 +60,10 @@ class Services {
 
   bool start_worker() {
     const std::string listen = absl::StrCat("127.0.0.1:", worker_port_ > 0 ? worker_port_ : 0);
-    worker_ = std::make_unique<Process>(std::vector<std::string>{absl::GetFlag(FLAGS_worker_bin), "--listen", listen,
-                                                                 "--backend", "reproject", "--device", "cpu"},
-                                        dir_ / absl::StrCat("worker_", worker_starts_++, ".log"));
+    worker_ = std::make_unique<Process>(
+        std::vector<std::string>{absl::GetFlag(FLAGS_worker_bin), "--listen", listen, "--backend", "reproject",
+                                 "--device", absl::GetFlag(FLAGS_device)},
+        dir_ / absl::StrCat("worker_", worker_starts_++, ".log"));
     worker_port_ = worker_->wait_for_port();
     return worker_port_ > 0;
   }
@@ -70,10 +72,11 @@ class Services {
     const std::string listen = absl::StrCat("127.0.0.1:", trainer_port_ > 0 ? trainer_port_ : 0);
     trainer_ = std::make_unique<Process>(
         std::vector<std::string>{absl::GetFlag(FLAGS_trainer_bin), "--listen", listen, "--data_dir",
-                                 (dir_ / "data").string(), "--device", "cpu", "--workers",
+                                 (dir_ / "data").string(), "--device", absl::GetFlag(FLAGS_device), "--workers",
                                  absl::StrCat("127.0.0.1:", worker_port_),
                                  // Every kill here is the benchmark's, not a poison job: no quarantine.
-                                 "--max_crashes", "1000000", "--worker_timeout_s", "60"},
+                                 "--max_crashes", "1000000", "--worker_timeout_s", "60", "--checkpoint_seconds",
+                                 absl::StrCat(absl::GetFlag(FLAGS_checkpoint_seconds))},
         dir_ / absl::StrCat("trainer_", trainer_starts_++, ".log"));
     trainer_port_ = trainer_->wait_for_port();
     return trainer_port_ > 0;
@@ -257,6 +260,8 @@ int main(int argc, char** argv) {
                                   {"jobs", jobs},
                                   {"scene", absl::GetFlag(FLAGS_scene)},
                                   {"iterations", absl::GetFlag(FLAGS_iterations)},
+                                  {"device", absl::GetFlag(FLAGS_device)},
+                                  {"checkpoint_seconds", absl::GetFlag(FLAGS_checkpoint_seconds)},
                                   {"chaos_seconds", chaos},
                                   {"wall_seconds", std::round(seconds())},
                                   {"succeeded", succeeded},

@@ -4,6 +4,7 @@
 #include "client/remote_commands.h"
 #include "client/render_commands.h"
 #include "client/run_flags.h"
+#include "client/view_commands.h"
 
 namespace gaps::client {
 namespace {
@@ -75,6 +76,18 @@ std::vector<cli::CommandSpec> gaps_commands() {
       command("fetch", "gaps fetch JOB -o DIR [flags]",
               "Downloads a finished job's results (point_cloud.ply, metrics.json, renders/, phases.json) into DIR.",
               {only("outputs", {"out"}), remote_flags()}, 1, "the job id"),
+      command("view", "gaps view OUT [--host ADDR] [--port N]    (or gaps view FILE.ply, gaps view FILE.splat)",
+              "Serves the web viewer of a run folder (its point_cloud.ply, cameras.json, phases.json) or of a model\n"
+              "file on --host:--port and prints the URL: the Gaussians rendered in the browser (WebGL2) as the\n"
+              "rasterizer renders them, orbit and fly controls, the training and test cameras and every phase's\n"
+              "pseudo-views with their admission decision. #camera=test:0&ui=0 in the URL shows test camera 0 alone.\n"
+              "Ctrl-C stops it.",
+              {view_flags()}, 1, "the run folder, .ply or .splat file"),
+      command("export", "gaps export OUT [--format splat|html] [-o FILE]",
+              "Writes a run's model (or a .ply's) as an antimatter15 .splat file (-o FILE.splat; default\n"
+              "OUT/point_cloud.splat), which web splat viewers and gaps view read, or with --format html as one\n"
+              "self-contained viewer page (-o FILE.html) that opens without a server. -o/--out is the file written.",
+              {export_flags()}, 1, "the run folder or .ply file"),
       command("render",
               "gaps render OUT --path orbit|spiral|interp|test|FILE.json [--frames N] [flags]\n"
               "       gaps render --model FILE.ply --scene DIR --views N -r R --path ... [flags]\n"
@@ -107,6 +120,8 @@ std::string gaps_overview() {
       "  demo      build a synthetic scene, reconstruct it from 3 views, print test PSNR\n"
       "  submit    upload a scene to a gaps-trainer (--trainer ADDR) as a job and print its id\n"
       "  watch | list | cancel | fetch    follow, list, stop or download remote jobs\n"
+      "  view      serve the web viewer of a run (or a .ply / .splat) on 127.0.0.1 and print its URL\n"
+      "  export    a run's model as a .splat file (or one self-contained viewer page, --format html)\n"
       "  render    frames and a video of a saved model along a camera path (orbit, spiral, interp, test, FILE.json)\n"
       "  eval      recompute a saved model's metrics on the run's test views (eval.json)\n"
       "  options   every training and GAPS option: name, type, default, range, meaning (a Markdown table)\n"

@@ -15,6 +15,7 @@
 #include "common/ply.h"
 #include "common/safetensors.h"
 #include "fuzz/proto_stream.h"
+#include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/scene/colmap.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
@@ -168,26 +169,15 @@ void colmap_seeds(const fs::path& bin_out, const fs::path& text_out) {
   remove_tree(text);
 }
 
-nlohmann::json c2w_json(const Camera& c) {
-  Eigen::Matrix3d c2w = c.R.transpose();
-  c2w.col(1) *= -1.0;
-  c2w.col(2) *= -1.0;
-  const Eigen::Vector3d centre = c.center();
-  nlohmann::json m = nlohmann::json::array();
-  for (int r = 0; r < 3; ++r) m.push_back({c2w(r, 0), c2w(r, 1), c2w(r, 2), centre(r)});
-  m.push_back({0.0, 0.0, 0.0, 1.0});
-  return m;
-}
-
 // Three frames naming images/000.png ... (the fuzz target provides them), in both intrinsics styles.
 void transforms_seeds(const fs::path& out) {
   nlohmann::json blender{{"camera_angle_x", 1.2}, {"frames", nlohmann::json::array()}};
   nlohmann::json per_frame{{"camera_model", "PINHOLE"}, {"frames", nlohmann::json::array()}};
   for (int i = 0; i < 3; ++i) {
     const Camera c = seed_camera(i);
-    blender["frames"].push_back({{"file_path", "images/" + c.name}, {"transform_matrix", c2w_json(c)}});
+    blender["frames"].push_back({{"file_path", "images/" + c.name}, {"transform_matrix", transform_matrix_json(c)}});
     per_frame["frames"].push_back({{"file_path", "images/" + c.name},
-                                   {"transform_matrix", c2w_json(c)},
+                                   {"transform_matrix", transform_matrix_json(c)},
                                    {"fl_x", c.fx},
                                    {"fl_y", c.fy},
                                    {"cx", c.cx},

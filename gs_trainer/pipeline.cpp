@@ -378,7 +378,7 @@ class TrainingRun {
   // Trains to the last iteration unless stopped (should_stop) or diverged; every o.eval_every iterations
   // the test views are evaluated into the curve.
   absl::Status train(const ProgressCallback& on_progress, const std::vector<TrainingView>& test, const Lpips* lpips) {
-    start_ = std::chrono::steady_clock::now();
+    start_ = last_save_ = std::chrono::steady_clock::now();
     return trainer_.run(on_progress, 10, [&] { return monitored_step(test, lpips); });
   }
 
@@ -412,10 +412,19 @@ class TrainingRun {
     }
   }
 
+  // Every checkpoint_every iterations, or checkpoint_every_seconds after the last save (or the start).
+  bool checkpoint_due(int it) const {
+    if (o_.checkpoint_every > 0 && it % o_.checkpoint_every == 0) return true;
+    return o_.checkpoint_every_seconds > 0 &&
+           std::chrono::duration<double>(std::chrono::steady_clock::now() - last_save_).count() >=
+               o_.checkpoint_every_seconds;
+  }
+
   // The training state to o.checkpoint_dir (when set); a failure costs the checkpoint only, with a warning.
   void save_checkpoint_and_tell() {
     if (o_.checkpoint_dir.empty()) return;
     const auto save_start = std::chrono::steady_clock::now();
+    last_save_ = save_start;
     const nlohmann::json kept = {{"curve", curve_}, {"train_seconds", seconds_since_start(save_start)}};
     const absl::Status saved = save_checkpoint(o_.checkpoint_dir, trainer_, method(), kept);
     excluded_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - save_start).count();
@@ -445,7 +454,7 @@ class TrainingRun {
     GAPS_RETURN_IF_ERROR(guard_.observe(it, loss, trainer_.model()));
     if (it < o_.config.iterations) {
       GAPS_RETURN_IF_ERROR(evaluate_for_curve(it, loss, test, lpips));
-      if (o_.checkpoint_every > 0 && it % o_.checkpoint_every == 0) save_checkpoint_and_tell();
+      if (checkpoint_due(it)) save_checkpoint_and_tell();
     }
     return loss;
   }
@@ -473,7 +482,8 @@ class TrainingRun {
   DivergenceGuard guard_;
   std::vector<CurvePoint> curve_;
   std::chrono::steady_clock::time_point start_;
-  double seconds_before_ = 0.0;  // training time of a resumed run before its checkpoint
+  std::chrono::steady_clock::time_point last_save_;  // of the last checkpoint, or the start
+  double seconds_before_ = 0.0;                      // training time of a resumed run before its checkpoint
   // Spent since start_ on the curve's evaluations and on checkpoints: not training time.
   double excluded_seconds_ = 0.0;
 };

@@ -58,6 +58,9 @@ struct RunOptions {
   std::function<void(int iteration)> on_checkpoint;
   // Every this many iterations the training state is saved to checkpoint_dir as well (0: never).
   int checkpoint_every = 0;
+  // ... and once this many seconds of wall time have passed since the last save (0: never): a service job
+  // whose trainer is stopped without warning loses at most that much work, whatever the device's speed.
+  double checkpoint_every_seconds = 0;
 };
 
 struct RunResult {

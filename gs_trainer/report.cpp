@@ -12,6 +12,8 @@
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "gs_trainer/viewer/site.h"
+#include "gs_trainer/viewer/viewer_scene.h"
 
 namespace gaps {
 namespace {
@@ -22,23 +24,13 @@ using nlohmann::json;
 // Test views at a comparable size; pseudo-views smaller, as a run has hundreds of them (18 phases of up to 24).
 constexpr int kThumbnailWidth = 240;
 constexpr int kPseudoThumbnailWidth = 160;
+// The report embeds the viewer up to this size of packed model (146 bytes per Gaussian of SH degree 3, 56 of
+// degree 0: about 115,000 or 300,000 Gaussians); base64 makes the page a third larger than that.
+constexpr size_t kViewerEmbedLimitBytes = 16 << 20;
 constexpr const char* kSeriesColours[] = {"#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"};
 
 std::string escape(const std::string& s) {
   return absl::StrReplaceAll(s, {{"&", "&amp;"}, {"<", "&lt;"}, {">", "&gt;"}, {"\"", "&quot;"}});
-}
-
-std::string base64(const std::string& bytes) {
-  static constexpr char kAlphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-  std::string out;
-  out.reserve((bytes.size() + 2) / 3 * 4);
-  for (size_t i = 0; i < bytes.size(); i += 3) {
-    const size_t n = std::min<size_t>(3, bytes.size() - i);
-    uint32_t v = 0;
-    for (size_t k = 0; k < 3; ++k) v = (v << 8) | (k < n ? static_cast<uint8_t>(bytes[i + k]) : 0);
-    for (size_t k = 0; k < 4; ++k) out += k <= n ? kAlphabet[(v >> (18 - 6 * k)) & 63] : '=';
-  }
-  return out;
 }
 
 // An <img> of the image shrunk to the thumbnail width (never enlarged).
@@ -48,7 +40,7 @@ absl::StatusOr<std::string> thumbnail_img(const at::Tensor& image, const std::st
   const int tw = std::min(w, width), th = std::max(1, static_cast<int>(std::lround(double(h) * tw / w)));
   GAPS_ASSIGN_OR_RETURN(const std::string png, encode_png(resize_image(image, tw, th), alt));
   return absl::StrCat("<img alt=\"", escape(alt), "\" width=\"", tw, "\" height=\"", th,
-                      "\" src=\"data:image/png;base64,", base64(png), "\">");
+                      "\" src=\"data:image/png;base64,", viewer::base64_encode(png), "\">");
 }
 
 absl::StatusOr<std::string> thumbnail_file(const fs::path& path, int width = kThumbnailWidth) {
@@ -185,12 +177,31 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
   return html.empty() ? std::string("<p>No phase was run.</p>\n") : html;
 }
 
+// The viewer (gs_trainer/viewer) in an iframe of its own, as a self-contained page; above the size limit, or
+// when the model cannot be read, a line instead: the report is written either way.
+std::string viewer_section(const fs::path& out_dir) {
+  const std::string serve = absl::StrCat("<code>gaps view ", escape(out_dir.string()), "</code>");
+  const absl::StatusOr<viewer::ViewerScene> scene = viewer::load_viewer_scene(out_dir);
+  if (!scene.ok()) return absl::StrCat("<p>No viewer: ", escape(std::string(scene.status().message())), "</p>\n");
+  if (scene->model_bytes.size() > kViewerEmbedLimitBytes)
+    return absl::StrFormat(
+        "<p>The model (%d Gaussians, %.1f MiB packed) is larger than the %d MiB this report embeds: run %s to "
+        "look at it.</p>\n",
+        scene->gaussians, scene->model_bytes.size() / double(1 << 20), kViewerEmbedLimitBytes >> 20, serve);
+  return absl::StrCat(
+      "<iframe class=\"viewer\" title=\"viewer\" srcdoc=\"", escape(viewer::standalone_viewer_page(*scene)),
+      "\"></iframe>\n<p>Drag to orbit, right-drag to pan, wheel to zoom, F for fly mode; click a camera "
+      "to look through it. ",
+      serve, " serves the same viewer with the pseudo-view images.</p>\n");
+}
+
 constexpr char kStyle[] =
     "body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;margin:1em 0}"
     "th,td{border:1px solid #ccc;padding:4px 8px;text-align:left;vertical-align:top}"
     ".charts{display:flex;flex-wrap:wrap;gap:1em}.grid{display:flex;flex-wrap:wrap;gap:8px}"
     "figure{margin:0;padding:4px;width:170px;font-size:12px}figure.admitted{border:3px solid #2ca02c}"
     "figure.rejected{border:3px solid #d62728}"
+    "iframe.viewer{width:100%;height:70vh;border:1px solid #ccc}"
     ".degraded{background:#fde0dc;border:2px solid #d62728;padding:8px 12px;font-weight:bold}";
 
 }  // namespace
@@ -266,6 +277,7 @@ absl::Status write_run_report(const fs::path& out_dir, const std::vector<Trainin
                     " diffusion phases were skipped (the generator failed or could not be reached), so this is "
                     "not a full run of the method.</p>\n");
   absl::StrAppend(&html, "<h2>Metrics</h2>\n", metrics_table(metrics));
+  absl::StrAppend(&html, "<h2>Viewer</h2>\n", viewer_section(out_dir));
   absl::StrAppend(&html, "<h2>Evaluation curve</h2>\n", curve_section(metrics));
   GAPS_ASSIGN_OR_RETURN(const std::string renders, renders_section(out_dir, test_views, metrics));
   absl::StrAppend(&html, "<h2>Test views: ground truth and render</h2>\n", renders);

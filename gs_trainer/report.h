@@ -1,7 +1,8 @@
 #pragma once
-// The per-run HTML report: one self-contained page (no scripts, no network: charts are inline SVG,
-// images base64-embedded PNG thumbnails) with the metrics, the evaluation curve, the test renders next
-// to ground truth and, for the method variants, every phase's pseudo-views with their admission decision.
+// The per-run HTML report: one self-contained page (no network: charts are inline SVG, images base64-embedded
+// PNG thumbnails) with the metrics, the web viewer of the model (gs_trainer/viewer, in an iframe, when its
+// packed model is at most 16 MiB), the evaluation curve, the test renders next to ground truth and, for the
+// method variants, every phase's pseudo-views with their admission decision.
 #include <filesystem>
 #include <string>
 #include <vector>

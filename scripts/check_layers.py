@@ -24,9 +24,11 @@ LAYERS = {
     "gs_trainer/train": ["gs_trainer/model", "gs_trainer/eval", "gs_trainer/raster", "gs_trainer/scene", "common"],
     "gs_trainer/gaps": ["gs_trainer/train", "gs_trainer/model", "gs_trainer/eval", "gs_trainer/raster",
                         "gs_trainer/scene", "common"],
+    # The web viewer: the page, its model formats, what it shows of a run.
+    "gs_trainer/viewer": ["gs_trainer/model", "gs_trainer/scene", "common"],
     # The top level of gs_trainer is one run (pipeline, checkpoint, report): it uses every room.
-    "gs_trainer": ["gs_trainer/gaps", "gs_trainer/train", "gs_trainer/init", "gs_trainer/eval", "gs_trainer/model",
-                   "gs_trainer/raster", "gs_trainer/scene", "common"],
+    "gs_trainer": ["gs_trainer/viewer", "gs_trainer/gaps", "gs_trainer/train", "gs_trainer/init", "gs_trainer/eval",
+                   "gs_trainer/model", "gs_trainer/raster", "gs_trainer/scene", "common"],
     "diffusion_worker/sdxl": ["common"],
     "diffusion_worker/depth": ["diffusion_worker/sdxl", "common"],
     "diffusion_worker": ["diffusion_worker/sdxl", "diffusion_worker/depth", "gs_trainer/gaps", "gs_trainer/scene",
@@ -35,8 +37,9 @@ LAYERS = {
     "diffusion_worker/service": ["rpc", "diffusion_worker", "gs_trainer/gaps", "proto", "common"],
     "server": ["rpc", "proto", "diffusion_worker", "gs_trainer", "gs_trainer/gaps", "gs_trainer/train",
                "gs_trainer/init", "gs_trainer/eval", "gs_trainer/model", "gs_trainer/scene", "common"],
-    "client": ["rpc", "proto", "diffusion_worker", "gs_trainer", "gs_trainer/gaps", "gs_trainer/train",
-               "gs_trainer/init", "gs_trainer/eval", "gs_trainer/model", "gs_trainer/scene", "common"],
+    "client": ["rpc", "proto", "diffusion_worker", "gs_trainer", "gs_trainer/viewer", "gs_trainer/gaps",
+               "gs_trainer/train", "gs_trainer/init", "gs_trainer/eval", "gs_trainer/model", "gs_trainer/scene",
+               "common"],
 }
 UNCHECKED = ("tests", "bench", "fuzz")
 INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"|^\s*#\s*define\s+GAPS_SIMD_KERNELS\s+"([^"]+)"')

@@ -12,6 +12,7 @@
 #include "common/io_util.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/scene/scene.h"
 #include "rpc/codec.h"
 #include "server/job_config.h"
@@ -32,16 +33,10 @@ bool plain_file_name(const std::string& name) {
 }
 
 nlohmann::json frame_json(const Camera& c, const std::string& file) {
-  // OpenCV world-to-camera -> OpenGL camera-to-world (y and z axes flipped).
-  Eigen::Matrix3d c2w = c.R.transpose();
-  c2w.col(1) *= -1.0;
-  c2w.col(2) *= -1.0;
-  const Eigen::Vector3d centre = c.center();
-  nlohmann::json m = nlohmann::json::array();
-  for (int r = 0; r < 3; ++r) m.push_back({c2w(r, 0), c2w(r, 1), c2w(r, 2), centre(r)});
-  m.push_back({0.0, 0.0, 0.0, 1.0});
-  return {{"file_path", file}, {"transform_matrix", m}, {"fl_x", c.fx}, {"fl_y", c.fy}, {"cx", c.cx},
-          {"cy", c.cy},        {"w", c.width},          {"h", c.height}};
+  return {{"file_path", file}, {"transform_matrix", transform_matrix_json(c)},
+          {"fl_x", c.fx},      {"fl_y", c.fy},
+          {"cx", c.cx},        {"cy", c.cy},
+          {"w", c.width},      {"h", c.height}};
 }
 
 absl::Status store_failed(absl::string_view what, absl::string_view why) {

@@ -4,21 +4,18 @@
 //                [--worker-token-file F] [--worker-tls-ca F [--worker-tls-cert F --worker-tls-key F]]
 // SIGTERM/SIGINT: running jobs stop at their next iteration, write a checkpoint and stay RUNNING in the
 // store; the next trainer started on the same data folder resumes them from it.
-#include <atomic>
-#include <csignal>
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>
-#include <thread>
 
 #include <grpcpp/grpcpp.h>
-#include <grpcpp/health_check_service_interface.h>
 #include "absl/flags/flag.h"
 #include "absl/strings/str_split.h"
 #include "common/cli/command_line.h"
 #include "common/device.h"
 #include "common/error_kind.h"
 #include "rpc/security.h"
+#include "rpc/service_main.h"
 #include "server/trainer_service.h"
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:50051", "address to serve on (a bare port binds 127.0.0.1)");
@@ -33,13 +30,11 @@ ABSL_FLAG(double, lease_seconds, 30, "a job whose trainer stops renewing its lea
 ABSL_FLAG(std::string, replica_id, "", "this trainer's name in leases and logs (default: host-pid-random)");
 ABSL_FLAG(std::string, device, "cpu", "training device (cpu, cuda, cuda:N)");
 ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
+ABSL_FLAG(double, checkpoint_seconds, 120,
+          "a running job saves its state at least this often (seconds of wall time; 0: only at the diffusion "
+          "phases and on shutdown), so a trainer killed without warning loses at most that much work");
 ABSL_FLAG(int, max_crashes, 2,
           "a job whose trainer died this many times while running it is FAILED at the next start instead of run again");
-ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
-ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls-key serves TLS");
-ABSL_FLAG(std::string, tls_key, "", "PEM private key");
-ABSL_FLAG(std::string, tls_client_ca, "",
-          "CA certificate that must have signed every client's certificate (mutual TLS)");
 ABSL_FLAG(std::string, worker_token_file, "",
           "token sent to the workers (default: $GAPS_WORKER_TOKEN, else none; the trainer's own token is never sent, "
           "so that whoever runs a worker address cannot drive the trainer)");
@@ -53,9 +48,6 @@ ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB")
 
 namespace {
 
-std::atomic<bool> g_stop{false};
-void on_signal(int) { g_stop = true; }
-
 gaps::cli::CommandSpec command() {
   gaps::cli::CommandSpec spec;
   spec.name = "gaps-trainer";
@@ -67,9 +59,10 @@ gaps::cli::CommandSpec command() {
       "--job-store (and one --data-dir) share the queue: a replica that dies has its jobs taken over.\n"
       "--tryfromenv=NAME,... takes those flags from FLAGS_NAME environment variables when set.";
   spec.groups = {
-      {"service", {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb"}},
+      {"service",
+       {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb", "checkpoint_seconds"}},
       {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
-      {"security", {"token_file", "tls_cert", "tls_key", "tls_client_ca"}},
+      {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
        {"workers", "worker_token_file", "worker_tls_ca", "worker_tls_server_name", "worker_tls_cert", "worker_tls_key",
         "worker_timeout_s", "worker_rounds"}},
@@ -95,14 +88,10 @@ int serve() {
   std::error_code ec;
   if (std::filesystem::exists(data_dir, ec) && !std::filesystem::is_directory(data_dir, ec))
     return usage("--data-dir " + data_dir.string() + ": a file, not a folder");
-  auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
-  if (!token.ok()) return fail_reading(token.status());
+  absl::StatusOr<gaps::rpc::ServiceSecurity> security = gaps::rpc::service_security_from_flags();
+  if (!security.ok()) return fail(security.status());
   auto worker_token = gaps::rpc::load_token(absl::GetFlag(FLAGS_worker_token_file), "GAPS_WORKER_TOKEN");
   if (!worker_token.ok()) return fail_reading(worker_token.status());
-  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
-                                     absl::GetFlag(FLAGS_tls_client_ca)};
-  auto credentials = gaps::rpc::server_credentials(security);
-  if (!credentials.ok()) return fail_reading(credentials.status());
 
   gaps::TrainerServiceOptions options;
   options.data_dir = data_dir;
@@ -117,7 +106,9 @@ int serve() {
   options.max_crashes = absl::GetFlag(FLAGS_max_crashes);
   if (options.max_crashes < 1) return usage("--max-crashes must be at least 1");
   if (options.concurrency < 1) return usage("--concurrency must be at least 1");
-  options.token = *token;
+  options.checkpoint_seconds = absl::GetFlag(FLAGS_checkpoint_seconds);
+  if (!(options.checkpoint_seconds >= 0)) return usage("--checkpoint-seconds must be 0 or positive");
+  options.token = security->settings.token;
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
     options.workers.addresses.emplace_back(a);
@@ -129,30 +120,19 @@ int serve() {
   auto service = gaps::TrainerService::create(options);
   if (!service.ok()) return fail(service.status());
 
-  grpc::EnableDefaultHealthCheckService(true);
-  grpc::ServerBuilder builder;
-  // gRPC would otherwise let a second server bind the same port and take a share of the calls.
-  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
-  const std::string address = gaps::rpc::listen_address(absl::GetFlag(FLAGS_listen));
-  int port = 0;
-  builder.AddListeningPort(address, *credentials, &port);
-  builder.RegisterService(service->get());
-  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
-  if (!server || port == 0)
-    return fail(absl::FailedPreconditionError(
-        "cannot listen on " + address +
-        ": the address is in use or not local, or the TLS private key does not belong to the certificate"));
+  absl::StatusOr<gaps::rpc::ListeningServer> server =
+      gaps::rpc::start_server(absl::GetFlag(FLAGS_listen), *security, {service->get()});
+  if (!server.ok()) return fail(server.status());
   if (auto st = (*service)->start(); !st.ok()) return fail(st);
-  std::signal(SIGTERM, on_signal);
-  std::signal(SIGINT, on_signal);
-  std::cout << "gaps-trainer: serving on port " << port << " (device " << device << ", "
-            << options.workers.addresses.size() << " worker address(es))" << (security.tls_cert.empty() ? "" : " (TLS)")
-            << (security.token.empty() ? "" : " (token required)") << "; trainer " << (*service)->replica_id()
+  std::cout << "gaps-trainer: serving on port " << server->port << " (device " << device << ", "
+            << options.workers.addresses.size() << " worker address(es))"
+            << (security->settings.tls_cert.empty() ? "" : " (TLS)")
+            << (security->settings.token.empty() ? "" : " (token required)") << "; trainer " << (*service)->replica_id()
             << ", job store " << (*service)->store_description() << std::endl;
-  while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  gaps::rpc::wait_for_stop_signal();
   std::cout << "gaps-trainer: stopping; running jobs resume when a trainer starts on " << options.data_dir << std::endl;
   (*service)->shutdown();
-  server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  server->server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;
 }
 

@@ -404,6 +404,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
     o.generator = generator.get();
   }
   o.checkpoint_dir = dir / "checkpoint";
+  o.checkpoint_every_seconds = options_.checkpoint_seconds;
   o.on_checkpoint = [&](int iteration) {
     v1::JobEvent e = event_for(job_id);
     e.set_checkpoint_written(iteration);

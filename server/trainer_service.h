@@ -38,6 +38,7 @@ struct TrainerServiceOptions {
   std::chrono::milliseconds claim_interval{1000};  // how often idle job threads look for work
   std::string device = "cpu";                      // training device of every job
   int concurrency = 1;                             // jobs trained at once
+  double checkpoint_seconds = 120;  // a job's state is saved at least this often (0: phases and shutdown only)
   // A job found RUNNING at start-up whose trainer died (no clean stop) this many times is FAILED, not run
   // again: it may be what killed the trainer.
   int max_crashes = 2;

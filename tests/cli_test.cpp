@@ -33,8 +33,8 @@ const std::string kTrainer = GAPS_TRAINER_BIN;
 const std::string kWorker = GAPS_WORKER_BIN;
 const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
 const fs::path kReadme = fs::path(GAPS_TEST_SCRIPTS_DIR) / ".." / "README.md";
-const std::vector<std::string> kCommands = {"train",  "init",  "demo",    "submit", "watch", "list",
-                                            "cancel", "fetch", "options", "render", "eval"};
+const std::vector<std::string> kCommands = {"train", "init",    "demo", "submit", "watch",  "list", "cancel",
+                                            "fetch", "options", "view", "export", "render", "eval"};
 
 bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
@@ -366,7 +366,7 @@ TEST_F(Cli, EveryFlagTheReadmeNamesIsAcceptedByItsProgram) {
   }
   // Command lines in code blocks (continued lines joined): each flag against its own command.
   const std::regex invocation(
-      "(gaps-trainer|gaps-worker|gaps (?:train|init|demo|submit|watch|list|cancel|fetch|render|eval))"
+      "(gaps-trainer|gaps-worker|gaps (?:train|init|demo|submit|watch|list|cancel|fetch|view|export|render|eval))"
       "((?: +[^ ;|&)#]+)*)");
   const std::regex argument("^(--?)([a-z][a-z0-9_-]*)");
   bool in_code = false;

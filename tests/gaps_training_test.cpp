@@ -12,6 +12,7 @@
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/gaps/training.h"
 #include "gs_trainer/pipeline.h"
+#include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/synthetic_run.h"
 #include "tests/test_util.h"
@@ -160,11 +161,20 @@ TEST_F(GapsTrainingTest, NoGapsGeneratesPairMidpointsOnceWithoutGate) {
   const auto phases = read_json(dir_ / "out" / "phases.json");
   ASSERT_EQ(phases.size(), 1u);
   EXPECT_EQ(phases[0]["selection"].size(), 3u);  // 3 training views -> 3 pairs
+  // Each pseudo-view's camera (cameras.json's layout) sits halfway between its pair's training cameras.
+  const auto cameras = read_cameras_json(dir_ / "out" / "cameras.json");
+  ASSERT_TRUE(cameras.ok()) << cameras.status();
   std::set<std::pair<int, int>> pairs;
   for (const auto& s : phases[0]["selection"]) {
     EXPECT_DOUBLE_EQ(s["alpha"].get<double>(), 0.5);
     EXPECT_TRUE(s["admitted"].get<bool>());
-    pairs.insert({s["pair"][0].get<int>(), s["pair"][1].get<int>()});
+    const int i = s["pair"][0].get<int>(), j = s["pair"][1].get<int>();
+    pairs.insert({i, j});
+    const auto pseudo = parse_camera_json(s["camera"], "selection");
+    ASSERT_TRUE(pseudo.ok()) << pseudo.status();
+    EXPECT_EQ(pseudo->split, "pseudo");
+    const Eigen::Vector3d midpoint = 0.5 * ((*cameras)[i].camera.center() + (*cameras)[j].camera.center());
+    EXPECT_LT((pseudo->camera.center() - midpoint).norm(), 1e-6 * (1 + midpoint.norm()));
   }
   EXPECT_EQ(pairs.size(), 3u);
 }

@@ -146,6 +146,26 @@ TEST_F(RunControlTest, AStoppedRunResumesFromWhereItStopped) {
   EXPECT_EQ(phases[1]["phase"], 1);
 }
 
+// A time-based checkpoint is due once its seconds have passed since the last save: with a microsecond every
+// iteration saves (none takes less), with a day none does (the end of a run saves nothing).
+TEST_F(RunControlTest, TimedCheckpointsFollowTheClock) {
+  for (const double seconds : {1e-6, 86400.0}) {
+    RunOptions o = options(nullptr);
+    o.checkpoint_dir = dir_ / "checkpoint";
+    o.checkpoint_every_seconds = seconds;
+    std::vector<int> checkpoints;
+    o.on_checkpoint = [&](int iteration) { checkpoints.push_back(iteration); };
+    auto r = run_pipeline(o, nullptr, [](const std::string&) {});
+    ASSERT_TRUE(r.ok()) << r.status();
+    std::vector<int> expected;
+    if (seconds < 1)
+      for (int it = 1; it < o.config.iterations; ++it) expected.push_back(it);
+    EXPECT_EQ(checkpoints, expected) << seconds << " s";
+    remove_tree(dir_ / "checkpoint");
+    remove_tree(dir_ / "out");
+  }
+}
+
 // C_hist's history (every phase's uncertainty variance per generated view) is saved and read back: after the
 // resume, phase 1 scores the views phase 0 generated with it (eq:c_gen), as an uninterrupted run would.
 TEST_F(RunControlTest, TheUncertaintyHistorySurvivesAResume) {

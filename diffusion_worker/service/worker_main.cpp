@@ -2,12 +2,9 @@
 //   gaps-worker --listen 127.0.0.1:50052 --backend reproject [--backend-options JSON] [--token-file F]
 //               [--tls-cert F --tls-key F [--tls-client-ca F]] [--queue-capacity N] [--max-batch N]
 #include <algorithm>
-#include <csignal>
 #include <iostream>
-#include <thread>
 
 #include <grpcpp/grpcpp.h>
-#include <grpcpp/health_check_service_interface.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/strings/str_cat.h"
@@ -18,6 +15,7 @@
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
 #include "rpc/security.h"
+#include "rpc/service_main.h"
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:50052", "address to serve on (a bare port binds 127.0.0.1)");
 ABSL_FLAG(std::string, backend, "reproject", "generation backend");
@@ -26,16 +24,8 @@ ABSL_FLAG(std::string, device, "cpu", "device the backend runs on");
 ABSL_FLAG(int, max_batch, 64, "most poses per Generate call");
 ABSL_FLAG(int, queue_capacity, 4, "calls that may wait behind the running one before RESOURCE_EXHAUSTED");
 ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
-ABSL_FLAG(std::string, token_file, "", "file holding the bearer token callers must send (default: $GAPS_TOKEN)");
-ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls-key serves TLS");
-ABSL_FLAG(std::string, tls_key, "", "PEM private key");
-ABSL_FLAG(std::string, tls_client_ca, "",
-          "CA certificate that must have signed every client's certificate (mutual TLS)");
 
 namespace {
-
-std::atomic<bool> g_stop{false};
-void on_signal(int) { g_stop = true; }
 
 gaps::cli::CommandSpec command() {
   gaps::cli::CommandSpec spec;
@@ -47,7 +37,7 @@ gaps::cli::CommandSpec command() {
   spec.groups = {
       {"service", {"listen", "max_batch", "queue_capacity", "max_request_mb"}},
       {"backend", {"backend", "backend_options", "device"}},
-      {"security", {"token_file", "tls_cert", "tls_key", "tls_client_ca"}},
+      {"security", gaps::rpc::security_flag_names()},
   };
   spec.epilogue = gaps::cli::exit_code_table();
   return spec;
@@ -101,12 +91,8 @@ int serve() {
   const std::string backend_options =
       options_with_device(backend, absl::GetFlag(FLAGS_backend_options), requested_device, &error);
   if (!error.empty()) return usage(error);
-  auto token = gaps::rpc::load_token(absl::GetFlag(FLAGS_token_file));
-  if (!token.ok()) return fail(gaps::input_data_error(token.status()));
-  gaps::rpc::ServerSecurity security{*token, absl::GetFlag(FLAGS_tls_cert), absl::GetFlag(FLAGS_tls_key),
-                                     absl::GetFlag(FLAGS_tls_client_ca)};
-  auto credentials = gaps::rpc::server_credentials(security);
-  if (!credentials.ok()) return fail(gaps::input_data_error(credentials.status()));
+  absl::StatusOr<gaps::rpc::ServiceSecurity> security = gaps::rpc::service_security_from_flags();
+  if (!security.ok()) return fail(security.status());
   auto generator = gaps::make_generator(backend, backend_options);
   if (!generator.ok()) {
     // Option values are the user's to fix; otherwise the backend's files (weights) are at fault.
@@ -123,33 +109,20 @@ int serve() {
   options.max_batch = absl::GetFlag(FLAGS_max_batch);
   options.queue_capacity = absl::GetFlag(FLAGS_queue_capacity);
   options.max_request_bytes = absl::GetFlag(FLAGS_max_request_mb) << 20;
-  options.token = *token;
+  options.token = security->settings.token;
   if (options.max_batch <= 0 || options.queue_capacity < 0)
     return usage("--max-batch must be positive, --queue-capacity >= 0");
   gaps::WorkerService service(std::move(*generator), options);
 
-  grpc::EnableDefaultHealthCheckService(true);
-  grpc::ServerBuilder builder;
-  // gRPC would otherwise let a second server bind the same port and take a share of the calls.
-  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
-  const std::string address = gaps::rpc::listen_address(absl::GetFlag(FLAGS_listen));
-  int port = 0;
-  builder.AddListeningPort(address, *credentials, &port);
-  builder.RegisterService(&service);
-  builder.SetMaxReceiveMessageSize(4 << 20);
-  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
-  if (!server || port == 0)
-    return fail(absl::FailedPreconditionError(
-        "cannot listen on " + address +
-        ": the address is in use or not local, or the TLS private key does not belong to the certificate"));
-  std::signal(SIGTERM, on_signal);
-  std::signal(SIGINT, on_signal);
+  absl::StatusOr<gaps::rpc::ListeningServer> server =
+      gaps::rpc::start_server(absl::GetFlag(FLAGS_listen), *security, {&service}, 4 << 20);
+  if (!server.ok()) return fail(server.status());
   // The resolved port, so a caller that asked for port 0 learns which one it got.
-  std::cout << "gaps-worker: serving backend " << backend << " on port " << port
-            << (security.tls_cert.empty() ? "" : " (TLS)") << (security.token.empty() ? "" : " (token required)")
-            << std::endl;
-  while (!g_stop) std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  std::cout << "gaps-worker: serving backend " << backend << " on port " << server->port
+            << (security->settings.tls_cert.empty() ? "" : " (TLS)")
+            << (security->settings.token.empty() ? "" : " (token required)") << std::endl;
+  gaps::rpc::wait_for_stop_signal();
+  server->server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;
 }
 

@@ -115,6 +115,17 @@ absl::StatusOr<std::vector<CameraRecord>> parse_cameras_json(const json& list, c
   return cameras;
 }
 
+json transform_matrix_json(const Camera& camera) {
+  Eigen::Matrix3d c2w = camera.R.transpose();
+  c2w.col(1) *= -1.0;  // OpenCV -> OpenGL: y and z flipped
+  c2w.col(2) *= -1.0;
+  const Eigen::Vector3d centre = camera.center();
+  json m = json::array();
+  for (int r = 0; r < 3; ++r) m.push_back({c2w(r, 0), c2w(r, 1), c2w(r, 2), centre(r)});
+  m.push_back({0.0, 0.0, 0.0, 1.0});
+  return m;
+}
+
 absl::Status write_cameras_json(const std::filesystem::path& path, const std::vector<CameraRecord>& cameras) {
   return write_file_bytes(path, cameras_json(cameras).dump(1) + "\n");
 }

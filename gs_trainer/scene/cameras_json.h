@@ -29,6 +29,9 @@ nlohmann::json cameras_json(const std::vector<CameraRecord>& cameras);
 absl::StatusOr<CameraRecord> parse_camera_json(const nlohmann::json& entry, const std::string& where);
 absl::StatusOr<std::vector<CameraRecord>> parse_cameras_json(const nlohmann::json& list, const std::string& where);
 
+// transforms.json's `transform_matrix` of a camera: camera-to-world, 4x4, OpenGL axes (y up, z backwards).
+nlohmann::json transform_matrix_json(const Camera& camera);
+
 absl::Status write_cameras_json(const std::filesystem::path& path, const std::vector<CameraRecord>& cameras);
 absl::StatusOr<std::vector<CameraRecord>> read_cameras_json(const std::filesystem::path& path);
 
