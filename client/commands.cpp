@@ -2,6 +2,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "client/remote_commands.h"
+#include "client/render_commands.h"
 #include "client/run_flags.h"
 #include "client/view_commands.h"
 
@@ -87,6 +88,22 @@ std::vector<cli::CommandSpec> gaps_commands() {
               "OUT/point_cloud.splat), which web splat viewers and gaps view read, or with --format html as one\n"
               "self-contained viewer page (-o FILE.html) that opens without a server. -o/--out is the file written.",
               {export_flags()}, 1, "the run folder or .ply file"),
+      command("render",
+              "gaps render OUT --path orbit|spiral|interp|test|FILE.json [--frames N] [flags]\n"
+              "       gaps render --model FILE.ply --scene DIR --views N -r R --path ... [flags]\n"
+              "       gaps render --job ID --trainer ADDR --path ... --out DIR [flags]",
+              "Renders a saved model along a camera path: orbit (around the scene's centre), spiral (LLFF-style, for\n"
+              "forward-facing scenes), interp (through the training cameras in order), test (the test cameras) or\n"
+              "a cameras.json file. Writes 00000.png... and cameras.json into --out (default OUT/render_<path>)\n"
+              "and, where ffmpeg is on PATH, <path>.mp4 (H.264). The run folder says scene, views, resolution and\n"
+              "background; --job renders a finished job on its gaps-trainer instead.",
+              {render_flags(), model_flags(), only("outputs", {"out", "overwrite", "quiet"}), remote_flags()}, 1,
+              "the run folder"),
+      command("eval", "gaps eval OUT [flags]    (or --model FILE.ply --scene DIR --views N -r R)",
+              "Recomputes the metrics of a saved model on the test views of the run's split (PSNR, SSIM, and LPIPS\n"
+              "with the backbone flags), prints them and writes eval.json into the run folder (or --out);\n"
+              "metrics.json stays as the run wrote it.",
+              {model_flags(), only("outputs", {"out", "lpips_backbone", "lpips_weights"})}, 1, "the run folder"),
       command("options", "gaps options",
               "Prints every training and GAPS option (name, type, default, range, meaning) as a Markdown table;\n"
               "docs/options.md is its output.",
@@ -105,6 +122,8 @@ std::string gaps_overview() {
       "  watch | list | cancel | fetch    follow, list, stop or download remote jobs\n"
       "  view      serve the web viewer of a run (or a .ply / .splat) on 127.0.0.1 and print its URL\n"
       "  export    a run's model as a .splat file (or one self-contained viewer page, --format html)\n"
+      "  render    frames and a video of a saved model along a camera path (orbit, spiral, interp, test, FILE.json)\n"
+      "  eval      recompute a saved model's metrics on the run's test views (eval.json)\n"
       "  options   every training and GAPS option: name, type, default, range, meaning (a Markdown table)\n"
       "\n"
       "Every option is also a flag (--lambda-dssim 0.3, --n-active 24, --tier-alpha-max 1,1.5) and a key of the\n"

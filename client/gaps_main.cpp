@@ -1,5 +1,5 @@
 // gaps: the command line. train, init, demo and options run in this process (client/local_commands.h), view
-// and export too (client/view_commands.h);
+// and export too (client/view_commands.h), and render and eval (client/render_commands.h);
 // submit, watch, list, cancel and fetch talk to a gaps-trainer service (client/remote_commands.h). Every
 // command's flags are in client/commands.cpp; `gaps <command> --help` lists them.
 #include <iostream>
@@ -9,6 +9,7 @@
 #include "client/commands.h"
 #include "client/local_commands.h"
 #include "client/remote_commands.h"
+#include "client/render_commands.h"
 #include "client/view_commands.h"
 #include "common/cli/command_line.h"
 #include "common/error_kind.h"
@@ -68,6 +69,8 @@ int run(int argc, char** argv) {
   if (first == "options") return client::print_options();
   if (first == "view") return client::run_view(*line);
   if (first == "export") return client::run_export(*line);
+  if (first == "render") return client::run_render(*line);
+  if (first == "eval") return client::run_eval(*line);
   return client::run_remote_command(first, *line);
 }
 

@@ -147,15 +147,29 @@ absl::StatusOr<v1::JobStatus> TrainerClient::cancel(const std::string& job_id) {
   return status;
 }
 
-absl::StatusOr<at::Tensor> TrainerClient::render(const std::string& job_id, const v1::Camera& camera) {
+absl::StatusOr<at::Tensor> TrainerClient::render(const std::string& job_id, const v1::Camera& camera,
+                                                 std::chrono::milliseconds deadline) {
   grpc::ClientContext context;
   prepare(context);
+  context.set_deadline(std::chrono::system_clock::now() + deadline);
   v1::RenderViewRequest request;
   request.set_job_id(job_id);
   *request.mutable_camera() = camera;
   v1::RenderViewResponse response;
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->RenderView(&context, request, &response), "RenderView"));
   return rpc::decode_tensor_shaped(response.image(), {camera.height(), camera.width(), 3}, "rendered view");
+}
+
+absl::StatusOr<v1::JobCameras> TrainerClient::job_cameras(const std::string& job_id,
+                                                          std::chrono::milliseconds deadline) {
+  grpc::ClientContext context;
+  prepare(context);
+  context.set_deadline(std::chrono::system_clock::now() + deadline);
+  v1::GetJobCamerasRequest request;
+  request.set_job_id(job_id);
+  v1::JobCameras response;
+  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->GetJobCameras(&context, request, &response), "GetJobCameras"));
+  return response;
 }
 
 absl::StatusOr<std::vector<std::string>> TrainerClient::fetch(const std::string& job_id, const fs::path& out_dir) {

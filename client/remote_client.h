@@ -44,8 +44,12 @@ class TrainerClient {
   absl::StatusOr<v1::JobStatus> get(const std::string& job_id);
   absl::StatusOr<std::vector<v1::JobStatus>> list();
   absl::StatusOr<v1::JobStatus> cancel(const std::string& job_id);
-  // A finished job's model rendered at `camera`: H x W x 3 in [0, 1].
-  absl::StatusOr<at::Tensor> render(const std::string& job_id, const v1::Camera& camera);
+  // A finished job's model rendered at `camera`: H x W x 3 in [0, 1]. DEADLINE_EXCEEDED after `deadline`.
+  absl::StatusOr<at::Tensor> render(const std::string& job_id, const v1::Camera& camera,
+                                    std::chrono::milliseconds deadline = std::chrono::minutes(2));
+  // A finished job's cameras as its run split them, background and depth bounds (GetJobCameras).
+  absl::StatusOr<v1::JobCameras> job_cameras(const std::string& job_id,
+                                             std::chrono::milliseconds deadline = std::chrono::minutes(1));
   // Writes the job's artifacts below `out_dir`; returns their relative paths.
   absl::StatusOr<std::vector<std::string>> fetch(const std::string& job_id, const std::filesystem::path& out_dir);
 

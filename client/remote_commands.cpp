@@ -26,10 +26,8 @@ ABSL_FLAG(std::string, name, "", "job name (default: the scene folder's name)");
 ABSL_FLAG(bool, watch, false, "keep watching the job until it ends");
 
 namespace gaps::client {
-namespace {
 
-// A client whose trainer answers: nothing expensive (loading a scene) happens before that is known.
-absl::StatusOr<TrainerClient> connect() {
+absl::StatusOr<TrainerClient> connect_trainer() {
   absl::StatusOr<std::string> token = rpc::load_token(absl::GetFlag(FLAGS_token_file));
   if (!token.ok()) return input_data_error(token.status());
   GAPS_ASSIGN_OR_RETURN(
@@ -40,6 +38,8 @@ absl::StatusOr<TrainerClient> connect() {
   GAPS_RETURN_IF_ERROR(client.check_reachable(std::chrono::seconds(10)));
   return client;
 }
+
+namespace {
 
 // The job `gaps train` would run with the same flags, checked as there (the scene included) so that a job is
 // refused before its upload; only the options the files and flags set are sent (the trainer has the defaults).
@@ -109,7 +109,7 @@ absl::StatusOr<int> watch(TrainerClient& client, const std::string& job_id) {
 
 absl::StatusOr<int> submit() {
   GAPS_ASSIGN_OR_RETURN(const v1::JobSpec spec, spec_from_flags());
-  GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect());
+  GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect_trainer());
   const std::string scene_dir = absl::GetFlag(FLAGS_scene);
   absl::StatusOr<PreparedScene> scene = prepare_scene(scene_dir, absl::GetFlag(FLAGS_resolution));
   if (!scene.ok()) return input_data_error(scene.status());
@@ -137,7 +137,7 @@ absl::StatusOr<int> run(const std::string& command, const cli::CommandLine& line
   if (command != "list")
     GAPS_RETURN_IF_ERROR(need_argument(command == "fetch" ? "the job id (and -o DIR)" : "the job id"));
   if (command == "fetch" && absl::GetFlag(FLAGS_out).empty()) return usage_error("gaps fetch needs -o DIR");
-  GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect());
+  GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect_trainer());
   if (command == "watch") return watch(client, args[0]);
   if (command == "list") {
     GAPS_ASSIGN_OR_RETURN(std::vector<v1::JobStatus> jobs, client.list());

@@ -18,7 +18,9 @@ ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when prese
 ABSL_FLAG(std::string, init, "auto",
           "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from "
           "the training views), sparse, random, scene or ply");
-ABSL_FLAG(std::string, init_ply, "", "PLY point cloud for --init ply (given alone, implies it)");
+ABSL_FLAG(std::string, init_ply, "",
+          "PLY for --init ply (given alone, implies it): a full 3DGS model (opacity, scale_*, rot_*: training "
+          "continues it) or a coloured point cloud (Gaussians made from its points)");
 ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
 ABSL_FLAG(int, init_resolution, 0,
           "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger "

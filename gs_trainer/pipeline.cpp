@@ -128,6 +128,33 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   return points;
 }
 
+// The model training starts from: the Gaussians of a full 3DGS PLY given as --init-ply (every property, so
+// that training continues it; its SH brought to the run's degree), or gaussians_from_points of the initial
+// points. *method_used as in initial_points, "ply-model" for a full model.
+absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& scene,
+                                            const std::vector<TrainingView>& train, const Log& log,
+                                            std::string* method_used) {
+  if (o.init == "ply" && !o.init_ply.empty()) {
+    GAPS_ASSIGN_OR_RETURN(const PlyVertices vertices, read_ply_vertices(o.init_ply));
+    if (holds_gaussians(vertices)) {
+      GAPS_ASSIGN_OR_RETURN(GaussianModel model, gaussians_from_ply_vertices(vertices, o.init_ply.string()));
+      log(absl::StrCat("init: ", o.init_ply.string(), " is a full 3DGS model: ", model.size(), " Gaussians, SH degree ",
+                       model.max_sh_degree, ", every property kept"));
+      if (model.max_sh_degree != o.config.max_sh_degree)
+        log(absl::StrCat("init: SH degree ", model.max_sh_degree, " -> ", o.config.max_sh_degree,
+                         " (max_sh_degree): bands ",
+                         model.max_sh_degree < o.config.max_sh_degree ? "added as zeros" : "dropped"));
+      *method_used = "ply-model";
+      return with_sh_degree(std::move(model), o.config.max_sh_degree);
+    }
+    log(absl::StrCat("init: ", o.init_ply.string(),
+                     " is a point cloud (no opacity, scale_*, rot_*): Gaussians made from its points"));
+  }
+  GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, scene, train, log, method_used));
+  log(absl::StrCat("initial points: ", points.xyz.size(0)));
+  return gaussians_from_points(points, o.config.max_sh_degree);
+}
+
 absl::Status write_json(const std::filesystem::path& path, const nlohmann::json& j) {
   std::ofstream f(path);
   f << j.dump(2) << "\n";
@@ -270,19 +297,19 @@ namespace {
 // training. The method refers to the trainer, hence neither copied nor moved.
 class TrainingRun {
  public:
-  TrainingRun(const RunOptions& o, const Log& log, const PointCloud& points, std::vector<TrainingView> train,
+  TrainingRun(const RunOptions& o, const Log& log, const GaussianModel& initial, std::vector<TrainingView> train,
               const at::Device& device)
       : o_(o),
         log_(log),
         references_(train),
-        trainer_(gaussians_from_points(points, o.config.max_sh_degree).to(device), std::move(train), o.config),
+        trainer_(initial.to(device), std::move(train), o.config),
         guard_(kDivergenceCheckEvery, o.config.iterations) {
     const int64_t budget = trainer_.config().max_gaussians;
     if (o.config.max_gaussians == 0 && o.config.gaussians_per_variation > 0)
       log(absl::StrCat("automatic budget: ", budget, " Gaussians (", o.config.gaussians_per_variation,
                        " per unit of the training views' total variation)"));
-    if (budget > 0 && points.xyz.size(0) >= budget)
-      log(absl::StrCat("warning: the ", points.xyz.size(0), " initial points already fill the budget of ", budget,
+    if (budget > 0 && initial.size() >= budget)
+      log(absl::StrCat("warning: the ", initial.size(), " initial Gaussians already fill the budget of ", budget,
                        " Gaussians, so densification will add none (raise --gaussians-per-variation, set "
                        "--max-gaussians, or start from fewer points)"));
   }
@@ -522,14 +549,13 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> test, load_views(loaded.scene, loaded.split.test, device));
   RunResult result;
   result.summary = loaded.summary;
-  GAPS_ASSIGN_OR_RETURN(const PointCloud points,
-                        initial_points(o, loaded.scene, loaded.train, log, &result.init_method));
-  log(absl::StrCat("initial points: ", points.xyz.size(0)));
+  GAPS_ASSIGN_OR_RETURN(const GaussianModel initial,
+                        initial_model(o, loaded.scene, loaded.train, log, &result.init_method));
 
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_run_cameras(o.out_dir / "cameras.json", loaded.train, test));
   const PeakMemoryMeter memory(device);
-  TrainingRun run(o, log, points, std::move(loaded.train), device);
+  TrainingRun run(o, log, initial, std::move(loaded.train), device);
   result.max_gaussians = run.trainer().config().max_gaussians;
   result.config = run.trainer().config();
   result.gaps = run.effective_gaps();

@@ -21,6 +21,7 @@
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/pipeline.h"
+#include "gs_trainer/scene/camera_path.h"
 #include "rpc/codec.h"
 #include "rpc/security.h"
 #include "server/job_config.h"
@@ -618,27 +619,63 @@ grpc::Status TrainerService::FetchArtifacts(grpc::ServerContext* context, const 
   return grpc::Status::OK;
 }
 
+absl::StatusOr<TrainerService::FinishedModel> TrainerService::finished_model(const std::string& job_id) {
+  GAPS_ASSIGN_OR_RETURN(const v1::JobStatus job, store_->get(job_id));
+  if (job.state() != v1::SUCCEEDED)
+    return absl::FailedPreconditionError(absl::StrCat("job ", job_id, " has no finished model"));
+  GAPS_ASSIGN_OR_RETURN(const v1::JobSpec spec, store_->spec(job_id));
+  FinishedModel out;
+  GAPS_ASSIGN_OR_RETURN(out.options, run_options_from_proto(spec.config(), spec.has_points(), "", ""));
+  out.options.scene_dir = job_dir(job_id) / "scene";
+  std::lock_guard<std::mutex> lock(model_mutex_);
+  if (cached_job_ != job_id || !cached_model_) {
+    GAPS_ASSIGN_OR_RETURN(const GaussianModel model, load_gaussians_ply(job_dir(job_id) / "out" / "point_cloud.ply"));
+    cached_model_ = std::make_shared<const GaussianModel>(model.to(at::Device(options_.device)));
+    cached_job_ = job_id;
+  }
+  out.model = cached_model_;
+  return out;
+}
+
 grpc::Status TrainerService::RenderView(grpc::ServerContext* context, const v1::RenderViewRequest* request,
                                         v1::RenderViewResponse* response) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
-  absl::StatusOr<v1::JobStatus> job = store_->get(request->job_id());
-  if (!job.ok()) return rpc::to_grpc(job.status());
-  if (job->state() != v1::SUCCEEDED)
-    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                        absl::StrCat("job ", request->job_id(), " has no finished model"));
   absl::StatusOr<Camera> camera = rpc::decode_camera(request->camera(), "camera");
   if (!camera.ok()) return rpc::to_grpc(camera.status());
-  absl::StatusOr<GaussianModel> model = load_gaussians_ply(job_dir(request->job_id()) / "out" / "point_cloud.ply");
-  if (!model.ok()) return rpc::to_grpc(model.status());
+  absl::StatusOr<FinishedModel> finished = finished_model(request->job_id());
+  if (!finished.ok()) return rpc::to_grpc(finished.status());
   at::AutoGradMode no_grad(false);
-  const GaussianModel on_device = model->to(at::Device(options_.device));
-  absl::StatusOr<v1::JobSpec> spec = store_->spec(request->job_id());
-  if (!spec.ok()) return rpc::to_grpc(spec.status());
+  const GaussianModel& model = *finished->model;
   RenderOptions render_options;
-  const double background = spec->config().training().has_background() ? spec->config().training().background() : 0.0;
-  render_options.background = at::full({3}, background, on_device.means.options());
-  const at::Tensor rgb = render(on_device, *camera, render_options).rgb.clamp(0, 1).cpu();
+  render_options.background = at::full({3}, finished->options.config.background, model.means.options());
+  const at::Tensor rgb = render(model, *camera, render_options).rgb.clamp(0, 1).cpu();
   return rpc::to_grpc(rpc::encode_png(rgb, response->mutable_image()));
+}
+
+grpc::Status TrainerService::GetJobCameras(grpc::ServerContext* context, const v1::GetJobCamerasRequest* request,
+                                           v1::JobCameras* response) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  absl::StatusOr<FinishedModel> finished = finished_model(request->job_id());
+  if (!finished.ok()) return rpc::to_grpc(finished.status());
+  const RunOptions& o = finished->options;
+  SceneLoadOptions load;
+  load.resolution = o.resolution;
+  absl::StatusOr<Scene> scene = load_scene(o.scene_dir, load);
+  if (!scene.ok()) return rpc::to_grpc(scene.status());
+  absl::StatusOr<Split> split = benchmark_split(static_cast<int>(scene->cameras.size()), o.views);
+  if (!split.ok()) return rpc::to_grpc(split.status());
+  std::vector<Camera> train;
+  for (int i : split->train) {
+    train.push_back(scene->cameras[i]);
+    rpc::encode_camera(scene->cameras[i], response->add_train());
+  }
+  for (int i : split->test) rpc::encode_camera(scene->cameras[i], response->add_test());
+  absl::StatusOr<std::pair<double, double>> bounds = path_depth_bounds(train, finished->model->means);
+  if (!bounds.ok()) return rpc::to_grpc(bounds.status());
+  response->set_background(o.config.background);
+  response->set_near(bounds->first);
+  response->set_far(bounds->second);
+  return grpc::Status::OK;
 }
 
 }  // namespace gaps

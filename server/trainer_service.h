@@ -20,6 +20,8 @@
 #include <vector>
 
 #include "gaps/v1/trainer.grpc.pb.h"
+#include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/pipeline.h"
 #include "server/data_dir_lock.h"
 #include "server/job_store.h"
 #include "server/remote_generator.h"
@@ -73,10 +75,19 @@ class TrainerService final : public v1::Trainer::Service {
                               grpc::ServerWriter<v1::ArtifactChunk>* writer) override;
   grpc::Status RenderView(grpc::ServerContext* context, const v1::RenderViewRequest* request,
                           v1::RenderViewResponse* response) override;
+  grpc::Status GetJobCameras(grpc::ServerContext* context, const v1::GetJobCamerasRequest* request,
+                             v1::JobCameras* response) override;
 
  private:
   TrainerService(TrainerServiceOptions options, std::unique_ptr<DataDirLock> lock, std::unique_ptr<JobStore> store);
   std::filesystem::path job_dir(const std::string& job_id) const;
+  // The model of a SUCCEEDED job on the service's device, and its run's options. The last job's model is kept,
+  // so that the frames of a camera path (one RenderView each) do not each read its PLY again.
+  struct FinishedModel {
+    std::shared_ptr<const GaussianModel> model;
+    RunOptions options;
+  };
+  absl::StatusOr<FinishedModel> finished_model(const std::string& job_id);
   void job_loop();
   // Takes over a job a dead or stopped runner left RUNNING (counting a resume, and a crash unless it
   // stopped cleanly) and runs it; a job that reached max_crashes is FAILED instead.
@@ -124,6 +135,9 @@ class TrainerService final : public v1::Trainer::Service {
   bool stopping_ = false;
   std::atomic<bool> stop_training_{false};
   std::vector<std::thread> threads_;
+  std::mutex model_mutex_;  // guards the two below
+  std::string cached_job_;
+  std::shared_ptr<const GaussianModel> cached_model_;
 };
 
 }  // namespace gaps

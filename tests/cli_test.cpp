@@ -33,8 +33,8 @@ const std::string kTrainer = GAPS_TRAINER_BIN;
 const std::string kWorker = GAPS_WORKER_BIN;
 const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
 const fs::path kReadme = fs::path(GAPS_TEST_SCRIPTS_DIR) / ".." / "README.md";
-const std::vector<std::string> kCommands = {"train",  "init",  "demo",    "submit", "watch", "list",
-                                            "cancel", "fetch", "options", "view",   "export"};
+const std::vector<std::string> kCommands = {"train", "init",    "demo", "submit", "watch",  "list", "cancel",
+                                            "fetch", "options", "view", "export", "render", "eval"};
 
 bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
@@ -319,7 +319,7 @@ TEST_F(Cli, LogsGetPlainProgressLinesAndAReusedFolderKeepsNoStaleFiles) {
 TEST_F(Cli, ABudgetBelowTheInitialPointsIsSaidAndTheDemoStartsBelowItsBudget) {
   auto [code, log] = quick_train((dir_ / "out").string(), "--max-gaussians 100");
   ASSERT_EQ(code, 0) << log;
-  EXPECT_TRUE(contains(log, "the 300 initial points already fill the budget of 100 Gaussians")) << log;
+  EXPECT_TRUE(contains(log, "the 300 initial Gaussians already fill the budget of 100 Gaussians")) << log;
   std::tie(code, log) =
       test::run_command(kGaps + " demo --iterations 10 --device cpu --report=false --out " + (dir_ / "demo").string());
   ASSERT_EQ(code, 0) << log;
@@ -366,7 +366,7 @@ TEST_F(Cli, EveryFlagTheReadmeNamesIsAcceptedByItsProgram) {
   }
   // Command lines in code blocks (continued lines joined): each flag against its own command.
   const std::regex invocation(
-      "(gaps-trainer|gaps-worker|gaps (?:train|init|demo|submit|watch|list|cancel|fetch|view|export))"
+      "(gaps-trainer|gaps-worker|gaps (?:train|init|demo|submit|watch|list|cancel|fetch|view|export|render|eval))"
       "((?: +[^ ;|&)#]+)*)");
   const std::regex argument("^(--?)([a-z][a-z0-9_-]*)");
   bool in_code = false;

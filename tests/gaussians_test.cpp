@@ -12,6 +12,7 @@
 #include "common/ply.h"
 #include "common/spherical_harmonics.h"
 #include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/model/render.h"
 
 namespace gaps {
 namespace {
@@ -111,6 +112,109 @@ TEST(GaussiansPly, RoundTripKeepsEveryParameter) {
   EXPECT_FLOAT_EQ(raw->properties["f_rest_1"][7].item<float>(), m.sh_rest[7][1][0].item<float>());
   EXPECT_FLOAT_EQ(raw->properties["f_rest_15"][7].item<float>(), m.sh_rest[7][0][1].item<float>());
   std::filesystem::remove(path);
+}
+
+// A model in front of a camera, with every SH band non-zero, so that each parameter shows in the render.
+GaussianModel visible_model(int n, int degree) {
+  at::manual_seed(1);
+  GaussianModel m;
+  m.max_sh_degree = degree;
+  m.sh_degree = degree;
+  m.means = at::rand({n, 3}) * 2 - 1;
+  m.means.select(1, 2).add_(4.0);
+  m.log_scales = at::log(at::rand({n, 3}) * 0.15 + 0.02);
+  m.quats = at::randn({n, 4});
+  m.opacity_logits = at::randn({n});
+  m.sh_dc = at::randn({n, 1, 3}) * 0.5;
+  m.sh_rest = at::randn({n, sh_coefficients(degree) - 1, 3}) * 0.2;
+  return m;
+}
+
+Camera front_camera() {
+  Camera c;
+  c.width = 40;
+  c.height = 30;
+  c.fx = c.fy = 35;
+  c.cx = 20.3;
+  c.cy = 14.8;
+  c.R = Eigen::AngleAxisd(0.2, Eigen::Vector3d(0.2, 1.0, 0.1).normalized()).toRotationMatrix();
+  c.t = Eigen::Vector3d(0.3, -0.1, 0.5);
+  return c;
+}
+
+TEST(GaussiansPly, AModelWrittenAndReadBackRendersIdentically) {
+  const GaussianModel m = visible_model(300, 3);
+  const auto path = temp_path("render_round_trip.ply");
+  ASSERT_TRUE(save_gaussians_ply(m, path).ok());
+  auto loaded = load_gaussians_ply(path);
+  ASSERT_TRUE(loaded.ok()) << loaded.status();
+  EXPECT_EQ(loaded->sh_degree, 3);
+  const at::Tensor before = render(m, front_camera()).rgb, after = render(*loaded, front_camera()).rgb;
+  EXPECT_GT(before.std().item<float>(), 0.01f);  // something is drawn
+  EXPECT_TRUE(at::equal(before, after));
+  std::filesystem::remove(path);
+}
+
+// The reference code's layout as plyfile writes it (binary float properties x.. rot_3 with normals), and as
+// other tools do: ASCII, doubles, other property orders, no normals, a lower SH degree.
+TEST(GaussiansPly, LoadsEveryPropertyOfTheReferenceLayoutsAtEverySHDegree) {
+  for (int degree : {0, 1, 2, 3}) {
+    const GaussianModel m = visible_model(7, degree);
+    const int rest = sh_coefficients(degree) - 1;
+    // Columns by name, the f_rest ones channel-major as the reference code stores them.
+    std::vector<std::pair<std::string, at::Tensor>> columns;
+    const char* xyz[] = {"x", "y", "z"};
+    for (int i = 0; i < 3; ++i) columns.push_back({xyz[i], m.means.select(1, i)});
+    columns.push_back({"opacity", m.opacity_logits});
+    for (int i = 0; i < 4; ++i) columns.push_back({"rot_" + std::to_string(i), m.quats.select(1, i)});
+    for (int i = 0; i < 3; ++i) columns.push_back({"scale_" + std::to_string(i), m.log_scales.select(1, i)});
+    for (int i = 0; i < 3; ++i) columns.push_back({"f_dc_" + std::to_string(i), m.sh_dc.select(1, 0).select(1, i)});
+    for (int c = 0; c < 3; ++c)
+      for (int k = 0; k < rest; ++k)
+        columns.push_back({"f_rest_" + std::to_string(c * rest + k), m.sh_rest.select(1, k).select(1, c)});
+    const auto path = temp_path("ascii_" + std::to_string(degree) + ".ply");
+    {
+      std::ofstream f(path);
+      f << "ply\nformat ascii 1.0\ncomment written by hand\nelement vertex 7\n";
+      for (const auto& [name, values] : columns) f << "property double " << name << "\n";
+      f << "end_header\n";
+      f.precision(17);
+      for (int64_t v = 0; v < 7; ++v) {
+        for (const auto& [name, values] : columns) f << values[v].item<double>() << " ";
+        f << "\n";
+      }
+    }
+    auto loaded = load_gaussians_ply(path);
+    ASSERT_TRUE(loaded.ok()) << loaded.status();
+    EXPECT_EQ(loaded->max_sh_degree, degree);
+    auto a = GaussianModel(m).parameters(), b = loaded->parameters();
+    for (size_t i = 0; i < a.size(); ++i)
+      EXPECT_TRUE(at::equal(*a[i], *b[i])) << "degree " << degree << ", parameter " << i;
+    auto vertices = read_ply_vertices(path);
+    ASSERT_TRUE(vertices.ok());
+    EXPECT_TRUE(holds_gaussians(*vertices));
+    std::filesystem::remove(path);
+  }
+}
+
+TEST(GaussiansPly, APointCloudIsNoModelAndSHDegreesPadWithoutChangingTheRender) {
+  const auto path = temp_path("cloud.ply");
+  ASSERT_TRUE(write_point_cloud_ply({at::randn({5, 3}), at::rand({5, 3})}, path).ok());
+  auto vertices = read_ply_vertices(path);
+  ASSERT_TRUE(vertices.ok());
+  EXPECT_FALSE(holds_gaussians(*vertices));
+  std::filesystem::remove(path);
+
+  const GaussianModel m = visible_model(200, 1);
+  GaussianModel padded = with_sh_degree(m, 3);
+  EXPECT_EQ(padded.sh_rest.size(1), 15);
+  EXPECT_EQ(padded.max_sh_degree, 3);
+  padded.sh_degree = 3;  // the added bands take part, as zeros
+  EXPECT_TRUE(at::equal(render(m, front_camera()).rgb, render(padded, front_camera()).rgb));
+  const GaussianModel dropped = with_sh_degree(padded, 0);
+  EXPECT_EQ(dropped.sh_rest.size(1), 0);
+  EXPECT_EQ(dropped.sh_degree, 0);
+  EXPECT_TRUE(at::equal(dropped.sh_dc, m.sh_dc));
 }
 
 TEST(GaussiansPly, ErrorsNameTheFileAndProblem) {

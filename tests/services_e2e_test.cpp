@@ -19,11 +19,16 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/match.h"
+#include "absl/strings/str_join.h"
 #include "client/remote_client.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "gs_trainer/model/gaussians.h"
+#include "gs_trainer/scene/bounds.h"
+#include "gs_trainer/scene/camera_path.h"
+#include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/synthetic.h"
+#include "rpc/codec.h"
 #include "rpc/config_codec.h"
 #include "tests/option_values.h"
 #include "tests/process_util.h"
@@ -475,6 +480,85 @@ TEST_F(Services, CommandLineSubmitWatchListFetch) {
                                     " --token-file " + (dir_ / "wrong_token").string());
   EXPECT_NE(code, 0);
   EXPECT_NE(out.find("invalid bearer token"), std::string::npos) << out;
+}
+
+// `gaps render --job` draws a path through a finished fern job on its trainer (RenderView per frame, cameras from
+// GetJobCameras): the test path gives the job's own test renders, and an orbit's frames circle the point they
+// look at at the training cameras' mean distance. Submitted as a job's points, the job's PLY is a full model.
+TEST_F(Services, RenderJobDrawsPathsWithTheJobsCamerasAndAJobFromItsPlyContinuesIt) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
+  auto worker = start_worker();
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  client::TrainerClient client = connect();
+  auto scene = client::prepare_scene(fern, 8);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  auto job = client.submit(spec("vanilla", 10), *scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  EXPECT_EQ(client.job_cameras(*job).status().code(), absl::StatusCode::kFailedPrecondition);  // not finished yet
+  auto status = client.watch(*job, [](const v1::JobEvent&) {});
+  ASSERT_TRUE(status.ok() && status->state() == v1::SUCCEEDED) << trainer->log_text();
+  ASSERT_TRUE(client.fetch(*job, dir_ / "fetched").ok());
+
+  auto listed = client.job_cameras(*job);
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->train_size(), 3);
+  ASSERT_EQ(listed->test_size(), 3);  // fern's 20 images: every 8th is a test view
+  EXPECT_EQ(listed->test(1).name(), scene->cameras[8].name());
+  EXPECT_GT(listed->near(), 0);
+  EXPECT_GT(listed->far(), listed->near());
+  std::vector<Camera> train;
+  for (const v1::Camera& c : listed->train()) train.push_back(*rpc::decode_camera(c, "camera"));
+
+  const std::string common = " --job " + *job + " --quiet --trainer 127.0.0.1:" + std::to_string(trainer_port) +
+                             " --token-file " + (dir_ / "token").string();
+  auto [code, out] =
+      run_command(std::string(GAPS_CLI_BIN) + " render --path test --out " + (dir_ / "test_path").string() + common);
+  ASSERT_EQ(code, 0) << out;
+  for (int k = 0; k < 3; ++k) {
+    auto frame = read_image(dir_ / "test_path" / ("0000" + std::to_string(k) + ".png"));
+    auto saved = read_image(dir_ / "fetched" / "renders" / listed->test(k).name());
+    ASSERT_TRUE(frame.ok() && saved.ok()) << listed->test(k).name();
+    EXPECT_LE((*frame - *saved).abs().max().item<float>(), 1.0f / 255 + 1e-6) << listed->test(k).name();
+  }
+
+  std::tie(code, out) = run_command(std::string(GAPS_CLI_BIN) + " render --path orbit --frames 4 --out " +
+                                    (dir_ / "orbit").string() + common);
+  ASSERT_EQ(code, 0) << out;
+  auto frames = read_cameras_json(dir_ / "orbit" / "cameras.json");
+  ASSERT_TRUE(frames.ok()) << frames.status();
+  ASSERT_EQ(frames->size(), 4u);
+  std::vector<Camera> orbit;
+  for (const auto& r : *frames) orbit.push_back(r.camera);
+  const auto centre = optical_axes_target(orbit);
+  ASSERT_TRUE(centre.has_value());
+  double distance = 0;
+  for (const Camera& c : train) distance += (c.center() - *centre).norm() / train.size();
+  for (const Camera& c : orbit) EXPECT_NEAR((c.center() - *centre).norm(), distance, 1e-6 * distance);
+  for (int k = 0; k < 4; ++k) EXPECT_TRUE(fs::exists(dir_ / "orbit" / ("0000" + std::to_string(k) + ".png")));
+  // A job submitted with the finished model's PLY as its points continues that model.
+  client::PreparedScene continued = *scene;
+  auto ply = read_file_bytes(dir_ / "fetched" / "point_cloud.ply", "model");
+  ASSERT_TRUE(ply.ok()) << ply.status();
+  continued.points_ply = *ply;
+  v1::JobSpec from_model = spec("vanilla", 1);
+  from_model.mutable_config()->set_init("points");
+  auto job2 = client.submit(from_model, continued);
+  ASSERT_TRUE(job2.ok()) << job2.status();
+  Seen seen;
+  auto status2 = client.watch(*job2, [&](const v1::JobEvent& e) { count(e, seen); });
+  ASSERT_TRUE(status2.ok() && status2->state() == v1::SUCCEEDED) << trainer->log_text();
+  EXPECT_EQ(status2->num_gaussians(), status->num_gaussians());
+  EXPECT_TRUE(std::any_of(seen.logs.begin(), seen.logs.end(), [](const std::string& l) {
+    return absl::StrContains(l, "is a full 3DGS model");
+  })) << absl::StrJoin(seen.logs, "\n");
+
+  std::tie(code, out) = run_command(std::string(GAPS_CLI_BIN) + " render --out " + (dir_ / "none").string() +
+                                    " --job job-unknown --trainer 127.0.0.1:" + std::to_string(trainer_port) +
+                                    " --token-file " + (dir_ / "token").string());
+  EXPECT_NE(code, 0);
+  EXPECT_NE(out.find("job-unknown"), std::string::npos) << out;
 }
 
 // One pair of config files with every option away from its default: `gaps train` in process and `gaps submit`

@@ -89,8 +89,26 @@ absl::Status save_gaussians_ply(const GaussianModel& model, const std::filesyste
   return write_ply_vertices(path, ply_names(rest), columns);
 }
 
-absl::StatusOr<GaussianModel> load_gaussians_ply(const std::filesystem::path& path) {
-  GAPS_ASSIGN_OR_RETURN(PlyVertices v, read_ply_vertices(path));
+GaussianModel with_sh_degree(GaussianModel model, int degree) {
+  const int64_t rest = sh_coefficients(degree) - 1;
+  const int64_t have = model.sh_rest.size(1);
+  if (rest < have) {
+    model.sh_rest = model.sh_rest.narrow(1, 0, rest).contiguous();
+  } else if (rest > have) {
+    model.sh_rest = at::cat({model.sh_rest, at::zeros({model.size(), rest - have, 3}, model.sh_rest.options())}, 1);
+  }
+  model.max_sh_degree = degree;
+  model.sh_degree = std::min(model.sh_degree, degree);
+  return model;
+}
+
+bool holds_gaussians(const PlyVertices& v) {
+  for (const char* name : {"opacity", "scale_0", "rot_0"})
+    if (!v.has(name)) return false;
+  return true;
+}
+
+absl::StatusOr<GaussianModel> gaussians_from_ply_vertices(const PlyVertices& v, const std::string& where) {
   int rest_props = 0;
   while (v.has(absl::StrCat("f_rest_", rest_props))) ++rest_props;
   const int rest = rest_props / 3;
@@ -98,10 +116,10 @@ absl::StatusOr<GaussianModel> load_gaussians_ply(const std::filesystem::path& pa
   while (sh_coefficients(degree) - 1 < rest) ++degree;
   if (rest_props % 3 != 0 || sh_coefficients(degree) - 1 != rest || degree > 3)
     return absl::InvalidArgumentError(
-        absl::StrCat(path.string(), ": ", rest_props, " f_rest_* properties match no SH degree 0..3"));
+        absl::StrCat(where, ": ", rest_props, " f_rest_* properties match no SH degree 0..3"));
   for (const auto& name : ply_names(rest))
     if (name[0] != 'n' && !v.has(name))
-      return absl::InvalidArgumentError(absl::StrCat(path.string(), ": missing property '", name, "'"));
+      return absl::InvalidArgumentError(absl::StrCat(where, ": missing property '", name, "'"));
   auto col = [&](const std::string& name) { return v.properties.at(name); };
   auto stack = [&](std::initializer_list<std::string> names) {
     std::vector<at::Tensor> cols;
@@ -122,8 +140,13 @@ absl::StatusOr<GaussianModel> load_gaussians_ply(const std::filesystem::path& pa
   m.quats = stack({"rot_0", "rot_1", "rot_2", "rot_3"});
   for (at::Tensor* p : m.parameters())
     if (!at::isfinite(*p).all().item<bool>())
-      return absl::InvalidArgumentError(absl::StrCat(path.string(), ": non-finite Gaussian parameters"));
+      return absl::InvalidArgumentError(absl::StrCat(where, ": non-finite Gaussian parameters"));
   return m;
+}
+
+absl::StatusOr<GaussianModel> load_gaussians_ply(const std::filesystem::path& path) {
+  GAPS_ASSIGN_OR_RETURN(const PlyVertices v, read_ply_vertices(path));
+  return gaussians_from_ply_vertices(v, path.string());
 }
 
 }  // namespace gaps

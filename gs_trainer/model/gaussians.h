@@ -6,6 +6,7 @@
 
 #include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
+#include "common/ply.h"
 #include "gs_trainer/scene/bounds.h"
 #include "gs_trainer/scene/camera.h"
 #include "gs_trainer/scene/scene.h"
@@ -36,8 +37,21 @@ struct GaussianModel {
 // three nearest neighbours, identity rotations, opacity 0.1.
 GaussianModel gaussians_from_points(const PointCloud& points, int max_sh_degree);
 
-// Standard 3DGS PLY: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 (binary little endian).
+// The model with SH degree `degree`: higher bands dropped, missing ones added as zeros (which leaves every
+// render unchanged). The active degree is capped at the new one.
+GaussianModel with_sh_degree(GaussianModel model, int degree);
+
+// Standard 3DGS PLY: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 (binary little endian):
+// 62 properties at SH degree 3, 3 (K - 1) f_rest_* at lower degrees, as the reference code (Inria) writes
+// them. A PLY holds no active SH degree: a loaded model renders at its full degree, which renders as the
+// saved model did whenever the bands above its active degree were never trained (they stay zero).
 absl::Status save_gaussians_ply(const GaussianModel& model, const std::filesystem::path& path);
 absl::StatusOr<GaussianModel> load_gaussians_ply(const std::filesystem::path& path);
+
+// Whether PLY vertices carry a Gaussian model (opacity, scale_*, rot_* besides positions and colours) rather
+// than a plain coloured point cloud (common/ply.h read_point_cloud_ply).
+bool holds_gaussians(const PlyVertices& vertices);
+// The model of vertices in the layout above; `where` names them in errors (InvalidArgument).
+absl::StatusOr<GaussianModel> gaussians_from_ply_vertices(const PlyVertices& vertices, const std::string& where);
 
 }  // namespace gaps

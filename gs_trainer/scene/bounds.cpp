@@ -30,7 +30,7 @@ PointCloud random_points_in_views(const std::vector<Camera>& cameras, int64_t co
   return {xyz, rgb};
 }
 
-double default_far_bound(const std::vector<Camera>& cameras) {
+std::optional<Eigen::Vector3d> optical_axes_target(const std::vector<Camera>& cameras) {
   // Least squares: sum over cameras of (I - d d^T)(x - c) = 0.
   Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
   Eigen::Vector3d b = Eigen::Vector3d::Zero();
@@ -40,16 +40,20 @@ double default_far_bound(const std::vector<Camera>& cameras) {
     A += P;
     b += P * c.center();
   }
-  const double fallback = 2.0 * cameras_extent(cameras) + 1.0;
   Eigen::JacobiSVD<Eigen::Matrix3d> svd(A, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  if (cameras.size() < 2 || svd.singularValues()(2) < 1e-6 * svd.singularValues()(0)) return fallback;
+  if (cameras.size() < 2 || svd.singularValues()(2) < 1e-6 * svd.singularValues()(0)) return std::nullopt;
   const Eigen::Vector3d target = svd.solve(b);
+  for (const auto& c : cameras)
+    if ((target - c.center()).dot(c.forward()) <= 0) return std::nullopt;
+  return target;
+}
+
+double default_far_bound(const std::vector<Camera>& cameras) {
+  const double fallback = 2.0 * cameras_extent(cameras) + 1.0;
+  const std::optional<Eigen::Vector3d> target = optical_axes_target(cameras);
+  if (!target) return fallback;
   double far = 0;
-  for (const auto& c : cameras) {
-    const Eigen::Vector3d v = target - c.center();
-    if (v.dot(c.forward()) <= 0) return fallback;
-    far = std::max(far, 2.0 * v.norm());
-  }
+  for (const auto& c : cameras) far = std::max(far, 2.0 * (*target - c.center()).norm());
   return std::max(far, fallback);
 }
 

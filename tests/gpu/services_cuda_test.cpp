@@ -1,5 +1,6 @@
 // The deployment users run on a GPU: gaps-worker and gaps-trainer started as processes with --device cuda,
-// a job of the method submitted through the client, and at least one pseudo-view generated and admitted.
+// a job of the method submitted through the client, at least one pseudo-view generated and admitted, and the
+// finished model rendered on the GPU through RenderView (as `gaps render --job` does).
 #include <fstream>
 #include <string>
 
@@ -7,6 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "client/remote_client.h"
+#include "common/image_io.h"
 #include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
 #include "tests/gpu/require_cuda.h"
@@ -72,6 +74,22 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
   const nlohmann::json metrics = nlohmann::json::parse(metrics_file);
   EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
   EXPECT_EQ(metrics["peak_memory"]["kind"], "cuda_allocator");
+
+  // RenderView on the trainer's GPU gives the job's own test renders (renders/, also made on the GPU), frame
+  // after frame from the model the service keeps.
+  auto cameras = client->job_cameras(*job);
+  ASSERT_TRUE(cameras.ok()) << cameras.status();
+  ASSERT_GT(cameras->test_size(), 0);
+  for (int repeat = 0; repeat < 2; ++repeat) {
+    for (const v1::Camera& camera : cameras->test()) {
+      auto rendered = client->render(*job, camera);
+      ASSERT_TRUE(rendered.ok()) << rendered.status();
+      auto saved = read_image(dir_ / "fetched" / "renders" / camera.name());
+      ASSERT_TRUE(saved.ok()) << saved.status();
+      EXPECT_LE((*rendered - *saved).abs().max().item<float>(), 1.0f / 255 + 1e-6) << camera.name();
+      EXPECT_GT(rendered->std().item<float>(), 0.01f) << camera.name();
+    }
+  }
 }
 
 }  // namespace
