@@ -73,7 +73,15 @@ absl::Status TrainerClient::check_reachable(std::chrono::milliseconds timeout) c
   return absl::OkStatus();
 }
 
-void TrainerClient::prepare(grpc::ClientContext& context) const { rpc::attach_token(context, token_); }
+namespace {
+// GetJob, ListJobs and CancelJob read or write one row of the job store.
+constexpr std::chrono::seconds kUnaryDeadline{30};
+}  // namespace
+
+void TrainerClient::prepare(grpc::ClientContext& context, std::optional<std::chrono::milliseconds> deadline) const {
+  rpc::attach_token(context, token_);
+  if (deadline) context.set_deadline(std::chrono::system_clock::now() + *deadline);
+}
 
 absl::StatusOr<std::string> TrainerClient::submit(v1::JobSpec spec, const PreparedScene& scene) {
   spec.clear_cameras();
@@ -121,7 +129,7 @@ absl::StatusOr<v1::JobStatus> TrainerClient::watch(const std::string& job_id,
 
 absl::StatusOr<v1::JobStatus> TrainerClient::get(const std::string& job_id) {
   grpc::ClientContext context;
-  prepare(context);
+  prepare(context, kUnaryDeadline);
   v1::GetJobRequest request;
   request.set_job_id(job_id);
   v1::JobStatus status;
@@ -131,7 +139,7 @@ absl::StatusOr<v1::JobStatus> TrainerClient::get(const std::string& job_id) {
 
 absl::StatusOr<std::vector<v1::JobStatus>> TrainerClient::list() {
   grpc::ClientContext context;
-  prepare(context);
+  prepare(context, kUnaryDeadline);
   v1::ListJobsResponse response;
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->ListJobs(&context, v1::ListJobsRequest(), &response), "ListJobs"));
   return std::vector<v1::JobStatus>(response.jobs().begin(), response.jobs().end());
@@ -139,7 +147,7 @@ absl::StatusOr<std::vector<v1::JobStatus>> TrainerClient::list() {
 
 absl::StatusOr<v1::JobStatus> TrainerClient::cancel(const std::string& job_id) {
   grpc::ClientContext context;
-  prepare(context);
+  prepare(context, kUnaryDeadline);
   v1::CancelJobRequest request;
   request.set_job_id(job_id);
   v1::JobStatus status;
@@ -150,8 +158,7 @@ absl::StatusOr<v1::JobStatus> TrainerClient::cancel(const std::string& job_id) {
 absl::StatusOr<at::Tensor> TrainerClient::render(const std::string& job_id, const v1::Camera& camera,
                                                  std::chrono::milliseconds deadline) {
   grpc::ClientContext context;
-  prepare(context);
-  context.set_deadline(std::chrono::system_clock::now() + deadline);
+  prepare(context, deadline);
   v1::RenderViewRequest request;
   request.set_job_id(job_id);
   *request.mutable_camera() = camera;
@@ -163,8 +170,7 @@ absl::StatusOr<at::Tensor> TrainerClient::render(const std::string& job_id, cons
 absl::StatusOr<v1::JobCameras> TrainerClient::job_cameras(const std::string& job_id,
                                                           std::chrono::milliseconds deadline) {
   grpc::ClientContext context;
-  prepare(context);
-  context.set_deadline(std::chrono::system_clock::now() + deadline);
+  prepare(context, deadline);
   v1::GetJobCamerasRequest request;
   request.set_job_id(job_id);
   v1::JobCameras response;

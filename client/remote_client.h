@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -55,7 +56,10 @@ class TrainerClient {
 
  private:
   TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, std::string token);
-  void prepare(grpc::ClientContext& context) const;
+  // The token; a deadline for the calls that answer at once (GetJob, ListJobs, CancelJob, RenderView,
+  // GetJobCameras). The streams have none: WatchJob follows a job for as long as it runs, and SubmitJob and
+  // FetchArtifacts move scenes and results whose size sets their time.
+  void prepare(grpc::ClientContext& context, std::optional<std::chrono::milliseconds> deadline = std::nullopt) const;
 
   std::string address_;
   std::shared_ptr<grpc::Channel> channel_;

@@ -196,6 +196,28 @@ TEST(TrainerSchedule, OpacityResetOnlyWhenAskedFor) {
   EXPECT_LT(max_opacity_after(10, 10), 0.0106);
 }
 
+// The active SH degree: a model made from points starts at 0 and rises every sh_increase_interval iterations;
+// a loaded model that already renders at degree 1 keeps it (continuing it must not drop its view-dependent
+// colour).
+TEST(TrainerSchedule, ShDegreeStartsWhereTheModelIs) {
+  TrainConfig config = schedule_config();
+  config.sh_increase_interval = 3;
+  ScheduleScene fresh;
+  Trainer from_points = fresh.trainer(config);
+  from_points.step();
+  EXPECT_EQ(from_points.model().sh_degree, 0);
+  for (int i = 0; i < 2; ++i) from_points.step();
+  EXPECT_EQ(from_points.model().sh_degree, 1);
+
+  ScheduleScene loaded;
+  loaded.model.sh_degree = 1;
+  Trainer continued = loaded.trainer(config);
+  continued.step();
+  EXPECT_EQ(continued.model().sh_degree, 1);
+  loaded.model.sh_degree = 7;  // above the model's bands: clamped
+  EXPECT_EQ(loaded.trainer(config).model().sh_degree, 1);
+}
+
 // prune_min_contribution: at the end of densification the Gaussians below the threshold of blending weight
 // over the training views go (here the two far outside the view, and any in-view one too faint); the rest
 // stay, each at least at the threshold. 0 keeps every Gaussian.

@@ -41,7 +41,9 @@ Trainer::Trainer(GaussianModel initial, std::vector<TrainingView> views, TrainCo
       density_(config_, extent_),
       rng_state_(config_.seed) {
   TORCH_CHECK(!views_.empty(), "training needs at least one view");
-  model_.sh_degree = 0;
+  // A model made from points starts at degree 0; a loaded model (a full 3DGS PLY) keeps the degree it
+  // renders at, so continuing it does not first throw its view-dependent colour away.
+  model_.sh_degree = std::clamp(model_.sh_degree, 0, model_.max_sh_degree);
   background_ = at::full({3}, config_.background, model_.means.options());
 }
 
