@@ -220,6 +220,20 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
   return images;
 }
 
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::adapt_and_generate_on(Worker& w,
+                                                                               const v1::GenerateBatch& batch,
+                                                                               size_t count,
+                                                                               std::vector<std::string>* notes) {
+  for (int attempt = 0;; ++attempt) {
+    GAPS_RETURN_IF_ERROR(adapt_on(w, notes));
+    const bool had_handle = !w.scene_handle.empty();
+    auto images = generate_on(w, batch, count, notes);
+    if (images.ok() || attempt > 0 || !had_handle || !absl::IsNotFound(images.status())) return images;
+    w.scene_handle.clear();
+    w.adapted_version = 0;
+  }
+}
+
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vector<GenerationRequest>& requests) {
   notes_.clear();
   if (requests.empty()) return std::vector<at::Tensor>{};
@@ -231,16 +245,13 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
       Worker& w = *workers_[(next_ + k) % workers_.size()];
       if (!usable(w)) continue;
       std::vector<std::string> notes;  // of this worker only: a failed one's are not this call's
-      absl::Status st = adapt_on(w, &notes);
-      if (st.ok()) {
-        auto images = generate_on(w, batch, requests.size(), &notes);
-        if (images.ok()) {
-          next_ = (next_ + k + 1) % workers_.size();
-          notes_ = std::move(notes);
-          return images;
-        }
-        st = images.status();
+      auto images = adapt_and_generate_on(w, batch, requests.size(), &notes);
+      if (images.ok()) {
+        next_ = (next_ + k + 1) % workers_.size();
+        notes_ = std::move(notes);
+        return images;
       }
+      const absl::Status st = images.status();
       if (!retryable(st.code())) return st;  // the request itself is at fault: another worker won't help
       w.last_error = std::string(st.message());
       mark_failed(w);

@@ -64,6 +64,10 @@ class RemoteGenerator final : public Generator {
   absl::Status adapt_on(Worker& worker, std::vector<std::string>* notes);
   absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const v1::GenerateBatch& batch, size_t count,
                                                       std::vector<std::string>* notes);
+  // adapt_on, then generate_on; a worker that no longer knows its scene handle (restarted between two calls,
+  // so no call failed to tell us) is adapted again and asked once more.
+  absl::StatusOr<std::vector<at::Tensor>> adapt_and_generate_on(Worker& worker, const v1::GenerateBatch& batch,
+                                                                size_t count, std::vector<std::string>* notes);
   void mark_failed(Worker& worker);
 
   WorkerPoolOptions options_;

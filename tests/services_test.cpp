@@ -274,11 +274,12 @@ class GatedGenerator : public Generator {
 
 struct RunningWorker {
   RunningWorker(std::unique_ptr<Generator> generator, WorkerServiceOptions options,
-                std::shared_ptr<grpc::ServerCredentials> credentials = grpc::InsecureServerCredentials())
+                std::shared_ptr<grpc::ServerCredentials> credentials = grpc::InsecureServerCredentials(),
+                int wanted_port = 0)
       : service(std::move(generator), options) {
     grpc::EnableDefaultHealthCheckService(true);
     grpc::ServerBuilder builder;
-    builder.AddListeningPort("127.0.0.1:0", credentials, &port);
+    builder.AddListeningPort("127.0.0.1:" + std::to_string(wanted_port), credentials, &port);
     builder.RegisterService(&service);
     server = builder.BuildAndStart();
   }
@@ -564,6 +565,30 @@ TEST(WorkerPool, AWorkerThatFailedIsAdaptedAgainBeforeItGenerates) {
   ASSERT_TRUE(images.ok()) << images.status();
   EXPECT_EQ(backend.generations, 2);
   EXPECT_EQ(backend.adaptations, 2);
+}
+
+// A worker restarted between two phases (no call failed, so the pool still holds its old scene handle)
+// answers NOT_FOUND for that handle: the pool adapts it again and the phase gets its images.
+TEST(WorkerPool, AWorkerRestartedBetweenCallsIsAdaptedAgain) {
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  auto first = make_generator("reproject", "");
+  ASSERT_TRUE(first.ok());
+  auto worker = std::make_unique<RunningWorker>(std::move(*first), options);
+  const int port = worker->port;
+  auto remote = pool({worker->address()});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+
+  worker.reset();
+  auto second = make_generator("reproject", "");
+  ASSERT_TRUE(second.ok());
+  worker = std::make_unique<RunningWorker>(std::move(*second), options, grpc::InsecureServerCredentials(), port);
+  ASSERT_EQ(worker->port, port);
+  const auto images = (*remote)->generate(requests);
+  EXPECT_TRUE(images.ok()) << images.status();
 }
 
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).
