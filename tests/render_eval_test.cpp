@@ -6,6 +6,8 @@
 #include <fstream>
 #include <regex>
 
+#include <unistd.h>
+
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
@@ -68,7 +70,8 @@ class RenderEval : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     if (!fs::exists(kFern)) return;
-    run_ = fs::path(::testing::TempDir()) / "gaps_render_eval_run";
+    // One folder per process: ctest runs each test of the suite as its own process, several at once.
+    run_ = fs::path(::testing::TempDir()) / ("gaps_render_eval_run_" + std::to_string(::getpid()));
     test::remove_tree(run_);
     const auto [code, log] =
         test::run_command(kGaps + " train --scene " + kFern.string() + kFernRun +
@@ -85,7 +88,8 @@ class RenderEval : public ::testing::Test {
     if (!fs::exists(kFern)) GTEST_SKIP() << "benchmark data not found at " << kFern;
     ASSERT_TRUE(trained_) << log_;
     const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-    dir_ = fs::path(::testing::TempDir()) / ("gaps_RenderEval_" + std::string(info->name()));
+    dir_ = fs::path(::testing::TempDir()) /
+           ("gaps_RenderEval_" + std::string(info->name()) + "_" + std::to_string(::getpid()));
     test::remove_tree(dir_);
     fs::create_directories(dir_);
   }

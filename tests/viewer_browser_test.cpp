@@ -131,7 +131,7 @@ class BrowserTest : public ::testing::Test {
 class ViewerInBrowser : public BrowserTest {
  protected:
   static void SetUpTestSuite() {
-    run_ = fs::path(::testing::TempDir()) / "gaps_viewer_browser_run";
+    run_ = fs::path(::testing::TempDir()) / ("gaps_viewer_browser_run_" + std::to_string(::getpid()));
     remove_tree(run_);
     if (!fs::exists(kFern) || chromium_binary().empty()) return;
     RunOptions o;
