@@ -127,7 +127,10 @@ TEST_F(RunMonitoring, CurvePeakMemoryAndReportOfAVanillaRun) {
   const std::string html = read_text(o.out_dir / "report.html");
   ASSERT_FALSE(html.empty());
   EXPECT_EQ(count(html, "http"), 0) << "the report must not reach the network";
+  // The report's own page runs no script; the viewer's does, inside its iframe (an escaped srcdoc page).
   EXPECT_EQ(count(html, "<script"), 0);
+  EXPECT_EQ(count(html, "<iframe class=\"viewer\""), 1);
+  EXPECT_GT(count(html, "&lt;script"), 0);
   EXPECT_EQ(count(html, "<svg"), 2);  // PSNR over time, Gaussians over iterations
   // Two test views of the synthetic scene, each as ground truth and render.
   EXPECT_EQ(count(html, "src=\"data:image/png;base64,"), 4);
