@@ -36,7 +36,7 @@ ABSL_FLAG(int, eval_every, gaps::kDefaultEvalEvery,
           "evaluate the test views every N iterations into metrics.json's curve (0: only at the end)");
 ABSL_FLAG(std::string, backend, "reproject", "pseudo-view generator backend for the method variants");
 ABSL_FLAG(std::string, backend_options, "", "JSON object of backend options");
-ABSL_FLAG(std::string, out, "", "output folder");
+ABSL_FLAG(std::string, out, "", "output folder (gaps export: the file written)");
 ABSL_FLAG(bool, overwrite, false,
           "reuse a non-empty output folder: first remove what an earlier run wrote there (other files stay)");
 ABSL_FLAG(bool, report, true, "write report.html (metrics, curve, renders next to ground truth, pseudo-views)");
