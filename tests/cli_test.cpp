@@ -25,6 +25,10 @@
 namespace gaps {
 namespace {
 
+using test::contains;
+using test::read_json;
+using test::read_text;
+
 namespace fs = std::filesystem;
 using test::Process;
 
@@ -35,18 +39,6 @@ const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
 const fs::path kReadme = fs::path(GAPS_TEST_SCRIPTS_DIR) / ".." / "README.md";
 const std::vector<std::string> kCommands = {"train", "init",    "demo", "submit", "watch",  "list", "cancel",
                                             "fetch", "options", "view", "export", "render", "eval"};
-
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
-
-nlohmann::json read_json(const fs::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
-}
-
-std::string read_text(const fs::path& p) {
-  std::ifstream f(p);
-  return std::string(std::istreambuf_iterator<char>(f), {});
-}
 
 // The flags a --help text lists (names with underscores, as absl has them) and its short forms ("r").
 struct HelpFlags {

@@ -9,16 +9,17 @@
 
 #include "gs_trainer/gaps/admission.h"
 #include "gs_trainer/gaps/config.h"
+#include "tests/test_util.h"
 
 namespace gaps {
 namespace {
+
+using test::contains;
 
 const at::TensorOptions kDouble = at::TensorOptions().dtype(at::kDouble);
 
 // H×W×3 image with every channel of every pixel `value`.
 at::Tensor flat(int64_t h, int64_t w, double value) { return at::full({h, w, 3}, value, kDouble); }
-
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
 // ---------------------------------------------------------------- admission (sec. 3.6)
 

@@ -20,6 +20,8 @@
 namespace gaps {
 namespace {
 
+using test::read_json;
+
 // Returns the render it was given, blended towards mid-grey by `noise`: admission depends on `noise`.
 class EchoGenerator : public Generator {
  public:
@@ -82,11 +84,6 @@ struct GapsTrainingTest : test::TempDirTest {
     test::write_small_scene(dir_);
   }
 };
-
-nlohmann::json read_json(const std::filesystem::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
-}
 
 TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   EchoGenerator gen(0.05);

@@ -23,23 +23,15 @@
 namespace gaps {
 namespace {
 
+using test::contains;
+using test::read_json;
+using test::read_text;
+
 namespace fs = std::filesystem;
 
 const std::string kGaps = GAPS_CLI_BIN;
 const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
 const std::string kFernRun = " --views 3 -r 8 --device cpu";
-
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
-
-nlohmann::json read_json(const fs::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
-}
-
-std::string read_text(const fs::path& p) {
-  std::ifstream f(p);
-  return std::string(std::istreambuf_iterator<char>(f), {});
-}
 
 bool on_path(const std::string& program) { return test::run_command("command -v " + program).first == 0; }
 

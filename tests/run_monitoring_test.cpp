@@ -22,6 +22,8 @@
 namespace gaps {
 namespace {
 
+using test::read_text;
+
 using test::read_json;
 using test::RunMonitoring;
 
@@ -70,11 +72,6 @@ TEST(DivergenceGuard, NamesPoisonedParametersAndCounts) {
 TEST(DivergenceGuard, OtherErrorsAreNotDivergence) {
   EXPECT_FALSE(is_divergence(absl::InternalError("training diverged at iteration 3")));
   EXPECT_FALSE(is_divergence(absl::AbortedError("cancelled")));
-}
-
-std::string read_text(const std::filesystem::path& p) {
-  std::ifstream f(p);
-  return std::string(std::istreambuf_iterator<char>(f), {});
 }
 
 int count(const std::string& text, const std::string& what) {

@@ -12,11 +12,6 @@
 
 namespace gaps::test {
 
-inline nlohmann::json read_json(const std::filesystem::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
-}
-
 // 60 iterations on the small synthetic scene, evaluated every 20.
 struct RunMonitoring : TempDirTest {
   RunOptions options() {

@@ -39,6 +39,8 @@ extern char** environ;
 namespace gaps {
 namespace {
 
+using test::read_json;
+
 namespace fs = std::filesystem;
 using test::Process;
 using test::run_command;
@@ -126,11 +128,6 @@ void count(const v1::JobEvent& e, Seen& seen) {
   seen.phases_started += e.has_phase_started();
   if (e.has_phase_finished()) (e.phase_finished().skipped() ? seen.phases_skipped : seen.phases_done) += 1;
   if (e.has_log()) seen.logs.push_back(e.log());
-}
-
-nlohmann::json read_json(const fs::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
 }
 
 bool have_openssl() { return std::system("openssl version > /dev/null 2>&1") == 0; }

@@ -19,12 +19,9 @@
 namespace gaps {
 namespace {
 
-void quiet(const std::string&) {}
+using test::read_json;
 
-nlohmann::json read_json(const std::filesystem::path& p) {
-  std::ifstream f(p);
-  return nlohmann::json::parse(f);
-}
+void quiet(const std::string&) {}
 
 // Uniform noise of the requested size: what a broken backend (wrong checkpoint, NaN-free garbage) returns.
 class NoiseGenerator : public Generator {

@@ -10,6 +10,7 @@
 #include <utility>
 
 #include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
 #include "common/io_util.h"
 
 namespace gaps::test {
@@ -26,6 +27,20 @@ inline std::pair<int, std::string> run_command(const std::string& command) {
   while (size_t n = fread(buffer, 1, sizeof buffer, pipe)) output.append(buffer, n);
   const int status = pclose(pipe);
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, output};
+}
+
+inline bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+// A whole file as text ("" when it cannot be read: the comparison that follows says what was expected).
+inline std::string read_text(const std::filesystem::path& path) {
+  std::ifstream f(path);
+  return std::string(std::istreambuf_iterator<char>(f), {});
+}
+
+// A JSON file; a missing or malformed one throws, which fails the test naming the parse error.
+inline nlohmann::json read_json(const std::filesystem::path& path) {
+  std::ifstream f(path);
+  return nlohmann::json::parse(f);
 }
 
 // A fresh folder per test (named after the suite and test), removed afterwards.
