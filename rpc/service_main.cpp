@@ -8,6 +8,7 @@
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include "absl/flags/flag.h"
+#include "common/device.h"
 #include "common/error_kind.h"
 #include "common/status_macros.h"
 
@@ -16,6 +17,9 @@ ABSL_FLAG(std::string, tls_cert, "", "PEM certificate chain; with --tls-key serv
 ABSL_FLAG(std::string, tls_key, "", "PEM private key");
 ABSL_FLAG(std::string, tls_client_ca, "",
           "CA certificate that must have signed every client's certificate (mutual TLS)");
+ABSL_FLAG(double, gpu_memory_gib, 0,
+          "most GiB this process's CUDA allocator may hold on --device (0: no cap); two processes sharing one card "
+          "each take a share (docs/deploy.md: 24 GB cards)");
 
 namespace gaps::rpc {
 namespace {
@@ -26,6 +30,10 @@ void on_signal(int) { g_stop = true; }
 }  // namespace
 
 std::vector<std::string> security_flag_names() { return {"token_file", "tls_cert", "tls_key", "tls_client_ca"}; }
+
+absl::Status apply_gpu_memory_cap(const std::string& device) {
+  return limit_device_memory(device, absl::GetFlag(FLAGS_gpu_memory_gib));
+}
 
 absl::StatusOr<ServiceSecurity> service_security_from_flags() {
   absl::StatusOr<std::string> token = load_token(absl::GetFlag(FLAGS_token_file));

@@ -16,11 +16,15 @@ ABSL_DECLARE_FLAG(std::string, token_file);
 ABSL_DECLARE_FLAG(std::string, tls_cert);
 ABSL_DECLARE_FLAG(std::string, tls_key);
 ABSL_DECLARE_FLAG(std::string, tls_client_ca);
+ABSL_DECLARE_FLAG(double, gpu_memory_gib);
 
 namespace gaps::rpc {
 
 // The security flags' names, for a program's --help group.
 std::vector<std::string> security_flag_names();
+
+// --gpu-memory-gib on the service's device (common/device.h: limit_device_memory); 0 leaves it uncapped.
+absl::Status apply_gpu_memory_cap(const std::string& device);
 
 struct ServiceSecurity {
   ServerSecurity settings;

@@ -60,7 +60,8 @@ gaps::cli::CommandSpec command() {
       "--tryfromenv=NAME,... takes those flags from FLAGS_NAME environment variables when set.";
   spec.groups = {
       {"service",
-       {"listen", "data_dir", "device", "concurrency", "max_crashes", "max_upload_mb", "checkpoint_seconds"}},
+       {"listen", "data_dir", "device", "gpu_memory_gib", "concurrency", "max_crashes", "max_upload_mb",
+        "checkpoint_seconds"}},
       {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
       {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
@@ -84,6 +85,7 @@ int fail_reading(const absl::Status& status) { return fail(gaps::input_data_erro
 int serve() {
   const std::string device = absl::GetFlag(FLAGS_device);
   if (absl::Status st = gaps::check_device(device); !st.ok()) return fail(st);
+  if (absl::Status st = gaps::rpc::apply_gpu_memory_cap(device); !st.ok()) return fail(st);
   const std::filesystem::path data_dir = absl::GetFlag(FLAGS_data_dir);
   std::error_code ec;
   if (std::filesystem::exists(data_dir, ec) && !std::filesystem::is_directory(data_dir, ec))

@@ -119,6 +119,12 @@ TEST_F(Cli, UnknownOrAbsentDevicesAreUsageErrorsInEveryProgram) {
       "device 'gpu' is not cpu, cuda or cuda:N");
   expect_failure(test::run_command(kWorker + " --listen 127.0.0.1:0 --device gpu"), 2,
                  "device 'gpu' is not cpu, cuda or cuda:N");
+  // A memory cap is for a GPU the process computes on; it is checked before anything loads.
+  expect_failure(test::run_command(kWorker + " --listen 127.0.0.1:0 --gpu-memory-gib 8"), 2,
+                 "a GPU memory cap needs a CUDA device, not cpu");
+  expect_failure(test::run_command(kTrainer + " --listen 127.0.0.1:0 --data-dir " + (dir_ / "data").string() +
+                                   " --gpu-memory-gib -1"),
+                 2, "GPU memory cap must be a number of GiB >= 0");
 }
 
 // Ctrl-C mid-run saves the run; --resume finishes it where an uninterrupted run ends (vanilla restores the

@@ -35,6 +35,11 @@ DEFAULT_PORTS = {"gaps-trainer": 50051, "gaps-worker": 50052}
 # The trainer's default --worker_timeout_s (server/trainer_main.cpp): the longest an iteration can wait on
 # one generation call, so the least time a stopping trainer may need before it can checkpoint.
 DEFAULT_WORKER_TIMEOUT_S = 300
+# Services that share a GPU must fit the card the one-host files are made for, a 24 GB card (23.99 GiB, a
+# little of it the driver's): their --gpu_memory_gib caps plus a CUDA context each (docs/deploy.md, "What
+# hardware do I need", measured with bench/placements_bench.py).
+SHARED_CARD_GIB = 23.0
+CONTEXT_GIB = 0.5
 
 
 def seconds(duration):
@@ -103,6 +108,36 @@ def check_service(name, s, prog, flags):
     return problems
 
 
+def check_shared_gpus(config):
+    """CUDA services reserving the same GPU (no device_ids: all of them) each cap their allocator, and the caps
+    with a CUDA context each fit SHARED_CARD_GIB."""
+    by_gpu = {}
+    for name, s, prog, flags in gaps_services(config):
+        if not uses_cuda(flags):
+            continue
+        devices = s.get("deploy", {}).get("resources", {}).get("reservations", {}).get("devices", [])
+        ids = [str(i) for d in devices for i in (d.get("device_ids") or ["all"])]
+        for gpu in ids or ["all"]:
+            by_gpu.setdefault(gpu, []).append((name, flags))
+    if "all" in by_gpu:  # a service on every GPU shares each with the others
+        for gpu in [g for g in by_gpu if g != "all"]:
+            by_gpu[gpu] += by_gpu["all"]
+    problems = []
+    for gpu, services in sorted(by_gpu.items()):
+        if len(services) < 2:
+            continue
+        names = ", ".join(sorted(name for name, _ in services))
+        caps = [float(flags.get("gpu_memory_gib", 0)) for _, flags in services]
+        for (name, _), cap in zip(services, caps):
+            if cap <= 0:
+                problems.append(f"{name}: shares GPU {gpu} ({names}) without a --gpu_memory_gib cap")
+        total = sum(caps) + CONTEXT_GIB * len(services)
+        if all(c > 0 for c in caps) and total > SHARED_CARD_GIB:
+            problems.append(f"GPU {gpu} ({names}): caps and contexts add up to {total:.1f} GiB, more than a "
+                            f"24 GB card's {SHARED_CARD_GIB} GiB")
+    return problems
+
+
 def check_shared_data(config):
     """Trainers that share a data volume must share a PostgreSQL job store (SQLite has one owner)."""
     by_volume = {}
@@ -133,7 +168,7 @@ def check_ports(config):
 
 
 def check_config(config):
-    problems = check_workers(config) + check_shared_data(config) + check_ports(config)
+    problems = check_workers(config) + check_shared_data(config) + check_ports(config) + check_shared_gpus(config)
     for name, s, prog, flags in gaps_services(config):
         problems += check_service(name, s, prog, flags)
     if not any(prog == "gaps-trainer" for _, _, prog, _ in gaps_services(config)):

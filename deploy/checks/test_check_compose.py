@@ -8,13 +8,13 @@ import unittest
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import check_compose as cc  # noqa: E402
 
-GPU = {"resources": {"reservations": {"devices": [{"driver": "nvidia", "capabilities": ["gpu"]}]}}}
+GPU = {"resources": {"reservations": {"devices": [{"driver": "nvidia", "device_ids": ["0"], "capabilities": ["gpu"]}]}}}
 
 
 def trainer(port):
     return {
         "command": ["gaps-trainer", "--listen=0.0.0.0:50051", "--device=cuda", "--tls_cert=/run/secrets/tls_cert",
-                    "--tryfromenv=workers,job_store"],
+                    "--gpu_memory_gib=4", "--tryfromenv=workers,job_store"],
         "environment": {"FLAGS_workers": "worker:50052", "GAPS_HEALTH_ADDRESS": "127.0.0.1:50051",
                         "GAPS_HEALTH_TLS_CA": "/run/secrets/tls_ca"},
         "secrets": [{"source": "tls_cert"}, {"source": "tls_ca"}],
@@ -29,7 +29,7 @@ def trainer(port):
 
 def good():
     return {"services": {
-        "worker": {"command": ["gaps-worker", "--listen=0.0.0.0:50052", "--device=cuda"],
+        "worker": {"command": ["gaps-worker", "--listen=0.0.0.0:50052", "--device=cuda", "--gpu_memory_gib=17"],
                    "environment": {"GAPS_HEALTH_ADDRESS": "127.0.0.1:50052"},
                    "healthcheck": {"test": ["CMD", "gaps-health-check"]}, "deploy": copy.deepcopy(GPU)},
         "trainer": trainer(50051),
@@ -47,6 +47,23 @@ class ChecksTest(unittest.TestCase):
 
     def test_good_configuration_passes(self):
         self.assertEqual(cc.check_config(good()), [])
+
+    def test_services_sharing_a_gpu_must_cap_their_memory_to_fit_a_24_gb_card(self):
+        def uncap(services):
+            services["worker"]["command"].remove("--gpu_memory_gib=17")
+        self.assertFault(uncap, "worker", "without a --gpu_memory_gib cap")
+
+        def overcommit(services):
+            services["worker"]["command"][-1] = "--gpu_memory_gib=19"
+        self.assertFault(overcommit, "caps and contexts add up to 24.0 GiB")
+
+        def separate(services):  # a GPU each: no cap needed
+            services["worker"]["command"].remove("--gpu_memory_gib=17")
+            services["worker"]["deploy"]["resources"]["reservations"]["devices"][0]["device_ids"] = ["1"]
+            services["trainer"]["deploy"]["resources"]["reservations"]["devices"][0]["device_ids"] = ["0"]
+        config = good()
+        separate(config["services"])
+        self.assertEqual(cc.check_config(config), [])
 
     def test_worker_address(self):
         self.assertFault(lambda s: s["trainer"]["environment"].update(FLAGS_workers="wrker:50052"),
@@ -79,6 +96,7 @@ class ChecksTest(unittest.TestCase):
 
         def scale_out(s):
             s["trainer-2"] = trainer(50061)
+            s["trainer-2"]["deploy"]["resources"]["reservations"]["devices"][0]["device_ids"] = ["1"]
             for t in ("trainer", "trainer-2"):
                 s[t]["environment"]["FLAGS_job_store"] = "postgresql://gaps@postgres:5432/gaps"
 

@@ -36,7 +36,7 @@ gaps::cli::CommandSpec command() {
       "(reproject, or sdxl with its weights; see diffusion_worker/README.md). SIGTERM/SIGINT stop it.";
   spec.groups = {
       {"service", {"listen", "max_batch", "queue_capacity", "max_request_mb"}},
-      {"backend", {"backend", "backend_options", "device"}},
+      {"backend", {"backend", "backend_options", "device", "gpu_memory_gib"}},
       {"security", gaps::rpc::security_flag_names()},
   };
   spec.epilogue = gaps::cli::exit_code_table();
@@ -93,6 +93,8 @@ int serve() {
   if (!error.empty()) return usage(error);
   absl::StatusOr<gaps::rpc::ServiceSecurity> security = gaps::rpc::service_security_from_flags();
   if (!security.ok()) return fail(security.status());
+  // Before the weights load: the cap must hold from the first allocation.
+  if (absl::Status st = gaps::rpc::apply_gpu_memory_cap(device); !st.ok()) return fail(st);
   auto generator = gaps::make_generator(backend, backend_options);
   if (!generator.ok()) {
     // Option values are the user's to fix; otherwise the backend's files (weights) are at fault.
