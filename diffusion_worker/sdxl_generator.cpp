@@ -1,5 +1,6 @@
 #include "diffusion_worker/sdxl_generator.h"
 
+#include <chrono>
 #include <cmath>
 #include <map>
 #include <optional>
@@ -273,8 +274,17 @@ absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views, 
   return pipeline_->lora()->save(options_.lora_save);
 }
 
+namespace {
+
+double seconds_since(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
 absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vector<GenerationRequest>& requests) {
   notes_.clear();
+  stage_seconds_.clear();
   std::vector<at::Tensor> results(requests.size());
   // Requests of one size and step count share a batch.
   std::map<std::tuple<int64_t, int64_t, int64_t>, std::vector<size_t>> groups;
@@ -317,6 +327,8 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
     }
     groups[{rgb.size(0), rgb.size(1), run_steps}].push_back(i);
   }
+  // The pipelines return CPU tensors, so the wall clock includes the device's work.
+  const auto img2img_start = std::chrono::steady_clock::now();
   for (const auto& [key, members] : groups) {
     const auto [height, width, run_steps] = key;
     const int64_t padded_h = (height + f - 1) / f * f, padded_w = (width + f - 1) / f * f;
@@ -362,7 +374,14 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       }
     }
   }
-  if (!options_.inpaint.empty()) GAPS_RETURN_IF_ERROR(inpaint_uncovered(requests, results));
+  stage_seconds_["img2img"] = seconds_since(img2img_start);
+  if (!options_.inpaint.empty()) {
+    const auto inpaint_start = std::chrono::steady_clock::now();
+    GAPS_RETURN_IF_ERROR(inpaint_uncovered(requests, results));
+    // Loading SD2 on first need is its own stage (inpaint_pipeline()), not inpainting time.
+    const auto load = stage_seconds_.find("inpaint_load");
+    stage_seconds_["inpaint"] = seconds_since(inpaint_start) - (load == stage_seconds_.end() ? 0.0 : load->second);
+  }
   if (options_.ip_adapter.empty()) {
     if (auto note =
             unapplied_ip_adapter_note("sdxl has no IP-Adapter loaded (options ip_adapter, image_encoder)", requests))
@@ -375,6 +394,7 @@ absl::StatusOr<sdxl::InpaintPipeline*> SdxlGenerator::inpaint_pipeline() {
   if (inpaint_) return inpaint_.get();
   // dtype and device were checked by create().
   GAPS_ASSIGN_OR_RETURN(const at::ScalarType dtype, parse_dtype(options_.dtype));
+  const auto load_start = std::chrono::steady_clock::now();
   auto pipeline = sdxl::InpaintPipeline::load(
       options_.inpaint,
       sdxl::InpaintPipelineOptions{dtype, at::Device(options_.device), options_.inpaint_scheduler, options_.variant});
@@ -384,6 +404,7 @@ absl::StatusOr<sdxl::InpaintPipeline*> SdxlGenerator::inpaint_pipeline() {
                                      " is not a usable inpainting model: ", pipeline.status().message()));
   }
   inpaint_ = *std::move(pipeline);
+  stage_seconds_["inpaint_load"] = seconds_since(load_start);
   return inpaint_.get();
 }
 

@@ -8,6 +8,7 @@
 // (two-stage generation). A job's controls win over the options of the same name, which serve callers that
 // send none.
 #include <limits>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -106,6 +107,7 @@ class SdxlGenerator final : public Generator {
   // one, requests asking for an image prompt get a note.
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
   std::vector<std::string> notes() const override { return notes_; }
+  std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
   // What is loaded: the SDXL folder and each optional component given (the inpainting model marked
   // "loaded" or "on first need").
   std::string weights_identity() const override;
@@ -127,7 +129,8 @@ class SdxlGenerator final : public Generator {
   absl::StatusOr<sdxl::InpaintPipeline*> inpaint_pipeline();
   absl::Status inpaint_uncovered(const std::vector<GenerationRequest>& requests, std::vector<at::Tensor>& results);
   std::unique_ptr<sdxl::InpaintPipeline> inpaint_;
-  std::vector<std::string> notes_;  // of the last adapt() or generate()
+  std::vector<std::string> notes_;               // of the last adapt() or generate()
+  std::map<std::string, double> stage_seconds_;  // of the last generate()
 };
 
 }  // namespace gaps

@@ -52,6 +52,7 @@ class TimedGenerator : public Generator {
                      const std::optional<SceneAdaptation>& adaptation) override;
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
   std::vector<std::string> notes() const override { return inner_->notes(); }
+  std::map<std::string, double> stage_seconds() const override { return inner_->stage_seconds(); }
   double seconds() const { return seconds_; }
 
  private:

@@ -4,6 +4,7 @@
 #include <netdb.h>
 
 #include <algorithm>
+#include <chrono>
 #include <set>
 
 #include <thread>
@@ -167,6 +168,7 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
+  const auto start = std::chrono::steady_clock::now();
   auto stream = w.stub->AdaptScene(&context);
   rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
   stream->WritesDone();
@@ -180,6 +182,7 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " AdaptScene"));
   if (handle.empty()) return absl::InternalError(absl::StrCat(w.address, " AdaptScene returned no scene handle"));
   notes->insert(notes->end(), adapt_notes.begin(), adapt_notes.end());
+  attempt_stages_["adapt_scene"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   w.scene_handle = handle;
   w.adapted_version = views_version_;
   return absl::OkStatus();
@@ -190,6 +193,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
+  const auto start = std::chrono::steady_clock::now();
   auto stream = w.stub->Generate(&context);
   v1::GenerateBatch with_handle;
   const v1::GenerateBatch* to_send = &batch;
@@ -217,6 +221,10 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
     images.push_back(std::move(image));
   }
   add_worker_notes(w.address, result.notes(), notes);
+  for (const auto& [stage, seconds] : result.stage_seconds()) attempt_stages_[stage] += seconds;
+  attempt_stages_["worker_generate"] += result.backend_seconds();
+  attempt_stages_["transfer"] +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() - result.backend_seconds();
   return images;
 }
 
@@ -236,6 +244,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::adapt_and_generate_on(W
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vector<GenerationRequest>& requests) {
   notes_.clear();
+  stage_seconds_.clear();
   if (requests.empty()) return std::vector<at::Tensor>{};
   v1::GenerateBatch batch;
   rpc::encode_generation_batch(requests, &batch);
@@ -245,10 +254,12 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
       Worker& w = *workers_[(next_ + k) % workers_.size()];
       if (!usable(w)) continue;
       std::vector<std::string> notes;  // of this worker only: a failed one's are not this call's
+      attempt_stages_.clear();
       auto images = adapt_and_generate_on(w, batch, requests.size(), &notes);
       if (images.ok()) {
         next_ = (next_ + k + 1) % workers_.size();
         notes_ = std::move(notes);
+        stage_seconds_ = attempt_stages_;
         return images;
       }
       const absl::Status st = images.status();

@@ -4,6 +4,7 @@
 // exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
 // return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps/training.h).
 #include <chrono>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -53,6 +54,10 @@ class RemoteGenerator final : public Generator {
   // After generate(): the answering worker's notes, "<address>: <note>", those of its adaptation (when this
   // call adapted it) first.
   std::vector<std::string> notes() const override { return notes_; }
+  // After generate(): "adapt_scene" (the AdaptScene call, LoRA training included, when this call adapted the
+  // worker), "worker_generate" (the backend's own seconds), "transfer" (the rest of the Generate call) and the
+  // backend's stages (GenerateResult.stage_seconds) of the answering worker.
+  std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
 
  private:
   struct Worker;
@@ -77,6 +82,8 @@ class RemoteGenerator final : public Generator {
   std::optional<SceneAdaptation> adaptation_;
   uint64_t views_version_ = 0;
   std::vector<std::string> notes_;
+  std::map<std::string, double> stage_seconds_;
+  std::map<std::string, double> attempt_stages_;  // of the worker being tried (generate() is not reentrant)
   mutable std::mutex name_mutex_;
   std::string backend_version_;
 };

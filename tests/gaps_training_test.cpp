@@ -50,6 +50,7 @@ class EchoGenerator : public Generator {
     return out;
   }
   std::vector<std::string> notes() const override { return last_notes; }
+  std::map<std::string, double> stage_seconds() const override { return {{"echo", 0.25 * calls}}; }
   int calls = 0;
   int adapted_views = 0;
   std::optional<SceneAdaptation> adaptation;
@@ -116,6 +117,25 @@ TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   }
   EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "pseudo_views" / "phase_00"));
   EXPECT_EQ(read_json(dir_ / "out" / "metrics.json")["variant"], "full");
+}
+
+// Each phase says where its time went: the sections in the order they run, the generator's own stages as it
+// reported them; the adaptation belongs to the first phase only.
+TEST_F(GapsTrainingTest, PhasesRecordTheirTimeBySectionAndTheGeneratorsStages) {
+  EchoGenerator gen(0.05);
+  auto r = run_pipeline(options(Variant::kFull, &gen), nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const auto& seconds = phases[k]["seconds"];
+    for (const char* section : {"references", "scoring", "renders", "generation", "admission"}) {
+      ASSERT_TRUE(seconds.contains(section)) << k << " " << section << " " << seconds;
+      EXPECT_GE(seconds[section].get<double>(), 0.0);
+    }
+    EXPECT_EQ(seconds.contains("adaptation"), k == 0) << seconds;
+    EXPECT_DOUBLE_EQ(phases[k]["generator_stages"]["echo"].get<double>(), 0.25 * (k + 1));
+  }
 }
 
 // What the generator could not honour goes into each phase's entry (the adaptation's into the first phase's

@@ -591,6 +591,30 @@ TEST(WorkerPool, AWorkerRestartedBetweenCallsIsAdaptedAgain) {
   EXPECT_TRUE(images.ok()) << images.status();
 }
 
+// The pool reports where a call's time went: the AdaptScene call when this call adapted the worker, the
+// backend's seconds and the transfer around them.
+TEST(WorkerPool, GenerateReportsTheAdaptationAndTheWorkersSecondsByStage) {
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  auto generator = make_generator("reproject", "");
+  ASSERT_TRUE(generator.ok());
+  RunningWorker worker(std::move(*generator), options);
+  auto remote = pool({worker.address()});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+  const std::map<std::string, double> first = (*remote)->stage_seconds();
+  for (const char* stage : {"adapt_scene", "worker_generate", "transfer"}) {
+    ASSERT_EQ(first.count(stage), 1u) << stage;
+    EXPECT_GE(first.at(stage), 0.0) << stage;
+  }
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+  const std::map<std::string, double> second = (*remote)->stage_seconds();
+  EXPECT_EQ(second.count("adapt_scene"), 0u) << "adapted once, by the first call";
+  EXPECT_EQ(second.count("worker_generate"), 1u);
+}
+
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).
 using JobStoreTest = test::TempDirTest;
 

@@ -183,12 +183,14 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   if (!images.ok()) return rpc::to_grpc(images.status());
   // Re-adapting above repeats what this scene's AdaptScene already reported; only generate()'s notes are new.
   const std::vector<std::string> notes = generator_->notes();
+  const std::map<std::string, double> stages = generator_->stage_seconds();
   turn.reset();
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "caller gave up during generation");
   v1::GenerateResult result;
   result.set_backend_seconds(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
   for (const auto& image : *images) rpc::encode_raw(image, result.add_images());
   for (const std::string& note : notes) result.add_notes(note);
+  result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
   if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))
     return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
   return grpc::Status::OK;

@@ -4,6 +4,7 @@
 // remote worker client implement this alike, so the trainer never knows where images come from.
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <optional>
 #include <string>
 #include <vector>
@@ -98,6 +99,9 @@ class Generator {
   // no model for, an option that overrides the request), one sentence each; empty when it did everything.
   // A backend says so rather than ignoring a control silently; the trainer logs the notes with the phase.
   virtual std::vector<std::string> notes() const { return {}; }
+  // Wall-clock seconds by stage of the last generate() call (for a remote backend, the scene adaptation it
+  // ran first too), for the phases' time breakdown; empty for a backend without stages.
+  virtual std::map<std::string, double> stage_seconds() const { return {}; }
 };
 
 // The note of a backend without an IP-Adapter (`reason`, e.g. "reproject has no IP-Adapter") for the

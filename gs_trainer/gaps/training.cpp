@@ -1,6 +1,7 @@
 #include "gs_trainer/gaps/training.h"
 
 #include <algorithm>
+#include <chrono>
 #include <numeric>
 
 #include <ATen/ATen.h>
@@ -123,6 +124,16 @@ absl::Status GapsTraining::run_phase(int phase) {
 
 namespace {
 
+// Adds the seconds since *start to entry["seconds"][section] and restarts the clock: the phase's time
+// breakdown (renders and scores reach the host before the next section starts, so GPU work is included).
+void lap(nlohmann::json& entry, const char* section, std::chrono::steady_clock::time_point* start) {
+  const auto now = std::chrono::steady_clock::now();
+  nlohmann::json& seconds = entry["seconds"];
+  if (!seconds.is_object()) seconds = nlohmann::json::object();
+  seconds[section] = seconds.value(section, 0.0) + std::chrono::duration<double>(now - *start).count();
+  *start = now;
+}
+
 // What the generator's last call could not honour of the job's controls, kept with the phase.
 void record_generator_notes(const Generator& generator, nlohmann::json& entry) {
   for (const std::string& note : generator.notes()) entry["generator_notes"].push_back(note);
@@ -134,14 +145,17 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
   const GaussianModel& model = trainer_.model();
   const int t = trainer_.iteration(), T = trainer_.config().iterations;
 
+  auto clock = std::chrono::steady_clock::now();
   // The model's current renders at the GT poses: the references carry them (depth for warping).
   gt_renders_.clear();
   for (const auto& v : gt_views_) {
     const RenderOutput r = render(model, v.camera);
     gt_renders_.push_back({v.camera, v.image.cpu(), r.depth.cpu(), r.alpha.cpu()});
   }
+  lap(entry, "references", &clock);
   if (!adapted_) {
     GAPS_RETURN_IF_ERROR(generator_->adapt(gt_renders_, scene_adaptation(config_)));
+    lap(entry, "adaptation", &clock);
     record_generator_notes(*generator_, entry);
     adapted_ = true;
   }
@@ -170,6 +184,7 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
                                      {"score", s.score}});
     }
     for (int k : select_for_phase(pool, scores, phase, config_)) chosen.push_back(pool[k]);
+    lap(entry, "scoring", &clock);
   }
   return generate_and_admit(chosen, variant_ != Variant::kNoGaps, entry);
 }
@@ -183,6 +198,7 @@ absl::Status GapsTraining::save_for_inspection(int phase, int id, bool admitted,
 
 absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry) {
   const GaussianModel& model = trainer_.model();
+  auto clock = std::chrono::steady_clock::now();
   std::vector<GenerationRequest> requests;
   std::vector<RenderOutput> renders;
   for (const auto& c : chosen) {
@@ -202,8 +218,11 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     requests.push_back(std::move(q));
     renders.push_back(std::move(r));
   }
+  lap(entry, "renders", &clock);
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
+  lap(entry, "generation", &clock);
   record_generator_notes(*generator_, entry);
+  for (const auto& [stage, seconds] : generator_->stage_seconds()) entry["generator_stages"][stage] = seconds;
   if (images.size() != requests.size())
     return absl::InternalError(absl::StrCat("generator ", generator_->name(), " returned ", images.size(),
                                             " images for ", requests.size(), " requests"));
@@ -240,6 +259,7 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
           : std::accumulate(admitted_variances.begin(), admitted_variances.end(), 0.0) / admitted_variances.size();
   // The tier follows the admitted views alone (sec. 3.4), unlike C_hist, which also remembers the rejected.
   if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
+  lap(entry, "admission", &clock);
   return absl::OkStatus();
 }
 

@@ -2,7 +2,9 @@
 // a job of the method submitted through the client, at least one pseudo-view generated and admitted, and the
 // finished model rendered on the GPU through RenderView (as `gaps render --job` does).
 #include <fstream>
+#include <memory>
 #include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
@@ -20,56 +22,85 @@ namespace {
 
 using test::Process;
 
-struct ServicesOnCuda : test::TempDirTest {};
+struct FinishedJob {
+  std::string id;
+  v1::JobStatus status;
+  int phases = 0, skipped = 0, admitted = 0;
+};
+
+struct ServicesOnCuda : test::TempDirTest {
+  // Starts the worker with `worker_flags` and a trainer on cuda with `trainer_flags`, and runs a job of the
+  // method on a small synthetic scene through the client to its end.
+  void run_full_job(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags,
+                    const nlohmann::json& gaps_fields, FinishedJob* finished) {
+    std::vector<std::string> worker_args = {GAPS_WORKER_BIN, "--listen", "127.0.0.1:0"};
+    worker_args.insert(worker_args.end(), worker_flags.begin(), worker_flags.end());
+    worker_ = std::make_unique<Process>(worker_args, dir_ / "worker.log");
+    const int worker_port = worker_->wait_for_port();
+    ASSERT_GT(worker_port, 0) << worker_->log_text();
+    std::vector<std::string> trainer_args = {GAPS_TRAINER_BIN,
+                                             "--listen",
+                                             "127.0.0.1:0",
+                                             "--data_dir",
+                                             (dir_ / "data").string(),
+                                             "--device",
+                                             "cuda",
+                                             "--workers",
+                                             "127.0.0.1:" + std::to_string(worker_port)};
+    trainer_args.insert(trainer_args.end(), trainer_flags.begin(), trainer_flags.end());
+    trainer_ = std::make_unique<Process>(trainer_args, dir_ / "trainer.log");
+    const int trainer_port = trainer_->wait_for_port();
+    ASSERT_GT(trainer_port, 0) << trainer_->log_text();
+
+    SyntheticSceneOptions scene_options;
+    scene_options.images = 9;
+    scene_options.width = 96;
+    scene_options.height = 72;
+    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", scene_options).ok());
+    auto scene = client::prepare_scene(dir_ / "scene", 1);
+    ASSERT_TRUE(scene.ok()) << scene.status();
+    v1::JobSpec spec;
+    spec.set_name("cuda");
+    spec.mutable_config()->set_views(3);
+    spec.mutable_config()->set_init("random");
+    spec.mutable_config()->set_random_points(3000);
+    spec.mutable_config()->set_variant("full");
+    ASSERT_TRUE(
+        rpc::set_fields({{"iterations", 300}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
+    nlohmann::json fields = {{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 4}};
+    fields.update(gaps_fields);
+    ASSERT_TRUE(rpc::set_fields(fields, spec.mutable_config()->mutable_gaps()).ok());
+    auto client = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {});
+    ASSERT_TRUE(client.ok()) << client.status();
+    client_ = std::make_unique<client::TrainerClient>(std::move(*client));
+    auto job = client_->submit(spec, *scene);
+    ASSERT_TRUE(job.ok()) << job.status();
+    finished->id = *job;
+    auto status = client_->watch(*job, [&](const v1::JobEvent& e) {
+      if (!e.has_phase_finished()) return;
+      ++finished->phases;
+      finished->skipped += e.phase_finished().skipped();
+      finished->admitted += e.phase_finished().admitted();
+    });
+    ASSERT_TRUE(status.ok()) << status.status() << "\n" << trainer_->log_text();
+    finished->status = *status;
+    auto files = client_->fetch(*job, dir_ / "fetched");
+    ASSERT_TRUE(files.ok()) << files.status();
+  }
+
+  std::unique_ptr<Process> worker_, trainer_;
+  std::unique_ptr<client::TrainerClient> client_;
+};
 
 TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
   GAPS_REQUIRE_CUDA();
-  Process worker({GAPS_WORKER_BIN, "--listen", "127.0.0.1:0", "--backend", "reproject", "--device", "cuda"},
-                 dir_ / "worker.log");
-  const int worker_port = worker.wait_for_port();
-  ASSERT_GT(worker_port, 0) << worker.log_text();
-  Process trainer({GAPS_TRAINER_BIN, "--listen", "127.0.0.1:0", "--data_dir", (dir_ / "data").string(), "--device",
-                   "cuda", "--workers", "127.0.0.1:" + std::to_string(worker_port)},
-                  dir_ / "trainer.log");
-  const int trainer_port = trainer.wait_for_port();
-  ASSERT_GT(trainer_port, 0) << trainer.log_text();
-
-  SyntheticSceneOptions scene_options;
-  scene_options.images = 9;
-  scene_options.width = 96;
-  scene_options.height = 72;
-  ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", scene_options).ok());
-  auto scene = client::prepare_scene(dir_ / "scene", 1);
-  ASSERT_TRUE(scene.ok()) << scene.status();
-  v1::JobSpec spec;
-  spec.set_name("cuda");
-  spec.mutable_config()->set_views(3);
-  spec.mutable_config()->set_init("random");
-  spec.mutable_config()->set_random_points(3000);
-  spec.mutable_config()->set_variant("full");
-  ASSERT_TRUE(
-      rpc::set_fields({{"iterations", 300}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
-  ASSERT_TRUE(rpc::set_fields({{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 4}},
-                              spec.mutable_config()->mutable_gaps())
-                  .ok());
-  auto client = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {});
-  ASSERT_TRUE(client.ok()) << client.status();
-  auto job = client->submit(spec, *scene);
-  ASSERT_TRUE(job.ok()) << job.status();
-  int phases = 0, skipped = 0, admitted = 0;
-  auto status = client->watch(*job, [&](const v1::JobEvent& e) {
-    if (!e.has_phase_finished()) return;
-    ++phases;
-    skipped += e.phase_finished().skipped();
-    admitted += e.phase_finished().admitted();
-  });
-  ASSERT_TRUE(status.ok()) << status.status() << "\n" << trainer.log_text();
-  EXPECT_EQ(status->state(), v1::SUCCEEDED) << status->error() << "\n" << trainer.log_text();
-  EXPECT_EQ(phases, 2);
-  EXPECT_EQ(skipped, 0) << worker.log_text();
-  EXPECT_GE(admitted, 1);
-  auto files = client->fetch(*job, dir_ / "fetched");
-  ASSERT_TRUE(files.ok()) << files.status();
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(
+      run_full_job({"--backend", "reproject", "--device", "cuda"}, {}, nlohmann::json::object(), &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  EXPECT_EQ(job.phases, 2);
+  EXPECT_EQ(job.skipped, 0) << worker_->log_text();
+  EXPECT_GE(job.admitted, 1);
   std::ifstream metrics_file(dir_ / "fetched" / "metrics.json");
   const nlohmann::json metrics = nlohmann::json::parse(metrics_file);
   EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
@@ -77,12 +108,12 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
 
   // RenderView on the trainer's GPU gives the job's own test renders (renders/, also made on the GPU), frame
   // after frame from the model the service keeps.
-  auto cameras = client->job_cameras(*job);
+  auto cameras = client_->job_cameras(job.id);
   ASSERT_TRUE(cameras.ok()) << cameras.status();
   ASSERT_GT(cameras->test_size(), 0);
   for (int repeat = 0; repeat < 2; ++repeat) {
     for (const v1::Camera& camera : cameras->test()) {
-      auto rendered = client->render(*job, camera);
+      auto rendered = client_->render(job.id, camera);
       ASSERT_TRUE(rendered.ok()) << rendered.status();
       auto saved = read_image(dir_ / "fetched" / "renders" / camera.name());
       ASSERT_TRUE(saved.ok()) << saved.status();
@@ -90,6 +121,45 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
       EXPECT_GT(rendered->std().item<float>(), 0.01f) << camera.name();
     }
   }
+}
+
+// The sdxl backend as users run it on a card shared with the trainer: both processes with --gpu-memory-gib
+// caps, the worker in fp16 with every component of the method (ControlNet depth, IP-Adapter, LoRA scene
+// adaptation, SD2 inpainting, Depth-Anything) on the tiny random models; the phases record where their time
+// went, the LoRA training (AdaptScene) and img2img among it.
+TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
+  GAPS_REQUIRE_CUDA();
+  const std::string fixtures = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/";
+  const nlohmann::json options = {
+      {"weights", fixtures + "sdxl_tiny/model"},
+      {"dtype", "float16"},
+      {"steps", 4},
+      {"controlnet", fixtures + "sdxl_controlnet_tiny/controlnet"},
+      {"ip_adapter", fixtures + "ip_adapter_tiny/ip_adapter.safetensors"},
+      {"image_encoder", fixtures + "ip_adapter_tiny/image_encoder"},
+      {"inpaint", fixtures + "sd2_inpaint_tiny/model"},
+      {"inpaint_steps", 2},
+      {"depth_anything", fixtures + "depth_anything_tiny/model"},
+  };
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(run_full_job(
+      {"--backend", "sdxl", "--device", "cuda", "--gpu-memory-gib", "3", "--backend-options", options.dump()},
+      {"--gpu-memory-gib", "2"},
+      // Every view inpainted: the second stage runs in each phase.
+      {{"lora_steps", 3}, {"inpaint_uncovered_fraction", 0.0}}, &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  EXPECT_EQ(job.phases, 2);
+  EXPECT_EQ(job.skipped, 0) << worker_->log_text();
+  const nlohmann::json phases = test::read_json(dir_ / "fetched" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const nlohmann::json& stages = phases[k]["generator_stages"];
+    for (const char* stage : {"img2img", "inpaint", "worker_generate", "transfer"})
+      EXPECT_TRUE(stages.contains(stage)) << k << " " << stage << " " << stages;
+    EXPECT_EQ(stages.contains("adapt_scene"), k == 0) << stages;
+    EXPECT_GT(phases[k]["seconds"]["generation"].get<double>(), 0.0);
+  }
+  EXPECT_EQ(test::read_json(dir_ / "fetched" / "metrics.json")["peak_memory"]["kind"], "cuda_allocator");
 }
 
 }  // namespace
