@@ -1,0 +1,254 @@
+#!/usr/bin/env python3
+"""The design's two placements of the services, end to end with the whole sdxl stack (random full-size weights).
+
+Starts `gaps-worker` and `gaps-trainer` as a user would, submits one scene through `gaps submit`, follows it with
+`gaps watch`, fetches the results with `gaps fetch`, and records per case: the GPU memory the driver reports per
+process and per GPU (sampled with nvidia-smi, not only the caching allocators), the job's wall time, the trainer's
+training time and allocator peak (metrics.json), and where each diffusion phase's time went (phases.json: the
+trainer's sections and the generator's stages: AdaptScene with the LoRA training, img2img, SD2 inpainting and
+its first load, transfer). Cases (--cases, in order):
+
+  reproject        the weight-free backend (worker on the CPU), trainer on GPU 0: the method's time without SDXL
+  one-card         trainer and sdxl worker on GPU 0, each allocator capped (--trainer_gib, --worker_gib) so that
+                   the pair must fit a 24 GB card (--card_gib): the run proves the fit instead of assuming it
+  two-gpus         trainer on GPU 0, sdxl worker on GPU 1, uncapped
+  weights          nothing but writing the weights
+
+The weights (SDXL base from `generator_bench --write_model`; ControlNet depth, IP-Adapter + ViT-H image encoder,
+SD2 inpainting, Depth-Anything from `make_random_generator_weights.py`, which needs diffusers) are written into
+WORK once and reused. Random weights make the pseudo-views meaningless: admission may reject them; phases count
+as run. One JSON line per case goes to --out.
+
+  python3 bench/placements_bench.py --build build --scene ../shared/data/llff/fern --work /tmp/placements \
+      --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus]
+"""
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+GIB = 1 << 30
+
+
+def run(cmd, **kwargs):
+    print("+", " ".join(str(c) for c in cmd), flush=True)
+    return subprocess.run([str(c) for c in cmd], check=True, **kwargs)
+
+
+def ensure_weights(build, work, python):
+    sdxl, components = work / "sdxl", work / "components"
+    if not (sdxl / "model_index.json").exists():
+        run([build / "bench" / "generator_bench", "--sdxl_dir", sdxl, "--write_model", "--write_only"])
+    if not (components / "done.json").exists():
+        run([python, REPO / "bench" / "make_random_generator_weights.py", "--sdxl_dir", sdxl, "--out", components])
+    return {
+        "weights": str(sdxl),
+        "dtype": "float16",
+        "controlnet": str(components / "controlnet"),
+        "ip_adapter": str(components / "ip_adapter" / "ip-adapter_sdxl_vit-h.safetensors"),
+        "image_encoder": str(components / "ip_adapter" / "image_encoder"),
+        "inpaint": str(components / "sd2_inpaint"),
+        "depth_anything": str(components / "depth_anything"),
+        "prompt": "a photograph of the scene",
+    }
+
+
+class GpuMemorySampler:
+    """Peak used memory per GPU and per process as the driver reports it (nvidia-smi), every `period` s."""
+
+    def __init__(self, period=0.2):
+        self.period = period
+        self.gpu_peak_mib, self.gpu_base_mib, self.pid_peak_mib = {}, {}, {}
+        self._stop = threading.Event()
+        self.gpu_base_mib = self._gpus()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+
+    @staticmethod
+    def _query(args):
+        out = subprocess.run(["nvidia-smi", *args, "--format=csv,noheader,nounits"], capture_output=True, text=True)
+        return [line.split(", ") for line in out.stdout.strip().splitlines() if line.strip()]
+
+    def _gpus(self):
+        return {int(i): float(m) for i, m in self._query(["--query-gpu=index,memory.used"])}
+
+    def _loop(self):
+        while not self._stop.is_set():
+            for gpu, mib in self._gpus().items():
+                self.gpu_peak_mib[gpu] = max(self.gpu_peak_mib.get(gpu, 0.0), mib)
+            for row in self._query(["--query-compute-apps=pid,used_memory"]):
+                if len(row) == 2 and row[1].strip().isdigit():
+                    pid = int(row[0])
+                    self.pid_peak_mib[pid] = max(self.pid_peak_mib.get(pid, 0.0), float(row[1]))
+            self._stop.wait(self.period)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+
+class Service:
+    """A service process whose log goes to a file; the port it prints once it listens is read back."""
+
+    def __init__(self, name, cmd, log_path, env):
+        self.name, self.log_path = name, log_path
+        print("+", " ".join(cmd), flush=True)
+        self.log = open(log_path, "w")
+        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT, env=env)
+
+    def wait_for_port(self, timeout):
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            match = re.search(r"on port (\d+)", self.log_path.read_text())
+            if match:
+                return int(match.group(1))
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.5)
+        raise RuntimeError(f"{self.name} did not start:\n{self.log_path.read_text()[-3000:]}")
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        self.log.close()
+
+
+def phase_breakdown(phases):
+    """Sums of the phases' sections and generator stages, and the admission counts."""
+    sections, stages = {}, {}
+    admitted = rejected = skipped = 0
+    for p in phases:
+        for key, value in p.get("seconds", {}).items():
+            sections[key] = sections.get(key, 0.0) + value
+        for key, value in p.get("generator_stages", {}).items():
+            stages[key] = stages.get(key, 0.0) + value
+        skipped += bool(p.get("skipped"))
+        for s in p.get("selection", []):
+            admitted += bool(s.get("admitted"))
+            rejected += not s.get("admitted")
+    return {"phases": len(phases), "phases_skipped": skipped, "pseudo_views_admitted": admitted,
+            "pseudo_views_rejected": rejected, "phase_seconds": {k: round(v, 3) for k, v in sections.items()},
+            "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}}
+
+
+def run_case(case, args, backend_options, env):
+    gaps = args.build / "client" / "gaps"
+    work = args.work / case
+    work.mkdir(parents=True, exist_ok=True)
+    if case == "reproject":
+        worker_cmd = ["--backend", "reproject"]
+        trainer_device, worker_gpu, caps = "cuda:0", None, (0.0, 0.0)
+    elif case == "one-card":
+        worker_cmd = ["--backend", "sdxl", "--device", "cuda:0", "--backend_options", json.dumps(backend_options)]
+        trainer_device, worker_gpu, caps = "cuda:0", 0, (args.trainer_gib, args.worker_gib)
+    elif case == "two-gpus":
+        worker_cmd = ["--backend", "sdxl", "--device", "cuda:1", "--backend_options", json.dumps(backend_options)]
+        trainer_device, worker_gpu, caps = "cuda:0", 1, (0.0, 0.0)
+    else:
+        raise SystemExit(f"unknown case {case} (reproject, one-card, two-gpus)")
+
+    with GpuMemorySampler() as sampler:
+        start = time.time()
+        worker = Service("gaps-worker", [str(args.build / "diffusion_worker" / "service" / "gaps-worker"), "--listen",
+                                         "127.0.0.1:0", "--gpu_memory_gib", str(caps[1]), *worker_cmd],
+                         work / "worker.log", env)
+        trainer = None
+        try:
+            worker_port = worker.wait_for_port(600)
+            worker_ready = time.time() - start
+            trainer = Service("gaps-trainer", [str(args.build / "server" / "gaps-trainer"), "--listen", "127.0.0.1:0",
+                                               "--data_dir", str(work / "data"), "--device", trainer_device,
+                                               "--gpu_memory_gib", str(caps[0]),
+                                               "--workers", f"127.0.0.1:{worker_port}"], work / "trainer.log", env)
+            address = f"127.0.0.1:{trainer.wait_for_port(120)}"
+            submitted = time.time()
+            out = run([gaps, "submit", args.scene, "--views", args.views, "-r", args.resolution, "--variant", "full",
+                       "--device", trainer_device, "--trainer", address, *args.submit_flags],
+                      capture_output=True, text=True).stdout
+            job = out.strip().splitlines()[0]
+            watch = subprocess.run([str(gaps), "watch", job, "--quiet", "--trainer", address])
+            job_seconds = time.time() - submitted
+            run([gaps, "fetch", job, "-o", work / "fetched", "--trainer", address], capture_output=True)
+        finally:
+            if trainer:
+                trainer.stop()
+            worker.stop()
+    fetched = work / "fetched"
+    metrics = json.loads((fetched / "metrics.json").read_text()) if (fetched / "metrics.json").exists() else {}
+    phases = json.loads((fetched / "phases.json").read_text()) if (fetched / "phases.json").exists() else []
+    pids = {"trainer": trainer.proc.pid, "worker": worker.proc.pid}
+    per_process = {name: sampler.pid_peak_mib.get(pid) for name, pid in pids.items()}
+    gpus_used = sorted({0} | ({worker_gpu} if worker_gpu is not None else set()))
+    gpu_peak = {g: sampler.gpu_peak_mib.get(g, 0.0) - sampler.gpu_base_mib.get(g, 0.0) for g in gpus_used}
+    row = {
+        "case": case, "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
+        "succeeded": watch.returncode == 0, "job_wall_seconds": round(job_seconds, 2),
+        "worker_start_seconds": round(worker_ready, 2),
+        "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"),
+        "iterations": metrics.get("iterations"), "num_gaussians": metrics.get("num_gaussians"),
+        "trainer_allocator_peak_gib": round(metrics.get("peak_memory", {}).get("bytes", 0) / GIB, 3),
+        "caps_gib": {"trainer": caps[0], "worker": caps[1]},
+        "driver_peak_gib_per_process": {k: (round(v / 1024, 3) if v is not None else None)
+                                        for k, v in per_process.items()},
+        "driver_peak_gib_per_gpu": {str(g): round(v / 1024, 3) for g, v in gpu_peak.items()},
+        **phase_breakdown(phases),
+    }
+    if case == "one-card":
+        row["card_gib"] = args.card_gib
+        row["fits_card"] = gpu_peak[0] / 1024 <= args.card_gib
+    return row
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--build", type=Path, default=REPO / "build")
+    parser.add_argument("--scene", type=Path, default=REPO.parent / "shared" / "data" / "llff" / "fern")
+    parser.add_argument("--views", default="3")
+    parser.add_argument("--resolution", default="8")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/gaps_placements"))
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cases", default="reproject,one-card,two-gpus")
+    parser.add_argument("--trainer_gib", type=float, default=4.0, help="trainer's allocator cap in one-card")
+    parser.add_argument("--worker_gib", type=float, default=17.0, help="worker's allocator cap in one-card")
+    parser.add_argument("--card_gib", type=float, default=23.0,
+                        help="what the pair may use on the shared GPU as the driver counts it (a 24 GB card "
+                             "has 23.99 GiB, some of it the driver's)")
+    parser.add_argument("--python", default=sys.executable, help="Python with diffusers, for the weights")
+    parser.add_argument("--commit", default="")
+    parser.add_argument("--submit_flags", nargs=argparse.REMAINDER, default=[],
+                        help="more `gaps submit` flags, e.g. --iterations 3000 (last on the line)")
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    cases = args.cases.split(",")
+    backend_options = ensure_weights(args.build, args.work, args.python) if cases != ["reproject"] else {}
+    # nvidia-smi numbers GPUs by PCI bus; CUDA's own order may differ unless told.
+    env = dict(os.environ, CUDA_DEVICE_ORDER="PCI_BUS_ID")
+    machine = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip().splitlines()
+    commit = args.commit or subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                                           capture_output=True, text=True).stdout.strip()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for case in cases:
+        if case == "weights":  # only write them (a run split over several sittings)
+            continue
+        row = {"bench": "placements", "commit": commit, "gpus": machine, "cpus": os.cpu_count(),
+               **run_case(case, args, backend_options, env)}
+        print(json.dumps(row), flush=True)
+        with open(args.out, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+
+if __name__ == "__main__":
+    main()
