@@ -4,6 +4,7 @@
 #include <optional>
 
 #include <ATen/Context.h>
+#include <ATen/ops/empty.h>
 #include <c10/core/Device.h>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -62,6 +63,8 @@ absl::Status limit_device_memory(const std::string& device, double gib) {
   if (gib > total_gib)
     return usage_error(
         absl::StrFormat("GPU memory cap %.2f GiB is more than %s has (%.2f GiB)", gib, device, total_gib));
+  // The allocator of a device exists once the device has been used: a first small allocation makes it.
+  (void)at::empty({1}, at::TensorOptions().device(c10::Device(c10::DeviceType::CUDA, index)));
   c10::cuda::CUDACachingAllocator::setMemoryFraction(gib / total_gib, index);
   return absl::OkStatus();
 #else
