@@ -194,7 +194,7 @@ def run_case(case, args, backend_options, env):
     gpus_used = sorted({0} | ({worker_gpu} if worker_gpu is not None else set()))
     gpu_peak = {g: sampler.gpu_peak_mib.get(g, 0.0) - sampler.gpu_base_mib.get(g, 0.0) for g in gpus_used}
     row = {
-        "case": case, "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
+        "case": case, "submit_flags": args.submit_flags, "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
         "succeeded": watch.returncode == 0, "job_wall_seconds": round(job_seconds, 2),
         "worker_start_seconds": round(worker_ready, 2),
         "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"),
@@ -221,7 +221,7 @@ def main():
     parser.add_argument("--work", type=Path, default=Path("/tmp/gaps_placements"))
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cases", default="reproject,one-card,two-gpus")
-    parser.add_argument("--trainer_gib", type=float, default=4.0, help="trainer's allocator cap in one-card")
+    parser.add_argument("--trainer_gib", type=float, default=3.0, help="trainer's allocator cap in one-card")
     parser.add_argument("--worker_gib", type=float, default=17.0, help="worker's allocator cap in one-card")
     parser.add_argument("--card_gib", type=float, default=23.0,
                         help="what the pair may use on the shared GPU as the driver counts it (a 24 GB card "
