@@ -365,6 +365,8 @@ TEST(Initializer, SweepOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   other = o;
   other.fusion.max_points = 1234;
   EXPECT_NE(init_cache_key("mvs", cams, images, other), init_cache_key("mvs", cams, images, o));
+  // The sparse points do not depend on them (nor on the Gaussian budget that caps the fusion).
+  EXPECT_EQ(init_cache_key("sparse", cams, images, other), init_cache_key("sparse", cams, images, o));
 
   // sweep that cannot deliver (here: an unreachable point count) falls back to the sparse points, saying why.
   InitOptions strict = o;

@@ -245,8 +245,11 @@ absl::StatusOr<PointCloud> write_cache(const fs::path& ply, const InitResult& r)
 
 std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
                            const std::vector<at::Tensor>& images, const InitOptions& opts) {
-  std::string text = absl::StrCat(kCacheVersion, "|", method, "|", describe_options(opts), "|",
-                                  describe_mvs_options(opts.patchmatch, opts.fusion));
+  std::string text = absl::StrCat(kCacheVersion, "|", method, "|", describe_options(opts));
+  // Only where they matter: the fusion cap follows the run's Gaussian budget, which should not invalidate
+  // the sparse points.
+  if (method == "mvs" || method == "auto")
+    absl::StrAppend(&text, "|", describe_mvs_options(opts.patchmatch, opts.fusion));
   for (size_t i = 0; i < cameras.size(); ++i)
     absl::StrAppend(&text, "|", describe_camera(cameras[i], i < images.size() ? images[i] : at::zeros({1})));
   const int w = cameras.empty() ? 0 : cameras[0].width, h = cameras.empty() ? 0 : cameras[0].height;

@@ -89,7 +89,8 @@ absl::StatusOr<PointCloud> initialize_points(const std::string& method, const st
                                              std::string* report, std::string* method_used = nullptr);
 
 // Cache file stem: <scene>_<N>v_<W>x<H>_<method>_<16 hex digits> where the hash covers the method, every
-// camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options.
+// camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options (the PatchMatch
+// and fusion ones for "mvs" and "auto" only).
 std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
                            const std::vector<at::Tensor>& images, const InitOptions& opts);
 
