@@ -1,6 +1,5 @@
 #include "gs_trainer/init/dense_mvs.h"
 
-#include <algorithm>
 #include <chrono>
 #include <optional>
 #include <utility>
@@ -11,26 +10,19 @@
 namespace gaps {
 namespace {
 
-// Depth ranges and sources of every view; a view without a range gets no sources (PatchMatch then leaves
-// its depths 0) and, as the input needs one, the widest range of the others.
+// Depth ranges and sources of every view; a view without a range gets (0, 0) and no sources (PatchMatch
+// leaves its depths 0; it can still be another view's source).
 absl::StatusOr<PatchMatchInput> patchmatch_input(const std::vector<Camera>& cameras,
                                                  const std::vector<at::Tensor>& images, const SparseResult& sparse,
                                                  const PatchMatchOptions& patchmatch, const DenseOptions& range) {
   PatchMatchInput in{cameras, images, {}, {}};
-  std::vector<std::optional<std::pair<double, double>>> ranges;
-  double lo = 0, hi = 0;
-  for (size_t r = 0; r < cameras.size(); ++r) {
-    ranges.push_back(view_depth_range(cameras[r], sparse.points.xyz, range));
-    if (!ranges.back()) continue;
-    lo = lo > 0 ? std::min(lo, ranges.back()->first) : ranges.back()->first;
-    hi = std::max(hi, ranges.back()->second);
-  }
   bool any = false;
   for (size_t r = 0; r < cameras.size(); ++r) {
-    in.depth_ranges.push_back(ranges[r].value_or(std::make_pair(lo, hi)));
+    const auto bounds = view_depth_range(cameras[r], sparse.points.xyz, range);
+    in.depth_ranges.push_back(bounds.value_or(std::make_pair(0.0, 0.0)));
     in.sources.push_back(
-        ranges[r] ? select_neighbors(static_cast<int>(r), cameras, sparse.point_views, patchmatch.max_source_views)
-                  : std::vector<int>{});
+        bounds ? select_neighbors(static_cast<int>(r), cameras, sparse.point_views, patchmatch.max_source_views)
+               : std::vector<int>{});
     any = any || !in.sources.back().empty();
   }
   if (!any)
