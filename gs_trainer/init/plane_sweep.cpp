@@ -7,6 +7,7 @@
 #include <ATen/ATen.h>
 #include <Eigen/Dense>
 #include "absl/strings/str_cat.h"
+#include "gs_trainer/init/working_view.h"
 
 namespace gaps {
 namespace {
@@ -65,18 +66,6 @@ at::Tensor window_sum(const at::Tensor& x, int k) {
   const at::Tensor rows = at::constant_pad_nd(h, {0, 0, r + 1, r}).cumsum(-2);
   const int64_t hh = rows.size(-2);
   return rows.slice(-2, k, hh) - rows.slice(-2, 0, hh - k);
-}
-
-// The view at no more than max_side pixels on its longest side (area averaging).
-std::pair<Camera, at::Tensor> working_view(const Camera& camera, const at::Tensor& image, int max_side) {
-  const at::Tensor img = image.to(at::kFloat);
-  const double scale = std::min(1.0, static_cast<double>(max_side) / std::max(camera.width, camera.height));
-  if (scale >= 1.0) return {camera, img.contiguous()};
-  const int w = std::max(1, static_cast<int>(std::lround(camera.width * scale)));
-  const int h = std::max(1, static_cast<int>(std::lround(camera.height * scale)));
-  const at::Tensor chw = img.permute({2, 0, 1}).unsqueeze(0);
-  const at::Tensor small = at::adaptive_avg_pool2d(chw, {h, w}).squeeze(0).permute({1, 2, 0}).contiguous();
-  return {camera.resized(w, h), small};
 }
 
 // Reference-window statistics reused for every plane and source; sums over the n = k*k window pixels.
