@@ -2,6 +2,8 @@
 // stage and after fusion, the sparse median reprojection error, how much of the held-out test views the
 // points cover (fraction of 16x16 pixel cells hit), and the time. One JSON line per case.
 //   init_bench --method mvs --fern_views 3,6,9 --bonsai_views 12,24 --resolution 8 --json out.jsonl
+// mvs is PatchMatch + fusion, sweep the plane sweep; fusion is capped at --fusion_max_points (0: no cap; a
+// training run caps it at its Gaussian budget).
 #include <chrono>
 #include <fstream>
 #include <iostream>
@@ -17,7 +19,7 @@
 #include "absl/strings/str_split.h"
 #include "gs_trainer/init/initializer.h"
 
-ABSL_FLAG(std::string, method, "mvs", "mvs, sparse or random");
+ABSL_FLAG(std::string, method, "mvs", "mvs, sweep, sparse or random");
 ABSL_FLAG(std::string, fern_views, "3,6,9", "training view counts on LLFF fern (empty: skip)");
 ABSL_FLAG(std::string, bonsai_views, "12,24", "training view counts on Mip-NeRF 360 bonsai (empty: skip)");
 ABSL_FLAG(int, resolution, 8, "downscale factor");
@@ -28,6 +30,12 @@ ABSL_FLAG(bool, guided_matching, gaps::SparseOptions{}.guided_matching, "epipola
 ABSL_FLAG(double, contrast_threshold, gaps::SparseOptions{}.contrast_threshold, "SIFT contrast threshold");
 ABSL_FLAG(int, max_features, gaps::SparseOptions{}.max_features, "SIFT keypoints per image");
 ABSL_FLAG(int, max_image_side, gaps::DenseOptions{}.max_image_side, "plane-sweep working resolution");
+ABSL_FLAG(int, patchmatch_max_image_side, gaps::PatchMatchOptions{}.max_image_side, "PatchMatch working resolution");
+ABSL_FLAG(int, patchmatch_iterations, gaps::PatchMatchOptions{}.iterations, "PatchMatch photometric sweeps");
+ABSL_FLAG(bool, geometric_consistency, gaps::PatchMatchOptions{}.geometric_consistency,
+          "PatchMatch geometric-consistency pass");
+ABSL_FLAG(int, fusion_min_views, gaps::FusionOptions{}.min_views, "views a fused point must span");
+ABSL_FLAG(int64_t, fusion_max_points, gaps::FusionOptions{}.max_points, "cap on the fused points (0: none)");
 ABSL_FLAG(int, num_planes, gaps::DenseOptions{}.num_planes, "plane-sweep depth hypotheses");
 ABSL_FLAG(int, max_neighbors, gaps::DenseOptions{}.max_neighbors, "plane-sweep source views");
 ABSL_FLAG(int, planes_per_chunk, gaps::DenseOptions{}.planes_per_chunk, "planes warped at once");
@@ -43,6 +51,11 @@ gaps::InitOptions init_options() {
   o.dense.num_planes = absl::GetFlag(FLAGS_num_planes);
   o.dense.max_neighbors = absl::GetFlag(FLAGS_max_neighbors);
   o.dense.planes_per_chunk = absl::GetFlag(FLAGS_planes_per_chunk);
+  o.patchmatch.max_image_side = absl::GetFlag(FLAGS_patchmatch_max_image_side);
+  o.patchmatch.iterations = absl::GetFlag(FLAGS_patchmatch_iterations);
+  o.patchmatch.geometric_consistency = absl::GetFlag(FLAGS_geometric_consistency);
+  o.fusion.min_views = absl::GetFlag(FLAGS_fusion_min_views);
+  o.fusion.max_points = absl::GetFlag(FLAGS_fusion_max_points);
   return o;
 }
 
@@ -104,6 +117,13 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
     j["fused_points"] = result->dense->fused_before_voxel;
     j["fused_points_capped"] = result->dense->points;
     j["dense_seconds"] = result->dense->seconds;
+  }
+  if (result->mvs) {
+    j["depth_pixels"] = result->mvs->fusion.depth_pixels;
+    j["fused_points"] = result->mvs->fusion.fused_points;
+    j["fused_points_capped"] = result->mvs->fusion.points;
+    j["patchmatch_seconds"] = result->mvs->patchmatch_seconds;
+    j["fusion_seconds"] = result->mvs->fusion.seconds;
   }
   j["test_views"] = split->test.size();
   j["test_coverage_mean"] = coverage_sum / split->test.size();

@@ -53,7 +53,8 @@ std::vector<cli::CommandSpec> gaps_commands() {
               1, "the scene folder"),
       command("init", "gaps init --scene DIR --views N --out DIR [flags]",
               "Writes only the initial point cloud of the training views, as points.ply and a COLMAP text model\n"
-              "(sparse/0/) in --out.",
+              "(sparse/0/) in --out; when the mvs method made it, also its depth and normal maps and fused cloud as a\n"
+              "COLMAP dense workspace (dense/).",
               {scene_flags(), local_init_flags(), only("outputs", {"out", "overwrite"}),
                only("options", {"device", "seed"})},
               1, "the scene folder"),

@@ -16,15 +16,16 @@ ABSL_FLAG(
 ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
 ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
 ABSL_FLAG(std::string, init, "auto",
-          "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs (from "
-          "the training views), sparse, random, scene or ply");
+          "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs "
+          "(PatchMatch stereo on the training views), sweep (the older plane sweep), sparse, random, scene or ply");
 ABSL_FLAG(std::string, init_ply, "",
           "PLY for --init ply (given alone, implies it): a full 3DGS model (opacity, scale_*, rot_*: training "
           "continues it) or a coloured point cloud (Gaussians made from its points)");
 ABSL_FLAG(int64_t, random_points, 20000, "number of points for --init random");
-ABSL_FLAG(int, init_resolution, 0,
-          "downscale factor of the images the initialisation (sparse, mvs) reads, e.g. 4 to triangulate from larger "
-          "images than -r 8 trains on (0: --resolution)");
+ABSL_FLAG(
+    int, init_resolution, 0,
+    "downscale factor of the images the initialisation (sparse, mvs, sweep) reads, e.g. 4 to triangulate from larger "
+    "images than -r 8 trains on (0: --resolution)");
 ABSL_FLAG(std::string, init_cache, "",
           "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), no-gaps or no-dropgaussian");

@@ -21,6 +21,7 @@
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/report.h"
 #include "gs_trainer/scene/cameras_json.h"
+#include "gs_trainer/train/budget.h"
 #include "gs_trainer/train/divergence.h"
 
 namespace gaps {
@@ -98,9 +99,11 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
 }
 
 // *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
+// dense_workspace: InitOptions::dense_workspace.
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train, const Log& log,
-                                          std::string* method_used = nullptr) {
+                                          std::string* method_used = nullptr,
+                                          const std::filesystem::path& dense_workspace = {}) {
   if (method_used) *method_used = o.init;
   if (o.init == "ply") {
     if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
@@ -114,14 +117,19 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   std::vector<Camera> cameras;
   std::vector<at::Tensor> images;
   GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> views, views_for_initialisation(o, train, log));
+  // On the run's device (views at another init resolution are read to the CPU): it picks PatchMatch's path.
+  const at::Device device(o.config.device);
   for (const auto& v : views) {
     cameras.push_back(v.camera);
-    images.push_back(v.image);
+    images.push_back(v.image.to(device));
   }
   InitOptions init;
   init.cache_dir = o.init_cache_dir;
   init.random_points = o.random_points;
   init.seed = o.config.seed;
+  init.dense_workspace = dense_workspace;
+  // No more fused points than the Gaussians the run may grow to (FusionOptions::max_points says why).
+  init.fusion.max_points = gaussian_budget(o.config.max_gaussians, o.config.gaussians_per_variation, train);
   std::string report;
   auto points = initialize_points(o.init, cameras, images, init, &report, method_used);
   if (!report.empty()) log(report);
@@ -242,7 +250,8 @@ absl::StatusOr<std::optional<Lpips>> load_lpips(const RunOptions& o, const at::D
 
 absl::Status check_scene(const RunOptions& o) {
   if (o.init != "ply" && o.init != "scene" && !is_init_method(o.init))
-    return usage_error(absl::StrCat("--init ", o.init, ": unknown; use auto, mvs, sparse, random, scene or ply"));
+    return usage_error(
+        absl::StrCat("--init ", o.init, ": unknown; use auto, mvs, sweep, sparse, random, scene or ply"));
   if (o.init == "ply") {
     if (o.init_ply.empty()) return usage_error("initialisation 'ply' needs a point cloud file (--init-ply FILE)");
     std::error_code ec;
@@ -262,9 +271,9 @@ absl::Status check_scene(const RunOptions& o) {
 
 std::vector<std::string> run_output_names() {
   return {
-      "point_cloud.ply", "cameras.json",         "metrics.json",        "report.html",          "renders",
-      "phases.json",     "pseudo_views",         "checkpoint",          "checkpoint.old",       "checkpoint.partial",
-      "points.ply",      "sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt"};
+      "point_cloud.ply", "cameras.json",         "metrics.json",        "report.html",           "renders",
+      "phases.json",     "pseudo_views",         "checkpoint",          "checkpoint.old",        "checkpoint.partial",
+      "points.ply",      "sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt", "dense"};
 }
 
 nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
@@ -528,7 +537,9 @@ absl::Status run_init_only(const RunOptions& o, const Log& log) {
   GAPS_RETURN_IF_ERROR(check_device(o.config.device));
   GAPS_RETURN_IF_ERROR(check_scene(o));
   GAPS_ASSIGN_OR_RETURN(const LoadedScene loaded, load_scene_and_training_views(o, at::Device(o.config.device), log));
-  GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, loaded.scene, loaded.train, log));
+  std::string method;
+  GAPS_ASSIGN_OR_RETURN(const PointCloud points,
+                        initial_points(o, loaded.scene, loaded.train, log, &method, o.out_dir / "dense"));
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
   std::vector<Camera> cameras;
@@ -536,6 +547,9 @@ absl::Status run_init_only(const RunOptions& o, const Log& log) {
   GAPS_RETURN_IF_ERROR(write_init_as_colmap(o.out_dir / "sparse" / "0", cameras, points));
   log(absl::StrCat(points.xyz.size(0), " points written to ", (o.out_dir / "points.ply").string(), " and ",
                    (o.out_dir / "sparse" / "0").string()));
+  if (method == "mvs")
+    log(absl::StrCat("the PatchMatch depth and normal maps and the fused cloud: COLMAP dense workspace in ",
+                     (o.out_dir / "dense").string()));
   return absl::OkStatus();
 }
 

@@ -24,15 +24,16 @@ struct RunOptions {
   int resolution = 8;  // downscale factor
   std::filesystem::path out_dir;
   // "auto" ("mvs" for forward-facing views, "sparse" for views that surround the scene: auto_init_method),
-  // "mvs" (sparse triangulation + plane-sweep stereo from the training views only; falls back to "sparse",
-  // then "random", saying why), "sparse", "random" (uniform in the training cameras' frusta), "scene" (points
-  // shipped with the scene, e.g. a COLMAP model: only honest when made without the test views) or "ply".
+  // "mvs" (sparse triangulation + PatchMatch stereo and fusion from the training views only; falls back to
+  // "sparse", then "random", saying why), "sweep" (the same with the older plane sweep), "sparse", "random"
+  // (uniform in the training cameras' frusta), "scene" (points shipped with the scene, e.g. a COLMAP model:
+  // only honest when made without the test views) or "ply".
   std::string init = "auto";
   std::filesystem::path init_ply;
   // Initial point clouds are cached here per scene, views, resolution and method (empty: no cache).
   std::filesystem::path init_cache_dir;
   int64_t random_points = 20000;
-  // Downscale factor of the images the initialisation (sparse, mvs) reads; 0: the training resolution.
+  // Downscale factor of the images the initialisation (sparse, mvs, sweep) reads; 0: the training resolution.
   int init_resolution = 0;
   // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
   std::filesystem::path lpips_backbone;
@@ -110,7 +111,9 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& options, const Progress
                                        const std::function<void(const std::string&)>& log);
 
 // `gaps init`: the initial point cloud of a run's training views, written to out_dir as points.ply and as a
-// COLMAP text model (sparse/0/{cameras,images,points3D}.txt) that COLMAP users can inspect or replace.
+// COLMAP text model (sparse/0/{cameras,images,points3D}.txt) that COLMAP users can inspect or replace; when
+// "mvs" made the points, also its depth and normal maps and fused cloud as a COLMAP dense workspace in
+// out_dir/dense (init/colmap_dense.h).
 absl::Status run_init_only(const RunOptions& options, const std::function<void(const std::string&)>& log);
 
 // Evaluates a model on cameras with known images; writes renders to `render_dir` when not empty.

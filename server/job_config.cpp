@@ -24,7 +24,7 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
     o.init = init;
   } else {
     return absl::InvalidArgumentError(
-        absl::StrCat("config: unknown init '", init, "' (auto, mvs, sparse, random, points)"));
+        absl::StrCat("config: unknown init '", init, "' (auto, mvs, sweep, sparse, random, points)"));
   }
   if (c.random_points() < 0) return absl::InvalidArgumentError("config: random_points must not be negative");
   if (c.random_points() > 0) o.random_points = c.random_points();

@@ -268,7 +268,7 @@ TEST_F(Cli, FlagSpellingsShortFormsSuggestionsAndStrayArguments) {
 TEST_F(Cli, MistakesAreCaughtBeforeLoadingWithMessagesSayingWhatToDo) {
   const std::string out = (dir_ / "out").string();
   auto result = quick_train(out, "--init mvsx");
-  expect_failure(result, 2, "--init mvsx: unknown; use auto, mvs, sparse, random, scene or ply");
+  expect_failure(result, 2, "--init mvsx: unknown; use auto, mvs, sweep, sparse, random, scene or ply");
   EXPECT_FALSE(contains(result.second, "split:")) << result.second;  // the scene summary comes after the checks
   // 9 images: every 8th (0 and 8) is a test view, 7 remain.
   expect_failure(quick_train(out, "--views 50"), 2, "ask for at most 7 (0: all)");

@@ -1,7 +1,9 @@
 // Point-cloud initialisation from the training views: triangulation, epipolar filtering, plane sweep,
-// fusion, the fallback chain and the cache on synthetic scenes, then the whole pipeline on LLFF fern.
+// fusion, the methods, the fallback chain and the cache on synthetic scenes, then the whole pipeline on LLFF
+// fern (plane sweep and PatchMatch). PatchMatch's fusion and export have their own tests (fusion_test.cpp).
 #include "gs_trainer/init/initializer.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -17,6 +19,7 @@
 
 #include "common/io_util.h"
 #include "common/ply.h"
+#include "gs_trainer/init/colmap_dense.h"
 #include "gs_trainer/init/plane_sweep.h"
 #include "gs_trainer/init/sparse.h"
 #include "gs_trainer/pipeline.h"
@@ -316,7 +319,18 @@ TEST(Initializer, SingleViewFallsBackToRandomWithAWarning) {
   EXPECT_FALSE(initialize_points("colmap", cams, render_all(plane, cams), o, nullptr).ok());
 }
 
-TEST(Initializer, MvsOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
+TEST(Initializer, MethodsAndTheirErrors) {
+  for (const char* m : {"auto", "mvs", "sweep", "sparse", "random"}) EXPECT_TRUE(is_init_method(m)) << m;
+  EXPECT_FALSE(is_init_method("colmap"));
+  EXPECT_FALSE(is_init_method(""));
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(80, 60, 75);
+  auto unknown = run_initialization("colmap", cams, render_all(plane, cams), InitOptions{});
+  EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(unknown.status().message(), "unknown initialisation 'colmap' (auto, mvs, sweep, sparse, random)");
+}
+
+TEST(Initializer, SweepOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   const TexturedPlane plane;
   const std::vector<Camera> cams = three_cameras(320, 240, 300);
   const std::vector<at::Tensor> images = render_all(plane, cams);
@@ -325,39 +339,43 @@ TEST(Initializer, MvsOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   o.cache_dir = dir;
   o.dense.max_image_side = 200;  // small sweep: this test is about the plumbing
   o.dense.num_planes = 48;
-  auto first = run_initialization("mvs", cams, images, o);
+  auto first = run_initialization("sweep", cams, images, o);
   ASSERT_TRUE(first.ok()) << first.status();
-  EXPECT_EQ(first->method, "mvs") << (first->warnings.empty() ? "" : first->warnings[0]);
+  EXPECT_EQ(first->method, "sweep") << (first->warnings.empty() ? "" : first->warnings[0]);
   EXPECT_FALSE(first->from_cache);
   EXPECT_GT(first->points.xyz.size(0), 5000);
+  ASSERT_TRUE(first->dense);
+  EXPECT_FALSE(first->mvs);
   ASSERT_TRUE(fs::exists(first->cache_file));
 
-  auto second = run_initialization("mvs", cams, images, o);
+  auto second = run_initialization("sweep", cams, images, o);
   ASSERT_TRUE(second.ok());
   EXPECT_TRUE(second->from_cache);
-  EXPECT_EQ(second->method, "mvs");
+  EXPECT_EQ(second->method, "sweep");
   EXPECT_TRUE(at::equal(first->points.xyz, second->points.xyz));
   EXPECT_TRUE(at::equal(first->points.rgb, second->points.rgb));
-  // "auto" on these forward-facing views is mvs, shares its cache entry and says why it chose it.
-  auto chosen = run_initialization("auto", cams, images, o);
-  ASSERT_TRUE(chosen.ok()) << chosen.status();
-  EXPECT_EQ(chosen->method, "mvs");
-  EXPECT_TRUE(chosen->from_cache);
-  ASSERT_FALSE(chosen->notes.empty());
-  EXPECT_EQ(chosen->notes[0].rfind("auto: mvs (viewing directions span ", 0), 0u) << chosen->notes[0];
-  // Another method or other views get another key.
-  EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("mvs", cams, images, o));
-  EXPECT_NE(init_cache_key("mvs", {cams[0], cams[1]}, {images[0], images[1]}, o),
-            init_cache_key("mvs", cams, images, o));
+  // Another method, other views or other PatchMatch or fusion options get another key.
+  EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("sweep", cams, images, o));
+  EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("sweep", cams, images, o));
+  EXPECT_NE(init_cache_key("sweep", {cams[0], cams[1]}, {images[0], images[1]}, o),
+            init_cache_key("sweep", cams, images, o));
+  InitOptions other = o;
+  other.patchmatch.iterations += 1;
+  EXPECT_NE(init_cache_key("mvs", cams, images, other), init_cache_key("mvs", cams, images, o));
+  other = o;
+  other.fusion.max_points = 1234;
+  EXPECT_NE(init_cache_key("mvs", cams, images, other), init_cache_key("mvs", cams, images, o));
+  // The sparse points do not depend on them (nor on the Gaussian budget that caps the fusion).
+  EXPECT_EQ(init_cache_key("sparse", cams, images, other), init_cache_key("sparse", cams, images, o));
 
-  // mvs that cannot deliver (here: an unreachable point count) falls back to the sparse points, saying why.
+  // sweep that cannot deliver (here: an unreachable point count) falls back to the sparse points, saying why.
   InitOptions strict = o;
   strict.cache_dir.clear();
   strict.min_dense_points = int64_t{1} << 40;
   std::string report;
-  auto fallback = initialize_points("mvs", cams, images, strict, &report);
+  auto fallback = initialize_points("sweep", cams, images, strict, &report);
   ASSERT_TRUE(fallback.ok());
-  EXPECT_NE(report.find("warning: init: mvs failed: too few fused points"), std::string::npos) << report;
+  EXPECT_NE(report.find("warning: init: sweep failed: too few fused points"), std::string::npos) << report;
   EXPECT_NE(report.find("init: sparse, "), std::string::npos) << report;
 
   // COLMAP interop: the text model reads back with our cameras and points.
@@ -366,6 +384,68 @@ TEST(Initializer, MvsOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   ASSERT_TRUE(model.ok()) << model.status();
   EXPECT_EQ(model->images.size(), 3u);
   EXPECT_EQ(static_cast<int64_t>(model->points.size()), first->points.xyz.size(0));
+  remove_tree(dir);
+}
+
+// PatchMatch kept small: the tests below are about the plumbing, not the depths.
+InitOptions small_patchmatch() {
+  InitOptions o;
+  o.patchmatch.max_image_side = 160;
+  o.patchmatch.iterations = 2;
+  o.patchmatch.geometric_iterations = 1;
+  return o;
+}
+
+TEST(Initializer, MvsOnASyntheticPlaneAutoSharesItsCacheEntryAndTheWorkspaceIsWritten) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(320, 240, 300);
+  const std::vector<at::Tensor> images = render_all(plane, cams);
+  const fs::path dir = fs::temp_directory_path() / ("gaps_init_mvs_test_" + std::to_string(::getpid()));
+  InitOptions o = small_patchmatch();
+  o.cache_dir = dir;
+  auto first = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(first.ok()) << first.status();
+  for (const std::string& n : first->notes) std::cout << n << "\n";
+  ASSERT_EQ(first->method, "mvs") << (first->warnings.empty() ? "" : first->warnings[0]);
+  ASSERT_TRUE(first->mvs);
+  EXPECT_FALSE(first->dense);
+  EXPECT_EQ(first->mvs->views_with_sources, 3);
+  EXPECT_EQ(first->mvs->fusion.points, first->points.xyz.size(0));
+  EXPECT_TRUE(std::any_of(first->notes.begin(), first->notes.end(),
+                          [](const std::string& n) { return n.rfind("mvs: PatchMatch on 3 views", 0) == 0; }));
+  // Most fused points lie on the plane.
+  const at::Tensor n = at::tensor({plane.normal.x(), plane.normal.y(), plane.normal.z()}, at::kFloat);
+  const at::Tensor distance = (at::matmul(first->points.xyz, n) - plane.normal.dot(plane.point)).abs();
+  EXPECT_LT(distance.median().item<double>(), 0.05);
+
+  // "auto" on these forward-facing views is mvs, shares its cache entry and says why it chose it.
+  auto chosen = run_initialization("auto", cams, images, o);
+  ASSERT_TRUE(chosen.ok()) << chosen.status();
+  EXPECT_EQ(chosen->method, "mvs");
+  EXPECT_TRUE(chosen->from_cache);
+  ASSERT_FALSE(chosen->notes.empty());
+  EXPECT_EQ(chosen->notes[0].rfind("auto: mvs (viewing directions span ", 0), 0u) << chosen->notes[0];
+
+  // A dense workspace needs the maps: computed again, not read from the cache.
+  o.dense_workspace = dir / "workspace";
+  auto again = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_FALSE(again->from_cache);
+  EXPECT_TRUE(fs::exists(o.dense_workspace / "fused.ply"));
+  EXPECT_TRUE(fs::exists(o.dense_workspace / "stereo" / "depth_maps" / "a.png.geometric.bin"));
+  EXPECT_TRUE(fs::exists(o.dense_workspace / "sparse" / "cameras.txt"));
+
+  // mvs that cannot deliver falls back to the sparse points, saying why, and writes no workspace.
+  InitOptions strict = o;
+  strict.cache_dir.clear();
+  strict.dense_workspace = dir / "no_workspace";
+  strict.min_dense_points = int64_t{1} << 40;
+  std::string report;
+  auto fallback = initialize_points("mvs", cams, images, strict, &report);
+  ASSERT_TRUE(fallback.ok());
+  EXPECT_NE(report.find("warning: init: mvs failed: too few fused points"), std::string::npos) << report;
+  EXPECT_NE(report.find("init: sparse, "), std::string::npos) << report;
+  EXPECT_FALSE(fs::exists(strict.dense_workspace));
   remove_tree(dir);
 }
 
@@ -412,7 +492,7 @@ TEST(AutoInitialisation, FernTakesMvsAndBonsaiTakesSparse) {
   }
 }
 
-TEST(Initializer, FernThreeViews) {
+TEST(Initializer, FernThreeViewsSweep) {
   const fs::path root = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(root)) GTEST_SKIP() << "no benchmark data at " << root;
   SceneLoadOptions load;
@@ -431,11 +511,11 @@ TEST(Initializer, FernThreeViews) {
     images.push_back(*image);
   }
   const auto start = std::chrono::steady_clock::now();
-  auto result = run_initialization("mvs", cams, images, InitOptions{});
+  auto result = run_initialization("sweep", cams, images, InitOptions{});
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   ASSERT_TRUE(result.ok()) << result.status();
   for (const std::string& n : result->notes) std::cout << n << "\n";
-  ASSERT_EQ(result->method, "mvs") << (result->warnings.empty() ? "" : result->warnings[0]);
+  ASSERT_EQ(result->method, "sweep") << (result->warnings.empty() ? "" : result->warnings[0]);
   ASSERT_TRUE(result->sparse);
   EXPECT_GT(result->sparse->points, 300);
   EXPECT_LT(result->sparse->median_reprojection_px, 1.5);
@@ -446,6 +526,63 @@ TEST(Initializer, FernThreeViews) {
     EXPECT_GT(coverage, 0.5) << "test view " << i;
   }
   std::cout << "fern 3 views: " << result->points.xyz.size(0) << " points in " << seconds << " s\n";
+}
+
+class MvsInit : public test::TempDirTest {};
+
+// `gaps init --init mvs` on fern, 3 views at -r 16 (252x189, to keep PatchMatch on the CPU short): the
+// points, and the COLMAP dense workspace beside them.
+TEST_F(MvsInit, FernThreeViewsWritesPointsAndADenseWorkspace) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
+  RunOptions o;
+  o.scene_dir = fern;
+  o.views = 3;
+  o.resolution = 16;
+  o.init = "mvs";
+  o.config.device = "cpu";
+  o.out_dir = dir_ / "init";
+  std::string log;
+  const absl::Status done = run_init_only(o, [&](const std::string& line) { log += line + "\n"; });
+  std::cout << log;
+  ASSERT_TRUE(done.ok()) << done;
+  EXPECT_TRUE(test::contains(log, "init: mvs, ")) << log;
+  EXPECT_TRUE(test::contains(log, "COLMAP dense workspace in " + (o.out_dir / "dense").string())) << log;
+  auto points = read_point_cloud_ply(o.out_dir / "points.ply");
+  ASSERT_TRUE(points.ok()) << points.status();
+  EXPECT_GT(points->xyz.size(0), 2000);
+
+  const fs::path dense = o.out_dir / "dense";
+  auto model = read_colmap_model(dense / "sparse");
+  ASSERT_TRUE(model.ok()) << model.status();
+  ASSERT_EQ(model->images.size(), 3u);
+  for (const auto& [id, image] : model->images) {
+    const ColmapCamera& camera = model->cameras.at(image.camera_id);
+    EXPECT_TRUE(fs::exists(dense / "images" / image.name)) << image.name;
+    auto depth = read_colmap_mat(dense / "stereo" / "depth_maps" / (image.name + ".geometric.bin"));
+    ASSERT_TRUE(depth.ok()) << depth.status();
+    EXPECT_EQ(depth->sizes(), (std::vector<int64_t>{camera.height, camera.width}));
+    const double valid = (*depth > 0).to(at::kFloat).mean().item<double>();
+    std::cout << image.name << ": depth at " << valid << " of the pixels\n";
+    EXPECT_GT(valid, 0.2) << image.name;
+    auto normal = read_colmap_mat(dense / "stereo" / "normal_maps" / (image.name + ".geometric.bin"));
+    ASSERT_TRUE(normal.ok()) << normal.status();
+    EXPECT_EQ(normal->sizes(), (std::vector<int64_t>{camera.height, camera.width, 3}));
+  }
+  auto fused = read_ply_vertices(dense / "fused.ply");
+  ASSERT_TRUE(fused.ok()) << fused.status();
+  EXPECT_EQ(fused->count, points->xyz.size(0));
+  EXPECT_TRUE(fused->has("nx"));
+
+  SceneLoadOptions load;
+  load.resolution = 16;
+  auto scene = load_scene(fern, load);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  for (int i : {0, 8, 16}) {
+    const double coverage = view_coverage(scene->cameras[i], points->xyz);
+    std::cout << "test view " << i << " coverage " << coverage << "\n";
+    EXPECT_GT(coverage, 0.5) << "test view " << i;
+  }
 }
 
 class InitResolution : public test::TempDirTest {};

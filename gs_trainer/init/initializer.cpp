@@ -15,6 +15,7 @@
 #include "common/io_util.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
+#include "gs_trainer/init/colmap_dense.h"
 #include "gs_trainer/scene/bounds.h"
 #include "gs_trainer/scene/colmap.h"
 
@@ -24,7 +25,10 @@ namespace {
 namespace fs = std::filesystem;
 
 // Bumped whenever an algorithm or default changes what a method produces, so stale caches are not reused.
-constexpr char kCacheVersion[] = "init-v2";
+constexpr char kCacheVersion[] = "init-v3";
+
+// Every method, in the order messages list them.
+constexpr const char* kInitMethods[] = {"auto", "mvs", "sweep", "sparse", "random"};
 
 std::string scene_name(const std::vector<Camera>& cameras) {
   // image_path is <scene>/<images folder>/<file>; synthetic cameras may have none.
@@ -47,6 +51,14 @@ std::string describe_options(const InitOptions& o) {
       d.max_points);
 }
 
+std::string describe_mvs_options(const PatchMatchOptions& p, const FusionOptions& f) {
+  return absl::StrFormat("patchmatch %d %d %d %.6g %d %d %d %.6g %d %d %.6g %.6g %.6g %d | fusion %.6g %.6g %.6g %d %d",
+                         p.max_image_side, p.window_radius, p.window_step, p.sigma_color, p.iterations,
+                         p.max_source_views, p.best_views, p.min_triangulation_angle_deg, p.geometric_consistency,
+                         p.geometric_iterations, p.geometric_regularizer, p.geometric_max_error_px, p.max_cost, p.seed,
+                         f.max_depth_error, f.max_reprojection_px, f.max_normal_error_deg, f.min_views, f.max_points);
+}
+
 std::string describe_camera(const Camera& c, const at::Tensor& image) {
   std::string text = absl::StrFormat("%s %dx%d %.10g %.10g %.10g %.10g %.10g %.10g", c.name, c.width, c.height, c.fx,
                                      c.fy, c.cx, c.cy, c.near, c.far);
@@ -61,7 +73,7 @@ absl::Status check_inputs(const std::string& method, const std::vector<Camera>& 
                           const std::vector<at::Tensor>& images) {
   if (!is_init_method(method))
     return absl::InvalidArgumentError(
-        absl::StrCat("unknown initialisation '", method, "' (auto, mvs, sparse or random)"));
+        absl::StrCat("unknown initialisation '", method, "' (", absl::StrJoin(kInitMethods, ", "), ")"));
   if (cameras.empty()) return absl::InvalidArgumentError("initialisation needs at least one training view");
   return check_view_images(cameras, images);
 }
@@ -89,8 +101,18 @@ std::string sparse_note(const SparseStats& s) {
 }
 
 std::string dense_note(const DenseStats& d) {
-  return absl::StrFormat("mvs: depth pixels per view [%s], %d fused points -> %d after voxel grid (voxel %.4g), %.1f s",
-                         absl::StrJoin(d.depth_pixels, ", "), d.fused_before_voxel, d.points, d.voxel_size, d.seconds);
+  return absl::StrFormat(
+      "sweep: depth pixels per view [%s], %d fused points -> %d after voxel grid (voxel %.4g), %.1f s",
+      absl::StrJoin(d.depth_pixels, ", "), d.fused_before_voxel, d.points, d.voxel_size, d.seconds);
+}
+
+std::string mvs_note(const MvsStats& m, const FusionOptions& o) {
+  const FusionStats& f = m.fusion;
+  return absl::StrFormat(
+      "mvs: PatchMatch on %d views, %.1f s; depth pixels per view [%s]; fusion: %d clusters -> %d points in >= %d "
+      "views -> %d after voxel grid (voxel %.4g, cap %s), %.1f s",
+      m.views_with_sources, m.patchmatch_seconds, absl::StrJoin(f.depth_pixels, ", "), f.clusters, f.fused_points,
+      o.min_views, f.points, f.voxel_size, o.max_points > 0 ? absl::StrCat(o.max_points) : "none", f.seconds);
 }
 
 // Why triangulation gave too few points, from its statistics.
@@ -105,6 +127,42 @@ std::string sparse_failure(const SparseStats& s, int views, const InitOptions& o
                         " tracks have triangulation angles under ", opts.sparse.min_angle_deg, " degrees");
   return absl::StrCat("too few triangulated points (", s.points, " of ", s.tracks, " tracks; need ",
                       opts.min_sparse_points, ")");
+}
+
+// Why a dense method's cloud is too small to train from; "" when it is large enough.
+std::string too_few_fused(int64_t points, const InitOptions& opts) {
+  if (points >= opts.min_dense_points) return "";
+  return absl::StrCat("too few fused points (", points, " < ", opts.min_dense_points, ")");
+}
+
+// "mvs" or "sweep" after the sparse stage: the points and statistics go into *r, the return value says why
+// the method failed (empty when it did not). Errors only for a dense workspace that cannot be written.
+absl::StatusOr<std::string> dense_stage(const std::string& method, const std::vector<Camera>& cameras,
+                                        const std::vector<at::Tensor>& images, const SparseResult& sparse,
+                                        const InitOptions& opts, InitResult* r) {
+  if (method == "sweep") {
+    auto dense = dense_reconstruct(cameras, images, sparse, opts.dense);
+    if (!dense.ok()) return std::string(dense.status().message());
+    r->dense = dense->stats;
+    r->notes.push_back(dense_note(dense->stats));
+    const std::string why = too_few_fused(dense->stats.points, opts);
+    if (why.empty()) {
+      r->points = std::move(dense->points);
+      r->method = method;
+    }
+    return why;
+  }
+  auto mvs = patchmatch_reconstruct(cameras, images, sparse, opts.patchmatch, opts.fusion, opts.dense);
+  if (!mvs.ok()) return std::string(mvs.status().message());
+  r->mvs = mvs->stats;
+  r->notes.push_back(mvs_note(mvs->stats, opts.fusion));
+  const std::string why = too_few_fused(mvs->stats.fusion.points, opts);
+  if (!why.empty()) return why;
+  if (!opts.dense_workspace.empty())
+    GAPS_RETURN_IF_ERROR(write_colmap_dense_workspace(opts.dense_workspace, mvs->maps, mvs->fused, sparse.points));
+  r->points = std::move(mvs->fused.points);
+  r->method = method;
+  return why;
 }
 
 // The fallback chain, without the cache.
@@ -130,25 +188,13 @@ absl::StatusOr<InitResult> compute(const std::string& method, const std::vector<
   const bool sparse_ok = sparse.stats.points >= opts.min_sparse_points;
   const std::string sparse_why = sparse_ok ? "" : sparse_failure(sparse.stats, static_cast<int>(cameras.size()), opts);
 
-  if (method == "mvs") {
-    // Runs even when triangulation failed: the cameras' near/far may still bound the sweep.
-    auto dense = dense_reconstruct(cameras, images, sparse, opts.dense);
-    std::string why;
-    if (dense.ok()) {
-      r.dense = dense->stats;
-      r.notes.push_back(dense_note(dense->stats));
-      if (dense->stats.points >= opts.min_dense_points) {
-        r.points = std::move(dense->points);
-        r.method = "mvs";
-        return r;
-      }
-      why = absl::StrCat("too few fused points (", dense->stats.points, " < ", opts.min_dense_points, ")");
-    } else {
-      why = std::string(dense.status().message());
-    }
-    if (!sparse_why.empty()) why = absl::StrCat(why, "; sparse: ", sparse_why);
-    if (!sparse_ok) return fall_back_to_random(absl::StrCat("mvs failed: ", why));
-    r.warnings.push_back(absl::StrCat("mvs failed: ", why, "; falling back to the sparse points"));
+  if (method == "mvs" || method == "sweep") {
+    // Runs even when triangulation failed: the cameras' near/far may still bound the depths.
+    GAPS_ASSIGN_OR_RETURN(const std::string why, dense_stage(method, cameras, images, sparse, opts, &r));
+    if (why.empty()) return r;
+    const std::string failed = absl::StrCat(method, " failed: ", why);
+    if (!sparse_ok) return fall_back_to_random(absl::StrCat(failed, "; sparse: ", sparse_why));
+    r.warnings.push_back(absl::StrCat(failed, "; falling back to the sparse points"));
   }
   if (!sparse_ok) return fall_back_to_random(absl::StrCat("sparse failed: ", sparse_why));
   r.points = std::move(sparse.points);
@@ -200,6 +246,10 @@ absl::StatusOr<PointCloud> write_cache(const fs::path& ply, const InitResult& r)
 std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
                            const std::vector<at::Tensor>& images, const InitOptions& opts) {
   std::string text = absl::StrCat(kCacheVersion, "|", method, "|", describe_options(opts));
+  // Only where they matter: the fusion cap follows the run's Gaussian budget, which should not invalidate
+  // the sparse points.
+  if (method == "mvs" || method == "auto")
+    absl::StrAppend(&text, "|", describe_mvs_options(opts.patchmatch, opts.fusion));
   for (size_t i = 0; i < cameras.size(); ++i)
     absl::StrAppend(&text, "|", describe_camera(cameras[i], i < images.size() ? images[i] : at::zeros({1})));
   const int w = cameras.empty() ? 0 : cameras[0].width, h = cameras.empty() ? 0 : cameras[0].height;
@@ -207,7 +257,7 @@ std::string init_cache_key(const std::string& method, const std::vector<Camera>&
 }
 
 bool is_init_method(const std::string& name) {
-  return name == "auto" || name == "mvs" || name == "sparse" || name == "random";
+  return std::find(std::begin(kInitMethods), std::end(kInitMethods), name) != std::end(kInitMethods);
 }
 
 double viewing_direction_spread_degrees(const std::vector<Camera>& cameras) {
@@ -234,7 +284,8 @@ absl::StatusOr<InitResult> cached_or_computed(const std::string& method, const s
   // Random points cost nothing to draw again; caching them would only hide changes.
   if (!opts.cache_dir.empty() && method != "random") {
     cache = opts.cache_dir / (init_cache_key(method, train_cameras, train_images, opts) + ".ply");
-    if (std::optional<InitResult> cached = read_cache(cache)) return std::move(*cached);
+    const bool needs_maps = method == "mvs" && !opts.dense_workspace.empty();
+    if (std::optional<InitResult> cached = needs_maps ? std::nullopt : read_cache(cache)) return std::move(*cached);
   }
   GAPS_ASSIGN_OR_RETURN(InitResult r, compute(method, train_cameras, train_images, opts));
   r.points.xyz = r.points.xyz.to(at::kCPU, at::kFloat).contiguous();

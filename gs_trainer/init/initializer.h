@@ -1,7 +1,8 @@
 #pragma once
 // Initial point cloud for training from the N training views only (the sparse-view protocol: nothing from
 // the test views). Methods, in the order of the honest fallback chain:
-//   "mvs"    sparse triangulation, then plane-sweep stereo + fusion (plane_sweep.h);
+//   "mvs"    sparse triangulation, then PatchMatch stereo + fusion (dense_mvs.h);
+//   "sweep"  sparse triangulation, then the older fronto-parallel plane sweep + fusion (plane_sweep.h);
 //   "sparse" SIFT matching + triangulation with the known poses (sparse.h);
 //   "random" uniform points in the cameras' frusta (gaussians.h).
 // A method that cannot produce enough points falls back to the next one and says why in the report.
@@ -16,6 +17,9 @@
 #include <ATen/Tensor.h>
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "gs_trainer/init/dense_mvs.h"
+#include "gs_trainer/init/fusion.h"
+#include "gs_trainer/init/patchmatch.h"
 #include "gs_trainer/init/plane_sweep.h"
 #include "gs_trainer/init/sparse.h"
 #include "gs_trainer/scene/camera.h"
@@ -29,9 +33,15 @@ struct InitOptions {
   int64_t random_points = 20000;
   uint64_t seed = 0;
   SparseOptions sparse;
-  DenseOptions dense;
-  int64_t min_sparse_points = 50;   // fewer triangulated points: "sparse" has failed
-  int64_t min_dense_points = 1000;  // fewer fused points: "mvs" has failed
+  DenseOptions dense;              // "sweep"; its depth_margin and min_points_for_range also bound "mvs"'s depth ranges
+  PatchMatchOptions patchmatch;    // "mvs"
+  FusionOptions fusion;            // "mvs"
+  int64_t min_sparse_points = 50;  // fewer triangulated points: "sparse" has failed
+  int64_t min_dense_points = 1000;  // fewer fused points: "mvs" or "sweep" has failed
+  // Non-empty: when "mvs" makes the points, its depth and normal maps and fused cloud are also written here
+  // as a COLMAP dense workspace (colmap_dense.h). Only a computation has the maps, so the cache is then
+  // written but not read.
+  std::filesystem::path dense_workspace;
 };
 
 struct InitResult {
@@ -40,12 +50,13 @@ struct InitResult {
   std::vector<std::string> warnings;  // one per fallback, saying why
   std::vector<std::string> notes;     // per-stage statistics, one line each
   std::optional<SparseStats> sparse;
-  std::optional<DenseStats> dense;
+  std::optional<DenseStats> dense;  // "sweep"
+  std::optional<MvsStats> mvs;
   std::filesystem::path cache_file;  // the PLY read or written (empty without a cache)
   bool from_cache = false;
 };
 
-// The methods run_initialization knows: auto, mvs, sparse, random.
+// The methods run_initialization knows: auto, mvs, sweep, sparse, random.
 bool is_init_method(const std::string& name);
 
 // Training views whose viewing directions differ by more than this surround the scene (a 360° capture).
@@ -58,11 +69,12 @@ double viewing_direction_spread_degrees(const std::vector<Camera>& cameras);
 // kSurroundingViewsDegrees): what decides "auto" here and the paper's pseudo-views per phase (GapsConfig).
 bool views_surround_scene(const std::vector<Camera>& cameras);
 
-// What "auto" resolves to: "sparse" when the views surround the scene, else "mvs". The plane sweep compares
-// square windows between neighbouring views; across the tens of degrees between the neighbours of a sparse
-// 360° capture those windows no longer match and the fused cloud is wrong enough to cost 3DGS more than
-// having few points (bench/configs/init_comparison.json: bonsai 12 views, vanilla 17.01 dB from the sparse
-// points against 14.66 from the MVS cloud; fern 3 views, forward-facing, 20.59 from MVS against 17.74).
+// What "auto" resolves to: "sparse" when the views surround the scene, else "mvs". Measured with the plane
+// sweep (now "sweep"), which compares square windows between neighbouring views: across the tens of degrees
+// between the neighbours of a sparse 360° capture those windows no longer match and the fused cloud is wrong
+// enough to cost 3DGS more than having few points (bench/configs/init_comparison.json: bonsai 12 views,
+// vanilla 17.01 dB from the sparse points against 14.66 from the MVS cloud; fern 3 views, forward-facing,
+// 20.59 from MVS against 17.74). PatchMatch's slanted, view-selected windows have not been measured there yet.
 std::string auto_init_method(const std::vector<Camera>& cameras);
 
 // The full result. images[i] is HxWx3 float in [0, 1] at cameras[i]'s size, on any device. Errors only for
@@ -77,7 +89,8 @@ absl::StatusOr<PointCloud> initialize_points(const std::string& method, const st
                                              std::string* report, std::string* method_used = nullptr);
 
 // Cache file stem: <scene>_<N>v_<W>x<H>_<method>_<16 hex digits> where the hash covers the method, every
-// camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options.
+// camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options (the PatchMatch
+// and fusion ones for "mvs" and "auto" only).
 std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
                            const std::vector<at::Tensor>& images, const InitOptions& opts);
 

@@ -35,8 +35,9 @@ struct PatchMatchOptions {
 };
 
 // The inputs of one PatchMatch run. images[i] is HxWx3 float in [0, 1] at cameras[i]'s size; all images on
-// one device, which decides the path. depth_ranges[i] bounds view i's hypotheses (camera-frame z);
-// sources[i] lists view i's candidate source views (indices into cameras, never i itself).
+// one device, which decides the path. depth_ranges[i] bounds view i's hypotheses (camera-frame z); (0, 0) means
+// the view has none. sources[i] lists view i's candidate source views (indices into cameras, never i itself),
+// best first: the first max_source_views of them are used.
 struct PatchMatchInput {
   std::vector<Camera> cameras;
   std::vector<at::Tensor> images;
@@ -49,7 +50,7 @@ struct ViewDepthNormal {
   Camera camera;      // at the working resolution
   at::Tensor image;   // HxWx3 float in [0, 1]
   at::Tensor depth;   // HxW float, camera-frame z; 0 where no estimate survived
-  at::Tensor normal;  // HxWx3 float, unit, camera frame, facing the camera (COLMAP's convention)
+  at::Tensor normal;  // HxWx3 float, unit, camera frame, facing the camera (COLMAP's convention); 0 where depth is
   at::Tensor cost;    // HxW float, final aggregated cost of the kept hypothesis
 };
 

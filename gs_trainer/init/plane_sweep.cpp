@@ -7,6 +7,7 @@
 #include <ATen/ATen.h>
 #include <Eigen/Dense>
 #include "absl/strings/str_cat.h"
+#include "gs_trainer/init/working_view.h"
 
 namespace gaps {
 namespace {
@@ -65,18 +66,6 @@ at::Tensor window_sum(const at::Tensor& x, int k) {
   const at::Tensor rows = at::constant_pad_nd(h, {0, 0, r + 1, r}).cumsum(-2);
   const int64_t hh = rows.size(-2);
   return rows.slice(-2, k, hh) - rows.slice(-2, 0, hh - k);
-}
-
-// The view at no more than max_side pixels on its longest side (area averaging).
-std::pair<Camera, at::Tensor> working_view(const Camera& camera, const at::Tensor& image, int max_side) {
-  const at::Tensor img = image.to(at::kFloat);
-  const double scale = std::min(1.0, static_cast<double>(max_side) / std::max(camera.width, camera.height));
-  if (scale >= 1.0) return {camera, img.contiguous()};
-  const int w = std::max(1, static_cast<int>(std::lround(camera.width * scale)));
-  const int h = std::max(1, static_cast<int>(std::lround(camera.height * scale)));
-  const at::Tensor chw = img.permute({2, 0, 1}).unsqueeze(0);
-  const at::Tensor small = at::adaptive_avg_pool2d(chw, {h, w}).squeeze(0).permute({1, 2, 0}).contiguous();
-  return {camera.resized(w, h), small};
 }
 
 // Reference-window statistics reused for every plane and source; sums over the n = k*k window pixels.
@@ -357,32 +346,46 @@ PointCloud fuse_depth_maps(const std::vector<DepthMap>& maps, const DenseOptions
   return {at::cat(xyz_parts, 0), at::cat(rgb_parts, 0).clamp(0.0, 1.0)};
 }
 
-PointCloud voxel_downsample(const PointCloud& points, double voxel_size) {
-  if (points.xyz.size(0) == 0) return points;
-  const at::Tensor lo = std::get<0>(points.xyz.min(0));
-  // 21 bits per axis in one int64 key; outliers beyond that range share the edge voxels.
-  const at::Tensor cell = ((points.xyz - lo) / voxel_size).floor().to(at::kLong).clamp(0, (1 << 21) - 1);
-  const at::Tensor key =
-      cell.select(1, 0) * (int64_t{1} << 42) + cell.select(1, 1) * (int64_t{1} << 21) + cell.select(1, 2);
-  const auto [unique, inverse, counts] = at::_unique2(key, /*sorted=*/true, /*return_inverse=*/true,
-                                                      /*return_counts=*/true);
-  const int64_t n = unique.size(0);
-  const at::Tensor c = counts.to(points.xyz.scalar_type()).unsqueeze(1);
-  PointCloud out;
-  out.xyz = at::zeros({n, 3}, points.xyz.options()).index_add_(0, inverse, points.xyz) / c;
-  out.rgb = at::zeros({n, 3}, points.rgb.options()).index_add_(0, inverse, points.rgb) / c;
-  return out;
+namespace {
+
+// Voxel key of every point: 21 bits per axis in one int64; outliers beyond that range share the edge voxels.
+at::Tensor voxel_keys(const at::Tensor& xyz, double voxel_size) {
+  const at::Tensor lo = std::get<0>(xyz.min(0));
+  const at::Tensor cell = ((xyz - lo) / voxel_size).floor().to(at::kLong).clamp(0, (1 << 21) - 1);
+  return cell.select(1, 0) * (int64_t{1} << 42) + cell.select(1, 1) * (int64_t{1} << 21) + cell.select(1, 2);
 }
 
-PointCloud cap_points(const PointCloud& points, int64_t max_points, double* voxel_size) {
-  *voxel_size = 0.0;
-  if (points.xyz.size(0) <= max_points) return points;
-  const auto count = [&](double size) { return voxel_downsample(points, size).xyz.size(0); };
+int64_t occupied_voxels(const at::Tensor& xyz, double voxel_size) {
+  return std::get<0>(at::_unique2(voxel_keys(xyz, voxel_size), /*sorted=*/false)).size(0);
+}
+
+}  // namespace
+
+std::vector<at::Tensor> voxel_means(const at::Tensor& xyz, double voxel_size, const std::vector<at::Tensor>& values) {
+  if (xyz.size(0) == 0) return values;
+  const auto [unique, inverse, counts] = at::_unique2(voxel_keys(xyz, voxel_size), /*sorted=*/true,
+                                                      /*return_inverse=*/true, /*return_counts=*/true);
+  std::vector<at::Tensor> means;
+  for (const at::Tensor& v : values) {
+    const at::Tensor c = counts.to(v.scalar_type()).unsqueeze(1);
+    means.push_back(at::zeros({unique.size(0), v.size(1)}, v.options()).index_add_(0, inverse, v) / c);
+  }
+  return means;
+}
+
+PointCloud voxel_downsample(const PointCloud& points, double voxel_size) {
+  const std::vector<at::Tensor> means = voxel_means(points.xyz, voxel_size, {points.xyz, points.rgb});
+  return {means[0], means[1]};
+}
+
+double capping_voxel_size(const at::Tensor& xyz, int64_t max_points) {
+  if (xyz.size(0) <= max_points) return 0.0;
+  const auto count = [&](double size) { return occupied_voxels(xyz, size); };
   // Robust extent (1%..99% per axis) so that a few far points do not set the scale. Fused points lie on
   // surfaces, so the occupied voxel count goes like extent^2 / size^2: start near that size, bracket the
   // cap, then bisect (in log size) for the smallest voxel that meets it, keeping as much detail as allowed.
-  const at::Tensor q = at::tensor({0.01, 0.99}, points.xyz.options());
-  const at::Tensor bounds = at::quantile(points.xyz, q, 0);
+  const at::Tensor q = at::tensor({0.01, 0.99}, xyz.options());
+  const at::Tensor bounds = at::quantile(xyz, q, 0);
   const double extent = std::max((bounds[1] - bounds[0]).norm().item<double>(), 1e-9);
   double hi = extent / std::sqrt(static_cast<double>(max_points));
   while (count(hi) > max_points) hi *= 2.0;
@@ -392,8 +395,12 @@ PointCloud cap_points(const PointCloud& points, int64_t max_points, double* voxe
     const double mid = std::sqrt(lo * hi);
     (count(mid) > max_points ? lo : hi) = mid;
   }
-  *voxel_size = hi;
-  return voxel_downsample(points, hi);
+  return hi;
+}
+
+PointCloud cap_points(const PointCloud& points, int64_t max_points, double* voxel_size) {
+  *voxel_size = capping_voxel_size(points.xyz, max_points);
+  return *voxel_size > 0 ? voxel_downsample(points, *voxel_size) : points;
 }
 
 absl::StatusOr<DenseResult> dense_reconstruct(const std::vector<Camera>& cameras, const std::vector<at::Tensor>& images,

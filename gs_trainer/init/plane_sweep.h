@@ -80,10 +80,16 @@ DepthMap plane_sweep(const Camera& ref_camera, const at::Tensor& ref_image, cons
 // Consistency fusion of all depth maps (each checked against every other view).
 PointCloud fuse_depth_maps(const std::vector<DepthMap>& maps, const DenseOptions& options);
 
+// Per-voxel means, over cubic voxels of side `voxel_size` that `xyz` (N x 3) falls in, of each of `values`
+// (N x k tensors row-aligned with xyz): one M x k tensor each, M the occupied voxels, in one voxel order.
+std::vector<at::Tensor> voxel_means(const at::Tensor& xyz, double voxel_size, const std::vector<at::Tensor>& values);
 // Averages points (and colours) per cubic voxel of side `voxel_size`.
 PointCloud voxel_downsample(const PointCloud& points, double voxel_size);
+// About the smallest voxel whose grid leaves <= max_points of `xyz` (bisection); 0 when the cloud already is
+// that small.
+double capping_voxel_size(const at::Tensor& xyz, int64_t max_points);
 // The voxel-grid downsampling that brings the cloud to <= max_points (or the cloud itself when it already
-// is), with about the smallest voxel that does (bisection); *voxel_size gets the size used (0 when none).
+// is), with capping_voxel_size; *voxel_size gets the size used (0 when none).
 PointCloud cap_points(const PointCloud& points, int64_t max_points, double* voxel_size);
 
 // The whole dense stage on the training views. `sparse` bounds the depth range and picks the neighbours

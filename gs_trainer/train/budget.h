@@ -19,4 +19,8 @@ struct TrainingView;
 // gaussians_per_variation × Σ_views total_variation, at least 1.
 int64_t automatic_budget(const std::vector<TrainingView>& views, double gaussians_per_variation);
 
+// The most Gaussians a run may grow to: max_gaussians when given (> 0), else the automatic budget, or 0
+// (no limit) when gaussians_per_variation is 0 as well.
+int64_t gaussian_budget(int64_t max_gaussians, double gaussians_per_variation, const std::vector<TrainingView>& views);
+
 }  // namespace gaps

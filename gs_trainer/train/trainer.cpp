@@ -21,8 +21,7 @@ std::vector<double> default_learning_rates(const TrainConfig& c, double extent) 
 namespace {
 
 TrainConfig with_resolved_budget(TrainConfig config, const std::vector<TrainingView>& views) {
-  if (config.max_gaussians > 0 || config.gaussians_per_variation <= 0) return config;  // a count given wins
-  config.max_gaussians = automatic_budget(views, config.gaussians_per_variation);
+  config.max_gaussians = gaussian_budget(config.max_gaussians, config.gaussians_per_variation, views);
   return config;
 }
 
