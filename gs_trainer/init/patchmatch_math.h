@@ -25,7 +25,9 @@ namespace gaps::pm {
 constexpr int kMaxSources = 16;        // source views per reference view the per-pixel arrays hold
 constexpr float kMaxCost = 2.0f;       // cost of a source that cannot judge a hypothesis (1 - NCC is in [0, 2])
 constexpr float kMinVariance = 1e-5f;  // grey variance (weighted) below which a window is flat: no NCC
-constexpr int kRandomTries = 16;  // rejection-sampling attempts before a fixed fallback (never reached in practice)
+// Rejection-sampling attempts before a fixed fallback (16 misses in a row: about 1e-5 of the draws; the fallback
+// keeps a normal unperturbed, or gives a random one facing straight back).
+constexpr int kRandomTries = 16;
 // Refinement ranges at sweep 0, halved every sweep: relative depth change and normal offset (unit-ball radius).
 constexpr float kDepthPerturbation = 0.1f;
 constexpr float kNormalPerturbation = 0.5f;
@@ -352,7 +354,8 @@ GAPS_PM_HD int pixel_index(const Problem& p, int x, int y) { return y * p.cam.wi
 // geometric_regularizer times the mean forward-backward error over those same sources.
 GAPS_PM_HD float hypothesis_cost(const Problem& p, int x, int y, const Hypothesis& h) {
   const V3 X = h.depth * pixel_ray(p.cam, x, y);
-  if (!(dot(h.normal, X) < 0.0f)) return kMaxCost + (p.geometric ? p.geometric_regularizer * p.geometric_max_error : 0);
+  if (!(dot(h.normal, X) < 0.0f))
+    return kMaxCost + (p.geometric ? p.geometric_regularizer * p.geometric_max_error : 0.0f);
   float costs[kMaxSources];
   for (int s = 0; s < p.num_sources; ++s) {
     const Source& src = p.sources[s];
