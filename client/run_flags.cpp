@@ -16,7 +16,8 @@ ABSL_FLAG(
 ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
 ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
 ABSL_FLAG(std::string, init, "auto",
-          "initial points: auto (mvs for forward-facing views, sparse for views that surround the scene), mvs "
+          "initial points: auto (sweep for forward-facing views; mvs for views that surround the scene, sparse when "
+          "its depth covers under 25% of the pixels), mvs "
           "(PatchMatch stereo on the training views), sweep (the older plane sweep), sparse, random, scene or ply");
 ABSL_FLAG(std::string, init_ply, "",
           "PLY for --init ply (given alone, implies it): a full 3DGS model (opacity, scale_*, rot_*: training "

@@ -418,13 +418,12 @@ TEST(Initializer, MvsOnASyntheticPlaneAutoSharesItsCacheEntryAndTheWorkspaceIsWr
   const at::Tensor distance = (at::matmul(first->points.xyz, n) - plane.normal.dot(plane.point)).abs();
   EXPECT_LT(distance.median().item<double>(), 0.05);
 
-  // "auto" on these forward-facing views is mvs, shares its cache entry and says why it chose it.
+  // "auto" on these forward-facing views is the plane sweep, and says why it chose it.
   auto chosen = run_initialization("auto", cams, images, o);
   ASSERT_TRUE(chosen.ok()) << chosen.status();
-  EXPECT_EQ(chosen->method, "mvs");
-  EXPECT_TRUE(chosen->from_cache);
+  EXPECT_EQ(chosen->method, "sweep");
   ASSERT_FALSE(chosen->notes.empty());
-  EXPECT_EQ(chosen->notes[0].rfind("auto: mvs (viewing directions span ", 0), 0u) << chosen->notes[0];
+  EXPECT_EQ(chosen->notes[0].rfind("auto: sweep (viewing directions span ", 0), 0u) << chosen->notes[0];
 
   // A dense workspace needs the maps: computed again, not read from the cache.
   o.dense_workspace = dir / "workspace";
@@ -446,6 +445,20 @@ TEST(Initializer, MvsOnASyntheticPlaneAutoSharesItsCacheEntryAndTheWorkspaceIsWr
   EXPECT_NE(report.find("warning: init: mvs failed: too few fused points"), std::string::npos) << report;
   EXPECT_NE(report.find("init: sparse, "), std::string::npos) << report;
   EXPECT_FALSE(fs::exists(strict.dense_workspace));
+
+  // So does mvs whose maps leave too many pixels without a depth (what "auto" asks on surrounding views).
+  InitOptions covering = o;
+  covering.cache_dir.clear();
+  covering.dense_workspace.clear();
+  covering.min_depth_coverage = 0.999;
+  report.clear();
+  ASSERT_TRUE(initialize_points("mvs", cams, images, covering, &report).ok());
+  EXPECT_NE(report.find("warning: init: mvs failed: depth for "), std::string::npos) << report;
+  EXPECT_NE(report.find("(< 100%); falling back to the sparse points"), std::string::npos) << report;
+  covering.min_depth_coverage = 0.05;
+  auto covered = run_initialization("mvs", cams, images, covering);
+  ASSERT_TRUE(covered.ok()) << covered.status();
+  EXPECT_EQ(covered->method, "mvs");
   remove_tree(dir);
 }
 
@@ -461,21 +474,21 @@ TEST(AutoInitialisation, ViewingDirectionSpreadIsTheLargestPairwiseAngle) {
   const Camera left = look_at("left", {-0.5, 0, 0}, {0, 0, 10}, 64, 48, 50);
   const Camera right = look_at("right", {0.5, 0, 0}, {0, 0, 10}, 64, 48, 50);
   EXPECT_NEAR(viewing_direction_spread_degrees({left, right}), 2.0 * std::atan(0.05) * 180.0 / M_PI, 1e-6);
-  EXPECT_EQ(auto_init_method({left, right}), "mvs");
-  EXPECT_EQ(auto_init_method({ahead, side, behind}), "sparse");
+  EXPECT_EQ(auto_init_method({left, right}), "sweep");
+  EXPECT_EQ(auto_init_method({ahead, side, behind}), "mvs");
 }
 
 // The benchmark scenes: fern is forward-facing, bonsai's training views surround the tree.
-TEST(AutoInitialisation, FernTakesMvsAndBonsaiTakesSparse) {
+TEST(AutoInitialisation, FernTakesTheSweepAndBonsaiTakesPatchMatch) {
   const fs::path data(GAPS_DATA_DIR);
   const struct {
     const char* path;
     int views;
     const char* method;
-  } cases[] = {{"llff/fern", 3, "mvs"},
-               {"llff/fern", 9, "mvs"},
-               {"mipnerf360/bonsai", 12, "sparse"},
-               {"mipnerf360/bonsai", 24, "sparse"}};
+  } cases[] = {{"llff/fern", 3, "sweep"},
+               {"llff/fern", 9, "sweep"},
+               {"mipnerf360/bonsai", 12, "mvs"},
+               {"mipnerf360/bonsai", 24, "mvs"}};
   for (const auto& c : cases) {
     if (!fs::exists(data / c.path)) GTEST_SKIP() << "no benchmark data at " << data / c.path;
     SceneLoadOptions load;

@@ -51,12 +51,14 @@ std::string describe_options(const InitOptions& o) {
       d.max_points);
 }
 
-std::string describe_mvs_options(const PatchMatchOptions& p, const FusionOptions& f) {
-  return absl::StrFormat("patchmatch %d %d %d %.6g %d %d %d %.6g %d %d %.6g %.6g %.6g %d | fusion %.6g %.6g %.6g %d %d",
-                         p.max_image_side, p.window_radius, p.window_step, p.sigma_color, p.iterations,
-                         p.max_source_views, p.best_views, p.min_triangulation_angle_deg, p.geometric_consistency,
-                         p.geometric_iterations, p.geometric_regularizer, p.geometric_max_error_px, p.max_cost, p.seed,
-                         f.max_depth_error, f.max_reprojection_px, f.max_normal_error_deg, f.min_views, f.max_points);
+std::string describe_mvs_options(const PatchMatchOptions& p, const FusionOptions& f, double min_depth_coverage) {
+  return absl::StrFormat(
+      "patchmatch %d %d %d %.6g %d %d %d %.6g %d %d %.6g %.6g %.6g %d | fusion %.6g %.6g %.6g %d %d"
+      " | coverage %.6g",
+      p.max_image_side, p.window_radius, p.window_step, p.sigma_color, p.iterations, p.max_source_views, p.best_views,
+      p.min_triangulation_angle_deg, p.geometric_consistency, p.geometric_iterations, p.geometric_regularizer,
+      p.geometric_max_error_px, p.max_cost, p.seed, f.max_depth_error, f.max_reprojection_px, f.max_normal_error_deg,
+      f.min_views, f.max_points, min_depth_coverage);
 }
 
 std::string describe_camera(const Camera& c, const at::Tensor& image) {
@@ -135,6 +137,18 @@ std::string too_few_fused(int64_t points, const InitOptions& opts) {
   return absl::StrCat("too few fused points (", points, " < ", opts.min_dense_points, ")");
 }
 
+// Why PatchMatch's maps give too few pixels a depth (InitOptions::min_depth_coverage); "" when they do not.
+std::string too_little_depth(const std::vector<ViewDepthNormal>& maps, const FusionStats& fusion,
+                             const InitOptions& opts) {
+  if (opts.min_depth_coverage <= 0) return "";
+  int64_t pixels = 0, with_depth = 0;
+  for (const ViewDepthNormal& m : maps) pixels += int64_t{m.camera.width} * m.camera.height;
+  for (int64_t n : fusion.depth_pixels) with_depth += n;
+  const double coverage = pixels > 0 ? static_cast<double>(with_depth) / pixels : 0.0;
+  if (coverage >= opts.min_depth_coverage) return "";
+  return absl::StrFormat("depth for %.0f%% of the pixels (< %.0f%%)", 100 * coverage, 100 * opts.min_depth_coverage);
+}
+
 // "mvs" or "sweep" after the sparse stage: the points and statistics go into *r, the return value says why
 // the method failed (empty when it did not). Errors only for a dense workspace that cannot be written.
 absl::StatusOr<std::string> dense_stage(const std::string& method, const std::vector<Camera>& cameras,
@@ -156,7 +170,8 @@ absl::StatusOr<std::string> dense_stage(const std::string& method, const std::ve
   if (!mvs.ok()) return std::string(mvs.status().message());
   r->mvs = mvs->stats;
   r->notes.push_back(mvs_note(mvs->stats, opts.fusion));
-  const std::string why = too_few_fused(mvs->stats.fusion.points, opts);
+  std::string why = too_few_fused(mvs->stats.fusion.points, opts);
+  if (why.empty()) why = too_little_depth(mvs->maps, mvs->stats.fusion, opts);
   if (!why.empty()) return why;
   if (!opts.dense_workspace.empty())
     GAPS_RETURN_IF_ERROR(write_colmap_dense_workspace(opts.dense_workspace, mvs->maps, mvs->fused, sparse.points));
@@ -249,7 +264,7 @@ std::string init_cache_key(const std::string& method, const std::vector<Camera>&
   // Only where they matter: the fusion cap follows the run's Gaussian budget, which should not invalidate
   // the sparse points.
   if (method == "mvs" || method == "auto")
-    absl::StrAppend(&text, "|", describe_mvs_options(opts.patchmatch, opts.fusion));
+    absl::StrAppend(&text, "|", describe_mvs_options(opts.patchmatch, opts.fusion, opts.min_depth_coverage));
   for (size_t i = 0; i < cameras.size(); ++i)
     absl::StrAppend(&text, "|", describe_camera(cameras[i], i < images.size() ? images[i] : at::zeros({1})));
   const int w = cameras.empty() ? 0 : cameras[0].width, h = cameras.empty() ? 0 : cameras[0].height;
@@ -273,7 +288,7 @@ bool views_surround_scene(const std::vector<Camera>& cameras) {
 }
 
 std::string auto_init_method(const std::vector<Camera>& cameras) {
-  return views_surround_scene(cameras) ? "sparse" : "mvs";
+  return views_surround_scene(cameras) ? "mvs" : "sweep";
 }
 
 namespace {
@@ -309,7 +324,9 @@ absl::StatusOr<InitResult> run_initialization(const std::string& method, const s
   GAPS_RETURN_IF_ERROR(check_inputs(method, train_cameras, train_images));
   if (method != "auto") return cached_or_computed(method, train_cameras, train_images, opts);
   const std::string chosen = auto_init_method(train_cameras);
-  GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed(chosen, train_cameras, train_images, opts));
+  InitOptions auto_opts = opts;
+  if (chosen == "mvs") auto_opts.min_depth_coverage = std::max(opts.min_depth_coverage, kAutoMinDepthCoverage);
+  GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed(chosen, train_cameras, train_images, auto_opts));
   r.notes.insert(
       r.notes.begin(),
       absl::StrFormat("auto: %s (viewing directions span %.0f degrees; over %.0f the views surround the scene)", chosen,

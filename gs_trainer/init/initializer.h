@@ -38,6 +38,10 @@ struct InitOptions {
   FusionOptions fusion;            // "mvs"
   int64_t min_sparse_points = 50;  // fewer triangulated points: "sparse" has failed
   int64_t min_dense_points = 1000;  // fewer fused points: "mvs" or "sweep" has failed
+  // "mvs" has failed when its depth maps give a depth to less than this fraction of the views' pixels (at
+  // the working resolution): a cloud of the few well-matched regions leaves the rest of the scene without
+  // points. 0 for an explicit --init mvs; "auto" on views that surround the scene asks kAutoMinDepthCoverage.
+  double min_depth_coverage = 0.0;
   // Non-empty: when "mvs" makes the points, its depth and normal maps and fused cloud are also written here
   // as a COLMAP dense workspace (colmap_dense.h). Only a computation has the maps, so the cache is then
   // written but not read.
@@ -69,13 +73,16 @@ double viewing_direction_spread_degrees(const std::vector<Camera>& cameras);
 // kSurroundingViewsDegrees): what decides "auto" here and the paper's pseudo-views per phase (GapsConfig).
 bool views_surround_scene(const std::vector<Camera>& cameras);
 
-// What "auto" resolves to: "sparse" when the views surround the scene, else "mvs". Measured with the plane
-// sweep (now "sweep"), which compares square windows between neighbouring views: across the tens of degrees
-// between the neighbours of a sparse 360° capture those windows no longer match and the fused cloud is wrong
-// enough to cost 3DGS more than having few points (bench/configs/init_comparison.json: bonsai 12 views,
-// vanilla 17.01 dB from the sparse points against 14.66 from the MVS cloud; fern 3 views, forward-facing,
-// 20.59 from MVS against 17.74). PatchMatch's slanted, view-selected windows have not been measured there yet.
+// What "auto" resolves to, as measured (bench/configs/patchmatch_init.json, docs/benchmarks.md, "PatchMatch
+// initialisation"): "sweep" for forward-facing views (fern 3 views, vanilla 20.6 dB from the plane sweep
+// against 19.7 from PatchMatch; equal at 9 views); "mvs" (PatchMatch) when the views surround the scene, with
+// min_depth_coverage = kAutoMinDepthCoverage, so that a capture too sparse for PatchMatch to give most pixels
+// a depth takes the sparse points instead (bonsai 24 views: depth for 38 % of the pixels, vanilla 23.7 dB
+// against 22.7 from the sparse points; bonsai 12 views: 17 %, 15.8 against 17.0).
 std::string auto_init_method(const std::vector<Camera>& cameras);
+
+// The depth coverage "auto" asks of PatchMatch on surrounding views (InitOptions::min_depth_coverage).
+inline constexpr double kAutoMinDepthCoverage = 0.25;
 
 // The full result. images[i] is HxWx3 float in [0, 1] at cameras[i]'s size, on any device. Errors only for
 // an unknown method or invalid input; everything else falls back (see above).
