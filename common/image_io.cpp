@@ -8,6 +8,7 @@
 #include <vector>
 
 #include <ATen/ATen.h>
+#include <ATen/Parallel.h>
 #include <jpeglib.h>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -216,6 +217,16 @@ absl::Status write_png(const fs::path& path, const at::Tensor& image) {
   absl::StatusOr<std::string> png = encode_png(image, path.string());
   if (!png.ok()) return png.status();
   return write_file_bytes(path, *png);
+}
+
+absl::Status write_pngs(const std::vector<std::pair<fs::path, at::Tensor>>& images) {
+  std::vector<absl::Status> written(images.size());
+  at::parallel_for(0, static_cast<int64_t>(images.size()), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) written[i] = write_png(images[i].first, images[i].second);
+  });
+  for (const absl::Status& st : written)
+    if (!st.ok()) return st;
+  return absl::OkStatus();
 }
 
 absl::StatusOr<at::Tensor> decode_image(const std::string& bytes, const std::string& what) {

@@ -129,7 +129,7 @@ TEST_F(GapsTrainingTest, PhasesRecordTheirTimeBySectionAndTheGeneratorsStages) {
   ASSERT_EQ(phases.size(), 2u);
   for (size_t k = 0; k < phases.size(); ++k) {
     const auto& seconds = phases[k]["seconds"];
-    for (const char* section : {"references", "scoring", "renders", "generation", "admission"}) {
+    for (const char* section : {"references", "scoring", "renders", "generation", "admission", "inspection"}) {
       ASSERT_TRUE(seconds.contains(section)) << k << " " << section << " " << seconds;
       EXPECT_GE(seconds[section].get<double>(), 0.0);
     }

@@ -101,6 +101,24 @@ TEST_F(ImageIoTest, WritePngRejectsOtherShapes) {
   expect_names(write_png(dir_ / "no_such_dir" / "x.png", at::zeros({4, 4, 3})), dir_ / "no_such_dir" / "x.png");
 }
 
+// Every image is written (in parallel) and each reads back as its own; one that cannot be written is the error,
+// named, and does not stop the others.
+TEST_F(ImageIoTest, WritePngsWritesEveryImageAndNamesTheOneThatFails) {
+  std::vector<std::pair<fs::path, at::Tensor>> images;
+  for (int i = 0; i < 9; ++i) images.push_back({dir_ / ("v" + std::to_string(i) + ".png"), at::rand({6, 4 + i, 3})});
+  ASSERT_TRUE(write_pngs(images).ok());
+  for (const auto& [path, image] : images) {
+    absl::StatusOr<at::Tensor> back = read_image(path);
+    ASSERT_TRUE(back.ok()) << back.status();
+    EXPECT_LE((*back - image).abs().max().item<float>(), 0.5f / 255 + 1e-6f) << path;
+  }
+  const fs::path unwritable = dir_ / "no_such_dir" / "x.png";
+  images.insert(images.begin() + 4, {unwritable, at::zeros({4, 4, 3})});
+  fs::remove(images.back().first);
+  expect_names(write_pngs(images), unwritable);
+  EXPECT_TRUE(fs::exists(images.back().first));
+}
+
 TEST_F(ImageIoTest, Reads16BitRgb) {
   std::string samples;
   for (uint16_t v : {0, 65535, 32768, 1, 2, 3}) samples += {static_cast<char>(v >> 8), static_cast<char>(v & 0xff)};

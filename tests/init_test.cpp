@@ -24,6 +24,7 @@
 #include "gs_trainer/init/sparse.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/scene/colmap.h"
+#include "tests/synthetic_stereo.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -31,23 +32,11 @@ namespace {
 
 namespace fs = std::filesystem;
 
-// OpenCV-convention camera at `centre` looking at `target` (world y points down, like the image's).
+// synthetic_stereo's camera at `centre` looking at `target`, named.
 Camera look_at(const std::string& name, const Eigen::Vector3d& centre, const Eigen::Vector3d& target, int width,
                int height, double focal) {
-  const Eigen::Vector3d z = (target - centre).normalized();
-  const Eigen::Vector3d x = Eigen::Vector3d(0, 1, 0).cross(z).normalized();
-  const Eigen::Vector3d y = z.cross(x);
-  Camera c;
+  Camera c = synthetic_stereo::look_at(centre, target, width, height, focal);
   c.name = name;
-  c.width = width;
-  c.height = height;
-  c.fx = c.fy = focal;
-  c.cx = width / 2.0;
-  c.cy = height / 2.0;
-  c.R.row(0) = x;
-  c.R.row(1) = y;
-  c.R.row(2) = z;
-  c.t = -c.R * centre;
   return c;
 }
 

@@ -12,6 +12,7 @@
 #include <gtest/gtest.h>
 #include <Eigen/Dense>
 
+#include "gs_trainer/init/patchmatch_host.h"
 #include "gs_trainer/init/patchmatch_math.h"
 #include "tests/synthetic_stereo.h"
 #include "tests/test_util.h"
@@ -21,31 +22,12 @@ namespace {
 
 namespace ss = synthetic_stereo;
 
-pm::ViewGeometry geometry_of(const Camera& c) {
-  return {static_cast<float>(c.fx),
-          static_cast<float>(c.fy),
-          static_cast<float>(c.cx),
-          static_cast<float>(c.cy),
-          c.width,
-          c.height};
-}
-
-pm::V3 v3(const Eigen::Vector3d& v) {
-  return {static_cast<float>(v.x()), static_cast<float>(v.y()), static_cast<float>(v.z())};
-}
+using pm::to_v3;
+using pm::view_geometry;
 
 // `src` as reference `ref` sees it (what patchmatch.cpp hands the per-pixel code).
 pm::Source source_of(const Camera& ref, const Camera& src, const float* grey, const float* depth = nullptr) {
-  const Eigen::Matrix3d R = src.R * ref.R.transpose();
-  const Eigen::Vector3d t = src.t - R * ref.t;
-  pm::Source s;
-  s.cam = geometry_of(src);
-  for (int i = 0; i < 9; ++i) s.R.m[i] = static_cast<float>(R(i / 3, i % 3));
-  s.t = v3(t);
-  s.centre = v3(-R.transpose() * t);
-  s.grey = grey;
-  s.depth = depth;
-  return s;
+  return pm::relative_source(ref, src, grey, depth);
 }
 
 Eigen::Matrix3d random_rotation(std::mt19937& rng, double max_angle) {
@@ -72,7 +54,7 @@ TEST(PatchMatchMath, HomographyMapsPixelsWhereThePlanePointProjects) {
     const Eigen::Vector3d X0 = d * ray0;
     Eigen::Vector3d n = (-ray0.normalized() + 0.5 * Eigen::Vector3d(u(rng), u(rng), u(rng))).normalized();
     if (n.dot(ray0) >= -0.2) continue;
-    const pm::M3 H = pm::plane_homography(geometry_of(ref), source_of(ref, src, nullptr), v3(X0), v3(n));
+    const pm::M3 H = pm::plane_homography(view_geometry(ref), source_of(ref, src, nullptr), to_v3(X0), to_v3(n));
     for (int k = 0; k < 5; ++k) {
       const double u1 = u0 + 8 * u(rng), v1 = v0 + 8 * u(rng);
       const Eigen::Vector3d ray1((u1 - ref.cx) / ref.fx, (v1 - ref.cy) / ref.fy, 1.0);
@@ -99,8 +81,8 @@ struct SelfMatch {
   float cost(const at::Tensor& src_grey, int x = 20, int y = 15) const {
     const pm::Source s = source_of(cam, cam, src_grey.data_ptr<float>());
     const pm::V3 X{0.0f, 0.0f, 3.0f}, n{0.1f, 0.2f, -1.0f};
-    const pm::M3 H = pm::plane_homography(geometry_of(cam), s, X, pm::normalized(n));
-    return pm::window_cost(geometry_of(cam), grey.data_ptr<float>(), s, H, window, x, y);
+    const pm::M3 H = pm::plane_homography(view_geometry(cam), s, X, pm::normalized(n));
+    return pm::window_cost(view_geometry(cam), grey.data_ptr<float>(), s, H, window, x, y);
   }
 };
 
@@ -195,14 +177,14 @@ TEST(PatchMatchMath, GeometricErrorIsZeroForAConsistentPairOnly) {
       const Eigen::Vector3d X = depth_ref * ray, p = R * X + t;
       const double u = src.fx * p.x() / p.z() + src.cx, v = src.fy * p.y() / p.z() + src.cy;
       if (u < 0 || v < 0 || u >= 80 || v >= 60) continue;
-      EXPECT_LT(pm::geometric_error(geometry_of(ref), s, v3(X), x, y, 3.0f), 2e-3f);
-      EXPECT_GT(pm::geometric_error(geometry_of(ref), s, v3(1.05 * X), x, y, 3.0f), 0.5f);
+      EXPECT_LT(pm::geometric_error(view_geometry(ref), s, to_v3(X), x, y, 3.0f), 2e-3f);
+      EXPECT_GT(pm::geometric_error(view_geometry(ref), s, to_v3(1.05 * X), x, y, 3.0f), 0.5f);
       ++checked;
     }
   EXPECT_GT(checked, 10);
   const at::Tensor none = at::zeros({60, 80});
   const pm::Source empty = source_of(ref, src, nullptr, none.data_ptr<float>());
-  EXPECT_EQ(pm::geometric_error(geometry_of(ref), empty, {0, 0, 4}, 40, 30, 3.0f), 3.0f);
+  EXPECT_EQ(pm::geometric_error(view_geometry(ref), empty, {0, 0, 4}, 40, 30, 3.0f), 3.0f);
 }
 
 TEST(PatchMatchMath, AggregationAveragesTheBestSources) {

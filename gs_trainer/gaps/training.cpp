@@ -189,11 +189,11 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
   return generate_and_admit(chosen, variant_ != Variant::kNoGaps, entry);
 }
 
-absl::Status GapsTraining::save_for_inspection(int phase, int id, bool admitted, const at::Tensor& image) const {
-  if (inspection_dir_.empty()) return absl::OkStatus();
+std::filesystem::path GapsTraining::inspection_path(int phase, int id, bool admitted) const {
+  if (inspection_dir_.empty()) return {};
   const auto dir = inspection_dir_ / absl::StrFormat("phase_%02d", phase);
   std::filesystem::create_directories(dir);
-  return write_png(dir / absl::StrFormat("cand_%03d_%s.png", id, admitted ? "admitted" : "rejected"), image);
+  return dir / absl::StrFormat("cand_%03d_%s.png", id, admitted ? "admitted" : "rejected");
 }
 
 absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry) {
@@ -227,6 +227,7 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     return absl::InternalError(absl::StrCat("generator ", generator_->name(), " returned ", images.size(),
                                             " images for ", requests.size(), " requests"));
   std::vector<double> admitted_variances;
+  std::vector<std::pair<std::filesystem::path, at::Tensor>> for_inspection;
   const auto device = model.means.device();
   for (size_t k = 0; k < chosen.size(); ++k) {
     const at::Tensor image = images[k].to(device);
@@ -245,7 +246,8 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
                                   {"admitted", admit},
                                   {"reason", gate ? d.reason : "no admission gate (no-gaps)"},
                                   {"camera", camera_json(chosen[k].camera, chosen[k].id, "pseudo")}});
-    GAPS_RETURN_IF_ERROR(save_for_inspection(entry["phase"].get<int>(), chosen[k].id, admit, images[k]));
+    const auto path = inspection_path(entry["phase"].get<int>(), chosen[k].id, admit);
+    if (!path.empty()) for_inspection.push_back({path, images[k]});
     if (!admit) continue;
     admitted_variances.push_back(variance);
     // no-gaps drops the gate, not the uncertainty weighting: the paper keeps the rest of the method.
@@ -260,6 +262,8 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   // The tier follows the admitted views alone (sec. 3.4), unlike C_hist, which also remembers the rejected.
   if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
   lap(entry, "admission", &clock);
+  GAPS_RETURN_IF_ERROR(write_pngs(for_inspection));
+  if (!for_inspection.empty()) lap(entry, "inspection", &clock);
   return absl::OkStatus();
 }
 

@@ -55,7 +55,8 @@ class GapsTraining {
   absl::Status run_phase_generation(int phase, nlohmann::json& entry);
   absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);
   std::vector<ReferenceView> references_for(const Camera& pose) const;
-  absl::Status save_for_inspection(int phase, int id, bool admitted, const at::Tensor& image) const;
+  // Where a generated view is saved for inspection (its phase's folder made); empty without an inspection dir.
+  std::filesystem::path inspection_path(int phase, int id, bool admitted) const;
   at::Tensor drop_scale();
   std::vector<Camera> supervised_cameras() const;
 

@@ -8,6 +8,7 @@
 #include <Eigen/Dense>
 #include "absl/strings/str_cat.h"
 #include "gs_trainer/init/patchmatch_backend.h"
+#include "gs_trainer/init/patchmatch_host.h"
 #include "gs_trainer/init/working_view.h"
 
 namespace gaps {
@@ -99,32 +100,8 @@ WorkingView make_working_view(const Camera& camera, const at::Tensor& image, int
   return v;
 }
 
-pm::ViewGeometry geometry(const Camera& c) {
-  return {static_cast<float>(c.fx),
-          static_cast<float>(c.fy),
-          static_cast<float>(c.cx),
-          static_cast<float>(c.cy),
-          c.width,
-          c.height};
-}
-
-pm::V3 to_v3(const Eigen::Vector3d& v) {
-  return {static_cast<float>(v.x()), static_cast<float>(v.y()), static_cast<float>(v.z())};
-}
-
-// Source `src` relative to reference `ref` (poses composed in double, then rounded once).
 pm::Source make_source(const Camera& ref, const WorkingView& src) {
-  const Eigen::Matrix3d R = src.camera.R * ref.R.transpose();
-  const Eigen::Vector3d t = src.camera.t - R * ref.t;
-  pm::Source s;
-  s.cam = geometry(src.camera);
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) s.R.m[r * 3 + c] = static_cast<float>(R(r, c));
-  s.t = to_v3(t);
-  s.centre = to_v3(-R.transpose() * t);
-  s.grey = src.grey.data_ptr<float>();
-  s.depth = nullptr;
-  return s;
+  return pm::relative_source(ref, src.camera, src.grey.data_ptr<float>(), nullptr);
 }
 
 // A view's estimate on the run's device.
@@ -140,7 +117,7 @@ ViewState empty_state(const Camera& c, const at::TensorOptions& opt) {
 pm::Problem make_problem(size_t view, const std::vector<WorkingView>& views, const std::vector<int>& sources,
                          std::pair<double, double> range, const ViewState& state, const PatchMatchOptions& o) {
   pm::Problem p{};
-  p.cam = geometry(views[view].camera);
+  p.cam = pm::view_geometry(views[view].camera);
   p.grey = views[view].grey.data_ptr<float>();
   p.min_depth = static_cast<float>(range.first);
   p.max_depth = static_cast<float>(range.second);
