@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Installs PyPI's gsplat (the pure-Python wheel whose CUDA extension compiles at first import) into a
-# private folder for bench/gsplat_compare.py, on a machine without network access: the wheel and its
+# private folder for bench/rasterizer_compare.py, on a machine without network access: the wheel and its
 # dependencies are taken from WHEEL_DIR (fetch them elsewhere with `pip download`; see bench/README.md).
 #
 # Build time: gsplat instantiates its rasterization kernels for 19 channel counts (1 ... 513) and compiles

@@ -4,11 +4,12 @@
 // shared/gpu/README.md. Also the split between the rasterizer's stages (backend calls, synchronised
 // one by one). CUDA for every case, CPU for the smallest. One JSON line per case and device.
 // With --dump_dir, each case's Gaussians (standard 3DGS PLY) and camera (JSON) are written there, so that
-// bench/gsplat_compare.py times gsplat on exactly the same input in the same run.
+// bench/rasterizer_compare.py times gsplat on exactly the same input in the same run.
 //   rasterizer_speed_bench [--runs 20] [--cpu_runs 3] [--json results.jsonl] [--dump_dir DIR]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <functional>
 #include <iostream>
@@ -124,6 +125,7 @@ double peak_memory_mib(const at::Device& device) {
 }
 
 void dump_case(const Case& cs, const gaps::GaussianModel& model, const gaps::Camera& camera, const std::string& dir) {
+  std::filesystem::create_directories(dir);
   const std::string stem = dir + "/" + cs.name;
   const absl::Status saved = gaps::save_gaussians_ply(model, stem + ".ply");
   TORCH_CHECK(saved.ok(), "writing ", stem, ".ply: ", saved.message());

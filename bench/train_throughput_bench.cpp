@@ -20,6 +20,7 @@
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/raster/losses.h"
+#include "gs_trainer/train/budget.h"
 
 ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
 ABSL_FLAG(int, views, 3, "training views");
@@ -32,6 +33,8 @@ ABSL_FLAG(std::string, init_ply, "", "initial points (PLY, e.g. from `gaps init`
 ABSL_FLAG(std::string, trace, "", "write a profiler trace (Chrome JSON) of some iterations to this file");
 ABSL_FLAG(int, trace_at, 1000, "first traced iteration");
 ABSL_FLAG(int, trace_iterations, 50, "traced iterations");
+ABSL_FLAG(int64_t, max_gaussians, -1,
+          "Gaussian budget: -1 = the automatic budget of `gaps train`, 0 = unlimited growth, > 0 = this many");
 
 namespace {
 
@@ -87,6 +90,9 @@ int main(int argc, char** argv) {
   gaps::TrainConfig config;
   config.iterations = absl::GetFlag(FLAGS_iterations);
   config.device = device.str();
+  const int64_t max_gaussians = absl::GetFlag(FLAGS_max_gaussians);
+  config.max_gaussians = max_gaussians >= 0 ? max_gaussians
+                                            : gaps::gaussian_budget(0, config.gaussians_per_variation, views);
   const auto model = gaps::gaussians_from_points(points, 3).to(device);
 
   // Stage split on the initial model.
@@ -142,6 +148,7 @@ int main(int argc, char** argv) {
                       {"iterations", config.iterations},
                       {"initial_gaussians", model.size()},
                       {"final_gaussians", trainer.model().size()},
+                      {"max_gaussians", config.max_gaussians},
                       {"seconds", total},
                       {"iterations_per_second", config.iterations / total},
                       {"initial_forward_ms", 1000 * t_fwd / reps},
