@@ -91,8 +91,8 @@ int main(int argc, char** argv) {
   config.iterations = absl::GetFlag(FLAGS_iterations);
   config.device = device.str();
   const int64_t max_gaussians = absl::GetFlag(FLAGS_max_gaussians);
-  config.max_gaussians = max_gaussians >= 0 ? max_gaussians
-                                            : gaps::gaussian_budget(0, config.gaussians_per_variation, views);
+  config.max_gaussians =
+      max_gaussians >= 0 ? max_gaussians : gaps::gaussian_budget(0, config.gaussians_per_variation, views);
   const auto model = gaps::gaussians_from_points(points, 3).to(device);
 
   // Stage split on the initial model.

@@ -3,8 +3,10 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <vector>
 
 #include <ATen/ATen.h>
+#include <ATen/Parallel.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -46,6 +48,22 @@ absl::StatusOr<std::string> thumbnail_img(const at::Tensor& image, const std::st
 absl::StatusOr<std::string> thumbnail_file(const fs::path& path, int width = kThumbnailWidth) {
   GAPS_ASSIGN_OR_RETURN(const at::Tensor image, read_image(path));
   return thumbnail_img(image, path.filename().string(), width);
+}
+
+// thumbnail_file of each path that exists, "(image not saved)" for the others; decoded, shrunk and re-encoded in
+// parallel, since a run of the method leaves hundreds of pseudo-views to show.
+absl::StatusOr<std::vector<std::string>> thumbnail_files(const std::vector<fs::path>& paths, int width) {
+  std::vector<absl::StatusOr<std::string>> made(paths.size(), std::string("(image not saved)"));
+  at::parallel_for(0, static_cast<int64_t>(paths.size()), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i)
+      if (fs::exists(paths[i])) made[i] = thumbnail_file(paths[i], width);
+  });
+  std::vector<std::string> html;
+  for (absl::StatusOr<std::string>& m : made) {
+    if (!m.ok()) return m.status();
+    html.push_back(*std::move(m));
+  }
+  return html;
 }
 
 // Ticks at 1, 2 or 5 times a power of ten, about `target` of them over [lo, hi].
@@ -152,22 +170,23 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
   GAPS_ASSIGN_OR_RETURN(const std::string text, read_file_bytes(phases_path, "phases file"));
   const json phases = json::parse(text, nullptr, false);
   if (phases.is_discarded()) return absl::DataLossError(absl::StrCat(phases_path.string(), ": not valid JSON"));
+  std::vector<fs::path> images;
+  for (const auto& phase : phases)
+    for (const auto& s : phase.value("selection", json::array()))
+      images.push_back(
+          out_dir / "pseudo_views" / absl::StrFormat("phase_%02d", phase.value("phase", 0)) /
+          absl::StrFormat("cand_%03d_%s.png", s.value("id", -1), s.value("admitted", false) ? "admitted" : "rejected"));
+  GAPS_ASSIGN_OR_RETURN(const std::vector<std::string> thumbnails, thumbnail_files(images, kPseudoThumbnailWidth));
   std::string html;
+  size_t next = 0;
   for (const auto& phase : phases) {
-    const int number = phase.value("phase", 0);
-    absl::StrAppend(&html, "<h3>Phase ", number, " (iteration ", phase.value("iteration", 0), ", tier ",
-                    phase.value("tier", 0), ", ", phase.value("gaussians", int64_t{0}),
+    absl::StrAppend(&html, "<h3>Phase ", phase.value("phase", 0), " (iteration ", phase.value("iteration", 0),
+                    ", tier ", phase.value("tier", 0), ", ", phase.value("gaussians", int64_t{0}),
                     " Gaussians): ", phase.value("admitted", 0), " of ", phase.value("selection", json::array()).size(),
                     " admitted</h3>\n<div class=\"grid\">\n");
     for (const auto& s : phase.value("selection", json::array())) {
       const bool admitted = s.value("admitted", false);
-      const fs::path image = out_dir / "pseudo_views" / absl::StrFormat("phase_%02d", number) /
-                             absl::StrFormat("cand_%03d_%s.png", s.value("id", -1), admitted ? "admitted" : "rejected");
-      std::string img = "(image not saved)";
-      if (fs::exists(image)) {
-        GAPS_ASSIGN_OR_RETURN(img, thumbnail_file(image, kPseudoThumbnailWidth));
-      }
-      absl::StrAppend(&html, "<figure class=\"", admitted ? "admitted" : "rejected", "\">", img,
+      absl::StrAppend(&html, "<figure class=\"", admitted ? "admitted" : "rejected", "\">", thumbnails[next++],
                       "<figcaption>candidate ", s.value("id", -1), ", coverage ",
                       json_number(s.value("coverage", json()), 2), "<br><b>", admitted ? "admitted" : "rejected",
                       "</b>: ", escape(s.value("reason", "")), "</figcaption></figure>\n");

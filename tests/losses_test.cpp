@@ -259,6 +259,37 @@ TEST(Gradients, WeightedPhotometricLossMatchesFiniteDifferences) {
       random_image(12, 13, 18));
 }
 
+// The training loss is one autograd node; its gradient must be the one the composed ops give, bit for bit, so
+// that fusing it changed no training result.
+at::Tensor gradient_of(const std::function<at::Tensor(const at::Tensor&)>& loss, const at::Tensor& pred0) {
+  at::Tensor pred = pred0.clone().requires_grad_(true);
+  loss(pred).backward();
+  return pred.grad();
+}
+
+TEST(Gradients, FusedLossesEqualTheComposedOpsBitForBit) {
+  const at::Tensor pred = random_image(21, 17, 25).to(at::kFloat), gt = random_image(21, 17, 26).to(at::kFloat);
+  const at::Tensor weight = at::rand({21, 17}, at::kFloat) + 0.1f;
+  const double lambda = 0.2;
+  const at::Tensor fused =
+      gradient_of([&](const at::Tensor& p) { return gaps::photometric_loss(p, gt, lambda); }, pred);
+  const at::Tensor composed = gradient_of(
+      [&](const at::Tensor& p) { return (1.0 - lambda) * gaps::l1_loss(p, gt) + lambda * (1.0 - gaps::ssim(p, gt)); },
+      pred);
+  EXPECT_TRUE(at::equal(fused, composed)) << (fused - composed).abs().max().item<double>();
+
+  const at::Tensor fused_w =
+      gradient_of([&](const at::Tensor& p) { return gaps::weighted_photometric_loss(p, gt, weight, lambda); }, pred);
+  const at::Tensor composed_w = gradient_of(
+      [&](const at::Tensor& p) {
+        const at::Tensor w = weight.unsqueeze(2);
+        return (1.0 - lambda) * (w * (p - gt).abs()).mean() + lambda * (w * (1.0 - gaps::ssim_map(p, gt))).mean();
+      },
+      pred);
+  EXPECT_TRUE(at::equal(fused_w, composed_w)) << (fused_w - composed_w).abs().max().item<double>();
+  EXPECT_FALSE(at::equal(fused, fused_w));  // the weight reached the gradient
+}
+
 // ---- types and misuse ----
 
 TEST(Losses, Float32AgreesWithFloat64) {

@@ -1,5 +1,8 @@
 #include "gs_trainer/model/render.h"
 
+#include <array>
+#include <deque>
+
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 
@@ -14,12 +17,38 @@ at::Tensor upload(const at::Tensor& host, const at::TensorOptions& opts) {
   return host.to(opts.dtype()).pin_memory().to(opts.device(), /*non_blocking=*/true);
 }
 
+// The camera's view matrix on the model's device. Training renders the same few cameras thousands of times and
+// an upload per step (a host tensor, a pinned staging buffer, a copy) cost more host time than the projection's
+// kernel, so each thread keeps the matrices it uploaded last, keyed by the pose itself.
+at::Tensor device_viewmat(const Camera& camera, const at::TensorOptions& opts) {
+  if (!opts.device().is_cuda()) return camera.viewmat().to(opts);
+  struct Entry {
+    std::array<double, 12> pose;
+    c10::Device device;
+    at::ScalarType dtype;
+    at::Tensor viewmat;
+  };
+  constexpr size_t kCapacity = 64;
+  thread_local std::deque<Entry> cache;
+  std::array<double, 12> pose;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) pose[4 * r + c] = camera.R(r, c);
+    pose[4 * r + 3] = camera.t(r);
+  }
+  const auto dtype = c10::typeMetaToScalarType(opts.dtype());
+  for (const Entry& e : cache)
+    if (e.pose == pose && e.device == opts.device() && e.dtype == dtype) return e.viewmat;
+  if (cache.size() == kCapacity) cache.pop_front();
+  cache.push_back({pose, opts.device(), dtype, upload(camera.viewmat(), opts)});
+  return cache.back().viewmat;
+}
+
 }  // namespace
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options) {
   const auto opts = model.means.options();
   const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
-  auto proj = project_gaussians(model.means, model.quats, model.scales(), upload(camera.viewmat(), opts), K);
+  auto proj = project_gaussians(model.means, model.quats, model.scales(), device_viewmat(camera, opts), K);
 
   const Eigen::Vector3d c = camera.center();
   const at::Tensor colour_and_distance =
@@ -45,7 +74,7 @@ at::Tensor blending_weights(const GaussianModel& model, const Camera& camera) {
   const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
   at::AutoGradMode grad_mode(true);
   const auto proj = project_gaussians(model.means.detach(), model.quats.detach(), model.scales().detach(),
-                                      upload(camera.viewmat(), opts), K);
+                                      device_viewmat(camera, opts), K);
   at::Tensor probe = at::zeros({model.size(), 1}, opts).requires_grad_(true);
   const auto raster = rasterize_gaussians(proj.means2d, proj.conics, model.opacities().detach(), probe, proj.depths,
                                           proj.radii, camera.width, camera.height);
