@@ -5,6 +5,7 @@
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
+#include <torch/csrc/autograd/custom_function.h>
 
 #include "gs_trainer/raster/rasterizer.h"
 
@@ -43,6 +44,32 @@ at::Tensor device_viewmat(const Camera& camera, const at::TensorOptions& opts) {
   return cache.back().viewmat;
 }
 
+using torch::autograd::AutogradContext;
+using torch::autograd::tensor_list;
+using torch::autograd::Variable;
+
+// rgb = the first three composited channels + (1 - alpha) * background, as one autograd node (it was a slice, a
+// subtraction, a product and a sum, each a node with its host-side cost in every training step). Forward and
+// backward use the operations autograd used for those nodes, so renders and gradients keep their bits.
+class OverBackgroundFunction : public torch::autograd::Function<OverBackgroundFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable features, Variable alpha, Variable background) {
+    const at::Tensor bg = background.view({1, 1, 3});
+    ctx->save_for_backward({bg});
+    ctx->saved_data["channels"] = features.size(2);
+    return {features.narrow(2, 0, 3) + (1 - alpha).unsqueeze(2) * bg};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const at::Tensor bg = ctx->get_saved_variables()[0];
+    const at::Tensor& g = grads[0];
+    const int64_t channels = ctx->saved_data["channels"].toInt();
+    const at::Tensor g_features = at::constant_pad_nd(g, {0, channels - 3});
+    const at::Tensor g_alpha = (g * bg).sum_to_size({g.size(0), g.size(1), 1}).squeeze(2).neg();
+    return {g_features, g_alpha, Variable()};
+  }
+};
+
 }  // namespace
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options) {
@@ -59,9 +86,9 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
   const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, colour_and_distance, proj.depths,
                                           proj.radii, camera.width, camera.height, options.means2d_abs_sink);
   RenderOutput out;
-  out.rgb = raster.features.narrow(2, 0, 3);
-  if (options.background.defined())
-    out.rgb = out.rgb + (1 - raster.alpha).unsqueeze(2) * upload(options.background, opts).view({1, 1, 3});
+  out.rgb = options.background.defined()
+                ? OverBackgroundFunction::apply(raster.features, raster.alpha, upload(options.background, opts))[0]
+                : raster.features.narrow(2, 0, 3);
   out.depth = raster.features.select(2, 3);
   out.alpha = raster.alpha;
   out.means2d = proj.means2d;
