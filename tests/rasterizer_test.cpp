@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <numeric>
+#include <random>
 #include <vector>
 
 #include <ATen/ATen.h>
@@ -233,6 +234,38 @@ TEST(RasterizerGradients, AbsoluteMean2dGradientIsAccumulated) {
   out.features.sum().backward();
   EXPECT_TRUE((sink >= means2d.grad().abs() - 1e-12).all().item<bool>());
   EXPECT_GT(sink.sum().item<double>(), 0.0);
+}
+
+}  // namespace
+}  // namespace gaps
+
+namespace gaps {
+namespace {
+
+// The compositing kernels skip a (pixel, Gaussian) pair whose exponent is below certain_skip_power(opacity) before
+// computing any exponential: such a pair must be one eval_alpha rejects, in float (as the kernels compute) and in
+// double, for opacities from faint to DropGaussian-scaled above 1.
+TEST(Rasterizer, CertainSkipPowerOnlySkipsPairsEvalAlphaRejects) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> log_opacity(std::log(1e-3), std::log(1.5)), offset(-2e-3, 2e-3);
+  int skipped = 0, kept = 0;
+  for (int i = 0; i < 200000; ++i) {
+    const float opacity = static_cast<float>(std::exp(log_opacity(rng)));
+    const float power = static_cast<float>(std::min(0.0, std::log(raster::kMinAlpha / opacity) + offset(rng)));
+    if (power >= raster::certain_skip_power(opacity)) {
+      ++kept;
+      continue;
+    }
+    ++skipped;
+    float alpha, gauss;
+    double alpha_d, gauss_d;
+    ASSERT_FALSE(raster::alpha_from_power_host_rounding(power, opacity, alpha, gauss))
+        << "opacity " << opacity << " power " << power;
+    ASSERT_FALSE(raster::alpha_from_power_host_rounding<double>(power, opacity, alpha_d, gauss_d))
+        << "opacity " << opacity << " power " << power;
+  }
+  EXPECT_GT(skipped, 10000);
+  EXPECT_GT(kept, 10000);
 }
 
 }  // namespace

@@ -387,9 +387,7 @@ namespace gaps::raster {
 // gaussian_power, as in eval_alpha; the kernels are compiled without FMA contraction (--fmad=false) so it
 // rounds like the CPU's. Same contract and outputs as eval_alpha.
 template <typename T>
-GAPS_HD bool eval_alpha_host_rounding(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
-                                      T& gauss, T& dx, T& dy) {
-  const T power = gaussian_power(mean2d, conic, px, py, dx, dy);
+GAPS_HD bool alpha_from_power_host_rounding(T power, T opacity, T& alpha, T& gauss) {
   if (power > 0) return false;
   gauss = exp(power);
   T a = opacity * gauss;
@@ -403,6 +401,21 @@ GAPS_HD bool eval_alpha_host_rounding(const Vec2<T>& mean2d, const Sym2<T>& coni
   }
   alpha = a < T(kMaxAlpha) ? a : T(kMaxAlpha);
   return alpha >= T(kMinAlpha);
+}
+
+template <typename T>
+GAPS_HD bool eval_alpha_host_rounding(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
+                                      T& gauss, T& dx, T& dy) {
+  return alpha_from_power_host_rounding(gaussian_power(mean2d, conic, px, py, dx, dy), opacity, alpha, gauss);
+}
+
+// An exponent below which a Gaussian's alpha is certainly under kMinAlpha: log(kMinAlpha / opacity) less a margin
+// (1e-4) far wider than the float error of expf, of the product and of this logarithm. The compositing kernels
+// compare each exponent with it before any exponential: most (pixel, Gaussian) pairs of a tile lie outside the
+// Gaussian's 1/255 ellipse, and for them this gives eval_alpha's decision (skip) without computing exp.
+template <typename T>
+GAPS_HD T certain_skip_power(T opacity) {
+  return log(T(kMinAlpha) / opacity) - T(1e-4);
 }
 
 }  // namespace gaps::raster

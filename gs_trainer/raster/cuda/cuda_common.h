@@ -8,6 +8,8 @@
 #include <ATen/core/Tensor.h>
 #include <c10/util/Exception.h>
 
+#include "gs_trainer/raster/raster_math.h"
+
 namespace gaps::backend {
 
 // The kernels compute in float32; double precision (gradient checks) is the CPU backend's job.
@@ -69,5 +71,27 @@ inline CompositeInputs composite_inputs(int width, int height, int tiles_x, cons
           opacities.data_ptr<float>(),
           features.data_ptr<float>()};
 }
+
+// One Gaussian of a compositing batch as the kernels stage it in shared memory: two 16-byte loads per (pixel,
+// Gaussian) pair instead of five, and the exponent below which the pair is skipped without an exp
+// (raster::certain_skip_power).
+struct StagedSplat {
+  float4 mean_conic_ab;    // mean.x, mean.y, conic.a, conic.b
+  float4 conic_c_opacity;  // conic.c, opacity, skip power, unused
+};
+
+#if defined(__CUDACC__)
+__device__ __forceinline__ StagedSplat stage_splat(const CompositeInputs& a, int g) {
+  const float opacity = a.opacities[g];
+  return {make_float4(a.means2d[2 * g], a.means2d[2 * g + 1], a.conics[3 * g], a.conics[3 * g + 1]),
+          make_float4(a.conics[3 * g + 2], opacity, raster::certain_skip_power(opacity), 0.f)};
+}
+
+// The exponent of the staged Gaussian at pixel centre (cx, cy), and the offsets (as raster::gaussian_power).
+__device__ __forceinline__ float staged_power(const StagedSplat& s, float cx, float cy, float& dx, float& dy) {
+  return raster::gaussian_power<float>({s.mean_conic_ab.x, s.mean_conic_ab.y},
+                                       {s.mean_conic_ab.z, s.mean_conic_ab.w, s.conic_c_opacity.x}, cx, cy, dx, dy);
+}
+#endif
 
 }  // namespace gaps::backend

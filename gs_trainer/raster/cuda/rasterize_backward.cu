@@ -79,9 +79,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
   const float cx = static_cast<float>(px) + 0.5f, cy = static_cast<float>(py) + 0.5f;
 
   __shared__ int s_id[kBlock];
-  __shared__ raster::Vec2<float> s_mean[kBlock];
-  __shared__ raster::Sym2<float> s_conic[kBlock];
-  __shared__ float s_opacity[kBlock];
+  __shared__ StagedSplat s_splat[kBlock];
   __shared__ __align__(16) float s_feat[kBlock * CMAX];
   __shared__ int s_warp[kWarps];
 
@@ -107,9 +105,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
     if (k >= begin) {
       const int g = a.ids[k];
       s_id[thread] = g;
-      s_mean[thread] = {a.means2d[2 * g], a.means2d[2 * g + 1]};
-      s_conic[thread] = {a.conics[3 * g], a.conics[3 * g + 1], a.conics[3 * g + 2]};
-      s_opacity[thread] = a.opacities[g];
+      s_splat[thread] = stage_splat(a, g);
       for (int ch = 0; ch < CMAX; ++ch)
         s_feat[thread * CMAX + ch] = ch < a.channels ? a.features[static_cast<int64_t>(g) * a.channels + ch] : 0.f;
     }
@@ -118,9 +114,15 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
     // Every lane runs every iteration (the bounds are block-uniform), so the warp shuffles below are safe.
     for (int j = 0; j < batch; ++j) {
       const int entry = batch_end - 1 - j - begin;  // position in the tile's list
+      const StagedSplat splat = s_splat[j];
+      const float opacity = splat.conic_c_opacity.y;
       float alpha = 0.f, gauss = 0.f, dx = 0.f, dy = 0.f;
-      const bool valid = entry < contrib && raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j], cx,
-                                                                             cy, alpha, gauss, dx, dy);
+      bool valid = false;
+      if (entry < contrib) {
+        const float power = staged_power(splat, cx, cy, dx, dy);
+        valid =
+            power >= splat.conic_c_opacity.z && raster::alpha_from_power_host_rounding(power, opacity, alpha, gauss);
+      }
       if (!__any_sync(kFullMask, valid)) continue;
       constexpr int kSlots = kFeatures + CMAX;
       float slots[kSlots];
@@ -144,7 +146,8 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
         raster::Vec2<float> g_mean;
         raster::Sym2<float> g_conic;
         float g_opacity;
-        raster::eval_alpha_vjp(s_conic[j], s_opacity[j], gauss, dx, dy, g_alpha, g_mean, g_conic, g_opacity);
+        const raster::Sym2<float> conic{splat.mean_conic_ab.z, splat.mean_conic_ab.w, splat.conic_c_opacity.x};
+        raster::eval_alpha_vjp(conic, opacity, gauss, dx, dy, g_alpha, g_mean, g_conic, g_opacity);
         slots[kMeanX] = g_mean.x;
         slots[kMeanY] = g_mean.y;
         slots[kConicA] = g_conic.a;

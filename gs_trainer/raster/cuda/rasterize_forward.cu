@@ -32,9 +32,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_forward_kernel(ForwardArgs a
   const bool inside = px < a.width && py < a.height;
   const float cx = static_cast<float>(px) + 0.5f, cy = static_cast<float>(py) + 0.5f;
 
-  __shared__ raster::Vec2<float> s_mean[kBlock];
-  __shared__ raster::Sym2<float> s_conic[kBlock];
-  __shared__ float s_opacity[kBlock];
+  __shared__ StagedSplat s_splat[kBlock];
   __shared__ __align__(16) float s_feat[kBlock * CMAX];
 
   const int begin = a.ranges[2 * tile], end = a.ranges[2 * tile + 1];
@@ -50,17 +48,18 @@ __global__ void __launch_bounds__(kBlock) rasterize_forward_kernel(ForwardArgs a
     const int k = batch_start + thread;
     if (k < end) {
       const int g = a.ids[k];
-      s_mean[thread] = {a.means2d[2 * g], a.means2d[2 * g + 1]};
-      s_conic[thread] = {a.conics[3 * g], a.conics[3 * g + 1], a.conics[3 * g + 2]};
-      s_opacity[thread] = a.opacities[g];
+      s_splat[thread] = stage_splat(a, g);
       for (int ch = 0; ch < CMAX; ++ch)
         s_feat[thread * CMAX + ch] = ch < a.channels ? a.features[static_cast<int64_t>(g) * a.channels + ch] : 0.f;
     }
     __syncthreads();
     const int batch = min(kBlock, end - batch_start);
     for (int j = 0; !done && j < batch; ++j) {
+      const StagedSplat splat = s_splat[j];
       float alpha, gauss, dx, dy;
-      if (!raster::eval_alpha_host_rounding(s_mean[j], s_conic[j], s_opacity[j], cx, cy, alpha, gauss, dx, dy))
+      const float power = staged_power(splat, cx, cy, dx, dy);
+      if (power < splat.conic_c_opacity.z ||
+          !raster::alpha_from_power_host_rounding(power, splat.conic_c_opacity.y, alpha, gauss))
         continue;
       const float next = T * (1 - alpha);
       if (next < static_cast<float>(raster::kMinTransmittance)) {
