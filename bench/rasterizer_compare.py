@@ -72,6 +72,19 @@ def load_case(name, dump_dir):
     return params, cam, weights
 
 
+def psnr_against_gaps(render, cam, dump_dir, name):
+    """PSNR of the renderer's colour image against gaps's (dumped by the speed bench): proof that both were handed
+    the same scene and camera (the renderers differ by a half-pixel convention and details of SH clamping)."""
+    path = dump_dir / f"{name}_rgb.f32"
+    if not path.exists():
+        return None
+    ours = torch.from_numpy(np.fromfile(path, dtype="<f4").reshape(cam["height"], cam["width"], 3)).cuda()
+    with torch.no_grad():
+        theirs = render()[0].float()
+    mse = torch.mean((theirs.clamp(0, 1) - ours.clamp(0, 1)) ** 2).item()
+    return 10 * math.log10(1 / max(mse, 1e-12))
+
+
 def time_render(render, params, weights, runs):
     """render() -> (rgb H x W x 3, alpha H x W or None)."""
     w_rgb, w_alpha = weights
@@ -202,7 +215,9 @@ def main():
         for info, make in chosen:
             line = {"case": ply.stem, **info, "gaussians": len(params["means"]), "width": cam["width"],
                     "height": cam["height"], "runs": args.runs}
-            line.update(time_render(make(params, cam), params, weights, args.runs))
+            render = make(params, cam)
+            line["psnr_vs_gaps"] = psnr_against_gaps(render, cam, args.dump_dir, ply.stem)
+            line.update(time_render(render, params, weights, args.runs))
             line.update({"torch": torch.__version__, "gpu": torch.cuda.get_device_name(0)})
             lines.append(line)
             print(json.dumps(line), flush=True)

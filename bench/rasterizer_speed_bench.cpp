@@ -134,11 +134,21 @@ void dump_case(const Case& cs, const gaps::GaussianModel& model, const gaps::Cam
   std::ofstream(stem + ".json") << j.dump(1) << "\n";
 }
 
+// Our colour image of the case (H x W x 3 float32, raw), so that rasterizer_compare.py can check that the reference
+// renderers were handed the same scene (their images must agree with it).
+void dump_render(const Case& cs, const gaps::GaussianModel& model, const gaps::Camera& camera) {
+  c10::NoGradGuard no_grad;
+  const at::Tensor rgb = gaps::render(model, camera).rgb.contiguous().cpu();
+  std::ofstream(absl::GetFlag(FLAGS_dump_dir) + "/" + cs.name + "_rgb.f32", std::ios::binary)
+      .write(static_cast<const char*>(rgb.data_ptr()), static_cast<std::streamsize>(rgb.nbytes()));
+}
+
 nlohmann::json time_case(const Case& cs, const at::Device& device, int runs) {
   const gaps::Camera camera = make_camera(cs.width, cs.height);
   if (!absl::GetFlag(FLAGS_dump_dir).empty() && device.is_cuda())
     dump_case(cs, make_model(cs.n, camera, 1), camera, absl::GetFlag(FLAGS_dump_dir));
   gaps::GaussianModel model = make_model(cs.n, camera, 1).to(device);
+  if (!absl::GetFlag(FLAGS_dump_dir).empty() && device.is_cuda()) dump_render(cs, model, camera);
   for (at::Tensor* p : model.parameters()) p->requires_grad_(true);
   const auto opts = model.means.options();
   at::manual_seed(2);

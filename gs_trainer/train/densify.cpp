@@ -66,11 +66,13 @@ void DensityControl::accumulate(const at::Tensor& means2d_grad, const at::Tensor
                                 const at::Tensor& radii, int width, int height) {
   ensure_size(radii.size(0), means2d_grad.options());
   const at::Tensor& g = config_.absolute_gradient && means2d_abs_grad.defined() ? means2d_abs_grad : means2d_grad;
+  // Every step runs this until densification ends, so it is kept to few kernels; radii are 0 exactly where a
+  // Gaussian is not visible, which makes them their own mask for the maximum.
   const at::Tensor visible = radii > 0;
   const at::Tensor norm = at::hypot(g.select(1, 0) * (0.5 * width), g.select(1, 1) * (0.5 * height));
-  grad_accum_.add_(at::where(visible, norm, at::zeros_like(norm)));
-  denom_.add_(visible.to(denom_.scalar_type()));
-  max_radii_ = at::maximum(max_radii_, at::where(visible, radii, at::zeros_like(radii)));
+  grad_accum_.add_(at::where(visible, norm, 0.0));
+  denom_.add_(visible);
+  max_radii_ = at::maximum(max_radii_, radii);
 }
 
 int64_t DensityControl::densify_and_prune(GaussianModel& model, GaussianAdam& adam, int iteration, uint64_t seed) {
