@@ -2,6 +2,7 @@
 
 #include <array>
 #include <deque>
+#include <optional>
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
@@ -70,19 +71,47 @@ class OverBackgroundFunction : public torch::autograd::Function<OverBackgroundFu
   }
 };
 
+// scales = exp(log_scales) and opacities = sigmoid(logits) [* scale], the model's activations, as one autograd node
+// instead of two or three; the backward applies the formulas autograd's own nodes use (ExpBackward's grad * result,
+// MulBackward's grad * other, sigmoid_backward), so gradients keep their bits.
+class ActivationsFunction : public torch::autograd::Function<ActivationsFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable log_scales, Variable logits,
+                             std::optional<at::Tensor> opacity_scale) {
+    const at::Tensor scales = at::exp(log_scales), sigmoid = at::sigmoid(logits);
+    ctx->save_for_backward({scales, sigmoid});
+    if (opacity_scale) ctx->saved_data["opacity_scale"] = *opacity_scale;
+    return {scales, opacity_scale ? sigmoid * *opacity_scale : sigmoid};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const auto s = ctx->get_saved_variables();
+    const at::Tensor g_log_scales = grads[0].defined() ? grads[0] * s[0] : at::Tensor();
+    at::Tensor g_logits;
+    if (grads[1].defined()) {
+      const at::Tensor g_sigmoid =
+          ctx->saved_data.count("opacity_scale") ? grads[1] * ctx->saved_data["opacity_scale"].toTensor() : grads[1];
+      g_logits = at::sigmoid_backward(g_sigmoid, s[1]);
+    }
+    return {g_log_scales, g_logits, Variable()};
+  }
+};
+
 }  // namespace
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options) {
   const auto opts = model.means.options();
   const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
-  auto proj = project_gaussians(model.means, model.quats, model.scales(), device_viewmat(camera, opts), K);
+  std::optional<at::Tensor> opacity_scale;
+  if (options.opacity_scale.defined()) opacity_scale = options.opacity_scale;
+  const auto activated = ActivationsFunction::apply(model.log_scales, model.opacity_logits, opacity_scale);
+  const at::Tensor &scales = activated[0], &opacities = activated[1];
+  auto proj = project_gaussians(model.means, model.quats, scales, device_viewmat(camera, opts), K);
 
   const Eigen::Vector3d c = camera.center();
   const at::Tensor colour_and_distance =
       shade_gaussians(model.means, model.sh_dc, model.sh_rest, model.sh_degree, {c.x(), c.y(), c.z()});
 
-  at::Tensor opacities = model.opacities();
-  if (options.opacity_scale.defined()) opacities = opacities * options.opacity_scale;
   const auto raster = rasterize_gaussians(proj.means2d, proj.conics, opacities, colour_and_distance, proj.depths,
                                           proj.radii, camera.width, camera.height, options.means2d_abs_sink);
   RenderOutput out;
