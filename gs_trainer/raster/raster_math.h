@@ -6,6 +6,7 @@
 // by kLowPass on the diagonal (the EWA low-pass filter of 3DGS); conics are the inverse 2D covariance
 // stored as (a, b, c) = [[a, b], [b, c]]; quaternions are (w, x, y, z), normalised inside.
 #include <cmath>
+#include <cstdint>
 
 #if defined(__CUDACC__)
 #define GAPS_HD __host__ __device__ __forceinline__
@@ -262,34 +263,120 @@ struct TileRect {
   int x0, y0, x1, y1;  // [x0, x1) x [y0, y1) in tiles
 };
 
-// The tiles a Gaussian is listed in: its 3-sigma square footprint (`radius`), cut down to the bounding box
-// of the ellipse outside which opacity * exp(power) < kMinAlpha, where eval_alpha skips it anyway. The cut
-// changes no image and no gradient, only how many (tile, Gaussian) pairs are sorted and walked: a
-// Gaussian of opacity 0.01 (as after an opacity reset) reaches 1.4 sigma, not 3, and an elongated one
-// only its own box. Slack of 1e-3 relative plus half a pixel keeps every pixel whose alpha could round
-// over the threshold. Computed in double on both backends so they list the same tiles.
+// Whether a Gaussian of this opacity can reach alpha >= kMinAlpha anywhere (with the rounding slack of 1e-6).
+GAPS_HD bool can_reach_min_alpha(double opacity) { return opacity * 255.0 >= 1.0 - 1e-6; }
+
+// The ellipse a dx^2 + 2 b dx dy + c dy^2 <= r2 around the mean (conic (a, b, c)) outside which
+// opacity * exp(power) < kMinAlpha, where eval_alpha skips the Gaussian. r2 carries 1e-3 relative plus
+// 1e-4 absolute slack so that every pixel whose alpha could round over the threshold lies inside. Only a
+// positive definite conic bounds it; otherwise the 3-sigma square is all there is.
+struct AlphaEllipse {
+  double a, b, c, det, r2;
+  GAPS_HD bool bounded() const { return det > 0 && a > 0; }
+  GAPS_HD double x_reach() const { return sqrt(r2 * c / det); }  // half its width
+  GAPS_HD double y_reach() const { return sqrt(r2 * a / det); }  // half its height
+};
+
 template <typename T>
-GAPS_HD TileRect tile_rect(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, int radius, int tiles_x,
-                           int tiles_y) {
-  const double op = static_cast<double>(opacity);
-  if (!(op * 255.0 >= 1.0 - 1e-6)) return {0, 0, 0, 0};
-  double ex = radius, ey = radius;
+GAPS_HD AlphaEllipse alpha_ellipse(const Sym2<T>& conic, double opacity) {
   const double a = conic.a, b = conic.b, c = conic.c;
-  const double det = a * c - b * b;
-  if (det > 0) {
-    const double l = log(255.0 * op);
-    const double r2 = (l > 0 ? 2.0 * l : 0.0) * (1.0 + 1e-3) + 1e-4;
-    const double bx = sqrt(r2 * c / det) + 0.5, by = sqrt(r2 * a / det) + 0.5;
+  const double l = log(255.0 * opacity);
+  return {a, b, c, a * c - b * b, (l > 0 ? 2.0 * l : 0.0) * (1.0 + 1e-3) + 1e-4};
+}
+
+// The tiles a Gaussian is listed in, worked out once per Gaussian: a box of tiles, and the ellipse that
+// cuts each of its rows down to a span (tile_row_span).
+struct TileFootprint {
+  TileRect rect;
+  double mx, my;  // the mean
+  AlphaEllipse ellipse;
+};
+
+// The box is the Gaussian's 3-sigma square (`radius`), cut down to the bounding box of its AlphaEllipse.
+// The cut changes no image and no gradient, only how many (tile, Gaussian) pairs are sorted and walked: a
+// Gaussian of opacity 0.01 (as after an opacity reset) reaches 1.4 sigma, not 3, and an elongated one only
+// its own box. Half a pixel of widening on each side keeps the pixels whose centres lie within the ellipse.
+// Computed in double on both backends so they list the same tiles.
+template <typename T>
+GAPS_HD TileFootprint tile_footprint(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, int radius, int tiles_x,
+                                     int tiles_y) {
+  TileFootprint f{};
+  const double op = static_cast<double>(opacity);
+  if (!can_reach_min_alpha(op)) return f;
+  f.mx = mean2d.x;
+  f.my = mean2d.y;
+  f.ellipse = alpha_ellipse(conic, op);
+  double ex = radius, ey = radius;
+  if (f.ellipse.bounded()) {
+    const double bx = f.ellipse.x_reach() + 0.5, by = f.ellipse.y_reach() + 0.5;
     ex = bx < ex ? bx : ex;
     ey = by < ey ? by : ey;
   }
-  const double ts = kTileSize, mx = mean2d.x, my = mean2d.y;
+  const double ts = kTileSize;
   auto clamp_tile = [](double v, int hi) {
     const int t = static_cast<int>(v);
     return t < 0 ? 0 : (t > hi ? hi : t);
   };
-  return {clamp_tile(floor((mx - ex) / ts), tiles_x), clamp_tile(floor((my - ey) / ts), tiles_y),
-          clamp_tile(ceil((mx + ex) / ts), tiles_x), clamp_tile(ceil((my + ey) / ts), tiles_y)};
+  f.rect = {clamp_tile(floor((f.mx - ex) / ts), tiles_x), clamp_tile(floor((f.my - ey) / ts), tiles_y),
+            clamp_tile(ceil((f.mx + ex) / ts), tiles_x), clamp_tile(ceil((f.my + ey) / ts), tiles_y)};
+  return f;
+}
+
+// The ellipse's chord at height dy: dx in [(-b dy - w) / a, (-b dy + w) / a], w = sqrt(a r2 - det dy^2).
+GAPS_HD double chord_end(const AlphaEllipse& e, double dy, double side) {
+  const double w2 = e.a * e.r2 - e.det * dy * dy;
+  return (-e.b * dy + side * sqrt(w2 > 0 ? w2 : 0.0)) / e.a;
+}
+
+struct TileSpan {
+  int x0, x1;  // [x0, x1) in tiles
+};
+
+// The columns of tile row ty (within the footprint's rect) a Gaussian is listed in. A rotated, elongated
+// ellipse touches far fewer tiles than its bounding box, and each pair it does not touch would cost a sort
+// slot and a shared-memory stage plus a per-pixel test in both compositing passes; dropping those pairs
+// changes no image and no gradient, since no pixel of theirs passes eval_alpha. The span is the x-extent
+// of the ellipse over the row's band of pixel centres, band and extent widened by half a pixel as in
+// tile_footprint: over a horizontal band the ellipse's x-extremes lie at the band's edges, or at its own
+// leftmost/rightmost point where that point's height lies inside the band. A conic that bounds no ellipse
+// keeps the rect's columns.
+GAPS_HD TileSpan tile_row_span(const TileFootprint& f, int ty) {
+  TileSpan s{f.rect.x0, f.rect.x1};
+  const AlphaEllipse& e = f.ellipse;
+  if (!e.bounded()) return s;
+  const double ts = kTileSize, y_reach = e.y_reach();
+  const double lo = fmax(ty * ts - f.my, -y_reach), hi = fmin((ty + 1) * ts - f.my, y_reach);
+  if (!(lo <= hi)) return {s.x0, s.x0};
+  const double x_reach = e.x_reach(), y_rightmost = -e.b * x_reach / e.c;  // the leftmost point is at -y_rightmost
+  double left = fmin(chord_end(e, lo, -1), chord_end(e, hi, -1));
+  double right = fmax(chord_end(e, lo, 1), chord_end(e, hi, 1));
+  // Written so that a NaN height (an overflowing conic) counts as inside: the span then stays the rect's.
+  if (!(-y_rightmost < lo || -y_rightmost > hi)) left = -x_reach;
+  if (!(y_rightmost < lo || y_rightmost > hi)) right = x_reach;
+  const double x0 = floor((f.mx + left - 0.5) / ts), x1 = ceil((f.mx + right + 0.5) / ts);
+  if (x0 > s.x0) s.x0 = x0 < s.x1 ? static_cast<int>(x0) : s.x1;
+  if (x1 < s.x1) s.x1 = x1 > s.x0 ? static_cast<int>(x1) : s.x0;
+  return s;
+}
+
+// Calls body(tx, ty) for every tile a Gaussian is listed in, row by row (ty outer, tx inner): the order in
+// which both backends emit their pairs.
+template <typename Body>
+GAPS_HD void for_each_footprint_tile(const TileFootprint& f, Body&& body) {
+  for (int ty = f.rect.y0; ty < f.rect.y1; ++ty) {
+    const TileSpan s = tile_row_span(f, ty);
+    for (int tx = s.x0; tx < s.x1; ++tx) body(tx, ty);
+  }
+}
+
+// How many tiles a Gaussian is listed in.
+GAPS_HD int64_t footprint_tile_count(const TileFootprint& f) {
+  int64_t count = 0;
+  for (int ty = f.rect.y0; ty < f.rect.y1; ++ty) {
+    const TileSpan s = tile_row_span(f, ty);
+    count += s.x1 - s.x0;
+  }
+  return count;
 }
 
 // The exponent of a projected Gaussian at a pixel centre, and the offsets (dx, dy) = mean - pixel. One

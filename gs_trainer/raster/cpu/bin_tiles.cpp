@@ -1,6 +1,6 @@
 // Tile binning on the CPU: every visible Gaussian is listed in each 16x16 tile its footprint touches
-// (raster::tile_rect), and each tile's list is sorted front to back (ties broken by index, so results are
-// deterministic).
+// (raster::tile_footprint, row by row as raster::for_each_footprint_tile walks it), and each tile's list is
+// sorted front to back (ties broken by index, so results are deterministic).
 //
 // Instead of sorting every tile's list, the visible Gaussians are sorted once by (depth, index) and then
 // written to their tiles in that order, which leaves every list sorted. The writing is split into
@@ -54,10 +54,9 @@ TileBins bin_impl(const at::Tensor& means2d, const at::Tensor& conics, const at:
   auto for_each_entry = [&](int64_t c, auto&& body) {
     for (int64_t j = visible * c / chunks; j < visible * (c + 1) / chunks; ++j) {
       const int32_t i = order[j];
-      const raster::TileRect r = raster::tile_rect<T>(
+      const raster::TileFootprint f = raster::tile_footprint<T>(
           {m2[2 * i], m2[2 * i + 1]}, {con[3 * i], con[3 * i + 1], con[3 * i + 2]}, op[i], rad[i], tiles_x, tiles_y);
-      for (int ty = r.y0; ty < r.y1; ++ty)
-        for (int tx = r.x0; tx < r.x1; ++tx) body(ty * tiles_x + tx, i);
+      raster::for_each_footprint_tile(f, [&](int tx, int ty) { body(ty * tiles_x + tx, i); });
     }
   };
 

@@ -1,7 +1,8 @@
 // Tile binning on the GPU, as in 3DGS: every visible Gaussian emits one (key, index) pair per 16x16 tile
-// its footprint touches (raster::tile_rect), with key = tile << 32 | depth bits, and one radix sort orders the pairs
-// by tile, then depth. The pairs are emitted in increasing Gaussian index and CUB's radix sort is stable,
-// so equal depths keep increasing index: the (depth, index) order of cpu/bin_tiles.cpp, entry for entry.
+// its footprint touches (raster::tile_footprint, walked row by row by raster::for_each_footprint_tile), with
+// key = tile << 32 | depth bits, and one radix sort orders the pairs by tile, then depth. The pairs are emitted in
+// increasing Gaussian index and CUB's radix sort is stable, so equal depths keep increasing index: the (depth, index)
+// order of cpu/bin_tiles.cpp, entry for entry.
 #include <cub/device/device_radix_sort.cuh>
 
 #include <ATen/core/Tensor.h>
@@ -19,13 +20,13 @@ namespace {
 
 constexpr int kThreads = 256;
 
-// Gaussian i's tiles (raster::tile_rect, as cpu/bin_tiles.cpp computes them).
-__device__ raster::TileRect tiles_of(int64_t i, const float* __restrict__ means2d, const float* __restrict__ conics,
-                                     const float* __restrict__ opacities, const int32_t* __restrict__ radii,
-                                     int tiles_x, int tiles_y) {
-  return raster::tile_rect<float>({means2d[2 * i], means2d[2 * i + 1]},
-                                  {conics[3 * i], conics[3 * i + 1], conics[3 * i + 2]}, opacities[i], radii[i],
-                                  tiles_x, tiles_y);
+// Gaussian i's tiles (raster::tile_footprint, as cpu/bin_tiles.cpp computes them).
+__device__ raster::TileFootprint tiles_of(int64_t i, const float* __restrict__ means2d,
+                                          const float* __restrict__ conics, const float* __restrict__ opacities,
+                                          const int32_t* __restrict__ radii, int tiles_x, int tiles_y) {
+  return raster::tile_footprint<float>({means2d[2 * i], means2d[2 * i + 1]},
+                                       {conics[3 * i], conics[3 * i + 1], conics[3 * i + 2]}, opacities[i], radii[i],
+                                       tiles_x, tiles_y);
 }
 
 __global__ void count_tiles_kernel(int64_t n, const float* __restrict__ means2d, const float* __restrict__ conics,
@@ -33,31 +34,26 @@ __global__ void count_tiles_kernel(int64_t n, const float* __restrict__ means2d,
                                    int tiles_y, int64_t* __restrict__ counts) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  int64_t count = 0;
-  if (radii[i] > 0) {
-    const raster::TileRect r = tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y);
-    count = static_cast<int64_t>(r.x1 - r.x0) * (r.y1 - r.y0);
-  }
-  counts[i] = count;
+  counts[i] =
+      radii[i] > 0 ? raster::footprint_tile_count(tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y)) : 0;
 }
 
-// Gaussian i writes its pairs at [offsets[i] - count_i, offsets[i]) (offsets is the inclusive scan).
+// Gaussian i writes its counts[i] pairs at [offsets[i] - counts[i], offsets[i]) (offsets is the inclusive scan).
 __global__ void emit_pairs_kernel(int64_t n, const float* __restrict__ means2d, const float* __restrict__ conics,
                                   const float* __restrict__ opacities, const int32_t* __restrict__ radii,
-                                  const float* __restrict__ depths, const int64_t* __restrict__ offsets, int tiles_x,
-                                  int tiles_y, uint64_t* __restrict__ keys, int32_t* __restrict__ ids) {
+                                  const float* __restrict__ depths, const int64_t* __restrict__ counts,
+                                  const int64_t* __restrict__ offsets, int tiles_x, int tiles_y,
+                                  uint64_t* __restrict__ keys, int32_t* __restrict__ ids) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n || radii[i] <= 0) return;
-  const raster::TileRect r = tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y);
+  const raster::TileFootprint f = tiles_of(i, means2d, conics, opacities, radii, tiles_x, tiles_y);
   // Depths are > kNearPlane > 0, and the bits of positive floats order like their values.
   const uint64_t depth_bits = __float_as_uint(depths[i]);
-  int64_t k = offsets[i] - static_cast<int64_t>(r.x1 - r.x0) * (r.y1 - r.y0);
-  for (int ty = r.y0; ty < r.y1; ++ty) {
-    for (int tx = r.x0; tx < r.x1; ++tx, ++k) {
-      keys[k] = (static_cast<uint64_t>(ty * tiles_x + tx) << 32) | depth_bits;
-      ids[k] = static_cast<int32_t>(i);
-    }
-  }
+  int64_t k = offsets[i] - counts[i];
+  raster::for_each_footprint_tile(f, [&](int tx, int ty) {
+    keys[k] = (static_cast<uint64_t>(ty * tiles_x + tx) << 32) | depth_bits;
+    ids[k++] = static_cast<int32_t>(i);
+  });
 }
 
 // A tile's range starts where the sorted tile id changes and ends where it changes next. Tiles without
@@ -122,7 +118,8 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_i
   auto* keys_ptr = reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>());
   emit_pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
       n, means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
-      depths.data_ptr<float>(), offsets.data_ptr<int64_t>(), tiles_x, tiles_y, keys_ptr, ids.data_ptr<int32_t>());
+      depths.data_ptr<float>(), counts.data_ptr<int64_t>(), offsets.data_ptr<int64_t>(), tiles_x, tiles_y, keys_ptr,
+      ids.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 
   // Only the bits in use are sorted: 32 of depth plus enough for the largest tile id.

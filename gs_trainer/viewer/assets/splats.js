@@ -3,7 +3,8 @@
 // rasterizer (gs_trainer/raster/raster_math.h, shade_math.h) renders a camera:
 //   - the same EWA projection: 3D covariance R S S^T R^T, Jacobian at the mean clamped 0.3 image widths
 //     outside the image, 0.3 pixel low-pass dilation, radius 3 sqrt(lambda_max), near plane 0.2;
-//   - the same pixels: a splat covers the 16x16 tiles the rasterizer lists it in (raster::tile_rect), and each
+//   - the same pixels: a splat covers the box of 16x16 tiles around those the rasterizer lists it in (the
+//     rect of raster::tile_footprint; the tiles it leaves out have no pixel with alpha >= 1/255), and each
 //     pixel centre (i + 0.5, j + 0.5) evaluates alpha = min(0.99, opacity exp(power)), skipped below 1/255;
 //   - the same colour: real SH up to degree 3 at the direction from the camera centre, + 0.5, clamped at 0;
 //   - the same order: sorted by camera-space z (float), ties by index; composited back to front with the
@@ -192,8 +193,8 @@ void main() {
     cull();
     return;
   }
-  // The tiles the rasterizer lists the splat in: the 3-sigma square, cut to the box outside which
-  // alpha < 1/255.
+  // The box of tiles around those the rasterizer lists the splat in: the 3-sigma square, cut to the box
+  // outside which alpha < 1/255.
   if (!(opacity * 255.0 >= 1.0 - 1e-6)) { cull(); return; }
   vec2 extent = vec2(radius);
   float cdet = conic.x * conic.z - conic.y * conic.y;
