@@ -7,7 +7,12 @@ torch.cuda.synchronize(); forward, and forward + backward of sum(rgb * w) + sum(
   eps2d 0.3 (the same low-pass dilation), its packed and unpacked modes.
 - inria (graphdeco-inria/diff-gaussian-rasterization, from its public source, built here by JIT): the
   rasterizer of the original 3DGS code, SH degree 3; it composites colour only and returns no alpha, so its
-  loss is sum(rgb * w) (it does less work than the other two).
+  loss is sum(rgb * w) (it does less work than the other two). Its kernels take unit quaternions (the 3DGS
+  model normalises them in PyTorch), so the renderer normalises them too.
+
+Each line carries psnr_vs_gaps, the renderer's colour image against the one gaps rendered (dumped by the speed
+bench): a renderer handed a different scene or camera shows at once (below ~40 dB); timings of such a run mean
+nothing.
 
 Prints one JSON line per case and renderer/mode.
     PYTHONPATH=<gsplat target> python3 bench/rasterizer_compare.py --dump_dir DIR --renderers gsplat
@@ -174,7 +179,8 @@ def inria_renderer(module):
             means2d = torch.zeros_like(params["means"], requires_grad=True)
             color, _ = rasterizer(means3D=params["means"], means2D=means2d,
                                   opacities=torch.sigmoid(params["opacity_logits"])[:, None], shs=params["sh"],
-                                  scales=torch.exp(params["log_scales"]), rotations=params["quats"])
+                                  scales=torch.exp(params["log_scales"]),
+                                  rotations=torch.nn.functional.normalize(params["quats"], dim=1))
             return color.permute(1, 2, 0), None
         return render
     return make

@@ -66,8 +66,8 @@ std::vector<Splat> random_splats(int n, int width, int height, uint32_t seed) {
 
 template <typename T>
 raster::TileFootprint footprint(const Splat& s, int tiles_x, int tiles_y) {
-  return raster::tile_footprint<T>({T(s.mean.x), T(s.mean.y)}, {T(s.conic.a), T(s.conic.b), T(s.conic.c)},
-                                   T(s.opacity), s.radius, tiles_x, tiles_y);
+  return raster::tile_footprint<T>({T(s.mean.x), T(s.mean.y)}, {T(s.conic.a), T(s.conic.b), T(s.conic.c)}, T(s.opacity),
+                                   s.radius, tiles_x, tiles_y);
 }
 
 template <typename T>
@@ -180,8 +180,8 @@ TEST(TileFootprint, BinningListsTheFootprints) {
   int64_t boxes = 0;
   for (int i = 0; i < n; ++i) {
     if (rad[i] <= 0) continue;
-    const auto f = raster::tile_footprint<float>({m2[i][0], m2[i][1]}, {con[i][0], con[i][1], con[i][2]}, op[i],
-                                                 rad[i], tiles_x, tiles_y);
+    const auto f = raster::tile_footprint<float>({m2[i][0], m2[i][1]}, {con[i][0], con[i][1], con[i][2]}, op[i], rad[i],
+                                                 tiles_x, tiles_y);
     boxes += rect_area(f.rect);
     raster::for_each_footprint_tile(f, [&](int tx, int ty) { ++per_tile[ty * tiles_x + tx]; });
   }
