@@ -14,6 +14,7 @@
 #include <ATen/Parallel.h>
 #include <gtest/gtest.h>
 #include <torch/version.h>
+#include <unistd.h>
 #include <nlohmann/json.hpp>
 #include "common/io_util.h"
 #include "diffusion_worker/backend_registry.h"
@@ -97,7 +98,8 @@ nlohmann::json run_golden_case(const std::filesystem::path& out) {
 TEST(GoldenRun, FernThreeViewsFullMethodMatchesTheGoldenFile) {
   const std::filesystem::path fern = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!std::filesystem::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
-  const auto out = std::filesystem::path(::testing::TempDir()) / "gaps_golden_fern";
+  // Per process: two checkouts running the suite on one machine must not share (and delete) each other's run.
+  const auto out = std::filesystem::path(::testing::TempDir()) / ("gaps_golden_fern_" + std::to_string(getpid()));
   test::remove_tree(out);
   const nlohmann::json got = run_golden_case(out);
   test::remove_tree(out);
