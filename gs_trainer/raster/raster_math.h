@@ -490,12 +490,6 @@ GAPS_HD bool alpha_from_power_host_rounding(T power, T opacity, T& alpha, T& gau
   return alpha >= T(kMinAlpha);
 }
 
-template <typename T>
-GAPS_HD bool eval_alpha_host_rounding(const Vec2<T>& mean2d, const Sym2<T>& conic, T opacity, T px, T py, T& alpha,
-                                      T& gauss, T& dx, T& dy) {
-  return alpha_from_power_host_rounding(gaussian_power(mean2d, conic, px, py, dx, dy), opacity, alpha, gauss);
-}
-
 // An exponent below which a Gaussian's alpha is certainly under kMinAlpha: log(kMinAlpha / opacity) less a margin
 // (1e-4) far wider than the float error of expf, of the product and of this logarithm. The compositing kernels
 // compare each exponent with it before any exponential: most (pixel, Gaussian) pairs of a tile lie outside the

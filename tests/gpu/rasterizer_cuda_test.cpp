@@ -3,7 +3,7 @@
 // scenes and on LLFF fern. Every test skips without a CUDA device (or a build without the kernels).
 //
 // Tolerances. The kernels round every float operation like the CPU build (no FMA contraction) and take
-// the CPU's alpha decisions (skip below 1/255, clamp at 0.99: eval_alpha_host_rounding), so projections
+// the CPU's alpha decisions (skip below 1/255, clamp at 0.99: alpha_from_power_host_rounding), so projections
 // and tile lists match exactly and images to a few float ulps. What remains: the float exp of either side
 // is only within ~2 ulp of the correctly rounded one, so transmittances can differ in their last bits, and
 // in rare pixels (about one per 10^5 saturated pixels) that moves the "stop before T < 1e-4" decision by

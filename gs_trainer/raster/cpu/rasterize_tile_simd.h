@@ -8,7 +8,7 @@
 // computes exp in double (the C library's exp(double), rounded to float); simd::exp is within ~2 ulp of
 // that, and where such a difference could change a decision (alpha within a few ulp of kMinAlpha or
 // kMaxAlpha) the lanes are recomputed the same way, so skips and clamps are exactly eval_alpha's
-// (the CUDA kernels rely on the same contract, see eval_alpha_host_rounding in raster_math.h).
+// (the CUDA kernels rely on the same contract, see alpha_from_power_host_rounding in raster_math.h).
 #include "gs_trainer/raster/cpu/simd_ops.h"
 
 namespace gaps::backend::tile::GAPS_SIMD_NS {
