@@ -21,6 +21,7 @@
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/report.h"
 #include "gs_trainer/scene/cameras_json.h"
+#include "gs_trainer/scene/run_files.h"
 #include "gs_trainer/train/budget.h"
 #include "gs_trainer/train/divergence.h"
 
@@ -272,7 +273,7 @@ absl::Status check_scene(const RunOptions& o) {
 std::vector<std::string> run_output_names() {
   return {
       "point_cloud.ply", "cameras.json",         "metrics.json",        "report.html",           "renders",
-      "phases.json",     "pseudo_views",         "checkpoint",          "checkpoint.old",        "checkpoint.partial",
+      "phases.json",     kPseudoViewsFolder,     "checkpoint",          "checkpoint.old",        "checkpoint.partial",
       "points.ply",      "sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt", "dense"};
 }
 
@@ -355,7 +356,7 @@ class TrainingRun {
                         gaps.n_active == kNActiveMip360 ? "surround the scene" : "face one way", ")"));
     generator_.emplace(o_.generator);
     method_.emplace(trainer_, &*generator_, references_, gaps, o_.variant, o_.config.seed);
-    method_->set_inspection_dir(o_.out_dir / "pseudo_views");
+    method_->set_inspection_dir(o_.out_dir / kPseudoViewsFolder);
     method_->set_phase_observer([this](const std::string& event, const nlohmann::json& entry) {
       // The state before the phase: a resumed run repeats the phase, then goes on.
       if (event == "started") save_checkpoint_and_tell();

@@ -14,6 +14,7 @@
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/run_files.h"
 #include "gs_trainer/viewer/site.h"
 #include "gs_trainer/viewer/viewer_scene.h"
 
@@ -173,9 +174,8 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
   std::vector<fs::path> images;
   for (const auto& phase : phases)
     for (const auto& s : phase.value("selection", json::array()))
-      images.push_back(
-          out_dir / "pseudo_views" / absl::StrFormat("phase_%02d", phase.value("phase", 0)) /
-          absl::StrFormat("cand_%03d_%s.png", s.value("id", -1), s.value("admitted", false) ? "admitted" : "rejected"));
+      images.push_back(out_dir / kPseudoViewsFolder /
+                       pseudo_view_file(phase.value("phase", 0), s.value("id", -1), s.value("admitted", false)));
   GAPS_ASSIGN_OR_RETURN(const std::vector<std::string> thumbnails, thumbnail_files(images, kPseudoThumbnailWidth));
   std::string html;
   size_t next = 0;

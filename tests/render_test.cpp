@@ -91,6 +91,25 @@ TEST(Render, BlendingWeightsEqualTheOneHotImagesSums) {
   EXPECT_FALSE(m.means.grad().defined()) << "the model must not receive gradients";
 }
 
+// render_views is render() without the graph: the same images bit for bit, views of two sizes in one call.
+TEST(Render, ViewsEqualOneRenderPerCamera) {
+  const auto m = random_model(40, 6);
+  std::vector<Camera> cameras{test_camera(40, 30), test_camera(33, 21), test_camera(40, 30)};
+  cameras[2].t = Eigen::Vector3d(-0.3, 0.1, 0.4);
+  const std::vector<RenderOutput> views = render_views(m, cameras);
+  ASSERT_EQ(views.size(), cameras.size());
+  for (size_t k = 0; k < cameras.size(); ++k) {
+    const RenderOutput one = render(m, cameras[k]);
+    EXPECT_GT(one.alpha.max().item<double>(), 0.1) << "view " << k << " should see Gaussians";
+    EXPECT_TRUE(at::equal(views[k].rgb, one.rgb)) << "view " << k;
+    EXPECT_TRUE(at::equal(views[k].depth, one.depth)) << "view " << k;
+    EXPECT_TRUE(at::equal(views[k].alpha, one.alpha)) << "view " << k;
+    EXPECT_TRUE(at::equal(views[k].radii, one.radii)) << "view " << k;
+    EXPECT_FALSE(views[k].rgb.requires_grad());
+  }
+  EXPECT_TRUE(render_views(m, {}).empty());
+}
+
 class RenderGradient : public ::testing::TestWithParam<int> {};
 
 TEST_P(RenderGradient, MatchesFiniteDifferences) {

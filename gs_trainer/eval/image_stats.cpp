@@ -5,9 +5,10 @@
 namespace gaps {
 
 at::Tensor greyscale(const at::Tensor& image) {
-  TORCH_CHECK(image.dim() == 3 && image.size(2) == 3, "expected an HxWx3 image, got shape ", image.sizes());
+  TORCH_CHECK(image.dim() >= 3 && image.size(-1) == 3, "expected an HxWx3 image (or a batch of them), got shape ",
+              image.sizes());
   const at::Tensor x = image.is_floating_point() ? image : image.to(at::kFloat);
-  return 0.299 * x.select(2, 0) + 0.587 * x.select(2, 1) + 0.114 * x.select(2, 2);
+  return 0.299 * x.select(-1, 0) + 0.587 * x.select(-1, 1) + 0.114 * x.select(-1, 2);
 }
 
 double total_variation(const at::Tensor& image) {

@@ -5,7 +5,7 @@
 
 namespace gaps {
 
-// Luma (Rec. 601 weights, which sum to 1) of an H×W×3 image: H×W.
+// Luma (Rec. 601 weights, which sum to 1) of an H×W×3 image: H×W (of a B×H×W×3 batch: B×H×W).
 at::Tensor greyscale(const at::Tensor& image);
 
 // Σ_p |∇I(p)| of an H x W x 3 image (grey = 0.299 R + 0.587 G + 0.114 B); the gradient is the central

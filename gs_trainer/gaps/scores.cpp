@@ -15,8 +15,8 @@ namespace {
 
 at::Tensor as_floating(const at::Tensor& t) { return t.is_floating_point() ? t : t.to(at::kFloat); }
 
-// Shannon entropy (bits) of per-pixel histograms p: 1×B×H×W -> H×W. xlogy makes 0·log 0 = 0.
-at::Tensor entropy_bits(const at::Tensor& p) { return -at::xlogy(p, p).sum(1).squeeze(0) / std::log(2.0); }
+// Shannon entropy (bits) of per-pixel histograms p: N×bins×H×W -> N×H×W. xlogy makes 0·log 0 = 0.
+at::Tensor entropy_bits(const at::Tensor& p) { return -at::xlogy(p, p).sum(1) / std::log(2.0); }
 
 // Positions of `scores` in descending order; stable, so ties keep pool order.
 std::vector<int> by_descending_score(const std::vector<double>& scores) {
@@ -49,55 +49,72 @@ void check_scores(const std::vector<Candidate>& pool, const std::vector<double>&
 
 }  // namespace
 
-at::Tensor local_entropy_map(const at::Tensor& image, int bins) {
+namespace {
+
+// H_v maps of a batch of luma images B×H×W (local_entropy_map's definition): B×H×W.
+at::Tensor entropy_maps(const at::Tensor& grey, int bins) {
   TORCH_CHECK(bins >= 2, "entropy needs at least 2 bins, got ", bins);
-  const at::Tensor grey = greyscale(image);
-  const at::Tensor level = (grey * bins).floor().clamp(0, bins - 1).to(at::kLong);
-  const at::Tensor onehot = at::one_hot(level, bins).permute({2, 0, 1}).unsqueeze(0).to(grey.scalar_type());
+  const at::Tensor level = (grey * bins).floor().clamp(0, bins - 1);
+  // B×bins×H×W codes, built in place rather than as one_hot's int64 B×H×W×bins and a transposed copy.
+  const at::Tensor onehot =
+      level.unsqueeze(1).eq(at::arange(bins, grey.options()).view({1, bins, 1, 1})).to(grey.scalar_type());
   // Mean of the one-hot codes over each 3×3 window = that window's histogram; count_include_pad = false
   // divides by the in-image pixels only (clipped windows at the border).
   const at::Tensor hist = at::avg_pool2d(onehot, {3, 3}, {1, 1}, {1, 1}, false, false);
   return entropy_bits(hist) / std::log2(std::min(9, bins));
 }
 
-// The statistics as 0-dim double tensors on the input's device, so measure_render can copy them to the
-// host at once: scoring a candidate pool would otherwise wait on the device once per statistic.
-namespace {
+// Per image of a batch (B×H×W or B×H×W×C), the mean over its pixels in double: B.
+at::Tensor per_image_mean(const at::Tensor& t) { return t.flatten(1).to(at::kDouble).mean(1); }
 
-at::Tensor coverage_fraction_tensor(const at::Tensor& alpha, double threshold) {
-  return (alpha >= threshold).to(at::kDouble).mean();
+at::Tensor coverage_fractions(const at::Tensor& alphas, double threshold) {
+  return per_image_mean(alphas >= threshold);
 }
 
-at::Tensor rms_contrast_tensor(const at::Tensor& image) {
-  const at::Tensor grey = greyscale(image).to(at::kDouble);
-  return (grey - grey.mean()).square().mean().sqrt();
+at::Tensor rms_contrasts(const at::Tensor& images) {
+  const at::Tensor grey = greyscale(images).flatten(1).to(at::kDouble);
+  return (grey - grey.mean(1, /*keepdim=*/true)).square().mean(1).sqrt();
 }
 
 }  // namespace
 
-double coverage_fraction(const at::Tensor& alpha, double threshold) {
-  return coverage_fraction_tensor(alpha, threshold).item<double>();
+at::Tensor local_entropy_map(const at::Tensor& image, int bins) {
+  return entropy_maps(greyscale(image).unsqueeze(0), bins)[0];
 }
 
-double rms_contrast(const at::Tensor& image) { return rms_contrast_tensor(image).item<double>(); }
+double coverage_fraction(const at::Tensor& alpha, double threshold) {
+  return coverage_fractions(alpha.unsqueeze(0), threshold).item<double>();
+}
 
-CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& alpha, double d_min_supervised,
-                                     double d_min_gt, std::optional<double> history, const GapsConfig& c) {
-  const at::Tensor stats =
-      at::stack({as_floating(alpha).mean().to(at::kDouble),
-                 local_entropy_map(image, c.entropy_bins).mean().to(at::kDouble),
-                 coverage_fraction_tensor(alpha, c.coverage_alpha_threshold), rms_contrast_tensor(image)})
-          .cpu();
-  const double* v = stats.data_ptr<double>();
+double rms_contrast(const at::Tensor& image) { return rms_contrasts(image.unsqueeze(0)).item<double>(); }
+
+at::Tensor render_statistics(const at::Tensor& images, const at::Tensor& alphas, const GapsConfig& c) {
+  TORCH_CHECK(
+      images.dim() == 4 && images.size(3) == 3 && alphas.dim() == 3 && images.sizes().slice(0, 3) == alphas.sizes(),
+      "render_statistics: expected B×H×W×3 images and B×H×W alphas, got ", images.sizes(), " and ", alphas.sizes());
+  return at::stack(
+      {per_image_mean(as_floating(alphas)), per_image_mean(entropy_maps(greyscale(images), c.entropy_bins)),
+       coverage_fractions(alphas, c.coverage_alpha_threshold), rms_contrasts(images)},
+      1);
+}
+
+CandidateMeasurements measurements_from(const double* statistics, double d_min_supervised, double d_min_gt,
+                                        std::optional<double> history) {
   CandidateMeasurements m;
-  m.mean_alpha = v[0];
-  m.entropy_mean = v[1];
-  m.coverage = v[2];
-  m.contrast = v[3];
+  m.mean_alpha = statistics[0];
+  m.entropy_mean = statistics[1];
+  m.coverage = statistics[2];
+  m.contrast = statistics[3];
   m.d_min_supervised = d_min_supervised;
   m.d_min_gt = d_min_gt;
   m.uncertainty_variance_history = history;
   return m;
+}
+
+CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& alpha, double d_min_supervised,
+                                     double d_min_gt, std::optional<double> history, const GapsConfig& c) {
+  const at::Tensor stats = render_statistics(image.unsqueeze(0), alpha.unsqueeze(0), c).cpu().contiguous();
+  return measurements_from(stats.data_ptr<double>(), d_min_supervised, d_min_gt, history);
 }
 
 std::optional<double> mean_uncertainty_variance(const UncertaintyHistory& history, int id) {

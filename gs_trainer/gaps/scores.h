@@ -48,6 +48,15 @@ using UncertaintyHistory = std::map<int, std::vector<double>>;
 // σ̄²_v of eq:c_gen ("the mean uncertainty variance from prior phases"); empty when no phase generated `id`.
 std::optional<double> mean_uncertainty_variance(const UncertaintyHistory& history, int id);
 
+// The render terms of a batch of renders, images B×H×W×3 in [0, 1] and alphas B×H×W: B×4 doubles on their
+// device, per render (ᾱ, mean H, coverage, contrast) as measure_render defines them. A candidate pool's
+// statistics thus reach the host in one copy per batch instead of one per candidate.
+at::Tensor render_statistics(const at::Tensor& images, const at::Tensor& alphas, const GapsConfig& c);
+
+// The measurements of one render from its row of render_statistics (4 doubles on the host) and the pose terms.
+CandidateMeasurements measurements_from(const double* statistics, double d_min_supervised, double d_min_gt,
+                                        std::optional<double> history);
+
 // Fills the render terms of the measurements from a full-fidelity render (no DropGaussian).
 CandidateMeasurements measure_render(const at::Tensor& image, const at::Tensor& alpha, double d_min_supervised,
                                      double d_min_gt, std::optional<double> history, const GapsConfig& c);

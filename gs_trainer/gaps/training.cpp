@@ -11,9 +11,11 @@
 #include "common/image_io.h"
 #include "common/status_macros.h"
 #include "gs_trainer/gaps/admission.h"
+#include "gs_trainer/gaps/candidate_renders.h"
 #include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/scene/cameras_json.h"
+#include "gs_trainer/scene/run_files.h"
 
 namespace gaps {
 
@@ -166,13 +168,17 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
   } else {
     std::vector<Candidate> pool = build_candidate_pool(gt_cameras_, config_, tier_);
     const std::vector<Camera> supervised = supervised_cameras();
+    std::vector<Camera> cameras;
+    for (const Candidate& c : pool) cameras.push_back(c.camera);
+    const at::Tensor statistics = candidate_statistics(model, cameras, config_);
+    const double* rows = statistics.data_ptr<double>();
     std::vector<double> scores;
-    for (auto& c : pool) {
+    for (size_t k = 0; k < pool.size(); ++k) {
+      Candidate& c = pool[k];
       c.admitted_before = admitted_.count(c.id) > 0;
-      const RenderOutput r = render(model, c.camera);
-      const auto m = measure_render(r.rgb.clamp(0, 1), r.alpha, min_pose_distance(c.camera, supervised),
-                                    min_pose_distance(c.camera, gt_cameras_),
-                                    mean_uncertainty_variance(uncertainty_history_, c.id), config_);
+      const auto m = measurements_from(rows + 4 * k, min_pose_distance(c.camera, supervised),
+                                       min_pose_distance(c.camera, gt_cameras_),
+                                       mean_uncertainty_variance(uncertainty_history_, c.id));
       const ScoreTerms s = score_candidate(m, t, T, config_);
       scores.push_back(s.score);
       entry["candidates"].push_back({{"id", c.id},
@@ -191,9 +197,9 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
 
 std::filesystem::path GapsTraining::inspection_path(int phase, int id, bool admitted) const {
   if (inspection_dir_.empty()) return {};
-  const auto dir = inspection_dir_ / absl::StrFormat("phase_%02d", phase);
-  std::filesystem::create_directories(dir);
-  return dir / absl::StrFormat("cand_%03d_%s.png", id, admitted ? "admitted" : "rejected");
+  const std::filesystem::path path = inspection_dir_ / pseudo_view_file(phase, id, admitted);
+  std::filesystem::create_directories(path.parent_path());
+  return path;
 }
 
 absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry) {

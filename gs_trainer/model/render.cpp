@@ -125,6 +125,47 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
   return out;
 }
 
+namespace {
+
+// The cameras' view matrices on `opts`' device, uploaded together.
+std::vector<at::Tensor> device_viewmats(const std::vector<Camera>& cameras, const at::TensorOptions& opts) {
+  std::vector<at::Tensor> host;
+  for (const Camera& camera : cameras) host.push_back(camera.viewmat());
+  const at::Tensor all = upload(at::stack(host), opts);
+  std::vector<at::Tensor> out;
+  for (int64_t k = 0; k < all.size(0); ++k) out.push_back(all[k]);
+  return out;
+}
+
+}  // namespace
+
+std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
+  std::vector<RenderOutput> out(cameras.size());
+  if (cameras.empty()) return out;
+  const at::NoGradGuard no_grad;
+  const auto opts = model.means.options();
+  const at::Tensor scales = model.scales(), opacities = model.opacities();
+  const std::vector<at::Tensor> viewmats = device_viewmats(cameras, opts);
+  std::vector<ViewSplats> views;
+  for (size_t k = 0; k < cameras.size(); ++k) {
+    const Camera& camera = cameras[k];
+    const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
+    const Eigen::Vector3d c = camera.center();
+    views.push_back({project_gaussians(model.means, model.quats, scales, viewmats[k], K),
+                     shade_gaussians(model.means, model.sh_dc, model.sh_rest, model.sh_degree, {c.x(), c.y(), c.z()}),
+                     camera.width, camera.height});
+  }
+  const std::vector<RasterizedImage> images = rasterize_views(views, opacities);
+  for (size_t k = 0; k < cameras.size(); ++k) {
+    out[k].rgb = images[k].features.narrow(2, 0, 3);
+    out[k].depth = images[k].features.select(2, 3);
+    out[k].alpha = images[k].alpha;
+    out[k].means2d = views[k].projection.means2d;
+    out[k].radii = views[k].projection.radii;
+  }
+  return out;
+}
+
 at::Tensor blending_weights(const GaussianModel& model, const Camera& camera) {
   const auto opts = model.means.options();
   const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};

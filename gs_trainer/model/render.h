@@ -1,6 +1,8 @@
 #pragma once
 // Renders a Gaussian model from a camera: colour, the paper's depth (eq. depth_render: alpha-composited
 // distance from the camera centre) and alpha, plus what densification needs.
+#include <vector>
+
 #include <ATen/Tensor.h>
 
 #include "gs_trainer/model/gaussians.h"
@@ -23,6 +25,11 @@ struct RenderOutput {
 };
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options = {});
+
+// What render() gives for each camera without options (black background), without an autograd graph, images
+// equal bit for bit. For scoring many views: on CUDA all views' tile counts reach the host in one
+// synchronisation, the view matrices in one upload and the activations are computed once.
+std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras);
 
 // Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth
 // of the image it makes. Read off the rasterizer's backward pass (the image is linear in the features, with

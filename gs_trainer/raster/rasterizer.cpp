@@ -147,4 +147,28 @@ RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor&
   return {out[0], out[1]};
 }
 
+std::vector<RasterizedImage> rasterize_views(const std::vector<ViewSplats>& views, const at::Tensor& opacities) {
+  std::vector<RasterizedImage> images(views.size());
+  if (views.empty()) return images;
+  const at::NoGradGuard no_grad;
+  const at::Tensor op = opacities.detach();
+  std::vector<backend::SplatView> splats;
+  for (const ViewSplats& v : views) {
+    const ProjectedGaussians& p = v.projection;
+    TORCH_CHECK(v.width > 0 && v.height > 0, "image size must be positive, got ", v.width, "x", v.height);
+    TORCH_CHECK(p.means2d.size(0) == op.size(0) && v.features.dim() == 2 && v.features.size(0) == op.size(0),
+                "rasterize_views: every view needs N projected Gaussians and N x C features for N = ", op.size(0),
+                " opacities, got ", p.means2d.sizes(), " and ", v.features.sizes());
+    splats.push_back({p.means2d.detach(), p.conics.detach(), op, p.radii, p.depths, v.width, v.height});
+  }
+  const backend::RasterBackend& stages = backend::raster_backend(op.device());
+  stages.bin_tiles_views(splats, [&](size_t k, backend::TileBins bins) {
+    const backend::SplatView& s = splats[k];
+    const backend::RasterOutput out =
+        stages.rasterize_forward(bins, s.means2d, s.conics, s.opacities, views[k].features.detach(), s.width, s.height);
+    images[k] = {out.features, out.alpha};
+  });
+  return images;
+}
+
 }  // namespace gaps

@@ -6,6 +6,7 @@
 // Features are any number of channels composited with the same weights (colour, depth, ...). The CPU
 // implementation is the reference; the CUDA one must match it (see tests/rasterizer_test.cpp).
 #include <array>
+#include <vector>
 
 #include <ATen/Tensor.h>
 
@@ -39,5 +40,17 @@ struct RasterizedImage {
 RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                                     const at::Tensor& features, const at::Tensor& depths, const at::Tensor& radii,
                                     int width, int height, const at::Tensor& means2d_abs_sink = {});
+
+// One view of a forward-only batch: the Gaussians projected for it and their features seen from it.
+struct ViewSplats {
+  ProjectedGaussians projection;
+  at::Tensor features;  // N x C
+  int width = 0, height = 0;
+};
+
+// The forward pass of rasterize_gaussians for several views of the same Gaussians (`opacities`), without an
+// autograd graph: images equal rasterize_gaussians' bit for bit. On CUDA the views' tile lists are sized with one
+// host synchronisation for all of them instead of one per view, so the device is not left idle between views.
+std::vector<RasterizedImage> rasterize_views(const std::vector<ViewSplats>& views, const at::Tensor& opacities);
 
 }  // namespace gaps

@@ -6,6 +6,7 @@
 #include "common/status_macros.h"
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/scene/cameras_json.h"
+#include "gs_trainer/scene/run_files.h"
 #include "gs_trainer/viewer/pack.h"
 
 namespace gaps::viewer {
@@ -70,8 +71,7 @@ absl::StatusOr<json> pseudo_view_json(const json& entry, int phase, const fs::pa
                           parse_camera_json(entry["camera"], absl::StrCat("phases.json, phase ", phase)));
     view["camera"] = viewer_camera_json(c.camera, "pseudo");
   }
-  const std::string image =
-      absl::StrFormat("pseudo_views/phase_%02d/cand_%03d_%s.png", phase, id, admitted ? "admitted" : "rejected");
+  const std::string image = (fs::path(kPseudoViewsFolder) / pseudo_view_file(phase, id, admitted)).generic_string();
   if (fs::exists(run / image)) {
     view["image"] = image;
     out.images.emplace_back(image, run / image);

@@ -21,6 +21,8 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 
+#include "gs_trainer/gaps/candidate_renders.h"
+#include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/raster/rasterize_backend.h"
@@ -396,6 +398,38 @@ TEST_F(RasterizerCudaFern, OpaqueGaussiansMatchCpu) {
   at::manual_seed(9);
   model_.opacity_logits = at::rand_like(model_.opacity_logits) * 6.0 - 1.0;
   compare_fern("fern 20k opaque", model_, camera_);
+}
+
+// Scoring's batched renders (one host synchronisation for all views) give render()'s images bit for bit, and the
+// pool's statistics those of one measurement per view.
+TEST_F(RasterizerCudaFern, ViewsAndCandidateStatisticsEqualOneRenderPerCamera) {
+  const GaussianModel model = model_.to(kCuda);
+  Camera moved = camera_, half = camera_;
+  moved.t += Eigen::Vector3d(0.05, -0.02, 0.03);
+  half.width /= 2;
+  half.height /= 2;
+  half.fx /= 2;
+  half.fy /= 2;
+  half.cx /= 2;
+  half.cy /= 2;
+  const std::vector<Camera> cameras{camera_, moved, half, camera_};
+  const std::vector<RenderOutput> views = render_views(model, cameras);
+  const GapsConfig c;
+  const at::Tensor rows = candidate_statistics(model, cameras, c);
+  for (size_t k = 0; k < cameras.size(); ++k) {
+    const RenderOutput one = render(model, cameras[k]);
+    EXPECT_TRUE(one.rgb.is_cuda());
+    EXPECT_TRUE(at::equal(views[k].rgb, one.rgb)) << "view " << k;
+    EXPECT_TRUE(at::equal(views[k].depth, one.depth)) << "view " << k;
+    EXPECT_TRUE(at::equal(views[k].alpha, one.alpha)) << "view " << k;
+    const CandidateMeasurements m = measure_render(one.rgb.clamp(0, 1), one.alpha, 0, 0, std::nullopt, c);
+    const int64_t i = static_cast<int64_t>(k);
+    EXPECT_NEAR(rows[i][0].item<double>(), m.mean_alpha, 1e-9) << "view " << k;
+    EXPECT_NEAR(rows[i][1].item<double>(), m.entropy_mean, 1e-9) << "view " << k;
+    EXPECT_NEAR(rows[i][2].item<double>(), m.coverage, 1e-12) << "view " << k;
+    EXPECT_NEAR(rows[i][3].item<double>(), m.contrast, 1e-9) << "view " << k;
+  }
+  EXPECT_GT(rows[0][0].item<double>(), 0.2) << "the Gaussians should cover the view";
 }
 
 }  // namespace

@@ -7,6 +7,7 @@
 
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/cat.h>
 #include <ATen/ops/cumsum.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
@@ -80,36 +81,53 @@ int bit_width(uint32_t v) {
 
 }  // namespace
 
-TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_in, const at::Tensor& opacities_in,
-                        const at::Tensor& radii_in, const at::Tensor& depths_in, int width, int height) {
-  for (const auto* t : {&means2d_in, &conics_in, &opacities_in})
+namespace {
+
+// One view's inputs, made contiguous, with its tile grid.
+struct BinInput {
+  at::Tensor means2d, conics, opacities, radii, depths;
+  int tiles_x, tiles_y;
+  int64_t size() const { return means2d.size(0); }
+};
+
+BinInput bin_input(const SplatView& v) {
+  for (const auto* t : {&v.means2d, &v.conics, &v.opacities})
     TORCH_CHECK(t->is_cuda() && t->scalar_type() == at::kFloat,
                 "bin_tiles_cuda: means2d, conics and opacities must be float32 CUDA tensors, got ", t->scalar_type());
-  const c10::cuda::CUDAGuard guard(means2d_in.device());
-  const auto means2d = means2d_in.contiguous(), radii = radii_in.contiguous(), depths = depths_in.contiguous();
-  const auto conics = conics_in.contiguous(), opacities = opacities_in.contiguous();
-  const int tiles_x = (width + raster::kTileSize - 1) / raster::kTileSize;
-  const int tiles_y = (height + raster::kTileSize - 1) / raster::kTileSize;
-  const int num_tiles = tiles_x * tiles_y;
-  const int64_t n = means2d.size(0);
-  const auto opts = means2d.options();
-  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  return {v.means2d.contiguous(),
+          v.conics.contiguous(),
+          v.opacities.contiguous(),
+          v.radii.contiguous(),
+          v.depths.contiguous(),
+          (v.width + raster::kTileSize - 1) / raster::kTileSize,
+          (v.height + raster::kTileSize - 1) / raster::kTileSize};
+}
 
+// Per Gaussian its number of tiles and their inclusive scan, whose last entry is the number of pairs.
+struct PairCounts {
+  at::Tensor counts, offsets;
+};
+
+PairCounts count_pairs(const BinInput& in, cudaStream_t stream) {
+  const int64_t n = in.size();
+  PairCounts c;
+  c.counts = at::empty({n}, in.means2d.options().dtype(at::kLong));
+  count_tiles_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
+      n, in.means2d.data_ptr<float>(), in.conics.data_ptr<float>(), in.opacities.data_ptr<float>(),
+      in.radii.data_ptr<int32_t>(), in.tiles_x, in.tiles_y, c.counts.data_ptr<int64_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  c.offsets = at::cumsum(c.counts, 0);
+  return c;
+}
+
+// The `m` pairs of a view, emitted and sorted, as its tile bins.
+TileBins emit_pairs(const BinInput& in, const PairCounts& c, int64_t m, cudaStream_t stream) {
+  TORCH_CHECK(m < (int64_t{1} << 31), "bin_tiles_cuda: ", m, " tile intersections overflow the int32 tile ranges");
+  const int64_t n = in.size();
+  const int num_tiles = in.tiles_x * in.tiles_y;
+  const auto opts = in.means2d.options();
   TileBins bins;
   bins.tile_ranges = at::zeros({num_tiles, 2}, opts.dtype(at::kInt));
-  if (n == 0) {
-    bins.gaussian_ids = at::empty({0}, opts.dtype(at::kInt));
-    return bins;
-  }
-  at::Tensor counts = at::empty({n}, opts.dtype(at::kLong));
-  count_tiles_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, means2d.data_ptr<float>(), conics.data_ptr<float>(),
-                                                             opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
-                                                             tiles_x, tiles_y, counts.data_ptr<int64_t>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  const at::Tensor offsets = at::cumsum(counts, 0);
-  // The one host synchronisation of the pipeline: the number of pairs sizes the sort buffers.
-  const int64_t m = offsets[n - 1].item<int64_t>();
-  TORCH_CHECK(m < (int64_t{1} << 31), "bin_tiles_cuda: ", m, " tile intersections overflow the int32 tile ranges");
   bins.gaussian_ids = at::empty({m}, opts.dtype(at::kInt));
   if (m == 0) return bins;
 
@@ -117,9 +135,9 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_i
   at::Tensor ids = at::empty({m}, opts.dtype(at::kInt));
   auto* keys_ptr = reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>());
   emit_pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
-      n, means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(), radii.data_ptr<int32_t>(),
-      depths.data_ptr<float>(), counts.data_ptr<int64_t>(), offsets.data_ptr<int64_t>(), tiles_x, tiles_y, keys_ptr,
-      ids.data_ptr<int32_t>());
+      n, in.means2d.data_ptr<float>(), in.conics.data_ptr<float>(), in.opacities.data_ptr<float>(),
+      in.radii.data_ptr<int32_t>(), in.depths.data_ptr<float>(), c.counts.data_ptr<int64_t>(),
+      c.offsets.data_ptr<int64_t>(), in.tiles_x, in.tiles_y, keys_ptr, ids.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 
   // Only the bits in use are sorted: 32 of depth plus enough for the largest tile id.
@@ -137,6 +155,41 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d_in, const at::Tensor& conics_i
 
   tile_ranges_kernel<<<blocks_for(m), kThreads, 0, stream>>>(m, sorted_keys_ptr, bins.tile_ranges.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return bins;
+}
+
+}  // namespace
+
+void bin_tiles_views_cuda(const std::vector<SplatView>& views, const BinsConsumer& use) {
+  if (views.empty()) return;
+  const c10::cuda::CUDAGuard guard(views.front().means2d.device());
+  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  std::vector<BinInput> inputs;
+  std::vector<PairCounts> counts;
+  std::vector<at::Tensor> totals;
+  for (const SplatView& v : views) {
+    inputs.push_back(bin_input(v));
+    if (inputs.back().size() == 0) {
+      counts.emplace_back();
+      continue;
+    }
+    counts.push_back(count_pairs(inputs.back(), stream));
+    totals.push_back(counts.back().offsets.narrow(0, inputs.back().size() - 1, 1));
+  }
+  // The one host synchronisation of the pipeline, for all views together: the numbers of pairs size the sort
+  // buffers.
+  const at::Tensor pairs = totals.empty() ? at::Tensor() : at::cat(totals).cpu();
+  for (size_t k = 0, t = 0; k < views.size(); ++k) {
+    const int64_t m = inputs[k].size() == 0 ? 0 : pairs.data_ptr<int64_t>()[t++];
+    use(k, emit_pairs(inputs[k], counts[k], m, stream));
+  }
+}
+
+TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                        const at::Tensor& radii, const at::Tensor& depths, int width, int height) {
+  TileBins bins;
+  bin_tiles_views_cuda({{means2d, conics, opacities, radii, depths, width, height}},
+                       [&](size_t, TileBins b) { bins = std::move(b); });
   return bins;
 }
 

@@ -1,0 +1,63 @@
+#include "gs_trainer/gaps/candidate_renders.h"
+
+#include <algorithm>
+
+#include <ATen/ATen.h>
+
+#include "gs_trainer/gaps/scores.h"
+#include "gs_trainer/model/render.h"
+
+namespace gaps {
+
+int candidate_batch_size(int64_t gaussians, int width, int height, const at::Device& device, const GapsConfig& c) {
+  if (!device.is_cuda()) return 1;
+  constexpr int64_t kWorkingBytes = int64_t{512} << 20;
+  constexpr int64_t kMaxBatch = 32;
+  // Per Gaussian: 2D mean, conic, depth, radius, four features, tile count and its scan. Per pixel: four feature
+  // channels, alpha, transmittance, contributor count, the clamped colour, and the one-hot histogram codes of
+  // the entropy term with their window means.
+  const int64_t per_gaussian = 4 * (2 + 3 + 1 + 1 + 4) + 2 * 8;
+  const int64_t per_pixel = 4 * (4 + 1 + 1 + 1 + 3) + 2 * 4 * std::max(2, c.entropy_bins);
+  const int64_t per_view = per_gaussian * gaussians + per_pixel * int64_t{width} * height;
+  return static_cast<int>(std::clamp<int64_t>(kWorkingBytes / std::max<int64_t>(per_view, 1), 1, kMaxBatch));
+}
+
+namespace {
+
+// Statistics of cameras [begin, end), which share one image size, on the model's device.
+at::Tensor batch_statistics(const GaussianModel& model, const std::vector<Camera>& cameras, size_t begin, size_t end,
+                            const GapsConfig& c) {
+  const std::vector<Camera> batch(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
+                                  cameras.begin() + static_cast<std::ptrdiff_t>(end));
+  std::vector<at::Tensor> images, alphas;
+  for (const RenderOutput& r : render_views(model, batch)) {
+    images.push_back(r.rgb.clamp(0, 1));
+    alphas.push_back(r.alpha);
+  }
+  return render_statistics(at::stack(images), at::stack(alphas), c);
+}
+
+}  // namespace
+
+at::Tensor candidate_statistics(const GaussianModel& model, const std::vector<Camera>& cameras, const GapsConfig& c,
+                                int batch) {
+  if (cameras.empty()) return at::empty({0, 4}, at::kDouble);
+  std::vector<at::Tensor> parts;
+  size_t begin = 0;
+  while (begin < cameras.size()) {
+    const Camera& first = cameras[begin];
+    const int size =
+        batch > 0 ? batch : candidate_batch_size(model.size(), first.width, first.height, model.means.device(), c);
+    const size_t limit = begin + static_cast<size_t>(size);
+    size_t end = begin + 1;
+    while (end < std::min(limit, cameras.size()) && cameras[end].width == first.width &&
+           cameras[end].height == first.height)
+      ++end;
+    parts.push_back(batch_statistics(model, cameras, begin, end, c));
+    begin = end;
+  }
+  // Kept on the device until every batch is queued: one copy to the host for the whole pool.
+  return at::cat(parts).cpu().contiguous();
+}
+
+}  // namespace gaps
