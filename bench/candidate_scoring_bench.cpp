@@ -129,23 +129,24 @@ int main(int argc, char** argv) {
   for (size_t k = 0; k < pool.size(); ++k) max_score_diff = std::max(max_score_diff, std::abs(reference[k] - fast[k]));
   const std::set<int> chosen = selection_of(reference);
 
-  nlohmann::json j = {{"bench", "candidate_scoring"},
-                      {"scene", absl::GetFlag(FLAGS_scene)},
-                      {"views", absl::GetFlag(FLAGS_views)},
-                      {"resolution", absl::GetFlag(FLAGS_resolution)},
-                      {"width", gt[0].width},
-                      {"height", gt[0].height},
-                      {"device", device.str()},
-                      {"gaussians", gaussians.size()},
-                      {"candidates", pool.size()},
-                      {"batch", gaps::candidate_batch_size(gaussians.size(), gt[0].width, gt[0].height, device, config)},
-                      {"one_by_one_s", per_view_s},
-                      {"batched_s", batched_s},
-                      {"speedup", per_view_s / batched_s},
-                      {"max_statistic_diff", (one_by_one - batched).abs().max().item<double>()},
-                      {"max_score_diff", max_score_diff},
-                      {"same_selection", selection_of(fast) == chosen},
-                      {"selected", chosen.size()}};
+  nlohmann::json j = {
+      {"bench", "candidate_scoring"},
+      {"scene", absl::GetFlag(FLAGS_scene)},
+      {"views", absl::GetFlag(FLAGS_views)},
+      {"resolution", absl::GetFlag(FLAGS_resolution)},
+      {"width", gt[0].width},
+      {"height", gt[0].height},
+      {"device", device.str()},
+      {"gaussians", gaussians.size()},
+      {"candidates", pool.size()},
+      {"batch", gaps::candidate_batch_size(gaussians.size(), gt[0].width, gt[0].height, device, config)},
+      {"one_by_one_s", per_view_s},
+      {"batched_s", batched_s},
+      {"speedup", per_view_s / batched_s},
+      {"max_statistic_diff", (one_by_one - batched).abs().max().item<double>()},
+      {"max_score_diff", max_score_diff},
+      {"same_selection", selection_of(fast) == chosen},
+      {"selected", chosen.size()}};
   for (const std::string& text : absl::GetFlag(FLAGS_scales)) {
     const double s = std::stod(text);
     std::vector<gaps::Camera> small;

@@ -92,7 +92,8 @@ TEST(CandidateStatistics, BatchShrinksWithTheWorkingMemoryOfAView) {
   EXPECT_EQ(candidate_batch_size(10, 64, 48, gpu, c), 32) << "a tiny model's views should fill the largest batch";
   EXPECT_EQ(candidate_batch_size(10, 20000, 20000, gpu, c), 1);
   EXPECT_EQ(candidate_batch_size(100'000'000, 64, 48, gpu, c), 1);
-  const int lo = candidate_batch_size(300'000, 1000, 1000, gpu, c), hi = candidate_batch_size(300'000, 500, 500, gpu, c);
+  const int lo = candidate_batch_size(300'000, 1000, 1000, gpu, c),
+            hi = candidate_batch_size(300'000, 500, 500, gpu, c);
   EXPECT_GE(lo, 1);
   EXPECT_LT(lo, hi);
   EXPECT_LE(hi, 32);

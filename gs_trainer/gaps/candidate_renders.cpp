@@ -11,12 +11,13 @@ namespace gaps {
 
 int candidate_batch_size(int64_t gaussians, int width, int height, const at::Device& device, const GapsConfig& c) {
   if (!device.is_cuda()) return 1;
-  constexpr int64_t kWorkingBytes = int64_t{512} << 20;
+  constexpr int64_t kWorkingBytes = int64_t{1} << 30;
   constexpr int64_t kMaxBatch = 32;
-  // Per Gaussian: 2D mean, conic, depth, radius, four features, tile count and its scan. Per pixel: four feature
-  // channels, alpha, transmittance, contributor count, the clamped colour, and the one-hot histogram codes of
-  // the entropy term with their window means.
-  const int64_t per_gaussian = 4 * (2 + 3 + 1 + 1 + 4) + 2 * 8;
+  // Per Gaussian: 2D mean, conic, depth, radius, four features, opacity, tile count and its scan, and about four
+  // (tile, Gaussian) pairs of 24 bytes (keys and ids, sorted and not). Per pixel: four feature channels, alpha,
+  // transmittance, contributor count, the clamped colour, and the one-hot histogram codes of the entropy term
+  // with their window means.
+  const int64_t per_gaussian = 4 * (2 + 3 + 1 + 1 + 4 + 1) + 2 * 8 + 4 * 24;
   const int64_t per_pixel = 4 * (4 + 1 + 1 + 1 + 3) + 2 * 4 * std::max(2, c.entropy_bins);
   const int64_t per_view = per_gaussian * gaussians + per_pixel * int64_t{width} * height;
   return static_cast<int>(std::clamp<int64_t>(kWorkingBytes / std::max<int64_t>(per_view, 1), 1, kMaxBatch));

@@ -16,7 +16,7 @@ struct RasterBackend {
   decltype(&shade_forward_cpu) shade_forward;
   decltype(&shade_backward_cpu) shade_backward;
   decltype(&bin_tiles_cpu) bin_tiles;
-  decltype(&bin_tiles_views_cpu) bin_tiles_views;
+  decltype(&rasterize_views_forward_cpu) rasterize_views_forward;
   decltype(&rasterize_forward_cpu) rasterize_forward;
   // `absolute_grads` = false allows leaving RasterGrads::means2d_abs undefined.
   RasterGrads (*rasterize_backward)(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,

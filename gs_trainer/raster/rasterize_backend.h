@@ -2,9 +2,7 @@
 // The rasterizer's stages as plain tensor functions, one implementation per device (cpu/, cuda/).
 // rasterizer.cpp wraps them as autograd functions through backend.h's table; besides, only tests and
 // benchmarks call them, by name.
-#include <functional>
 #include <tuple>
-#include <vector>
 
 #include <ATen/Tensor.h>
 #include "gs_trainer/raster/raster_math.h"
@@ -27,16 +25,6 @@ struct TileBins {
   at::Tensor gaussian_ids;  // M int32, tile-major then depth order
   at::Tensor tile_ranges;   // T x 2 int32, [begin, end) into gaussian_ids per tile (row-major tiles)
 };
-
-// One view's 2D Gaussians, the input of tile binning.
-struct SplatView {
-  at::Tensor means2d, conics, opacities, radii, depths;
-  int width = 0, height = 0;
-};
-
-// Receives each view's bins in view order; the bins are the receiver's to keep or drop, so a caller that
-// composites a view at once holds one view's pairs at a time.
-using BinsConsumer = std::function<void(size_t view, TileBins bins)>;
 
 struct RasterOutput {
   at::Tensor features;   // H x W x C
@@ -76,8 +64,13 @@ ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, 
                               const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                        const at::Tensor& radii, const at::Tensor& depths, int width, int height);
-// bin_tiles_cpu of every view in turn.
-void bin_tiles_views_cpu(const std::vector<SplatView>& views, const BinsConsumer& use);
+// Forward passes (binning and compositing) of `views` views of the same Gaussians at one image size, every input
+// stacked view-major (views blocks of N rows), outputs stacked too: features (views·H) x W x C, alpha (views·H) x W,
+// image v equal to bin_tiles + rasterize_forward of view v alone. The CUDA version bins and composites all views
+// in one launch of each kernel and waits on the device once (the pair count), not once per view.
+RasterOutput rasterize_views_forward_cpu(int views, const at::Tensor& means2d, const at::Tensor& conics,
+                                         const at::Tensor& opacities, const at::Tensor& radii, const at::Tensor& depths,
+                                         const at::Tensor& features, int width, int height);
 RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                    const at::Tensor& opacities, const at::Tensor& features, int width, int height);
 RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
@@ -96,9 +89,15 @@ ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc,
                                const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                         const at::Tensor& radii, const at::Tensor& depths, int width, int height);
-// Bins several views with one host synchronisation for all of them (the pair counts that size the sort
-// buffers), where a view at a time waits on the device once per view. bin_tiles_cuda is the case of one view.
-void bin_tiles_views_cuda(const std::vector<SplatView>& views, const BinsConsumer& use);
+// Tile bins of `views` views stacked view-major (N = means2d.size(0) / views rows each) at one image size: view v's
+// tile t is bin v·T + t, listing rows v·N + i in the order bin_tiles_cuda gives view v alone. bin_tiles_cuda is
+// the case of one view.
+TileBins bin_tiles_views_cuda(int views, const at::Tensor& means2d, const at::Tensor& conics,
+                              const at::Tensor& opacities, const at::Tensor& radii, const at::Tensor& depths, int width,
+                              int height);
+RasterOutput rasterize_views_forward_cuda(int views, const at::Tensor& means2d, const at::Tensor& conics,
+                                          const at::Tensor& opacities, const at::Tensor& radii,
+                                          const at::Tensor& depths, const at::Tensor& features, int width, int height);
 RasterOutput rasterize_forward_cuda(const TileBins& bins, const at::Tensor& means2d, const at::Tensor& conics,
                                     const at::Tensor& opacities, const at::Tensor& features, int width, int height);
 // `absolute_grads` = false leaves RasterGrads::means2d_abs undefined and saves its sums.

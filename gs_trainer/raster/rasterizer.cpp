@@ -147,27 +147,50 @@ RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor&
   return {out[0], out[1]};
 }
 
+namespace {
+
+// Views [begin, end), all of one image size, through the backend's stacked forward pass.
+void rasterize_same_size(const std::vector<ViewSplats>& views, size_t begin, size_t end, const at::Tensor& opacities,
+                         std::vector<RasterizedImage>& images) {
+  const int count = static_cast<int>(end - begin);
+  const int w = views[begin].width, h = views[begin].height;
+  std::vector<at::Tensor> means2d, conics, radii, depths, features;
+  for (size_t k = begin; k < end; ++k) {
+    const ProjectedGaussians& p = views[k].projection;
+    means2d.push_back(p.means2d);
+    conics.push_back(p.conics);
+    radii.push_back(p.radii);
+    depths.push_back(p.depths);
+    features.push_back(views[k].features);
+  }
+  const backend::RasterOutput out =
+      backend::raster_backend(opacities.device())
+          .rasterize_views_forward(count, at::cat(means2d), at::cat(conics), opacities.repeat({count}), at::cat(radii),
+                                   at::cat(depths), at::cat(features), w, h);
+  const at::Tensor f = out.features.view({count, h, w, -1}), a = out.alpha.view({count, h, w});
+  for (int k = 0; k < count; ++k) images[begin + k] = {f[k], a[k]};
+}
+
+}  // namespace
+
 std::vector<RasterizedImage> rasterize_views(const std::vector<ViewSplats>& views, const at::Tensor& opacities) {
   std::vector<RasterizedImage> images(views.size());
-  if (views.empty()) return images;
   const at::NoGradGuard no_grad;
   const at::Tensor op = opacities.detach();
-  std::vector<backend::SplatView> splats;
   for (const ViewSplats& v : views) {
-    const ProjectedGaussians& p = v.projection;
     TORCH_CHECK(v.width > 0 && v.height > 0, "image size must be positive, got ", v.width, "x", v.height);
-    TORCH_CHECK(p.means2d.size(0) == op.size(0) && v.features.dim() == 2 && v.features.size(0) == op.size(0),
+    TORCH_CHECK(v.projection.means2d.size(0) == op.size(0) && v.features.dim() == 2 && v.features.size(0) == op.size(0),
                 "rasterize_views: every view needs N projected Gaussians and N x C features for N = ", op.size(0),
-                " opacities, got ", p.means2d.sizes(), " and ", v.features.sizes());
-    splats.push_back({p.means2d.detach(), p.conics.detach(), op, p.radii, p.depths, v.width, v.height});
+                " opacities, got ", v.projection.means2d.sizes(), " and ", v.features.sizes());
   }
-  const backend::RasterBackend& stages = backend::raster_backend(op.device());
-  stages.bin_tiles_views(splats, [&](size_t k, backend::TileBins bins) {
-    const backend::SplatView& s = splats[k];
-    const backend::RasterOutput out =
-        stages.rasterize_forward(bins, s.means2d, s.conics, s.opacities, views[k].features.detach(), s.width, s.height);
-    images[k] = {out.features, out.alpha};
-  });
+  // Consecutive views of one size share a pass.
+  for (size_t begin = 0, end = 0; begin < views.size(); begin = end) {
+    end = begin + 1;
+    while (end < views.size() && views[end].width == views[begin].width && views[end].height == views[begin].height &&
+           views[end].features.size(1) == views[begin].features.size(1))
+      ++end;
+    rasterize_same_size(views, begin, end, op, images);
+  }
   return images;
 }
 

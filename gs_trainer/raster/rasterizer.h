@@ -49,8 +49,10 @@ struct ViewSplats {
 };
 
 // The forward pass of rasterize_gaussians for several views of the same Gaussians (`opacities`), without an
-// autograd graph: images equal rasterize_gaussians' bit for bit. On CUDA the views' tile lists are sized with one
-// host synchronisation for all of them instead of one per view, so the device is not left idle between views.
+// autograd graph: images equal rasterize_gaussians' bit for bit. Consecutive views of one size go through the
+// backend together (rasterize_views_forward): on CUDA one launch of each kernel for all of them and one host
+// synchronisation instead of one per view, so small views still fill the device and it never waits on the host
+// between views.
 std::vector<RasterizedImage> rasterize_views(const std::vector<ViewSplats>& views, const at::Tensor& opacities);
 
 }  // namespace gaps

@@ -412,7 +412,8 @@ TEST_F(RasterizerCudaFern, ViewsAndCandidateStatisticsEqualOneRenderPerCamera) {
   half.fy /= 2;
   half.cx /= 2;
   half.cy /= 2;
-  const std::vector<Camera> cameras{camera_, moved, half, camera_};
+  // The first three share one stacked pass.
+  const std::vector<Camera> cameras{camera_, moved, camera_, half};
   const std::vector<RenderOutput> views = render_views(model, cameras);
   const GapsConfig c;
   const at::Tensor rows = candidate_statistics(model, cameras, c);

@@ -99,11 +99,4 @@ TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, cons
   return bins;
 }
 
-void bin_tiles_views_cpu(const std::vector<SplatView>& views, const BinsConsumer& use) {
-  for (size_t k = 0; k < views.size(); ++k) {
-    const SplatView& v = views[k];
-    use(k, bin_tiles_cpu(v.means2d, v.conics, v.opacities, v.radii, v.depths, v.width, v.height));
-  }
-}
-
 }  // namespace gaps::backend

@@ -82,4 +82,25 @@ RasterOutput rasterize_forward_cpu(const TileBins& bins, const at::Tensor& means
   return out;
 }
 
+RasterOutput rasterize_views_forward_cpu(int views, const at::Tensor& means2d, const at::Tensor& conics,
+                                         const at::Tensor& opacities, const at::Tensor& radii, const at::Tensor& depths,
+                                         const at::Tensor& features, int width, int height) {
+  TORCH_CHECK(views >= 1 && means2d.size(0) % views == 0, "rasterize_views_forward_cpu: ", means2d.size(0),
+              " rows do not split into ", views, " views");
+  const int64_t n = means2d.size(0) / views;
+  std::vector<at::Tensor> feats, alphas, final_T, n_contrib;
+  for (int v = 0; v < views; ++v) {
+    const auto rows = [&](const at::Tensor& t) { return t.narrow(0, v * n, n); };
+    const TileBins bins =
+        bin_tiles_cpu(rows(means2d), rows(conics), rows(opacities), rows(radii), rows(depths), width, height);
+    const RasterOutput out =
+        rasterize_forward_cpu(bins, rows(means2d), rows(conics), rows(opacities), rows(features), width, height);
+    feats.push_back(out.features);
+    alphas.push_back(out.alpha);
+    final_T.push_back(out.final_T);
+    n_contrib.push_back(out.n_contrib);
+  }
+  return {at::cat(feats), at::cat(alphas), at::cat(final_T), at::cat(n_contrib)};
+}
+
 }  // namespace gaps::backend
