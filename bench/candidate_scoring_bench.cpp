@@ -14,6 +14,7 @@
 #include <set>
 
 #include <ATen/ATen.h>
+#include <torch/csrc/autograd/profiler_kineto.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
@@ -32,6 +33,9 @@ ABSL_FLAG(std::string, device, "cpu", "cpu or cuda");
 ABSL_FLAG(int, repeats, 3, "timed repetitions of each way (the median is reported)");
 ABSL_FLAG(std::vector<std::string>, scales, {}, "reduced scoring resolutions to compare, e.g. 0.5,0.25");
 ABSL_FLAG(std::string, json, "", "append the result as one JSON line to this file");
+ABSL_FLAG(std::string, trace, "",
+          "also profile one batched scoring of the pool and write its Chrome trace here (bench/trace_summary.py "
+          "--iterations 1 ranks its kernels)");
 
 namespace {
 
@@ -165,6 +169,18 @@ int main(int argc, char** argv) {
                            {"speedup_vs_batched", batched_s / seconds},
                            {"spearman_vs_full", spearman(scaled, reference)},
                            {"selection_kept", chosen.empty() ? 1.0 : double(kept) / double(chosen.size())}});
+  }
+  if (const std::string trace = absl::GetFlag(FLAGS_trace); !trace.empty()) {
+    namespace prof = torch::profiler::impl;
+    const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
+    const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU, prof::ActivityType::CUDA};
+    torch::autograd::profiler::prepareProfiler(trace_config, activities);
+    sync(device);
+    torch::autograd::profiler::enableProfiler(trace_config, activities);
+    gaps::candidate_statistics(gaussians, cameras, config);
+    sync(device);
+    torch::autograd::profiler::disableProfiler()->save(trace);
+    j["trace"] = trace;
   }
   std::cout << j.dump() << "\n";
   if (const std::string path = absl::GetFlag(FLAGS_json); !path.empty())
