@@ -105,7 +105,6 @@ TEST(Render, ViewsEqualOneRenderPerCamera) {
     EXPECT_TRUE(at::equal(views[k].rgb, one.rgb)) << "view " << k;
     EXPECT_TRUE(at::equal(views[k].depth, one.depth)) << "view " << k;
     EXPECT_TRUE(at::equal(views[k].alpha, one.alpha)) << "view " << k;
-    EXPECT_TRUE(at::equal(views[k].radii, one.radii)) << "view " << k;
     EXPECT_FALSE(views[k].rgb.requires_grad());
   }
   EXPECT_TRUE(render_views(m, {}).empty());

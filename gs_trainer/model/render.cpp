@@ -127,41 +127,44 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
 
 namespace {
 
-// The cameras' view matrices on `opts`' device, uploaded together.
-std::vector<at::Tensor> device_viewmats(const std::vector<Camera>& cameras, const at::TensorOptions& opts) {
-  std::vector<at::Tensor> host;
-  for (const Camera& camera : cameras) host.push_back(camera.viewmat());
-  const at::Tensor all = upload(at::stack(host), opts);
-  std::vector<at::Tensor> out;
-  for (int64_t k = 0; k < all.size(0); ++k) out.push_back(all[k]);
-  return out;
+raster::Intrinsics intrinsics_of(const Camera& c) { return {c.fx, c.fy, c.cx, c.cy, c.width, c.height}; }
+
+bool same_intrinsics(const Camera& a, const Camera& b) {
+  return a.fx == b.fx && a.fy == b.fy && a.cx == b.cx && a.cy == b.cy && a.width == b.width && a.height == b.height;
+}
+
+// Cameras [begin, end), which share their intrinsics, rendered together into out[begin, end).
+void render_same_intrinsics(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
+                            const std::vector<Camera>& cameras, size_t begin, size_t end,
+                            std::vector<RenderOutput>& out) {
+  std::vector<at::Tensor> viewmats;
+  std::vector<std::array<double, 3>> centres;
+  for (size_t k = begin; k < end; ++k) {
+    viewmats.push_back(cameras[k].viewmat());
+    const Eigen::Vector3d c = cameras[k].center();
+    centres.push_back({c.x(), c.y(), c.z()});
+  }
+  const RasterizedImage images =
+      render_views_forward(model.means, model.quats, scales, opacities, model.sh_dc, model.sh_rest, model.sh_degree,
+                           upload(at::stack(viewmats), model.means.options()), centres, intrinsics_of(cameras[begin]));
+  for (size_t k = begin; k < end; ++k) {
+    const at::Tensor features = images.features[static_cast<int64_t>(k - begin)];
+    out[k].rgb = features.narrow(2, 0, 3);
+    out[k].depth = features.select(2, 3);
+    out[k].alpha = images.alpha[static_cast<int64_t>(k - begin)];
+  }
 }
 
 }  // namespace
 
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
   std::vector<RenderOutput> out(cameras.size());
-  if (cameras.empty()) return out;
   const at::NoGradGuard no_grad;
-  const auto opts = model.means.options();
   const at::Tensor scales = model.scales(), opacities = model.opacities();
-  const std::vector<at::Tensor> viewmats = device_viewmats(cameras, opts);
-  std::vector<ViewSplats> views;
-  for (size_t k = 0; k < cameras.size(); ++k) {
-    const Camera& camera = cameras[k];
-    const raster::Intrinsics K{camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height};
-    const Eigen::Vector3d c = camera.center();
-    views.push_back({project_gaussians(model.means, model.quats, scales, viewmats[k], K),
-                     shade_gaussians(model.means, model.sh_dc, model.sh_rest, model.sh_degree, {c.x(), c.y(), c.z()}),
-                     camera.width, camera.height});
-  }
-  const std::vector<RasterizedImage> images = rasterize_views(views, opacities);
-  for (size_t k = 0; k < cameras.size(); ++k) {
-    out[k].rgb = images[k].features.narrow(2, 0, 3);
-    out[k].depth = images[k].features.select(2, 3);
-    out[k].alpha = images[k].alpha;
-    out[k].means2d = views[k].projection.means2d;
-    out[k].radii = views[k].projection.radii;
+  for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
+    end = begin + 1;
+    while (end < cameras.size() && same_intrinsics(cameras[end], cameras[begin])) ++end;
+    render_same_intrinsics(model, scales, opacities, cameras, begin, end, out);
   }
   return out;
 }

@@ -26,9 +26,10 @@ struct RenderOutput {
 
 RenderOutput render(const GaussianModel& model, const Camera& camera, const RenderOptions& options = {});
 
-// What render() gives for each camera without options (black background), without an autograd graph, images
-// equal bit for bit. For scoring many views: on CUDA all views' tile counts reach the host in one
-// synchronisation, the view matrices in one upload and the activations are computed once.
+// The images render() gives for each camera without options (black background): rgb, depth and alpha, bit for bit,
+// without an autograd graph (means2d and radii are left undefined). For scoring many views: consecutive cameras
+// with the same intrinsics are rendered together (render_views_forward: on CUDA one launch per kernel and one
+// host synchronisation for all of them), the view matrices uploaded at once, the activations computed once.
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras);
 
 // Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth

@@ -16,6 +16,8 @@ struct RasterBackend {
   decltype(&shade_forward_cpu) shade_forward;
   decltype(&shade_backward_cpu) shade_backward;
   decltype(&bin_tiles_cpu) bin_tiles;
+  decltype(&project_views_forward_cpu) project_views_forward;
+  decltype(&shade_views_forward_cpu) shade_views_forward;
   decltype(&rasterize_views_forward_cpu) rasterize_views_forward;
   decltype(&rasterize_forward_cpu) rasterize_forward;
   // `absolute_grads` = false allows leaving RasterGrads::means2d_abs undefined.

@@ -3,6 +3,7 @@
 // rasterizer.cpp wraps them as autograd functions through backend.h's table; besides, only tests and
 // benchmarks call them, by name.
 #include <tuple>
+#include <vector>
 
 #include <ATen/Tensor.h>
 #include "gs_trainer/raster/raster_math.h"
@@ -64,6 +65,13 @@ ShadeGrads shade_backward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, 
                               const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                        const at::Tensor& radii, const at::Tensor& depths, int width, int height);
+// ---- Several views of the same Gaussians at once, forward only (scoring candidate views). Outputs are stacked
+// view-major: view v's rows are v·N .. v·N + N - 1, each view's values those of the one-view function.
+// viewmats: V x 4 x 4.
+Projection project_views_forward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                     const at::Tensor& viewmats, const raster::Intrinsics& K);
+at::Tensor shade_views_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                                   int degree, const std::vector<Centre>& centres);
 // Forward passes (binning and compositing) of `views` views of the same Gaussians at one image size, every input
 // stacked view-major (views blocks of N rows), outputs stacked too: features (views·H) x W x C, alpha (views·H) x W,
 // image v equal to bin_tiles + rasterize_forward of view v alone. The CUDA version bins and composites all views
@@ -89,6 +97,11 @@ ShadeGrads shade_backward_cuda(const at::Tensor& means, const at::Tensor& sh_dc,
                                const Centre& centre, const at::Tensor& g_features);
 TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                         const at::Tensor& radii, const at::Tensor& depths, int width, int height);
+// One launch for all views; the shading reads each Gaussian's coefficients once for all of them.
+Projection project_views_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                      const at::Tensor& viewmats, const raster::Intrinsics& K);
+at::Tensor shade_views_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                                    int degree, const std::vector<Centre>& centres);
 // Tile bins of `views` views stacked view-major (N = means2d.size(0) / views rows each) at one image size: view v's
 // tile t is bin v·T + t, listing rows v·N + i in the order bin_tiles_cuda gives view v alone. bin_tiles_cuda is
 // the case of one view.

@@ -107,10 +107,7 @@ class RasterizeFunction : public torch::autograd::Function<RasterizeFunction> {
   }
 };
 
-}  // namespace
-
-at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
-                           const std::array<double, 3>& centre) {
+void check_shading_inputs(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree) {
   TORCH_CHECK(degree >= 0 && degree <= 3, "SH degree must be 0..3, got ", degree);
   TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be N x 3, got ", means.sizes());
   const int64_t n = means.size(0), needed = (degree + 1) * (degree + 1) - 1;
@@ -119,14 +116,25 @@ at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, con
               "sh_rest must be N x R x 3 with R >= ", needed, " for SH degree ", degree, ", got ", sh_rest.sizes());
   TORCH_CHECK(sh_dc.scalar_type() == means.scalar_type() && sh_rest.scalar_type() == means.scalar_type(),
               "means and SH coefficients must share a dtype");
+}
+
+void check_projection_inputs(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales) {
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be N x 3, got ", means.sizes());
+  TORCH_CHECK(quats.sizes() == at::IntArrayRef({means.size(0), 4}), "quats must be N x 4, got ", quats.sizes());
+  TORCH_CHECK(scales.sizes() == means.sizes(), "scales must be N x 3, got ", scales.sizes());
+}
+
+}  // namespace
+
+at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
+                           const std::array<double, 3>& centre) {
+  check_shading_inputs(means, sh_dc, sh_rest, degree);
   return ShadeFunction::apply(means, sh_dc, sh_rest, degree, std::vector<double>(centre.begin(), centre.end()))[0];
 }
 
 ProjectedGaussians project_gaussians(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                      const at::Tensor& viewmat, const raster::Intrinsics& K) {
-  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be N x 3, got ", means.sizes());
-  TORCH_CHECK(quats.sizes() == at::IntArrayRef({means.size(0), 4}), "quats must be N x 4, got ", quats.sizes());
-  TORCH_CHECK(scales.sizes() == means.sizes(), "scales must be N x 3, got ", scales.sizes());
+  check_projection_inputs(means, quats, scales);
   TORCH_CHECK(viewmat.sizes() == at::IntArrayRef({4, 4}), "viewmat must be 4 x 4, got ", viewmat.sizes());
   const std::vector<double> k{K.fx, K.fy, K.cx, K.cy, double(K.width), double(K.height)};
   auto out = ProjectFunction::apply(means, quats, scales, viewmat.to(means.options()), k);
@@ -147,51 +155,30 @@ RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor&
   return {out[0], out[1]};
 }
 
-namespace {
-
-// Views [begin, end), all of one image size, through the backend's stacked forward pass.
-void rasterize_same_size(const std::vector<ViewSplats>& views, size_t begin, size_t end, const at::Tensor& opacities,
-                         std::vector<RasterizedImage>& images) {
-  const int count = static_cast<int>(end - begin);
-  const int w = views[begin].width, h = views[begin].height;
-  std::vector<at::Tensor> means2d, conics, radii, depths, features;
-  for (size_t k = begin; k < end; ++k) {
-    const ProjectedGaussians& p = views[k].projection;
-    means2d.push_back(p.means2d);
-    conics.push_back(p.conics);
-    radii.push_back(p.radii);
-    depths.push_back(p.depths);
-    features.push_back(views[k].features);
-  }
-  const backend::RasterOutput out =
-      backend::raster_backend(opacities.device())
-          .rasterize_views_forward(count, at::cat(means2d), at::cat(conics), opacities.repeat({count}), at::cat(radii),
-                                   at::cat(depths), at::cat(features), w, h);
-  const at::Tensor f = out.features.view({count, h, w, -1}), a = out.alpha.view({count, h, w});
-  for (int k = 0; k < count; ++k) images[begin + k] = {f[k], a[k]};
-}
-
-}  // namespace
-
-std::vector<RasterizedImage> rasterize_views(const std::vector<ViewSplats>& views, const at::Tensor& opacities) {
-  std::vector<RasterizedImage> images(views.size());
+RasterizedImage render_views_forward(const at::Tensor& means_in, const at::Tensor& quats_in,
+                                     const at::Tensor& scales_in, const at::Tensor& opacities_in,
+                                     const at::Tensor& sh_dc_in, const at::Tensor& sh_rest_in, int degree,
+                                     const at::Tensor& viewmats, const std::vector<std::array<double, 3>>& centres,
+                                     const raster::Intrinsics& K) {
+  check_shading_inputs(means_in, sh_dc_in, sh_rest_in, degree);
+  check_projection_inputs(means_in, quats_in, scales_in);
+  const int64_t n = means_in.size(0);
+  const int views = static_cast<int>(centres.size());
+  TORCH_CHECK(viewmats.dim() == 3 && viewmats.size(0) == views && viewmats.size(1) == 4 && viewmats.size(2) == 4,
+              "render_views_forward: viewmats must be ", views, " x 4 x 4 (one per centre), got ", viewmats.sizes());
+  TORCH_CHECK(opacities_in.sizes() == at::IntArrayRef({n}), "opacities must be N, got ", opacities_in.sizes());
+  TORCH_CHECK(K.width > 0 && K.height > 0, "image size must be positive, got ", K.width, "x", K.height);
   const at::NoGradGuard no_grad;
-  const at::Tensor op = opacities.detach();
-  for (const ViewSplats& v : views) {
-    TORCH_CHECK(v.width > 0 && v.height > 0, "image size must be positive, got ", v.width, "x", v.height);
-    TORCH_CHECK(v.projection.means2d.size(0) == op.size(0) && v.features.dim() == 2 && v.features.size(0) == op.size(0),
-                "rasterize_views: every view needs N projected Gaussians and N x C features for N = ", op.size(0),
-                " opacities, got ", v.projection.means2d.sizes(), " and ", v.features.sizes());
-  }
-  // Consecutive views of one size share a pass.
-  for (size_t begin = 0, end = 0; begin < views.size(); begin = end) {
-    end = begin + 1;
-    while (end < views.size() && views[end].width == views[begin].width && views[end].height == views[begin].height &&
-           views[end].features.size(1) == views[begin].features.size(1))
-      ++end;
-    rasterize_same_size(views, begin, end, op, images);
-  }
-  return images;
+  const at::Tensor means = means_in.detach(), quats = quats_in.detach(), scales = scales_in.detach();
+  const backend::RasterBackend& stages = backend::raster_backend(means.device());
+  const backend::Projection p = stages.project_views_forward(means, quats, scales, viewmats.to(means.options()), K);
+  std::vector<backend::Centre> c;
+  for (const auto& centre : centres) c.push_back({centre[0], centre[1], centre[2]});
+  const at::Tensor features = stages.shade_views_forward(means, sh_dc_in.detach(), sh_rest_in.detach(), degree, c);
+  const backend::RasterOutput out =
+      stages.rasterize_views_forward(views, p.means2d, p.conics, opacities_in.detach().repeat({views}), p.radii,
+                                     p.depths, features, K.width, K.height);
+  return {out.features.view({views, K.height, K.width, 4}), out.alpha.view({views, K.height, K.width})};
 }
 
 }  // namespace gaps

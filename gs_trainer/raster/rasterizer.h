@@ -41,18 +41,16 @@ RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor&
                                     const at::Tensor& features, const at::Tensor& depths, const at::Tensor& radii,
                                     int width, int height, const at::Tensor& means2d_abs_sink = {});
 
-// One view of a forward-only batch: the Gaussians projected for it and their features seen from it.
-struct ViewSplats {
-  ProjectedGaussians projection;
-  at::Tensor features;  // N x C
-  int width = 0, height = 0;
-};
-
-// The forward pass of rasterize_gaussians for several views of the same Gaussians (`opacities`), without an
-// autograd graph: images equal rasterize_gaussians' bit for bit. Consecutive views of one size go through the
-// backend together (rasterize_views_forward): on CUDA one launch of each kernel for all of them and one host
-// synchronisation instead of one per view, so small views still fill the device and it never waits on the host
-// between views.
-std::vector<RasterizedImage> rasterize_views(const std::vector<ViewSplats>& views, const at::Tensor& opacities);
+// Forward-only renders of the same Gaussians from V cameras sharing the intrinsics K (no autograd graph): viewmats
+// V x 4 x 4, centres the V camera centres. Stacked: features V x H x W x 4 (shade_gaussians' colour and distance
+// composited), alpha V x H x W; view v equals shade_gaussians, project_gaussians and rasterize_gaussians of that
+// view alone, bit for bit. Each stage runs through the backend for all views at once: on CUDA one launch per
+// kernel (the shading reads every Gaussian's coefficients once for all views) and one host synchronisation, so
+// scoring hundreds of small views keeps the device full and never waits on the host between views.
+RasterizedImage render_views_forward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                     const at::Tensor& opacities, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                                     int degree, const at::Tensor& viewmats,
+                                     const std::vector<std::array<double, 3>>& centres,
+                                     const raster::Intrinsics& intrinsics);
 
 }  // namespace gaps

@@ -109,4 +109,20 @@ ProjectionGrads project_backward_cpu(const at::Tensor& means_in, const at::Tenso
   return out;
 }
 
+Projection project_views_forward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                     const at::Tensor& viewmats, const raster::Intrinsics& K) {
+  std::vector<at::Tensor> means2d, conics, depths, radii;
+  for (int64_t v = 0; v < viewmats.size(0); ++v) {
+    const Projection p = project_forward_cpu(means, quats, scales, viewmats[v], K);
+    means2d.push_back(p.means2d);
+    conics.push_back(p.conics);
+    depths.push_back(p.depths);
+    radii.push_back(p.radii);
+  }
+  if (means2d.empty())
+    return project_forward_cpu(means.narrow(0, 0, 0), quats.narrow(0, 0, 0), scales.narrow(0, 0, 0),
+                               at::eye(4, means.options()), K);
+  return {at::cat(means2d), at::cat(conics), at::cat(depths), at::cat(radii)};
+}
+
 }  // namespace gaps::backend

@@ -67,4 +67,11 @@ ShadeGrads shade_backward_cpu(const at::Tensor& means_in, const at::Tensor& sh_d
   return g;
 }
 
+at::Tensor shade_views_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
+                                   int degree, const std::vector<Centre>& centres) {
+  std::vector<at::Tensor> features;
+  for (const Centre& c : centres) features.push_back(shade_forward_cpu(means, sh_dc, sh_rest, degree, c));
+  return features.empty() ? at::empty({0, 4}, means.options()) : at::cat(features);
+}
+
 }  // namespace gaps::backend

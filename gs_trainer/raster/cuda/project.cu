@@ -34,26 +34,30 @@ __device__ View load_view(const float* viewmat) {
   return v;
 }
 
+// Grid rows are views (one row for a single view): view y reads viewmat y and writes output rows y·n + i.
 __global__ void project_forward_kernel(int64_t n, const float* __restrict__ means, const float* __restrict__ quats,
-                                       const float* __restrict__ scales, const float* __restrict__ viewmat,
-                                       Intrinsics K, float* __restrict__ means2d, float* __restrict__ conics,
-                                       float* __restrict__ depths, int32_t* __restrict__ radii) {
+                                       const float* __restrict__ scales, const float* __restrict__ viewmats,
+                                       Intrinsics K, float* __restrict__ means2d_out, float* __restrict__ conics_out,
+                                       float* __restrict__ depths_out, int32_t* __restrict__ radii_out) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  const View v = load_view(viewmat);
+  const int64_t row = blockIdx.y * n + i;
+  float* means2d = means2d_out + 2 * blockIdx.y * n;
+  float* conics = conics_out + 3 * blockIdx.y * n;
+  const View v = load_view(viewmats + 16 * blockIdx.y);
   raster::ProjectionCache<float> cache;
   raster::Projected<float> p{};
   p.visible = false;
   if (raster::project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, v.W, v.t, K, cache))
     p = raster::finish_projection(cache, K);
   // Culled Gaussians get zeros everywhere, as on the CPU.
-  radii[i] = p.visible ? p.radius : 0;
+  radii_out[row] = p.visible ? p.radius : 0;
   means2d[2 * i] = p.visible ? p.mean2d.x : 0.f;
   means2d[2 * i + 1] = p.visible ? p.mean2d.y : 0.f;
   conics[3 * i] = p.visible ? p.conic.a : 0.f;
   conics[3 * i + 1] = p.visible ? p.conic.b : 0.f;
   conics[3 * i + 2] = p.visible ? p.conic.c : 0.f;
-  depths[i] = p.visible ? p.depth : 0.f;
+  depths_out[row] = p.visible ? p.depth : 0.f;
 }
 
 __global__ void project_backward_kernel(int64_t n, const float* __restrict__ means, const float* __restrict__ quats,
@@ -83,28 +87,36 @@ constexpr int kThreads = kElementwiseThreads;
 
 }  // namespace
 
-Projection project_forward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in, const at::Tensor& scales_in,
-                                const at::Tensor& viewmat_in, const raster::Intrinsics& K) {
+Projection project_views_forward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in,
+                                      const at::Tensor& scales_in, const at::Tensor& viewmats_in,
+                                      const raster::Intrinsics& K) {
   check_cuda_float("means", means_in);
   check_cuda_float("quats", quats_in);
   check_cuda_float("scales", scales_in);
-  check_cuda_float("viewmat", viewmat_in);
+  check_cuda_float("viewmat", viewmats_in);
   const c10::cuda::CUDAGuard guard(means_in.device());
   const auto means = means_in.contiguous(), quats = quats_in.contiguous(), scales = scales_in.contiguous();
-  const auto viewmat = viewmat_in.contiguous();
-  const int64_t n = means.size(0);
+  const auto viewmat = viewmats_in.contiguous();
+  const int64_t n = means.size(0), rows = n * viewmat.size(0);
+  TORCH_CHECK(viewmat.size(0) < 65536, "project_views_forward_cuda: at most 65535 views at once, got ",
+              viewmat.size(0));
   Projection out;
-  out.means2d = at::empty({n, 2}, means.options());
-  out.conics = at::empty({n, 3}, means.options());
-  out.depths = at::empty({n}, means.options());
-  out.radii = at::empty({n}, means.options().dtype(at::kInt));
-  if (n == 0) return out;
-  project_forward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+  out.means2d = at::empty({rows, 2}, means.options());
+  out.conics = at::empty({rows, 3}, means.options());
+  out.depths = at::empty({rows}, means.options());
+  out.radii = at::empty({rows}, means.options().dtype(at::kInt));
+  if (rows == 0) return out;
+  project_forward_kernel<<<dim3(blocks_for(n), viewmat.size(0)), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
       n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(), viewmat.data_ptr<float>(), K,
       out.means2d.data_ptr<float>(), out.conics.data_ptr<float>(), out.depths.data_ptr<float>(),
       out.radii.data_ptr<int32_t>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return out;
+}
+
+Projection project_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                const at::Tensor& viewmat, const raster::Intrinsics& K) {
+  return project_views_forward_cuda(means, quats, scales, viewmat.view({1, 4, 4}), K);
 }
 
 ProjectionGrads project_backward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in,

@@ -1,6 +1,9 @@
 // Per-Gaussian colour (SH at the view direction) and distance on the GPU, forward and backward: one thread
 // per Gaussian running shade_math.h, the maths of cpu/shade.cpp. One kernel each way replaces the few dozen
 // element-wise ATen launches (and their autograd nodes) that the same computation costs in tensor ops.
+#include <algorithm>
+#include <vector>
+
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/empty.h>
@@ -58,6 +61,35 @@ __global__ void shade_backward_kernel(int64_t n, int degree, CentreF centre, con
   }
 }
 
+// Up to kMaxViews camera centres, passed by value to the kernel.
+constexpr int kMaxViews = 32;
+struct CentresF {
+  float c[kMaxViews][3];
+};
+
+// One thread per Gaussian shades it for every view: the coefficients are read once into registers instead of once
+// per view, which is what a view's shading spends most of its time on. Output row v·n + i for view v.
+__global__ void shade_views_forward_kernel(int64_t n, int degree, int views, CentresF centres,
+                                           const float* __restrict__ means, const float* __restrict__ dc,
+                                           const float* __restrict__ rest, int64_t stride, float* __restrict__ out) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  float m[3], d[3], r[3 * 15];
+  for (int k = 0; k < 3; ++k) {
+    m[k] = means[3 * i + k];
+    d[k] = dc[3 * i + k];
+  }
+  const int used = 3 * ((degree + 1) * (degree + 1) - 1);
+#pragma unroll
+  for (int k = 0; k < 3 * 15; ++k)
+    if (k < used) r[k] = rest[stride * i + k];
+  for (int v = 0; v < views; ++v) {
+    float o[4];
+    raster::shade_one(degree, m, centres.c[v], d, r, o);
+    reinterpret_cast<float4*>(out)[v * n + i] = make_float4(o[0], o[1], o[2], o[3]);
+  }
+}
+
 constexpr int kThreads = kElementwiseThreads;
 CentreF to_float(const Centre& c) { return {{float(c.x), float(c.y), float(c.z)}}; }
 
@@ -75,6 +107,30 @@ at::Tensor shade_forward_cuda(const at::Tensor& means_in, const at::Tensor& sh_d
       n, degree, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(),
       rest.size(1) * 3, out.data_ptr<float>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return out;
+}
+
+at::Tensor shade_views_forward_cuda(const at::Tensor& means_in, const at::Tensor& sh_dc_in,
+                                    const at::Tensor& sh_rest_in, int degree, const std::vector<Centre>& centres) {
+  check_inputs(means_in, sh_dc_in, sh_rest_in);
+  TORCH_CHECK(degree >= 0 && degree <= 3, "shade_views_forward_cuda: SH degree must be 0..3, got ", degree);
+  const c10::cuda::CUDAGuard guard(means_in.device());
+  const auto means = means_in.contiguous(), dc = sh_dc_in.contiguous(), rest = sh_rest_in.contiguous();
+  const int64_t n = means.size(0), views = static_cast<int64_t>(centres.size());
+  at::Tensor out = at::empty({views * n, 4}, means.options());
+  if (n == 0) return out;
+  for (int64_t first = 0; first < views; first += kMaxViews) {
+    const int count = static_cast<int>(std::min<int64_t>(kMaxViews, views - first));
+    CentresF c{};
+    for (int v = 0; v < count; ++v) {
+      const CentreF f = to_float(centres[first + v]);
+      for (int k = 0; k < 3; ++k) c.c[v][k] = f.c[k];
+    }
+    shade_views_forward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+        n, degree, count, c, means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(), rest.size(1) * 3,
+        out.data_ptr<float>() + 4 * first * n);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
   return out;
 }
 
