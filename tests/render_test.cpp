@@ -92,11 +92,13 @@ TEST(Render, BlendingWeightsEqualTheOneHotImagesSums) {
 }
 
 // render_views is render() without the graph: the same images bit for bit, views of two sizes in one call (the
-// first two share a stacked pass).
+// first two, of one size but not one focal length, share a stacked pass).
 TEST(Render, ViewsEqualOneRenderPerCamera) {
   const auto m = random_model(40, 6);
   std::vector<Camera> cameras{test_camera(40, 30), test_camera(40, 30), test_camera(33, 21)};
   cameras[1].t = Eigen::Vector3d(-0.3, 0.1, 0.4);
+  cameras[1].fx *= 1.1;
+  cameras[1].cy += 0.7;
   const std::vector<RenderOutput> views = render_views(m, cameras);
   ASSERT_EQ(views.size(), cameras.size());
   for (size_t k = 0; k < cameras.size(); ++k) {

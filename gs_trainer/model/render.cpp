@@ -129,24 +129,21 @@ namespace {
 
 raster::Intrinsics intrinsics_of(const Camera& c) { return {c.fx, c.fy, c.cx, c.cy, c.width, c.height}; }
 
-bool same_intrinsics(const Camera& a, const Camera& b) {
-  return a.fx == b.fx && a.fy == b.fy && a.cx == b.cx && a.cy == b.cy && a.width == b.width && a.height == b.height;
-}
-
-// Cameras [begin, end), which share their intrinsics, rendered together into out[begin, end).
-void render_same_intrinsics(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
-                            const std::vector<Camera>& cameras, size_t begin, size_t end,
-                            std::vector<RenderOutput>& out) {
+// Cameras [begin, end), which share their image size, rendered together into out[begin, end).
+void render_same_size(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
+                      const std::vector<Camera>& cameras, size_t begin, size_t end, std::vector<RenderOutput>& out) {
   std::vector<at::Tensor> viewmats;
   std::vector<std::array<double, 3>> centres;
+  std::vector<raster::Intrinsics> intrinsics;
   for (size_t k = begin; k < end; ++k) {
+    intrinsics.push_back(intrinsics_of(cameras[k]));
     viewmats.push_back(cameras[k].viewmat());
     const Eigen::Vector3d c = cameras[k].center();
     centres.push_back({c.x(), c.y(), c.z()});
   }
   const RasterizedImage images =
       render_views_forward(model.means, model.quats, scales, opacities, model.sh_dc, model.sh_rest, model.sh_degree,
-                           upload(at::stack(viewmats), model.means.options()), centres, intrinsics_of(cameras[begin]));
+                           upload(at::stack(viewmats), model.means.options()), centres, intrinsics);
   for (size_t k = begin; k < end; ++k) {
     const at::Tensor features = images.features[static_cast<int64_t>(k - begin)];
     out[k].rgb = features.narrow(2, 0, 3);
@@ -163,8 +160,10 @@ std::vector<RenderOutput> render_views(const GaussianModel& model, const std::ve
   const at::Tensor scales = model.scales(), opacities = model.opacities();
   for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
     end = begin + 1;
-    while (end < cameras.size() && same_intrinsics(cameras[end], cameras[begin])) ++end;
-    render_same_intrinsics(model, scales, opacities, cameras, begin, end, out);
+    while (end < cameras.size() && cameras[end].width == cameras[begin].width &&
+           cameras[end].height == cameras[begin].height)
+      ++end;
+    render_same_size(model, scales, opacities, cameras, begin, end, out);
   }
   return out;
 }

@@ -28,7 +28,7 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
 
 // The images render() gives for each camera without options (black background): rgb, depth and alpha, bit for bit,
 // without an autograd graph (means2d and radii are left undefined). For scoring many views: consecutive cameras
-// with the same intrinsics are rendered together (render_views_forward: on CUDA one launch per kernel and one
+// of one image size are rendered together (render_views_forward: on CUDA one launch per kernel and one
 // host synchronisation for all of them), the view matrices uploaded at once, the activations computed once.
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras);
 

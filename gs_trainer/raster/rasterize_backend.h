@@ -67,9 +67,9 @@ TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, cons
                        const at::Tensor& radii, const at::Tensor& depths, int width, int height);
 // ---- Several views of the same Gaussians at once, forward only (scoring candidate views). Outputs are stacked
 // view-major: view v's rows are v·N .. v·N + N - 1, each view's values those of the one-view function.
-// viewmats: V x 4 x 4.
+// viewmats: V x 4 x 4 with V intrinsics of one image size.
 Projection project_views_forward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
-                                     const at::Tensor& viewmats, const raster::Intrinsics& K);
+                                     const at::Tensor& viewmats, const std::vector<raster::Intrinsics>& K);
 at::Tensor shade_views_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
                                    int degree, const std::vector<Centre>& centres);
 // Forward passes (binning and compositing) of `views` views of the same Gaussians at one image size, every input
@@ -99,7 +99,7 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, con
                         const at::Tensor& radii, const at::Tensor& depths, int width, int height);
 // One launch for all views; the shading reads each Gaussian's coefficients once for all of them.
 Projection project_views_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
-                                      const at::Tensor& viewmats, const raster::Intrinsics& K);
+                                      const at::Tensor& viewmats, const std::vector<raster::Intrinsics>& K);
 at::Tensor shade_views_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
                                     int degree, const std::vector<Centre>& centres);
 // Tile bins of `views` views stacked view-major (N = means2d.size(0) / views rows each) at one image size: view v's

@@ -159,7 +159,7 @@ RasterizedImage render_views_forward(const at::Tensor& means_in, const at::Tenso
                                      const at::Tensor& scales_in, const at::Tensor& opacities_in,
                                      const at::Tensor& sh_dc_in, const at::Tensor& sh_rest_in, int degree,
                                      const at::Tensor& viewmats, const std::vector<std::array<double, 3>>& centres,
-                                     const raster::Intrinsics& K) {
+                                     const std::vector<raster::Intrinsics>& K) {
   check_shading_inputs(means_in, sh_dc_in, sh_rest_in, degree);
   check_projection_inputs(means_in, quats_in, scales_in);
   const int64_t n = means_in.size(0);
@@ -167,7 +167,13 @@ RasterizedImage render_views_forward(const at::Tensor& means_in, const at::Tenso
   TORCH_CHECK(viewmats.dim() == 3 && viewmats.size(0) == views && viewmats.size(1) == 4 && viewmats.size(2) == 4,
               "render_views_forward: viewmats must be ", views, " x 4 x 4 (one per centre), got ", viewmats.sizes());
   TORCH_CHECK(opacities_in.sizes() == at::IntArrayRef({n}), "opacities must be N, got ", opacities_in.sizes());
-  TORCH_CHECK(K.width > 0 && K.height > 0, "image size must be positive, got ", K.width, "x", K.height);
+  TORCH_CHECK(static_cast<int>(K.size()) == views, "render_views_forward: ", views, " centres but ", K.size(),
+              " intrinsics");
+  const int width = views > 0 ? K[0].width : 1, height = views > 0 ? K[0].height : 1;
+  for (const raster::Intrinsics& k : K)
+    TORCH_CHECK(k.width == width && k.height == height && width > 0 && height > 0,
+                "render_views_forward: every view needs the same positive image size, got ", k.width, "x", k.height,
+                " beside ", width, "x", height);
   const at::NoGradGuard no_grad;
   const at::Tensor means = means_in.detach(), quats = quats_in.detach(), scales = scales_in.detach();
   const backend::RasterBackend& stages = backend::raster_backend(means.device());
@@ -175,10 +181,9 @@ RasterizedImage render_views_forward(const at::Tensor& means_in, const at::Tenso
   std::vector<backend::Centre> c;
   for (const auto& centre : centres) c.push_back({centre[0], centre[1], centre[2]});
   const at::Tensor features = stages.shade_views_forward(means, sh_dc_in.detach(), sh_rest_in.detach(), degree, c);
-  const backend::RasterOutput out =
-      stages.rasterize_views_forward(views, p.means2d, p.conics, opacities_in.detach().repeat({views}), p.radii,
-                                     p.depths, features, K.width, K.height);
-  return {out.features.view({views, K.height, K.width, 4}), out.alpha.view({views, K.height, K.width})};
+  const backend::RasterOutput out = stages.rasterize_views_forward(
+      views, p.means2d, p.conics, opacities_in.detach().repeat({views}), p.radii, p.depths, features, width, height);
+  return {out.features.view({views, height, width, 4}), out.alpha.view({views, height, width})};
 }
 
 }  // namespace gaps

@@ -41,16 +41,17 @@ RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor&
                                     const at::Tensor& features, const at::Tensor& depths, const at::Tensor& radii,
                                     int width, int height, const at::Tensor& means2d_abs_sink = {});
 
-// Forward-only renders of the same Gaussians from V cameras sharing the intrinsics K (no autograd graph): viewmats
-// V x 4 x 4, centres the V camera centres. Stacked: features V x H x W x 4 (shade_gaussians' colour and distance
-// composited), alpha V x H x W; view v equals shade_gaussians, project_gaussians and rasterize_gaussians of that
-// view alone, bit for bit. Each stage runs through the backend for all views at once: on CUDA one launch per
-// kernel (the shading reads every Gaussian's coefficients once for all views) and one host synchronisation, so
-// scoring hundreds of small views keeps the device full and never waits on the host between views.
+// Forward-only renders of the same Gaussians from V cameras of one image size (no autograd graph): viewmats
+// V x 4 x 4, centres the V camera centres, intrinsics one per view (all of one width and height). Stacked: features V x
+// H x W x 4 (shade_gaussians' colour and distance composited), alpha V x H x W; view v equals shade_gaussians,
+// project_gaussians and rasterize_gaussians of that view alone, bit for bit. Each stage runs through the backend for
+// all views at once: on CUDA one launch per kernel (the shading reads every Gaussian's coefficients once for all views)
+// and one host synchronisation, so scoring hundreds of small views keeps the device full and never waits on the host
+// between views.
 RasterizedImage render_views_forward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                      const at::Tensor& opacities, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
                                      int degree, const at::Tensor& viewmats,
                                      const std::vector<std::array<double, 3>>& centres,
-                                     const raster::Intrinsics& intrinsics);
+                                     const std::vector<raster::Intrinsics>& intrinsics);
 
 }  // namespace gaps

@@ -406,6 +406,8 @@ TEST_F(RasterizerCudaFern, ViewsAndCandidateStatisticsEqualOneRenderPerCamera) {
   const GaussianModel model = model_.to(kCuda);
   Camera moved = camera_, half = camera_;
   moved.t += Eigen::Vector3d(0.05, -0.02, 0.03);
+  moved.fx *= 1.05;  // same size, other intrinsics: still one stacked pass
+  moved.cx += 0.3;
   half.width /= 2;
   half.height /= 2;
   half.fx /= 2;

@@ -110,10 +110,12 @@ ProjectionGrads project_backward_cpu(const at::Tensor& means_in, const at::Tenso
 }
 
 Projection project_views_forward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
-                                     const at::Tensor& viewmats, const raster::Intrinsics& K) {
+                                     const at::Tensor& viewmats, const std::vector<raster::Intrinsics>& K) {
+  TORCH_CHECK(static_cast<int64_t>(K.size()) == viewmats.size(0), "project_views_forward_cpu: ", viewmats.size(0),
+              " view matrices but ", K.size(), " intrinsics");
   std::vector<at::Tensor> means2d, conics, depths, radii;
   for (int64_t v = 0; v < viewmats.size(0); ++v) {
-    const Projection p = project_forward_cpu(means, quats, scales, viewmats[v], K);
+    const Projection p = project_forward_cpu(means, quats, scales, viewmats[v], K[v]);
     means2d.push_back(p.means2d);
     conics.push_back(p.conics);
     depths.push_back(p.depths);
@@ -121,7 +123,7 @@ Projection project_views_forward_cpu(const at::Tensor& means, const at::Tensor& 
   }
   if (means2d.empty())
     return project_forward_cpu(means.narrow(0, 0, 0), quats.narrow(0, 0, 0), scales.narrow(0, 0, 0),
-                               at::eye(4, means.options()), K);
+                               at::eye(4, means.options()), {1, 1, 0, 0, 1, 1});
   return {at::cat(means2d), at::cat(conics), at::cat(depths), at::cat(radii)};
 }
 

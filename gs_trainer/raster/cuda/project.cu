@@ -3,6 +3,9 @@
 // results are those of cpu/project.cpp. The .cu files are compiled without FMA contraction, which keeps
 // every float operation rounding as on the CPU (bitwise-equal conics and depths keep the tile sort order
 // and the alpha decisions of the rasterizer identical).
+#include <algorithm>
+#include <vector>
+
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/empty.h>
@@ -34,17 +37,26 @@ __device__ View load_view(const float* viewmat) {
   return v;
 }
 
-// Grid rows are views (one row for a single view): view y reads viewmat y and writes output rows y·n + i.
+// Up to kMaxViews cameras' intrinsics, passed by value to the kernel.
+constexpr int kMaxViews = 32;
+struct ViewIntrinsics {
+  Intrinsics K[kMaxViews];
+};
+
+// Grid rows are views (one row for a single view): view y reads viewmat y and intrinsics y and writes output rows
+// y·n + i.
 __global__ void project_forward_kernel(int64_t n, const float* __restrict__ means, const float* __restrict__ quats,
                                        const float* __restrict__ scales, const float* __restrict__ viewmats,
-                                       Intrinsics K, float* __restrict__ means2d_out, float* __restrict__ conics_out,
-                                       float* __restrict__ depths_out, int32_t* __restrict__ radii_out) {
+                                       ViewIntrinsics intrinsics, float* __restrict__ means2d_out,
+                                       float* __restrict__ conics_out, float* __restrict__ depths_out,
+                                       int32_t* __restrict__ radii_out) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const int64_t row = blockIdx.y * n + i;
   float* means2d = means2d_out + 2 * blockIdx.y * n;
   float* conics = conics_out + 3 * blockIdx.y * n;
   const View v = load_view(viewmats + 16 * blockIdx.y);
+  const Intrinsics& K = intrinsics.K[blockIdx.y];
   raster::ProjectionCache<float> cache;
   raster::Projected<float> p{};
   p.visible = false;
@@ -89,7 +101,7 @@ constexpr int kThreads = kElementwiseThreads;
 
 Projection project_views_forward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in,
                                       const at::Tensor& scales_in, const at::Tensor& viewmats_in,
-                                      const raster::Intrinsics& K) {
+                                      const std::vector<raster::Intrinsics>& K) {
   check_cuda_float("means", means_in);
   check_cuda_float("quats", quats_in);
   check_cuda_float("scales", scales_in);
@@ -97,26 +109,33 @@ Projection project_views_forward_cuda(const at::Tensor& means_in, const at::Tens
   const c10::cuda::CUDAGuard guard(means_in.device());
   const auto means = means_in.contiguous(), quats = quats_in.contiguous(), scales = scales_in.contiguous();
   const auto viewmat = viewmats_in.contiguous();
-  const int64_t n = means.size(0), rows = n * viewmat.size(0);
-  TORCH_CHECK(viewmat.size(0) < 65536, "project_views_forward_cuda: at most 65535 views at once, got ",
-              viewmat.size(0));
+  const int64_t n = means.size(0), views = viewmat.size(0), rows = n * views;
+  TORCH_CHECK(static_cast<int64_t>(K.size()) == views, "project_views_forward_cuda: ", views, " view matrices but ",
+              K.size(), " intrinsics");
   Projection out;
   out.means2d = at::empty({rows, 2}, means.options());
   out.conics = at::empty({rows, 3}, means.options());
   out.depths = at::empty({rows}, means.options());
   out.radii = at::empty({rows}, means.options().dtype(at::kInt));
   if (rows == 0) return out;
-  project_forward_kernel<<<dim3(blocks_for(n), viewmat.size(0)), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
-      n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(), viewmat.data_ptr<float>(), K,
-      out.means2d.data_ptr<float>(), out.conics.data_ptr<float>(), out.depths.data_ptr<float>(),
-      out.radii.data_ptr<int32_t>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  for (int64_t first = 0; first < views; first += kMaxViews) {
+    const int count = static_cast<int>(std::min<int64_t>(kMaxViews, views - first));
+    ViewIntrinsics intrinsics{};
+    for (int v = 0; v < count; ++v) intrinsics.K[v] = K[first + v];
+    const int64_t row = first * n;
+    project_forward_kernel<<<dim3(blocks_for(n), count), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+        n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+        viewmat.data_ptr<float>() + 16 * first, intrinsics, out.means2d.data_ptr<float>() + 2 * row,
+        out.conics.data_ptr<float>() + 3 * row, out.depths.data_ptr<float>() + row,
+        out.radii.data_ptr<int32_t>() + row);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  }
   return out;
 }
 
 Projection project_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                 const at::Tensor& viewmat, const raster::Intrinsics& K) {
-  return project_views_forward_cuda(means, quats, scales, viewmat.view({1, 4, 4}), K);
+  return project_views_forward_cuda(means, quats, scales, viewmat.view({1, 4, 4}), {K});
 }
 
 ProjectionGrads project_backward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in,
