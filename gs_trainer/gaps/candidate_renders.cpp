@@ -32,7 +32,7 @@ at::Tensor batch_statistics(const GaussianModel& model, const std::vector<Camera
                                   cameras.begin() + static_cast<std::ptrdiff_t>(end));
   std::vector<at::Tensor> images, alphas;
   for (const RenderOutput& r : render_views(model, batch)) {
-    images.push_back(r.rgb.clamp(0, 1));
+    images.push_back(r.rgb);  // render_statistics clamps
     alphas.push_back(r.alpha);
   }
   return render_statistics(at::stack(images), at::stack(alphas), c);

@@ -8,6 +8,7 @@
 #include <numeric>
 
 #include "gs_trainer/eval/image_stats.h"
+#include "gs_trainer/gaps/cuda/render_statistics_cuda.h"
 
 namespace gaps {
 
@@ -88,10 +89,21 @@ double coverage_fraction(const at::Tensor& alpha, double threshold) {
 
 double rms_contrast(const at::Tensor& image) { return rms_contrasts(image.unsqueeze(0)).item<double>(); }
 
-at::Tensor render_statistics(const at::Tensor& images, const at::Tensor& alphas, const GapsConfig& c) {
-  TORCH_CHECK(
-      images.dim() == 4 && images.size(3) == 3 && alphas.dim() == 3 && images.sizes().slice(0, 3) == alphas.sizes(),
-      "render_statistics: expected B×H×W×3 images and B×H×W alphas, got ", images.sizes(), " and ", alphas.sizes());
+at::Tensor render_statistics(const at::Tensor& raw_images, const at::Tensor& alphas, const GapsConfig& c) {
+  TORCH_CHECK(raw_images.dim() == 4 && raw_images.size(3) == 3 && alphas.dim() == 3 &&
+                  raw_images.sizes().slice(0, 3) == alphas.sizes(),
+              "render_statistics: expected B×H×W×3 images and B×H×W alphas, got ", raw_images.sizes(), " and ",
+              alphas.sizes());
+#if defined(GAPS_CUDA_KERNELS)
+  if (raw_images.is_cuda() && raw_images.scalar_type() == at::kFloat && alphas.scalar_type() == at::kFloat) {
+    const at::Tensor mean =
+        backend::render_statistics_sums_cuda(raw_images, alphas, c.entropy_bins, c.coverage_alpha_threshold) /
+        static_cast<double>(alphas.size(1) * alphas.size(2));
+    const at::Tensor variance = (mean.select(1, 4) - mean.select(1, 3).square()).clamp_min(0);
+    return at::stack({mean.select(1, 0), mean.select(1, 1), mean.select(1, 2), variance.sqrt()}, 1);
+  }
+#endif
+  const at::Tensor images = raw_images.clamp(0, 1);
   return at::stack(
       {per_image_mean(as_floating(alphas)), per_image_mean(entropy_maps(greyscale(images), c.entropy_bins)),
        coverage_fractions(alphas, c.coverage_alpha_threshold), rms_contrasts(images)},

@@ -48,9 +48,11 @@ using UncertaintyHistory = std::map<int, std::vector<double>>;
 // σ̄²_v of eq:c_gen ("the mean uncertainty variance from prior phases"); empty when no phase generated `id`.
 std::optional<double> mean_uncertainty_variance(const UncertaintyHistory& history, int id);
 
-// The render terms of a batch of renders, images B×H×W×3 in [0, 1] and alphas B×H×W: B×4 doubles on their
-// device, per render (ᾱ, mean H, coverage, contrast) as measure_render defines them. A candidate pool's
-// statistics thus reach the host in one copy per batch instead of one per candidate.
+// The render terms of a batch of renders, images B×H×W×3 (clamped to [0, 1] first) and alphas B×H×W: B×4 doubles
+// on their device, per render (ᾱ, mean H, coverage, contrast) as measure_render defines them. A candidate pool's
+// statistics thus reach the host in one copy per batch instead of one per candidate. Float32 CUDA batches take one
+// fused kernel (gaps/cuda/render_statistics.cu): the same definitions with sums in another order, within 1e-6 of
+// these operations on the entropy term and 1e-9 on the others.
 at::Tensor render_statistics(const at::Tensor& images, const at::Tensor& alphas, const GapsConfig& c);
 
 // The measurements of one render from its row of render_statistics (4 doubles on the host) and the pose terms.

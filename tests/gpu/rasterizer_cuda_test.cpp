@@ -425,10 +425,11 @@ TEST_F(RasterizerCudaFern, ViewsAndCandidateStatisticsEqualOneRenderPerCamera) {
     EXPECT_TRUE(at::equal(views[k].rgb, one.rgb)) << "view " << k;
     EXPECT_TRUE(at::equal(views[k].depth, one.depth)) << "view " << k;
     EXPECT_TRUE(at::equal(views[k].alpha, one.alpha)) << "view " << k;
-    const CandidateMeasurements m = measure_render(one.rgb.clamp(0, 1), one.alpha, 0, 0, std::nullopt, c);
+    // Against the CPU's ATen definition of the statistics (the pool's are the fused kernel's).
+    const CandidateMeasurements m = measure_render(one.rgb.cpu().clamp(0, 1), one.alpha.cpu(), 0, 0, std::nullopt, c);
     const int64_t i = static_cast<int64_t>(k);
     EXPECT_NEAR(rows[i][0].item<double>(), m.mean_alpha, 1e-9) << "view " << k;
-    EXPECT_NEAR(rows[i][1].item<double>(), m.entropy_mean, 1e-9) << "view " << k;
+    EXPECT_NEAR(rows[i][1].item<double>(), m.entropy_mean, 1e-6) << "view " << k;
     EXPECT_NEAR(rows[i][2].item<double>(), m.coverage, 1e-12) << "view " << k;
     EXPECT_NEAR(rows[i][3].item<double>(), m.contrast, 1e-9) << "view " << k;
   }
