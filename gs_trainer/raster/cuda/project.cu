@@ -37,17 +37,20 @@ __device__ View load_view(const float* viewmat) {
   return v;
 }
 
-// Up to kMaxViews cameras' intrinsics, passed by value to the kernel.
+// Up to Capacity cameras' intrinsics, passed by value to the kernel: 32 for a batch of views, 1 for the training
+// step, whose launches then carry no more parameters than with a single Intrinsics.
 constexpr int kMaxViews = 32;
+template <int Capacity>
 struct ViewIntrinsics {
-  Intrinsics K[kMaxViews];
+  Intrinsics K[Capacity];
 };
 
 // Grid rows are views (one row for a single view): view y reads viewmat y and intrinsics y and writes output rows
 // y·n + i.
+template <int Capacity>
 __global__ void project_forward_kernel(int64_t n, const float* __restrict__ means, const float* __restrict__ quats,
                                        const float* __restrict__ scales, const float* __restrict__ viewmats,
-                                       ViewIntrinsics intrinsics, float* __restrict__ means2d_out,
+                                       ViewIntrinsics<Capacity> intrinsics, float* __restrict__ means2d_out,
                                        float* __restrict__ conics_out, float* __restrict__ depths_out,
                                        int32_t* __restrict__ radii_out) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -99,9 +102,12 @@ constexpr int kThreads = kElementwiseThreads;
 
 }  // namespace
 
-Projection project_views_forward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in,
-                                      const at::Tensor& scales_in, const at::Tensor& viewmats_in,
-                                      const std::vector<raster::Intrinsics>& K) {
+namespace {
+
+// Projections of `views` views (viewmats views x 4 x 4, K[0 .. views)), Capacity at a time.
+template <int Capacity>
+Projection project_views(const at::Tensor& means_in, const at::Tensor& quats_in, const at::Tensor& scales_in,
+                         const at::Tensor& viewmats_in, const raster::Intrinsics* K, int64_t views) {
   check_cuda_float("means", means_in);
   check_cuda_float("quats", quats_in);
   check_cuda_float("scales", scales_in);
@@ -109,33 +115,41 @@ Projection project_views_forward_cuda(const at::Tensor& means_in, const at::Tens
   const c10::cuda::CUDAGuard guard(means_in.device());
   const auto means = means_in.contiguous(), quats = quats_in.contiguous(), scales = scales_in.contiguous();
   const auto viewmat = viewmats_in.contiguous();
-  const int64_t n = means.size(0), views = viewmat.size(0), rows = n * views;
-  TORCH_CHECK(static_cast<int64_t>(K.size()) == views, "project_views_forward_cuda: ", views, " view matrices but ",
-              K.size(), " intrinsics");
+  const int64_t n = means.size(0), rows = n * views;
   Projection out;
   out.means2d = at::empty({rows, 2}, means.options());
   out.conics = at::empty({rows, 3}, means.options());
   out.depths = at::empty({rows}, means.options());
   out.radii = at::empty({rows}, means.options().dtype(at::kInt));
   if (rows == 0) return out;
-  for (int64_t first = 0; first < views; first += kMaxViews) {
-    const int count = static_cast<int>(std::min<int64_t>(kMaxViews, views - first));
-    ViewIntrinsics intrinsics{};
+  for (int64_t first = 0; first < views; first += Capacity) {
+    const int count = static_cast<int>(std::min<int64_t>(Capacity, views - first));
+    ViewIntrinsics<Capacity> intrinsics{};
     for (int v = 0; v < count; ++v) intrinsics.K[v] = K[first + v];
     const int64_t row = first * n;
-    project_forward_kernel<<<dim3(blocks_for(n), count), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
-        n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
-        viewmat.data_ptr<float>() + 16 * first, intrinsics, out.means2d.data_ptr<float>() + 2 * row,
-        out.conics.data_ptr<float>() + 3 * row, out.depths.data_ptr<float>() + row,
-        out.radii.data_ptr<int32_t>() + row);
+    project_forward_kernel<Capacity>
+        <<<dim3(blocks_for(n), count), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+            n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+            viewmat.data_ptr<float>() + 16 * first, intrinsics, out.means2d.data_ptr<float>() + 2 * row,
+            out.conics.data_ptr<float>() + 3 * row, out.depths.data_ptr<float>() + row,
+            out.radii.data_ptr<int32_t>() + row);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   return out;
 }
 
+}  // namespace
+
+Projection project_views_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                      const at::Tensor& viewmats, const std::vector<raster::Intrinsics>& K) {
+  TORCH_CHECK(viewmats.dim() == 3 && viewmats.size(0) == static_cast<int64_t>(K.size()),
+              "project_views_forward_cuda: ", viewmats.sizes(), " view matrices for ", K.size(), " intrinsics");
+  return project_views<kMaxViews>(means, quats, scales, viewmats, K.data(), viewmats.size(0));
+}
+
 Projection project_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                 const at::Tensor& viewmat, const raster::Intrinsics& K) {
-  return project_views_forward_cuda(means, quats, scales, viewmat.view({1, 4, 4}), {K});
+  return project_views<1>(means, quats, scales, viewmat, &K, 1);
 }
 
 ProjectionGrads project_backward_cuda(const at::Tensor& means_in, const at::Tensor& quats_in,
