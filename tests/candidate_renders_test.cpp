@@ -9,6 +9,7 @@
 #include "gs_trainer/gaps/candidate_renders.h"
 #include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/model/render.h"
+#include "tests/raster_test_util.h"
 
 namespace gaps {
 namespace {
@@ -23,21 +24,6 @@ Camera camera_at(int w, int h, double yaw, double shift) {
   c.R = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitY()).toRotationMatrix();
   c.t = Eigen::Vector3d(shift, -0.05, 0.2);
   return c;
-}
-
-GaussianModel random_model(int n, uint64_t seed) {
-  at::manual_seed(seed);
-  auto o = at::TensorOptions().dtype(at::kFloat);
-  GaussianModel m;
-  m.max_sh_degree = 1;
-  m.sh_degree = 1;
-  m.means = at::rand({n, 3}, o) * at::tensor({2.0, 1.6, 1.0}, o) - at::tensor({1.0, 0.8, -2.0}, o);
-  m.log_scales = at::log(at::rand({n, 3}, o) * 0.2 + 0.05);
-  m.quats = at::randn({n, 4}, o);
-  m.opacity_logits = at::logit(at::rand({n}, o) * 0.6 + 0.2);
-  m.sh_dc = at::randn({n, 1, 3}, o) * 0.8;
-  m.sh_rest = at::randn({n, 3, 3}, o) * 0.2;
-  return m;
 }
 
 TEST(RenderStatistics, RowsEqualMeasuringEachRender) {
@@ -62,7 +48,7 @@ TEST(RenderStatistics, RowsEqualMeasuringEachRender) {
 // 70 views in runs of two sizes: batches of 32 (the most a GPU takes) and of 7, cut where the size changes, and
 // the CPU's automatic one view at a time.
 TEST(CandidateStatistics, EqualOneRenderAndMeasurementPerView) {
-  const GaussianModel m = random_model(60, 4);
+  const GaussianModel m = test::random_model(60, 4, at::kFloat, 1);
   const GapsConfig c;
   std::vector<Camera> cameras;
   for (int k = 0; k < 70; ++k) {

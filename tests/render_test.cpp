@@ -8,6 +8,7 @@
 
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/raster/rasterizer.h"
+#include "tests/raster_test_util.h"
 
 namespace gaps {
 namespace {
@@ -24,20 +25,7 @@ Camera test_camera(int w, int h) {
   return c;
 }
 
-GaussianModel random_model(int n, uint64_t seed) {
-  at::manual_seed(seed);
-  auto o = at::TensorOptions().dtype(at::kDouble);
-  GaussianModel m;
-  m.max_sh_degree = 3;
-  m.sh_degree = 3;
-  m.means = at::rand({n, 3}, o) * at::tensor({2.0, 1.6, 2.0}, o) - at::tensor({1.0, 0.8, -2.0}, o);
-  m.log_scales = at::log(at::rand({n, 3}, o) * 0.25 + 0.05);
-  m.quats = at::randn({n, 4}, o);
-  m.opacity_logits = at::logit(at::rand({n}, o) * 0.25 + 0.08);
-  m.sh_dc = at::randn({n, 1, 3}, o) * 0.5;
-  m.sh_rest = at::randn({n, 15, 3}, o) * 0.1;
-  return m;
-}
+using test::random_model;
 
 TEST(Render, DepthIsAlphaWeightedDistanceFromTheCameraCentre) {
   auto o = at::TensorOptions().dtype(at::kDouble);

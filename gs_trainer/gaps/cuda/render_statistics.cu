@@ -24,7 +24,7 @@ struct StatsArgs {
   const float* __restrict__ alpha;  // B×H×W
   int height, width, bins;
   float threshold;
-  float log2_max;  // log2(min(9, bins)), the most a window's entropy reaches
+  float log2_max;             // log2(min(9, bins)), the most a window's entropy reaches
   double* __restrict__ sums;  // B×kSums
 };
 
@@ -100,7 +100,7 @@ __global__ void render_statistics_kernel(StatsArgs a) {
 }  // namespace
 
 at::Tensor render_statistics_sums_cuda(const at::Tensor& images_in, const at::Tensor& alphas_in, int bins,
-                                  double coverage_threshold) {
+                                       double coverage_threshold) {
   TORCH_CHECK(images_in.is_cuda() && images_in.scalar_type() == at::kFloat && alphas_in.is_cuda() &&
                   alphas_in.scalar_type() == at::kFloat,
               "render_statistics_cuda: float32 CUDA images and alphas expected");

@@ -9,6 +9,6 @@ namespace gaps::backend {
 // doubles: alpha, normalised local entropy over `bins` grey levels, alpha >= coverage_threshold (0 or 1), luma,
 // luma².
 at::Tensor render_statistics_sums_cuda(const at::Tensor& images, const at::Tensor& alphas, int bins,
-                                  double coverage_threshold);
+                                       double coverage_threshold);
 
 }  // namespace gaps::backend

@@ -127,12 +127,11 @@ Projection project_views(const at::Tensor& means_in, const at::Tensor& quats_in,
     ViewIntrinsics<Capacity> intrinsics{};
     for (int v = 0; v < count; ++v) intrinsics.K[v] = K[first + v];
     const int64_t row = first * n;
-    project_forward_kernel<Capacity>
-        <<<dim3(blocks_for(n), count), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
-            n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
-            viewmat.data_ptr<float>() + 16 * first, intrinsics, out.means2d.data_ptr<float>() + 2 * row,
-            out.conics.data_ptr<float>() + 3 * row, out.depths.data_ptr<float>() + row,
-            out.radii.data_ptr<int32_t>() + row);
+    project_forward_kernel<Capacity><<<dim3(blocks_for(n), count), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+        n, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+        viewmat.data_ptr<float>() + 16 * first, intrinsics, out.means2d.data_ptr<float>() + 2 * row,
+        out.conics.data_ptr<float>() + 3 * row, out.depths.data_ptr<float>() + row,
+        out.radii.data_ptr<int32_t>() + row);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   return out;
