@@ -43,7 +43,8 @@ absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::st
         return absl::InvalidArgumentError(absl::StrCat(what, ": shape [", absl::StrJoin(shape, ", "), "] needs ",
                                                        count * sizeof(float), " bytes, got ", tensor.data().size()));
       at::Tensor out = at::empty(shape, at::kFloat);
-      std::memcpy(out.data_ptr(), tensor.data().data(), tensor.data().size());
+      // An empty tensor has no storage to copy into (its data pointer may be null).
+      if (count > 0) std::memcpy(out.data_ptr(), tensor.data().data(), tensor.data().size());
       return out;
     }
     case v1::Tensor::PNG: {

@@ -107,6 +107,13 @@ TEST(Codec, TensorsAndCamerasRoundTrip) {
   const auto refused = rpc::decode_tensor(empty, "reference rgb");
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_TRUE(absl::StrContains(refused.status().message(), "reference rgb: shape is too large")) << refused.status();
+  // A small empty shape decodes to an empty tensor (fuzzing found the copy into its null storage).
+  v1::Tensor none;
+  none.set_encoding(v1::Tensor::RAW_F32);
+  for (int64_t extent : {0, 3}) none.add_shape(extent);
+  const auto empty_tensor = rpc::decode_tensor(none, "t");
+  ASSERT_TRUE(empty_tensor.ok()) << empty_tensor.status();
+  EXPECT_EQ(empty_tensor->sizes(), at::IntArrayRef({0, 3}));
 
   Camera c = test_camera(0.3);
   c.R = Eigen::AngleAxisd(0.4, Eigen::Vector3d(0, 1, 0)).toRotationMatrix();

@@ -114,6 +114,7 @@ TileBins bin(const BinInput& in) {
   const int64_t n = in.size();
   const auto opts = in.means2d.options();
   TORCH_CHECK(in.num_bins() < (int64_t{1} << 31), "bin_tiles_cuda: ", in.num_bins(), " tiles overflow the tile ids");
+  TORCH_CHECK(n < (int64_t{1} << 31), "bin_tiles_cuda: ", n, " rows (views x Gaussians) overflow the int32 ids");
   const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   TileBins bins;
   bins.tile_ranges = at::zeros({in.num_bins(), 2}, opts.dtype(at::kInt));
