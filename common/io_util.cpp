@@ -1,5 +1,9 @@
 #include "common/io_util.h"
 
+#include <unistd.h>
+
+#include <cerrno>
+
 #include <fstream>
 #include <iterator>
 #include <system_error>
@@ -43,6 +47,17 @@ uint64_t fnv1a(const void* data, size_t size) {
   uint64_t hash = 1469598103934665603ull;
   for (size_t i = 0; i < size; ++i) hash = (hash ^ static_cast<const unsigned char*>(data)[i]) * 1099511628211ull;
   return hash;
+}
+
+void write_log_line(int fd, absl::string_view line) {
+  const std::string text = absl::StrCat(line, "\n");
+  size_t done = 0;
+  while (done < text.size()) {
+    const ssize_t n = ::write(fd, text.data() + done, text.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) return;  // a log that cannot be written is not worth failing the service for
+    done += static_cast<size_t>(n);
+  }
 }
 
 }  // namespace gaps

@@ -26,4 +26,8 @@ void remove_tree(const std::filesystem::path& dir);
 uint64_t fnv1a(const void* data, size_t size);
 inline uint64_t fnv1a(absl::string_view text) { return fnv1a(text.data(), text.size()); }
 
+// Writes `line` and a newline to the file descriptor in one write(2), so that lines logged by a service's
+// threads (and its stdout and stderr sharing one log file) never interleave mid-line, as `<<` chains can.
+void write_log_line(int fd, absl::string_view line);
+
 }  // namespace gaps

@@ -4,16 +4,19 @@
 //                [--worker-token-file F] [--worker-tls-ca F [--worker-tls-cert F --worker-tls-key F]]
 // SIGTERM/SIGINT: running jobs stop at their next iteration, write a checkpoint and stay RUNNING in the
 // store; the next trainer started on the same data folder resumes them from it.
+#include <unistd.h>
+
 #include <cstdlib>
 #include <filesystem>
-#include <iostream>
 
 #include <grpcpp/grpcpp.h>
 #include "absl/flags/flag.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "common/cli/command_line.h"
 #include "common/device.h"
 #include "common/error_kind.h"
+#include "common/io_util.h"
 #include "rpc/security.h"
 #include "rpc/service_main.h"
 #include "server/trainer_service.h"
@@ -73,7 +76,7 @@ gaps::cli::CommandSpec command() {
 }
 
 int fail(const absl::Status& status) {
-  std::cerr << "gaps-trainer: " << status.message() << "\n";
+  gaps::write_log_line(STDERR_FILENO, absl::StrCat("gaps-trainer: ", status.message()));
   return gaps::exit_code(status);
 }
 
@@ -126,13 +129,17 @@ int serve() {
       gaps::rpc::start_server(absl::GetFlag(FLAGS_listen), *security, {service->get()});
   if (!server.ok()) return fail(server.status());
   if (auto st = (*service)->start(); !st.ok()) return fail(st);
-  std::cout << "gaps-trainer: serving on port " << server->port << " (device " << device << ", "
-            << options.workers.addresses.size() << " worker address(es))"
-            << (security->settings.tls_cert.empty() ? "" : " (TLS)")
-            << (security->settings.token.empty() ? "" : " (token required)") << "; trainer " << (*service)->replica_id()
-            << ", job store " << (*service)->store_description() << std::endl;
+  // One write per line: the job threads started above log to the same file.
+  gaps::write_log_line(STDOUT_FILENO,
+                       absl::StrCat("gaps-trainer: serving on port ", server->port, " (device ", device, ", ",
+                                    options.workers.addresses.size(), " worker address(es))",
+                                    security->settings.tls_cert.empty() ? "" : " (TLS)",
+                                    security->settings.token.empty() ? "" : " (token required)", "; trainer ",
+                                    (*service)->replica_id(), ", job store ", (*service)->store_description()));
   gaps::rpc::wait_for_stop_signal();
-  std::cout << "gaps-trainer: stopping; running jobs resume when a trainer starts on " << options.data_dir << std::endl;
+  gaps::write_log_line(
+      STDOUT_FILENO,
+      absl::StrCat("gaps-trainer: stopping; running jobs resume when a trainer starts on ", options.data_dir.string()));
   (*service)->shutdown();
   server->server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;

@@ -179,7 +179,7 @@ void TrainerService::run_claimed(v1::JobStatus job) {
                                " times while running this job (last seen at iteration ", job.iteration(),
                                "); it is not run again, as it may be what killed the trainer. The "
                                "trainer's log has the cause; resubmit the job to try again"));
-    std::cerr << "gaps-trainer: job " << job.job_id() << " quarantined: " << job.error() << "\n";
+    write_log_line(STDERR_FILENO, absl::StrCat("gaps-trainer: job ", job.job_id(), " quarantined: ", job.error()));
     end_job({job, list_artifacts(job_dir(job.job_id()) / "out"), absl::OkStatus()});
     return;
   }
@@ -208,8 +208,9 @@ void TrainerService::shutdown() {
   retry_unrecorded_ends();
   std::lock_guard<std::mutex> lock(mutex_);
   for (const auto& [job_id, end] : unrecorded_ends_)
-    std::cerr << "gaps-trainer: job " << job_id << ": its end was never recorded in the job store ("
-              << end.error.message() << ")\n";
+    write_log_line(STDERR_FILENO,
+                   absl::StrCat("gaps-trainer: job ", job_id, ": its end was never recorded in the job store (",
+                                end.error.message(), ")"));
 }
 
 void TrainerService::publish(v1::JobEvent event) {
@@ -220,7 +221,8 @@ void TrainerService::publish(v1::JobEvent event) {
 
 void TrainerService::log_store_error(const std::string& job_id, const std::string& what,
                                      const absl::Status& error) const {
-  std::cerr << "gaps-trainer: job " << job_id << ": the job store did not record " << what << ": " << error << "\n";
+  write_log_line(STDERR_FILENO, absl::StrCat("gaps-trainer: job ", job_id, ": the job store did not record ", what,
+                                             ": ", error.ToString()));
 }
 
 void TrainerService::job_loop() {
@@ -238,7 +240,8 @@ void TrainerService::job_loop() {
     }
     if (!claimed.ok() && claimed.status().ToString() != last_error) {  // once per distinct failure
       last_error = claimed.status().ToString();
-      std::cerr << "gaps-trainer: cannot take jobs from the job store (trying again): " << last_error << "\n";
+      write_log_line(STDERR_FILENO,
+                     absl::StrCat("gaps-trainer: cannot take jobs from the job store (trying again): ", last_error));
     }
     std::unique_lock<std::mutex> lock(mutex_);
     queue_changed_.wait_for(lock, options_.claim_interval);
@@ -271,7 +274,8 @@ void TrainerService::run_job(v1::JobStatus status) {
 
   v1::JobStatus final_status = train(status, *flags);
   if (flags->lease_lost) {
-    std::cerr << "gaps-trainer: job " << job_id << ": another trainer took it over; this run stops unrecorded\n";
+    write_log_line(STDERR_FILENO, absl::StrCat("gaps-trainer: job ", job_id,
+                                               ": another trainer took it over; this run stops unrecorded"));
     return done();
   }
   if (!terminal(final_status.state())) {  // interrupted by shutdown: RUNNING for the next process or replica
@@ -353,9 +357,9 @@ void TrainerService::retry_unrecorded_ends() {
     std::lock_guard<std::mutex> lock(mutex_);
     if (st.ok() || st.code() == absl::StatusCode::kAborted) {
       unrecorded_ends_.erase(end.status.job_id());
-      std::cerr << "gaps-trainer: job " << end.status.job_id() << ": "
-                << (st.ok() ? "its end is recorded now" : "another trainer took it over; its end here is dropped")
-                << "\n";
+      write_log_line(STDERR_FILENO, absl::StrCat("gaps-trainer: job ", end.status.job_id(), ": ",
+                                                 st.ok() ? "its end is recorded now"
+                                                         : "another trainer took it over; its end here is dropped"));
     } else {
       unrecorded_ends_[end.status.job_id()].error = unrecorded_end_error(end.status, st);
     }

@@ -3,6 +3,7 @@
 // bounded queue, deadlines, tokens), the worker pool's give-up path, the SQLite job store across reopening
 // and when it refuses writes, the trainer service's answers to a job store that refuses writes, a job whose
 // worker cannot honour its controls, and upload validation.
+#include <fcntl.h>
 #include <sqlite3.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -23,6 +24,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "client/remote_client.h"
 #include "common/image_io.h"
@@ -84,6 +86,33 @@ std::vector<GenerationRequest> test_requests() {
     out.push_back(q);
   }
   return out;
+}
+
+// The services' threads log to one file (stdout and stderr share it): each line must arrive whole, or a
+// reader looking for "port N" misses the port (a test once did, when a job's log line landed mid-line).
+TEST(ServiceLog, LinesFromManyThreadsArriveWhole) {
+  const fs::path log = fs::path(::testing::TempDir()) / "service_log_lines.txt";
+  const int fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  ASSERT_GE(fd, 0);
+  const int threads = 4, lines = 200;
+  std::vector<std::thread> writers;
+  for (int t = 0; t < threads; ++t)
+    writers.emplace_back([&, t] {
+      for (int i = 0; i < lines; ++i)
+        write_log_line(fd, absl::StrCat("thread ", t, " line ", i, " ", std::string(500, 'a' + t), " end"));
+    });
+  for (auto& w : writers) w.join();
+  ::close(fd);
+  std::ifstream in(log);
+  std::string line;
+  int count = 0;
+  while (std::getline(in, line)) {
+    ++count;
+    ASSERT_TRUE(absl::StartsWith(line, "thread ") && absl::EndsWith(line, " end")) << line;
+    const char letter = 'a' + (line[7] - '0');
+    EXPECT_EQ(line.find_first_not_of(letter, line.find(' ', line.find(" line ") + 6) + 1), line.size() - 4) << line;
+  }
+  EXPECT_EQ(count, threads * lines);
 }
 
 TEST(Codec, TensorsAndCamerasRoundTrip) {

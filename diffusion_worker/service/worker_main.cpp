@@ -1,8 +1,8 @@
 // gaps-worker: serves a pseudo-view generation backend over gRPC (gaps.v1.DiffusionWorker).
 //   gaps-worker --listen 127.0.0.1:50052 --backend reproject [--backend-options JSON] [--token-file F]
 //               [--tls-cert F --tls-key F [--tls-client-ca F]] [--queue-capacity N] [--max-batch N]
+#include <unistd.h>
 #include <algorithm>
-#include <iostream>
 
 #include <grpcpp/grpcpp.h>
 #include <nlohmann/json.hpp>
@@ -12,6 +12,7 @@
 #include "common/cli/command_line.h"
 #include "common/device.h"
 #include "common/error_kind.h"
+#include "common/io_util.h"
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
 #include "rpc/security.h"
@@ -44,7 +45,7 @@ gaps::cli::CommandSpec command() {
 }
 
 int fail(const absl::Status& status) {
-  std::cerr << "gaps-worker: " << status.message() << "\n";
+  gaps::write_log_line(STDERR_FILENO, absl::StrCat("gaps-worker: ", status.message()));
   return gaps::exit_code(status);
 }
 
@@ -84,8 +85,9 @@ int serve() {
   if (absl::Status st = check_backend(backend, requested_device); !st.ok()) return fail(st);
   const bool uses_device = gaps::generator_backend_uses_device(backend);
   if (!uses_device && requested_device != "cpu")
-    std::cerr << "gaps-worker: the " << backend << " backend computes on the CPU; --device " << requested_device
-              << " applies to device backends (sdxl) only\n";
+    gaps::write_log_line(STDERR_FILENO,
+                         absl::StrCat("gaps-worker: the ", backend, " backend computes on the CPU; --device ",
+                                      requested_device, " applies to device backends (sdxl) only"));
   const std::string device = uses_device ? requested_device : "cpu";
   std::string error;
   const std::string backend_options =
@@ -120,9 +122,9 @@ int serve() {
       gaps::rpc::start_server(absl::GetFlag(FLAGS_listen), *security, {&service}, 4 << 20);
   if (!server.ok()) return fail(server.status());
   // The resolved port, so a caller that asked for port 0 learns which one it got.
-  std::cout << "gaps-worker: serving backend " << backend << " on port " << server->port
-            << (security->settings.tls_cert.empty() ? "" : " (TLS)")
-            << (security->settings.token.empty() ? "" : " (token required)") << std::endl;
+  gaps::write_log_line(STDOUT_FILENO, absl::StrCat("gaps-worker: serving backend ", backend, " on port ", server->port,
+                                                   security->settings.tls_cert.empty() ? "" : " (TLS)",
+                                                   security->settings.token.empty() ? "" : " (token required)"));
   gaps::rpc::wait_for_stop_signal();
   server->server->Shutdown(std::chrono::system_clock::now() + std::chrono::seconds(5));
   return 0;
