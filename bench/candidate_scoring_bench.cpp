@@ -18,6 +18,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
+#include "bench/bench_scene.h"
 #include "gs_trainer/gaps/candidate_renders.h"
 #include "gs_trainer/gaps/pose.h"
 #include "gs_trainer/gaps/scores.h"
@@ -77,21 +78,14 @@ double spearman(const std::vector<double>& a, const std::vector<double>& b) {
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
   const at::Device device(absl::GetFlag(FLAGS_device));
-  gaps::SceneLoadOptions load;
-  load.resolution = absl::GetFlag(FLAGS_resolution);
-  auto scene = gaps::load_scene(absl::GetFlag(FLAGS_scene), load);
+  auto cameras_or = gaps::bench::training_cameras(absl::GetFlag(FLAGS_scene), absl::GetFlag(FLAGS_resolution),
+                                                  absl::GetFlag(FLAGS_views));
   auto model = gaps::load_gaussians_ply(absl::GetFlag(FLAGS_model));
-  if (!scene.ok() || !model.ok()) {
-    std::cerr << (scene.ok() ? model.status() : scene.status()).message() << "\n";
+  if (!cameras_or.ok() || !model.ok()) {
+    std::cerr << (cameras_or.ok() ? model.status() : cameras_or.status()).message() << "\n";
     return 1;
   }
-  auto split = gaps::benchmark_split(static_cast<int>(scene->cameras.size()), absl::GetFlag(FLAGS_views));
-  if (!split.ok()) {
-    std::cerr << split.status().message() << "\n";
-    return 1;
-  }
-  std::vector<gaps::Camera> gt;
-  for (int i : split->train) gt.push_back(scene->cameras[i]);
+  const std::vector<gaps::Camera>& gt = *cameras_or;
   const gaps::GaussianModel gaussians = model->to(device);
   gaps::GapsConfig config;
   config.n_active = gaps::n_active_for(config, gaps::views_surround_scene(gt));

@@ -15,6 +15,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
+#include "bench/bench_scene.h"
 #include "common/image_io.h"
 #include "common/ply.h"
 #include "gs_trainer/model/render.h"
@@ -51,28 +52,21 @@ void sync(const at::Device& d) {
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
   const at::Device device(absl::GetFlag(FLAGS_device));
-  gaps::SceneLoadOptions load;
-  load.resolution = absl::GetFlag(FLAGS_resolution);
-  auto scene = gaps::load_scene(absl::GetFlag(FLAGS_scene), load);
-  if (!scene.ok()) {
-    std::cerr << scene.status().message() << "\n";
+  auto cameras_or = gaps::bench::training_cameras(absl::GetFlag(FLAGS_scene), absl::GetFlag(FLAGS_resolution),
+                                                  absl::GetFlag(FLAGS_views));
+  if (!cameras_or.ok()) {
+    std::cerr << cameras_or.status().message() << "\n";
     return 1;
   }
-  auto split = gaps::benchmark_split(static_cast<int>(scene->cameras.size()), absl::GetFlag(FLAGS_views));
-  if (!split.ok()) {
-    std::cerr << split.status().message() << "\n";
-    return 1;
-  }
+  const std::vector<gaps::Camera>& cams = *cameras_or;
   std::vector<gaps::TrainingView> views;
-  std::vector<gaps::Camera> cams;
-  for (int i : split->train) {
-    auto image = gaps::load_camera_image(scene->cameras[i]);
+  for (const gaps::Camera& camera : cams) {
+    auto image = gaps::load_camera_image(camera);
     if (!image.ok()) {
       std::cerr << image.status().message() << "\n";
       return 1;
     }
-    views.push_back({scene->cameras[i], image->to(device)});
-    cams.push_back(scene->cameras[i]);
+    views.push_back({camera, image->to(device)});
   }
   double far = 0;
   for (const auto& c : cams) far = std::max(far, c.far);

@@ -1,6 +1,7 @@
 // The full render (SH colour, the paper's depth, alpha, background) and its gradients with respect to
 // every raw model parameter, against central finite differences in double precision.
 #include <cmath>
+#include <stdexcept>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
@@ -98,6 +99,11 @@ TEST(Render, ViewsEqualOneRenderPerCamera) {
     EXPECT_FALSE(views[k].rgb.requires_grad());
   }
   EXPECT_TRUE(render_views(m, {}).empty());
+  const RenderedViews stacked = render_same_size_views(m, {cameras[0], cameras[1]});
+  EXPECT_EQ(stacked.rgb.sizes(), at::IntArrayRef({2, 30, 40, 3}));
+  EXPECT_TRUE(at::equal(stacked.rgb[1], views[1].rgb));
+  EXPECT_THROW(render_same_size_views(m, cameras), std::invalid_argument);
+  EXPECT_THROW(render_same_size_views(m, {}), std::invalid_argument);
 }
 
 class RenderGradient : public ::testing::TestWithParam<int> {};

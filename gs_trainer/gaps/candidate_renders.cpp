@@ -28,14 +28,10 @@ namespace {
 // Statistics of cameras [begin, end), which share one image size, on the model's device.
 at::Tensor batch_statistics(const GaussianModel& model, const std::vector<Camera>& cameras, size_t begin, size_t end,
                             const GapsConfig& c) {
-  const std::vector<Camera> batch(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
-                                  cameras.begin() + static_cast<std::ptrdiff_t>(end));
-  std::vector<at::Tensor> images, alphas;
-  for (const RenderOutput& r : render_views(model, batch)) {
-    images.push_back(r.rgb);  // render_statistics clamps
-    alphas.push_back(r.alpha);
-  }
-  return render_statistics(at::stack(images), at::stack(alphas), c);
+  const RenderedViews views =
+      render_same_size_views(model, std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
+                                                        cameras.begin() + static_cast<std::ptrdiff_t>(end)));
+  return render_statistics(views.rgb, views.alpha, c);  // render_statistics clamps
 }
 
 }  // namespace

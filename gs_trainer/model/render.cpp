@@ -3,6 +3,7 @@
 #include <array>
 #include <deque>
 #include <optional>
+#include <stdexcept>
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
@@ -129,41 +130,44 @@ namespace {
 
 raster::Intrinsics intrinsics_of(const Camera& c) { return {c.fx, c.fy, c.cx, c.cy, c.width, c.height}; }
 
-// Cameras [begin, end), which share their image size, rendered together into out[begin, end).
-void render_same_size(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
-                      const std::vector<Camera>& cameras, size_t begin, size_t end, std::vector<RenderOutput>& out) {
+}  // namespace
+
+RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
+  if (cameras.empty()) throw std::invalid_argument("render_same_size_views: no cameras");
   std::vector<at::Tensor> viewmats;
   std::vector<std::array<double, 3>> centres;
   std::vector<raster::Intrinsics> intrinsics;
-  for (size_t k = begin; k < end; ++k) {
-    intrinsics.push_back(intrinsics_of(cameras[k]));
-    viewmats.push_back(cameras[k].viewmat());
-    const Eigen::Vector3d c = cameras[k].center();
+  for (const Camera& camera : cameras) {
+    if (camera.width != cameras.front().width || camera.height != cameras.front().height)
+      throw std::invalid_argument("render_same_size_views: the cameras differ in image size");
+    intrinsics.push_back(intrinsics_of(camera));
+    viewmats.push_back(camera.viewmat());
+    const Eigen::Vector3d c = camera.center();
     centres.push_back({c.x(), c.y(), c.z()});
   }
+  const at::NoGradGuard no_grad;
   const RasterizedImage images =
-      render_views_forward(model.means, model.quats, scales, opacities, model.sh_dc, model.sh_rest, model.sh_degree,
-                           upload(at::stack(viewmats), model.means.options()), centres, intrinsics);
-  for (size_t k = begin; k < end; ++k) {
-    const at::Tensor features = images.features[static_cast<int64_t>(k - begin)];
-    out[k].rgb = features.narrow(2, 0, 3);
-    out[k].depth = features.select(2, 3);
-    out[k].alpha = images.alpha[static_cast<int64_t>(k - begin)];
-  }
+      render_views_forward(model.means, model.quats, model.scales(), model.opacities(), model.sh_dc, model.sh_rest,
+                           model.sh_degree, upload(at::stack(viewmats), model.means.options()), centres, intrinsics);
+  return {images.features.narrow(3, 0, 3), images.features.select(3, 3), images.alpha};
 }
-
-}  // namespace
 
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
   std::vector<RenderOutput> out(cameras.size());
-  const at::NoGradGuard no_grad;
-  const at::Tensor scales = model.scales(), opacities = model.opacities();
   for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
     end = begin + 1;
     while (end < cameras.size() && cameras[end].width == cameras[begin].width &&
            cameras[end].height == cameras[begin].height)
       ++end;
-    render_same_size(model, scales, opacities, cameras, begin, end, out);
+    const RenderedViews views =
+        render_same_size_views(model, std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
+                                                          cameras.begin() + static_cast<std::ptrdiff_t>(end)));
+    for (size_t k = begin; k < end; ++k) {
+      const auto v = static_cast<int64_t>(k - begin);
+      out[k].rgb = views.rgb[v];
+      out[k].depth = views.depth[v];
+      out[k].alpha = views.alpha[v];
+    }
   }
   return out;
 }

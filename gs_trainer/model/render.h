@@ -32,6 +32,16 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
 // host synchronisation for all of them), the view matrices uploaded at once, the activations computed once.
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras);
 
+// What render_views gives for cameras that all share one image size, left stacked as the rasterizer returns them
+// (rgb and depth are views into one V x H x W x 4 tensor): for measuring a batch of views without splitting and
+// restacking it. Fails (std::invalid_argument) without cameras or when their sizes differ.
+struct RenderedViews {
+  at::Tensor rgb;    // V x H x W x 3
+  at::Tensor depth;  // V x H x W
+  at::Tensor alpha;  // V x H x W
+};
+RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras);
+
 // Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth
 // of the image it makes. Read off the rasterizer's backward pass (the image is linear in the features, with
 // the blending weights as coefficients), so both backends give it without a kernel of their own. N values,

@@ -34,6 +34,10 @@ TEST(RenderStatisticsCuda, MatchesTheCpuOperations) {
       EXPECT_NEAR(gpu[k][2].item<double>(), cpu[k][2].item<double>(), 1e-12);
       EXPECT_NEAR(gpu[k][3].item<double>(), cpu[k][3].item<double>(), 1e-9);
     }
+    // The colour channels of stacked renders (rgb and depth per pixel) are read in place: the same sums.
+    const at::Tensor rgbd = at::cat({images, at::rand({b, h, w, 1}, at::kFloat)}, 3).cuda();
+    const at::Tensor in_place = render_statistics(rgbd.narrow(3, 0, 3), alphas.cuda(), c).cpu();
+    EXPECT_TRUE(at::allclose(in_place, gpu, 1e-12, 1e-12)) << "channels read in place differ from a copy";  // atomics
     EXPECT_GT(cpu[1][1].item<double>(), 0.2) << "the checkerboard has entropy";
     EXPECT_EQ(cpu[2][1].item<double>(), 0.0);
     EXPECT_EQ(gpu[2][1].item<double>(), 0.0);

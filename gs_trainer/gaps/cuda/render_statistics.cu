@@ -20,7 +20,8 @@ constexpr int kThreads = 256;
 constexpr int kSums = 5;  // alpha, entropy, covered, luma, luma²
 
 struct StatsArgs {
-  const float* __restrict__ rgb;    // B×H×W×3
+  const float* __restrict__ rgb;  // B×H×W pixels of `stride` floats, red, green, blue first
+  int stride;
   const float* __restrict__ alpha;  // B×H×W
   int height, width, bins;
   float threshold;
@@ -28,10 +29,10 @@ struct StatsArgs {
   double* __restrict__ sums;  // B×kSums
 };
 
-__device__ float luma_at(const float* __restrict__ rgb, int64_t pixel) {
-  const float r = fminf(fmaxf(rgb[3 * pixel], 0.f), 1.f);
-  const float g = fminf(fmaxf(rgb[3 * pixel + 1], 0.f), 1.f);
-  const float b = fminf(fmaxf(rgb[3 * pixel + 2], 0.f), 1.f);
+__device__ float luma_at(const float* __restrict__ rgb, int stride, int64_t pixel) {
+  const float r = fminf(fmaxf(rgb[stride * pixel], 0.f), 1.f);
+  const float g = fminf(fmaxf(rgb[stride * pixel + 1], 0.f), 1.f);
+  const float b = fminf(fmaxf(rgb[stride * pixel + 2], 0.f), 1.f);
   return 0.299f * r + 0.587f * g + 0.114f * b;
 }
 
@@ -48,7 +49,7 @@ __device__ float window_entropy(const StatsArgs& a, int64_t image, int x, int y)
     for (int dx = -1; dx <= 1; ++dx) {
       const int xx = x + dx, yy = y + dy;
       if (xx < 0 || yy < 0 || xx >= a.width || yy >= a.height) continue;
-      level[n++] = level_of(luma_at(a.rgb, (image * a.height + yy) * a.width + xx), a.bins);
+      level[n++] = level_of(luma_at(a.rgb, a.stride, (image * a.height + yy) * a.width + xx), a.bins);
     }
   }
   float bits = 0.f;
@@ -75,7 +76,7 @@ __global__ void render_statistics_kernel(StatsArgs a) {
   if (p < pixels) {
     const int x = static_cast<int>(p % a.width), y = static_cast<int>(p / a.width);
     const float alpha = a.alpha[image * pixels + p];
-    const float luma = luma_at(a.rgb, image * pixels + p);
+    const float luma = luma_at(a.rgb, a.stride, image * pixels + p);
     v[0] = alpha;
     v[1] = window_entropy(a, image, x, y);
     v[2] = alpha >= a.threshold ? 1.0 : 0.0;
@@ -106,7 +107,12 @@ at::Tensor render_statistics_sums_cuda(const at::Tensor& images_in, const at::Te
               "render_statistics_cuda: float32 CUDA images and alphas expected");
   TORCH_CHECK(bins >= 2, "entropy needs at least 2 bins, got ", bins);
   const c10::cuda::CUDAGuard guard(images_in.device());
-  const at::Tensor images = images_in.contiguous(), alphas = alphas_in.contiguous();
+  // The first three channels of contiguous B×H×W×C renders are read in place (no copy of the batch).
+  const bool packed_pixels = images_in.stride(3) == 1 && images_in.stride(2) >= 3 &&
+                             images_in.stride(1) == images_in.size(2) * images_in.stride(2) &&
+                             images_in.stride(0) == images_in.size(1) * images_in.stride(1);
+  const at::Tensor images = packed_pixels ? images_in : images_in.contiguous();
+  const at::Tensor alphas = alphas_in.contiguous();
   const int64_t count = images.size(0);
   const int height = static_cast<int>(images.size(1)), width = static_cast<int>(images.size(2));
   const int64_t pixels = static_cast<int64_t>(height) * width;
@@ -114,6 +120,7 @@ at::Tensor render_statistics_sums_cuda(const at::Tensor& images_in, const at::Te
   if (count == 0 || pixels == 0) return sums;
   TORCH_CHECK(count < 65536, "render_statistics_cuda: at most 65535 images at once, got ", count);
   const StatsArgs args{images.data_ptr<float>(),
+                       static_cast<int>(images.stride(2)),
                        alphas.data_ptr<float>(),
                        height,
                        width,

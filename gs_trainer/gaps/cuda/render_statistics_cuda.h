@@ -5,7 +5,8 @@
 
 namespace gaps::backend {
 
-// images B×H×W×3 (clamped to [0, 1] here), alphas B×H×W, float32 CUDA: per image the sums over its pixels, B×5
+// images B×H×W×3 (clamped to [0, 1] here; the first three channels of a contiguous B×H×W×C tensor are read in
+// place), alphas B×H×W, float32 CUDA: per image the sums over its pixels, B×5
 // doubles: alpha, normalised local entropy over `bins` grey levels, alpha >= coverage_threshold (0 or 1), luma,
 // luma².
 at::Tensor render_statistics_sums_cuda(const at::Tensor& images, const at::Tensor& alphas, int bins,

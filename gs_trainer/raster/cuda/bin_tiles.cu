@@ -81,10 +81,6 @@ int bit_width(uint32_t v) {
   return bits;
 }
 
-}  // namespace
-
-namespace {
-
 // The stacked rows of `views` views (or one), made contiguous, with one view's tile grid.
 struct BinInput {
   at::Tensor means2d, conics, opacities, radii, depths;

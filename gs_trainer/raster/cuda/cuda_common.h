@@ -28,6 +28,9 @@ inline void check_raster_inputs(std::initializer_list<const at::Tensor*> tensors
 
 constexpr int kElementwiseThreads = 256;
 
+// The most views one launch of the stacked-view kernels (projection, shading) carries parameters for, by value.
+constexpr int kMaxViews = 32;
+
 inline unsigned int blocks_for(int64_t n, int threads = kElementwiseThreads) {
   return static_cast<unsigned int>((n + threads - 1) / threads);
 }

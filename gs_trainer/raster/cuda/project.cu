@@ -39,7 +39,6 @@ __device__ View load_view(const float* viewmat) {
 
 // Up to Capacity cameras' intrinsics, passed by value to the kernel: 32 for a batch of views, 1 for the training
 // step, whose launches then carry no more parameters than with a single Intrinsics.
-constexpr int kMaxViews = 32;
 template <int Capacity>
 struct ViewIntrinsics {
   Intrinsics K[Capacity];

@@ -62,7 +62,6 @@ __global__ void shade_backward_kernel(int64_t n, int degree, CentreF centre, con
 }
 
 // Up to kMaxViews camera centres, passed by value to the kernel.
-constexpr int kMaxViews = 32;
 struct CentresF {
   float c[kMaxViews][3];
 };
