@@ -396,8 +396,10 @@ class TrainingRun {
   // resume; the method's phases go to phases.json.
   absl::Status keep_state(const absl::Status& trained) {
     if (absl::IsCancelled(trained)) save_checkpoint_and_tell();
-    if (method_) GAPS_RETURN_IF_ERROR(write_json(o_.out_dir / "phases.json", method_->phase_log()));
-    return absl::OkStatus();
+    if (!method_) return absl::OkStatus();
+    const absl::Status inspected = method_->finish_inspection();
+    GAPS_RETURN_IF_ERROR(write_json(o_.out_dir / "phases.json", method_->phase_log()));
+    return inspected;
   }
 
   // Phases run and skipped so far, into *result.
@@ -433,6 +435,9 @@ class TrainingRun {
   // The training state to o.checkpoint_dir (when set); a failure costs the checkpoint only, with a warning.
   void save_checkpoint_and_tell() {
     if (o_.checkpoint_dir.empty()) return;
+    // A resumed run does not redo the phases before its checkpoint, so their images must be on disk first; a
+    // failed write is the next phase's (or the run end's) error.
+    if (method_) (void)method_->finish_inspection();
     const auto save_start = std::chrono::steady_clock::now();
     last_save_ = save_start;
     const nlohmann::json kept = {{"curve", curve_}, {"train_seconds", seconds_since_start(save_start)}};

@@ -268,9 +268,19 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   // The tier follows the admitted views alone (sec. 3.4), unlike C_hist, which also remembers the rejected.
   if (gate) tier_ = next_tier(tier_, admitted_variances, config_);
   lap(entry, "admission", &clock);
-  GAPS_RETURN_IF_ERROR(write_pngs(for_inspection));
-  if (!for_inspection.empty()) lap(entry, "inspection", &clock);
+  if (!for_inspection.empty()) {
+    GAPS_RETURN_IF_ERROR(finish_inspection());
+    for (auto& [path, image] : for_inspection) image = image.cpu();
+    inspection_written_ =
+        std::async(std::launch::async, [images = std::move(for_inspection)] { return write_pngs(images); });
+    lap(entry, "inspection", &clock);
+  }
   return absl::OkStatus();
+}
+
+absl::Status GapsTraining::finish_inspection() {
+  if (inspection_written_.valid() && inspection_error_.ok()) inspection_error_ = inspection_written_.get();
+  return inspection_error_;
 }
 
 }  // namespace gaps

@@ -9,6 +9,7 @@
 // admitted so far.
 #include <filesystem>
 #include <functional>
+#include <future>
 #include <map>
 #include <random>
 #include <string>
@@ -42,8 +43,12 @@ class GapsTraining {
   // "generator_notes" when the generator could not honour all of the job's controls (Generator::notes()).
   const nlohmann::json& phase_log() const { return log_; }
   const std::map<int, PseudoView>& admitted() const { return admitted_; }
-  // When set, every phase's generated images are written there as phase_PP/cand_III_{admitted,rejected}.png.
+  // When set, every phase's generated images are written there as phase_PP/cand_III_{admitted,rejected}.png, in
+  // the background while training goes on (a phase first waits for the previous phase's).
   void set_inspection_dir(const std::filesystem::path& dir) { inspection_dir_ = dir; }
+  // Waits until the images of every phase so far are written; the first write that failed, if one did (it
+  // fails the next phase too). Called before a checkpoint and at the end of the run.
+  absl::Status finish_inspection();
   // Called as phases start ("started", with phase and iteration), end ("finished", with the phase's log
   // entry) or are skipped ("skipped", with a "skip_reason").
   using PhaseObserver = std::function<void(const std::string& event, const nlohmann::json& entry)>;
@@ -76,6 +81,8 @@ class GapsTraining {
   std::map<int, PseudoView> admitted_;      // candidate id -> latest admitted view
   UncertaintyHistory uncertainty_history_;  // every generation's variance, admitted or not (C_hist)
   std::filesystem::path inspection_dir_;
+  std::future<absl::Status> inspection_written_;  // the last phase's images; its destructor waits for them
+  absl::Status inspection_error_;
   std::vector<ReferenceView> gt_renders_;  // GT views with the model's renders, per phase
   nlohmann::json log_ = nlohmann::json::array();
   PhaseObserver phase_observer_;
