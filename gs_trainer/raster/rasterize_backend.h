@@ -70,8 +70,10 @@ TileBins bin_tiles_cpu(const at::Tensor& means2d, const at::Tensor& conics, cons
 // viewmats: V x 4 x 4 with V intrinsics of one image size.
 Projection project_views_forward_cpu(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                      const at::Tensor& viewmats, const std::vector<raster::Intrinsics>& K);
+// Shading takes the projection's radii (V·N): rows of Gaussians culled in a view (radius 0) are zeros, as no tile
+// reads them.
 at::Tensor shade_views_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                                   int degree, const std::vector<Centre>& centres);
+                                   int degree, const std::vector<Centre>& centres, const at::Tensor& radii);
 // Forward passes (binning and compositing) of `views` views of the same Gaussians at one image size, every input
 // stacked view-major (views blocks of N rows), outputs stacked too: features (views·H) x W x C, alpha (views·H) x W,
 // image v equal to bin_tiles + rasterize_forward of view v alone. The CUDA version bins and composites all views
@@ -101,7 +103,7 @@ TileBins bin_tiles_cuda(const at::Tensor& means2d, const at::Tensor& conics, con
 Projection project_views_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                       const at::Tensor& viewmats, const std::vector<raster::Intrinsics>& K);
 at::Tensor shade_views_forward_cuda(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                                    int degree, const std::vector<Centre>& centres);
+                                    int degree, const std::vector<Centre>& centres, const at::Tensor& radii);
 // Tile bins of `views` views stacked view-major (N = means2d.size(0) / views rows each) at one image size: view v's
 // tile t is bin v·T + t, listing rows v·N + i in the order bin_tiles_cuda gives view v alone. bin_tiles_cuda is
 // the case of one view.

@@ -180,7 +180,8 @@ RasterizedImage render_views_forward(const at::Tensor& means_in, const at::Tenso
   const backend::Projection p = stages.project_views_forward(means, quats, scales, viewmats.to(means.options()), K);
   std::vector<backend::Centre> c;
   for (const auto& centre : centres) c.push_back({centre[0], centre[1], centre[2]});
-  const at::Tensor features = stages.shade_views_forward(means, sh_dc_in.detach(), sh_rest_in.detach(), degree, c);
+  const at::Tensor features =
+      stages.shade_views_forward(means, sh_dc_in.detach(), sh_rest_in.detach(), degree, c, p.radii);
   const backend::RasterOutput out = stages.rasterize_views_forward(
       views, p.means2d, p.conics, opacities_in.detach().repeat({views}), p.radii, p.depths, features, width, height);
   return {out.features.view({views, height, width, 4}), out.alpha.view({views, height, width})};

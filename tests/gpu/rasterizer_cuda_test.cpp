@@ -387,6 +387,7 @@ class RasterizerCudaFern : public ::testing::Test {
     model_.quats = at::randn_like(model_.quats);
     model_.sh_rest = at::randn_like(model_.sh_rest) * 0.05;
   }
+  void expect_views_equal_one_render_per_camera(const GaussianModel& model) const;
   Camera camera_;
   GaussianModel model_;
 };
@@ -401,9 +402,18 @@ TEST_F(RasterizerCudaFern, OpaqueGaussiansMatchCpu) {
 }
 
 // Scoring's batched renders (one host synchronisation for all views) give render()'s images bit for bit, and the
-// pool's statistics those of one measurement per view.
+// pool's statistics those of one measurement per view; at every SH degree (the stacked shading is compiled per
+// degree).
 TEST_F(RasterizerCudaFern, ViewsAndCandidateStatisticsEqualOneRenderPerCamera) {
-  const GaussianModel model = model_.to(kCuda);
+  for (int degree : {3, 0, 1, 2}) {
+    SCOPED_TRACE(testing::Message() << "SH degree " << degree);
+    GaussianModel model = model_.to(kCuda);
+    model.sh_degree = degree;
+    expect_views_equal_one_render_per_camera(model);
+  }
+}
+
+void RasterizerCudaFern::expect_views_equal_one_render_per_camera(const GaussianModel& model) const {
   Camera moved = camera_, half = camera_;
   moved.t += Eigen::Vector3d(0.05, -0.02, 0.03);
   moved.fx *= 1.05;  // same size, other intrinsics: still one stacked pass

@@ -68,10 +68,13 @@ ShadeGrads shade_backward_cpu(const at::Tensor& means_in, const at::Tensor& sh_d
 }
 
 at::Tensor shade_views_forward_cpu(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest,
-                                   int degree, const std::vector<Centre>& centres) {
+                                   int degree, const std::vector<Centre>& centres, const at::Tensor& radii) {
+  TORCH_CHECK(radii.numel() == static_cast<int64_t>(centres.size()) * means.size(0),
+              "shade_views_forward_cpu: radii must be ", centres.size(), " x ", means.size(0), ", got ", radii.sizes());
   std::vector<at::Tensor> features;
   for (const Centre& c : centres) features.push_back(shade_forward_cpu(means, sh_dc, sh_rest, degree, c));
-  return features.empty() ? at::empty({0, 4}, means.options()) : at::cat(features);
+  if (features.empty()) return at::empty({0, 4}, means.options());
+  return at::cat(features).masked_fill_(radii.reshape({-1, 1}) == 0, 0);
 }
 
 }  // namespace gaps::backend

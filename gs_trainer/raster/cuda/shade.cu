@@ -67,24 +67,26 @@ struct CentresF {
 };
 
 // One thread per Gaussian shades it for every view: the coefficients are read once into registers instead of once
-// per view, which is what a view's shading spends most of its time on. Output row v·n + i for view v.
-__global__ void shade_views_forward_kernel(int64_t n, int degree, int views, CentresF centres,
-                                           const float* __restrict__ means, const float* __restrict__ dc,
-                                           const float* __restrict__ rest, int64_t stride, float* __restrict__ out) {
+// per view, which is what a view's shading spends most of its time on. Output row v·n + i for view v; zeros where
+// the Gaussian is culled in the view (radius 0), which no tile reads. The degree is a template argument so that the
+// coefficient loops unroll and the coefficients stay in registers (a runtime count indexes them in local memory).
+template <int Degree>
+__global__ void shade_views_forward_kernel(int64_t n, int views, CentresF centres, const float* __restrict__ means,
+                                           const float* __restrict__ dc, const float* __restrict__ rest, int64_t stride,
+                                           const int* __restrict__ radii, float* __restrict__ out) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  float m[3], d[3], r[3 * 15];
+  constexpr int kUsed = 3 * ((Degree + 1) * (Degree + 1) - 1);
+  float m[3], d[3], r[kUsed > 0 ? kUsed : 1];
   for (int k = 0; k < 3; ++k) {
     m[k] = means[3 * i + k];
     d[k] = dc[3 * i + k];
   }
-  const int used = 3 * ((degree + 1) * (degree + 1) - 1);
 #pragma unroll
-  for (int k = 0; k < 3 * 15; ++k)
-    if (k < used) r[k] = rest[stride * i + k];
+  for (int k = 0; k < kUsed; ++k) r[k] = rest[stride * i + k];
   for (int v = 0; v < views; ++v) {
-    float o[4];
-    raster::shade_one(degree, m, centres.c[v], d, r, o);
+    float o[4] = {0.f, 0.f, 0.f, 0.f};
+    if (radii[v * n + i] > 0) raster::shade_one(Degree, m, centres.c[v], d, r, o);
     reinterpret_cast<float4*>(out)[v * n + i] = make_float4(o[0], o[1], o[2], o[3]);
   }
 }
@@ -110,12 +112,16 @@ at::Tensor shade_forward_cuda(const at::Tensor& means_in, const at::Tensor& sh_d
 }
 
 at::Tensor shade_views_forward_cuda(const at::Tensor& means_in, const at::Tensor& sh_dc_in,
-                                    const at::Tensor& sh_rest_in, int degree, const std::vector<Centre>& centres) {
+                                    const at::Tensor& sh_rest_in, int degree, const std::vector<Centre>& centres,
+                                    const at::Tensor& radii_in) {
   check_inputs(means_in, sh_dc_in, sh_rest_in);
   TORCH_CHECK(degree >= 0 && degree <= 3, "shade_views_forward_cuda: SH degree must be 0..3, got ", degree);
   const c10::cuda::CUDAGuard guard(means_in.device());
   const auto means = means_in.contiguous(), dc = sh_dc_in.contiguous(), rest = sh_rest_in.contiguous();
   const int64_t n = means.size(0), views = static_cast<int64_t>(centres.size());
+  TORCH_CHECK(radii_in.is_cuda() && radii_in.scalar_type() == at::kInt && radii_in.numel() == views * n,
+              "shade_views_forward_cuda: radii must be ", views, " x ", n, " int32 on the GPU, got ", radii_in.sizes());
+  const at::Tensor radii = radii_in.contiguous();
   at::Tensor out = at::empty({views * n, 4}, means.options());
   if (n == 0) return out;
   for (int64_t first = 0; first < views; first += kMaxViews) {
@@ -125,9 +131,25 @@ at::Tensor shade_views_forward_cuda(const at::Tensor& means_in, const at::Tensor
       const CentreF f = to_float(centres[first + v]);
       for (int k = 0; k < 3; ++k) c.c[v][k] = f.c[k];
     }
-    shade_views_forward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
-        n, degree, count, c, means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(), rest.size(1) * 3,
-        out.data_ptr<float>() + 4 * first * n);
+    const auto launch = [&](auto kernel) {
+      kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+          n, count, c, means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(), rest.size(1) * 3,
+          radii.data_ptr<int>() + first * n, out.data_ptr<float>() + 4 * first * n);
+    };
+    switch (degree) {
+      case 0:
+        launch(shade_views_forward_kernel<0>);
+        break;
+      case 1:
+        launch(shade_views_forward_kernel<1>);
+        break;
+      case 2:
+        launch(shade_views_forward_kernel<2>);
+        break;
+      default:
+        launch(shade_views_forward_kernel<3>);
+        break;
+    }
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   return out;
