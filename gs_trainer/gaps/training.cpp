@@ -150,10 +150,9 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
   auto clock = std::chrono::steady_clock::now();
   // The model's current renders at the GT poses: the references carry them (depth for warping).
   gt_renders_.clear();
-  for (const auto& v : gt_views_) {
-    const RenderOutput r = render(model, v.camera);
-    gt_renders_.push_back({v.camera, v.image.cpu(), r.depth.cpu(), r.alpha.cpu()});
-  }
+  const std::vector<RenderOutput> at_gt = render_views(model, gt_cameras_);  // one stacked pass per image size
+  for (size_t k = 0; k < gt_views_.size(); ++k)
+    gt_renders_.push_back({gt_views_[k].camera, gt_views_[k].image.cpu(), at_gt[k].depth.cpu(), at_gt[k].alpha.cpu()});
   lap(entry, "references", &clock);
   if (!adapted_) {
     GAPS_RETURN_IF_ERROR(generator_->adapt(gt_renders_, scene_adaptation(config_)));
@@ -206,9 +205,12 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   const GaussianModel& model = trainer_.model();
   auto clock = std::chrono::steady_clock::now();
   std::vector<GenerationRequest> requests;
-  std::vector<RenderOutput> renders;
-  for (const auto& c : chosen) {
-    RenderOutput r = render(model, c.camera);
+  std::vector<Camera> poses;
+  for (const auto& c : chosen) poses.push_back(c.camera);
+  const std::vector<RenderOutput> renders = render_views(model, poses);  // one stacked pass per image size
+  for (size_t k = 0; k < chosen.size(); ++k) {
+    const Candidate& c = chosen[k];
+    const RenderOutput& r = renders[k];
     GenerationRequest q;
     q.camera = c.camera;
     q.render_rgb = r.rgb.clamp(0, 1).cpu();
@@ -222,7 +224,6 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     q.inpaint = inpaint_settings(config_);
     q.ip_adapter_scale = config_.ip_adapter_scale;
     requests.push_back(std::move(q));
-    renders.push_back(std::move(r));
   }
   lap(entry, "renders", &clock);
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
