@@ -7,9 +7,13 @@ Gaussians, one point per run. Across configs, per scene and view count where run
 exist: test PSNR against the model size, one line per method through its budgets (mean over seeds; the
 hollow marker is unlimited growth). An index (README.md) in the output folder lists and captions every chart.
 
-  bench/charts.py runs/*/results.jsonl --out docs/charts [--formats png,svg]
+Given --speed-runs (standalone timing runs of successive commits, bench/results/train_speed_*.jsonl): per
+machine, scene and view count, final test PSNR against training time, a line per variant through the commits.
+
+  bench/charts.py runs/*/results.jsonl --out docs/charts [--formats png,svg] [--speed-runs FILE...]
 """
 import argparse
+import json
 import os
 import sys
 from collections import defaultdict
@@ -151,6 +155,53 @@ def psnr_vs_budget(scene, views, rows, out, formats):
     return save(fig, out, f"budget_{scene}_v{views}_psnr_vs_gaussians", formats)
 
 
+def machine_slug(machine):
+    """'NVIDIA H100 80GB HBM3 (one card ...)' -> 'h100': the card's model for file names."""
+    for word in machine.replace("(", " ").split():
+        if word[:1] in "HABL" and any(c.isdigit() for c in word):
+            return word.lower()
+    return "gpu"
+
+
+def speed_work(machine, scene, views, rows, out, formats):
+    """Standalone runs of successive commits on one machine: final test PSNR against training time, a line per
+    variant through the runs in their order, each point named by its run and commit."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for variant in sorted({r["variant"] for r in rows}, key=tables.variant_key):
+        points = [r for r in rows if r["variant"] == variant]
+        xs, ys = [r["train_seconds"] for r in points], [r["psnr"] for r in points]
+        ax.plot(xs, ys, linewidth=0.8, alpha=0.35, color=colour(variant))
+        ax.scatter(xs, ys, s=18, color=colour(variant), label=variant, zorder=3)
+        for r in points:
+            ax.annotate(f"{str(r['run']).split()[0]} {r['build'][:7]}", (r["train_seconds"], r["psnr"]),
+                        fontsize=6, xytext=(3, 3), textcoords="offset points")
+    vanilla = sorted(r["train_seconds"] for r in rows if r["variant"] == tables.VANILLA)
+    if vanilla:  # the speed goal of the method: at most 1.5 times vanilla's time
+        ax.axvline(1.5 * vanilla[len(vanilla) // 2], color="#7f7f7f", linestyle=":", linewidth=1,
+                   label="1.5 × vanilla's median time")
+    name = Path(scene).name
+    ax.set_xlabel("training time, s (alone on the GPU)")
+    ax.set_ylabel("test PSNR, dB")
+    ax.set_title(f"{name}, {views} views on {machine_slug(machine).upper()}: PSNR against time, per commit")
+    ax.grid(alpha=0.3)
+    ax.legend(title="variant (runs in order)")
+    return save(fig, out, f"speed_work_{machine_slug(machine)}_{name}_v{views}_psnr_vs_time", formats)
+
+
+def render_speed_work(rows, out, formats):
+    """The speed-work charts of standalone timing runs (rows with run, build, machine, scene, views, variant,
+    train_seconds, psnr); one per machine, scene and view count. Returns [(caption, [paths])]."""
+    Path(out).mkdir(parents=True, exist_ok=True)
+    finished = [r for r in rows if r.get("rc", 0) == 0 and r.get("psnr") is not None and r.get("train_seconds")]
+    written = []
+    for machine, scene, views in sorted({(r["machine"], r["scene"], r["views"]) for r in finished}):
+        subset = [r for r in finished if (r["machine"], r["scene"], r["views"]) == (machine, scene, views)]
+        paths = speed_work(machine, scene, views, subset, out, formats)
+        written.append((f"speed work on {machine.split(' (')[0]}: {Path(scene).name}, {views} views — final test "
+                        "PSNR against training time, per commit", paths))
+    return written
+
+
 def render_all(rows, out, formats):
     """Every chart of `rows`; returns [(caption, [paths])]."""
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -195,13 +246,20 @@ def main(argv=None):
     parser.add_argument("results", nargs="+", help="results.jsonl files written by bench/harness.py")
     parser.add_argument("--out", default="docs/charts", help="output folder")
     parser.add_argument("--formats", default="png,svg", help="comma-separated: png, svg, pdf")
+    parser.add_argument("--speed-runs", nargs="*", default=[],
+                        help="JSON-lines files of standalone timing runs per commit (bench/results/train_speed_*)")
     args = parser.parse_args(argv)
     formats = [f.strip() for f in args.formats.split(",") if f.strip()]
     written = render_all(tables.load_rows(args.results), args.out, formats)
     if not written:
         print("charts.py: no finished runs with results in " + ", ".join(args.results), file=sys.stderr)
         return 1
-    write_index(args.out, written, [os.path.relpath(s) for s in args.results])
+    speed_rows = []
+    for path in args.speed_runs:
+        with open(path) as f:
+            speed_rows += [json.loads(line) for line in f if line.strip()]
+    written += render_speed_work(speed_rows, args.out, formats)
+    write_index(args.out, written, [os.path.relpath(s) for s in args.results + args.speed_runs])
     for _, paths in written:
         for p in paths:
             print(p)

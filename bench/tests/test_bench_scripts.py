@@ -312,6 +312,26 @@ class ChartsTest(unittest.TestCase):
             index = Path(out, "README.md").read_text()
             self.assertIn("![paper: fern, 3 views — test PSNR over training time](paper_fern_v3_psnr_vs_time.png)", index)
 
+    def test_speed_work_charts_per_machine_scene_and_views(self):
+        def run(name, build, machine, scene, variant, seconds, psnr, rc=0):
+            return {"run": name, "build": build, "machine": machine, "scene": scene, "views": 3, "variant": variant,
+                    "train_seconds": seconds, "psnr": psnr, "rc": rc}
+        h100, h200 = "NVIDIA H100 80GB HBM3 (one card)", "NVIDIA H200 (one card)"
+        rows = [run("D", "671ea76aa", h100, "llff/fern", "vanilla", 16.1, 20.7),
+                run("D", "671ea76aa", h100, "llff/fern", "full", 23.1, 22.3),
+                run("E", "bab53cfbb", h100, "llff/fern", "full", 20.4, 21.9),
+                run("C", "5a87f8dcc", h200, "llff/fern", "full", 21.1, 22.3),
+                run("X", "deadbeef0", h200, "mipnerf360/bonsai", "full", None, None, rc=1)]  # failed: no chart
+        with tempfile.TemporaryDirectory() as out:
+            written = charts.render_speed_work(rows, out, ["svg"])
+            names = sorted(p.name for _, paths in written for p in paths)
+            self.assertEqual(names, ["speed_work_h100_fern_v3_psnr_vs_time.svg",
+                                     "speed_work_h200_fern_v3_psnr_vs_time.svg"])
+            svg = Path(out, "speed_work_h100_fern_v3_psnr_vs_time.svg").read_text()
+            self.assertIn("E bab53cf", svg)
+            self.assertNotIn("5a87f8d", svg)  # another machine's run
+            self.assertIn("speed work on NVIDIA H100 80GB HBM3: fern, 3 views", written[0][0])
+
     def test_budget_chart_only_where_budgeted_runs_exist(self):
         budgeted = [dict(row("fern", 3, "full_k2", 0, 20.5, gaussians=400), config="sweep", max_gaussians=420),
                     dict(row("fern", 3, "vanilla_k2", 0, 19.5, gaussians=400), config="sweep", max_gaussians=420)]
