@@ -60,6 +60,15 @@ def save(fig, out, stem, formats):
     return paths
 
 
+def label_psnr_axes(ax, xlabel, heading, grid_which="major", **legend):
+    """Every chart's y axis is test PSNR: labels, heading, grid and legend (keyword arguments go to the legend)."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("test PSNR, dB")
+    ax.set_title(heading)
+    ax.grid(alpha=0.3, which=grid_which)
+    ax.legend(**legend)
+
+
 def psnr_vs_time(config, scene, views, rows, out, formats):
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     colours = label_colours({r["variant"] for r in rows})
@@ -75,11 +84,8 @@ def psnr_vs_time(config, scene, views, rows, out, formats):
     if not labelled:
         plt.close(fig)
         return []
-    ax.set_xlabel("training time, s (evaluations excluded)")
-    ax.set_ylabel("test PSNR, dB")
-    ax.set_title(f"{scene}, {views} views: test PSNR over training time ({config})")
-    ax.grid(alpha=0.3)
-    ax.legend(title="variant (one line per seed)")
+    label_psnr_axes(ax, "training time, s (evaluations excluded)",
+                    f"{scene}, {views} views: test PSNR over training time ({config})", title="variant (one line per seed)")
     return save(fig, out, f"{config}_{scene}_v{views}_psnr_vs_time", formats)
 
 
@@ -97,11 +103,7 @@ def psnr_vs_gaussians(config, rows, out, formats):
         ax.scatter([], [], color=colours[variant], marker="o", label=variant)
     for k, (scene, views) in enumerate(settings):
         ax.scatter([], [], color="#555", marker=MARKERS[k % len(MARKERS)], label=f"{scene}, {views} views")
-    ax.set_xlabel("Gaussians at the end of training")
-    ax.set_ylabel("test PSNR, dB")
-    ax.set_title(f"Test PSNR against model size ({config})")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    label_psnr_axes(ax, "Gaussians at the end of training", f"Test PSNR against model size ({config})", fontsize=8)
     return save(fig, out, f"{config}_psnr_vs_gaussians", formats)
 
 
@@ -147,11 +149,9 @@ def psnr_vs_budget(scene, views, rows, out, formats):
         for x, y, is_budgeted in points:
             ax.scatter(x, y, color=colour(method), facecolors=colour(method) if is_budgeted else "white", s=36, zorder=3)
     ax.set_xscale("log")
-    ax.set_xlabel("Gaussians at the end of training (log scale)")
-    ax.set_ylabel("test PSNR, dB")
-    ax.set_title(f"{scene}, {views} views: test PSNR against the Gaussian budget")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(title="method (hollow: no budget)")
+    label_psnr_axes(ax, "Gaussians at the end of training (log scale)",
+                    f"{scene}, {views} views: test PSNR against the Gaussian budget", grid_which="both",
+                    title="method (hollow: no budget)")
     return save(fig, out, f"budget_{scene}_v{views}_psnr_vs_gaussians", formats)
 
 
@@ -180,11 +180,9 @@ def speed_work(machine, scene, views, rows, out, formats):
         ax.axvline(1.5 * vanilla[len(vanilla) // 2], color="#7f7f7f", linestyle=":", linewidth=1,
                    label="1.5 × vanilla's median time")
     name = Path(scene).name
-    ax.set_xlabel("training time, s (alone on the GPU)")
-    ax.set_ylabel("test PSNR, dB")
-    ax.set_title(f"{name}, {views} views on {machine_slug(machine).upper()}: PSNR against time, per commit")
-    ax.grid(alpha=0.3)
-    ax.legend(title="variant (runs in order)")
+    label_psnr_axes(ax, "training time, s (alone on the GPU)",
+                    f"{name}, {views} views on {machine_slug(machine).upper()}: PSNR against time, per commit",
+                    title="variant (runs in order)")
     return save(fig, out, f"speed_work_{machine_slug(machine)}_{name}_v{views}_psnr_vs_time", formats)
 
 
