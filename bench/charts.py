@@ -85,7 +85,8 @@ def psnr_vs_time(config, scene, views, rows, out, formats):
         plt.close(fig)
         return []
     label_psnr_axes(ax, "training time, s (evaluations excluded)",
-                    f"{scene}, {views} views: test PSNR over training time ({config})", title="variant (one line per seed)")
+                    f"{scene}, {views} views: test PSNR over training time ({config})",
+                    title="variant (one line per seed)")
     return save(fig, out, f"{config}_{scene}_v{views}_psnr_vs_time", formats)
 
 
