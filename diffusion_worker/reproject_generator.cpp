@@ -103,8 +103,8 @@ absl::Status check_reference(const ReferenceView& r, const std::string& what) {
   return check_view(r.camera, r.image, r.render_depth, r.render_alpha, "image", what);
 }
 
-// Only the references the backend uses are checked: the rest are ignored anyway.
-absl::Status check_request(const GenerationRequest& q, int num_references, const std::string& what) {
+// The request's own fields: its render, strength and that it has references.
+absl::Status check_request_fields(const GenerationRequest& q, const std::string& what) {
   GAPS_RETURN_IF_ERROR(check_view(q.camera, q.render_rgb, q.render_depth, q.render_alpha, "render_rgb", what));
   if (!std::isfinite(q.strength) || q.strength < 0 || q.strength > 1) {
     return absl::InvalidArgumentError(absl::StrCat(what, " strength ", q.strength, " is not in [0, 1]"));
@@ -113,10 +113,52 @@ absl::Status check_request(const GenerationRequest& q, int num_references, const
     return absl::InvalidArgumentError(
         absl::StrCat(what, " has no references (the reproject backend warps ground-truth views)"));
   }
-  const int used = std::min<int>(num_references, static_cast<int>(q.references.size()));
-  for (int k = 0; k < used; ++k) {
-    GAPS_RETURN_IF_ERROR(check_reference(q.references[k], absl::StrCat(what, " reference ", k)));
+  return absl::OkStatus();
+}
+
+// The same reference: the same tensors with the same camera (a check of one is a check of the other).
+bool same_reference(const ReferenceView& a, const ReferenceView& b) {
+  const Camera &p = a.camera, &q = b.camera;
+  return a.image.unsafeGetTensorImpl() == b.image.unsafeGetTensorImpl() &&
+         a.render_depth.unsafeGetTensorImpl() == b.render_depth.unsafeGetTensorImpl() &&
+         a.render_alpha.unsafeGetTensorImpl() == b.render_alpha.unsafeGetTensorImpl() && p.width == q.width &&
+         p.height == q.height && p.fx == q.fx && p.fy == q.fy && p.cx == q.cx && p.cy == q.cy && p.R == q.R &&
+         p.t == q.t;
+}
+
+// Every request in order, each with the references the backend uses (the rest are ignored anyway); the first
+// problem in that order. The checks read every value, as much work as the warps, so they run in parallel, and a
+// reference that several requests carry (in a phase, the nearest few of the same training views) is checked once,
+// named after the first request that uses it.
+absl::Status check_requests(const std::vector<GenerationRequest>& requests, int num_references) {
+  struct Check {
+    const GenerationRequest* request = nullptr;  // its own fields, or
+    const ReferenceView* reference = nullptr;    // one of its references
+    std::string what;
+  };
+  std::vector<Check> checks;
+  std::vector<const ReferenceView*> checked;
+  for (size_t i = 0; i < requests.size(); ++i) {
+    const std::string what = absl::StrCat("request ", i);
+    checks.push_back({&requests[i], nullptr, what});
+    const int used = std::min<int>(num_references, static_cast<int>(requests[i].references.size()));
+    for (int k = 0; k < used; ++k) {
+      const ReferenceView& r = requests[i].references[k];
+      if (std::any_of(checked.begin(), checked.end(), [&](const ReferenceView* c) { return same_reference(*c, r); }))
+        continue;
+      checked.push_back(&r);
+      checks.push_back({nullptr, &r, absl::StrCat(what, " reference ", k)});
+    }
   }
+  std::vector<absl::Status> results(checks.size());
+  at::parallel_for(0, static_cast<int64_t>(checks.size()), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t c = begin; c < end; ++c) {
+      const Check& check = checks[c];
+      results[c] = check.request ? check_request_fields(*check.request, check.what)
+                                 : check_reference(*check.reference, check.what);
+    }
+  });
+  for (const absl::Status& st : results) GAPS_RETURN_IF_ERROR(st);
   return absl::OkStatus();
 }
 
@@ -415,7 +457,10 @@ absl::Status ReprojectGenerator::adapt(const std::vector<ReferenceView>& views,
 
 absl::StatusOr<ReprojectResult> ReprojectGenerator::generate_one(const GenerationRequest& request) const {
   GAPS_RETURN_IF_ERROR(validate_reproject_options(options_));
-  GAPS_RETURN_IF_ERROR(check_request(request, options_.num_references, "request"));
+  GAPS_RETURN_IF_ERROR(check_request_fields(request, "request"));
+  const int used = std::min<int>(options_.num_references, static_cast<int>(request.references.size()));
+  for (int k = 0; k < used; ++k)
+    GAPS_RETURN_IF_ERROR(check_reference(request.references[k], absl::StrCat("request reference ", k)));
   try {
     return reproject(request, options_);
   } catch (const std::exception& e) {
@@ -426,9 +471,7 @@ absl::StatusOr<ReprojectResult> ReprojectGenerator::generate_one(const Generatio
 absl::StatusOr<std::vector<at::Tensor>> ReprojectGenerator::generate(const std::vector<GenerationRequest>& requests) {
   notes_.clear();
   GAPS_RETURN_IF_ERROR(validate_reproject_options(options_));
-  for (size_t i = 0; i < requests.size(); ++i) {
-    GAPS_RETURN_IF_ERROR(check_request(requests[i], options_.num_references, absl::StrCat("request ", i)));
-  }
+  GAPS_RETURN_IF_ERROR(check_requests(requests, options_.num_references));
   // Requests are independent, so they run in parallel; each is computed serially, so the result does not
   // depend on the thread count.
   std::vector<at::Tensor> images(requests.size());

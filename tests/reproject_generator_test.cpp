@@ -380,6 +380,16 @@ TEST(ReprojectGeneratorTest, RejectsBadInputsNamingTheProblem) {
   q.render_alpha = q.render_alpha - 1;
   expect_error(q, {"render_alpha", "outside [0, 1]"});
 
+  // A reference that several requests carry is checked once, named after the first request that uses it; the
+  // first problem in request order is the one reported.
+  q = empty_render_request(cam, {ref});
+  q.references[0].render_alpha = q.references[0].render_alpha + 2;
+  GenerationRequest late = empty_render_request(cam, {ref}, 1.5);
+  absl::StatusOr<std::vector<at::Tensor>> shared = generator.generate({empty_render_request(cam, {ref}), q, q, late});
+  ASSERT_FALSE(shared.ok());
+  EXPECT_TRUE(contains(shared.status(), "request 1 reference 0 render_alpha")) << shared.status();
+  EXPECT_FALSE(contains(shared.status(), "strength")) << shared.status();
+
   // adapt() learns nothing but checks the views.
   EXPECT_TRUE(generator.adapt({ref, ref}, std::nullopt).ok());
   EXPECT_FALSE(generator.adapt({}, std::nullopt).ok());
