@@ -8,11 +8,13 @@
 #include <string>
 #include <vector>
 
+#include "absl/strings/match.h"
 #include "common/npy.h"
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/gaps/training.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/scene/cameras_json.h"
+#include "gs_trainer/scene/run_files.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/synthetic_run.h"
 #include "tests/test_util.h"
@@ -117,6 +119,31 @@ TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   }
   EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "pseudo_views" / "phase_00"));
   EXPECT_EQ(read_json(dir_ / "out" / "metrics.json")["variant"], "full");
+}
+
+// The pseudo-views kept for inspection are written in the background: every one is on disk when the run ends, and
+// one that cannot be written fails the run, with phases.json kept.
+TEST_F(GapsTrainingTest, InspectionImagesAreAllWrittenAndAFailedWriteFailsTheRun) {
+  EchoGenerator gen(0.05);
+  auto written = run_pipeline(options(Variant::kFull, &gen), nullptr, [](const std::string&) {});
+  ASSERT_TRUE(written.ok()) << written.status();
+  std::vector<std::filesystem::path> images;
+  for (const auto& phase : read_json(dir_ / "out" / "phases.json"))
+    for (const auto& s : phase["selection"])
+      images.push_back(dir_ / "out" / kPseudoViewsFolder /
+                       pseudo_view_file(phase["phase"].get<int>(), s["id"].get<int>(), s["admitted"].get<bool>()));
+  ASSERT_EQ(images.size(), 8u);
+  for (const auto& image : images) EXPECT_TRUE(std::filesystem::is_regular_file(image)) << image;
+
+  // The same run (CPU runs repeat bit for bit) into a folder where the last phase's last image is a folder.
+  RunOptions blocked = options(Variant::kFull, &gen);
+  blocked.out_dir = dir_ / "blocked";
+  const std::filesystem::path in_the_way = blocked.out_dir / std::filesystem::relative(images.back(), dir_ / "out");
+  std::filesystem::create_directories(in_the_way);
+  auto failed = run_pipeline(blocked, nullptr, [](const std::string&) {});
+  ASSERT_FALSE(failed.ok());
+  EXPECT_TRUE(absl::StrContains(failed.status().message(), in_the_way.filename().string())) << failed.status();
+  EXPECT_TRUE(std::filesystem::exists(blocked.out_dir / "phases.json"));
 }
 
 // Each phase says where its time went: the sections in the order they run, the generator's own stages as it
