@@ -34,6 +34,10 @@ ABSL_FLAG(int, patchmatch_max_image_side, gaps::PatchMatchOptions{}.max_image_si
 ABSL_FLAG(int, patchmatch_iterations, gaps::PatchMatchOptions{}.iterations, "PatchMatch photometric sweeps");
 ABSL_FLAG(bool, geometric_consistency, gaps::PatchMatchOptions{}.geometric_consistency,
           "PatchMatch geometric-consistency pass");
+ABSL_FLAG(int, patchmatch_best_views, gaps::PatchMatchOptions{}.best_views,
+          "PatchMatch: sources whose costs a hypothesis's cost averages");
+ABSL_FLAG(double, patchmatch_max_cost, gaps::PatchMatchOptions{}.max_cost,
+          "PatchMatch: pixels whose final cost is higher get no depth");
 ABSL_FLAG(int, fusion_min_views, gaps::FusionOptions{}.min_views, "views a fused point must span");
 ABSL_FLAG(int64_t, fusion_max_points, gaps::FusionOptions{}.max_points, "cap on the fused points (0: none)");
 ABSL_FLAG(int, num_planes, gaps::DenseOptions{}.num_planes, "plane-sweep depth hypotheses");
@@ -54,6 +58,8 @@ gaps::InitOptions init_options() {
   o.patchmatch.max_image_side = absl::GetFlag(FLAGS_patchmatch_max_image_side);
   o.patchmatch.iterations = absl::GetFlag(FLAGS_patchmatch_iterations);
   o.patchmatch.geometric_consistency = absl::GetFlag(FLAGS_geometric_consistency);
+  o.patchmatch.best_views = absl::GetFlag(FLAGS_patchmatch_best_views);
+  o.patchmatch.max_cost = absl::GetFlag(FLAGS_patchmatch_max_cost);
   o.fusion.min_views = absl::GetFlag(FLAGS_fusion_min_views);
   o.fusion.max_points = absl::GetFlag(FLAGS_fusion_max_points);
   return o;
@@ -119,6 +125,8 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
     j["dense_seconds"] = result->dense->seconds;
   }
   if (result->mvs) {
+    j["best_views"] = absl::GetFlag(FLAGS_patchmatch_best_views);
+    j["max_cost"] = absl::GetFlag(FLAGS_patchmatch_max_cost);
     j["depth_pixels"] = result->mvs->fusion.depth_pixels;
     j["fused_points"] = result->mvs->fusion.fused_points;
     j["fused_points_capped"] = result->mvs->fusion.points;
