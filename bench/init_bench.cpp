@@ -5,6 +5,7 @@
 // mvs is PatchMatch + fusion, sweep the plane sweep; fusion is capped at --fusion_max_points (0: no cap; a
 // training run caps it at its Gaussian budget).
 #include <chrono>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <string>
@@ -16,7 +17,9 @@
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "common/ply.h"
 #include "gs_trainer/init/initializer.h"
 
 ABSL_FLAG(std::string, method, "mvs", "mvs, sweep, sparse or random");
@@ -34,6 +37,8 @@ ABSL_FLAG(int, patchmatch_max_image_side, gaps::PatchMatchOptions{}.max_image_si
 ABSL_FLAG(int, patchmatch_iterations, gaps::PatchMatchOptions{}.iterations, "PatchMatch photometric sweeps");
 ABSL_FLAG(bool, geometric_consistency, gaps::PatchMatchOptions{}.geometric_consistency,
           "PatchMatch geometric-consistency pass");
+ABSL_FLAG(std::string, ply_dir, "",
+          "also write each case's cloud to DIR/SCENE_Vv_METHOD.ply (for gaps train --init-ply; empty: not written)");
 ABSL_FLAG(int, patchmatch_best_views, gaps::PatchMatchOptions{}.best_views,
           "PatchMatch: sources whose costs a hypothesis's cost averages");
 ABSL_FLAG(double, patchmatch_max_cost, gaps::PatchMatchOptions{}.max_cost,
@@ -127,11 +132,21 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
   if (result->mvs) {
     j["best_views"] = absl::GetFlag(FLAGS_patchmatch_best_views);
     j["max_cost"] = absl::GetFlag(FLAGS_patchmatch_max_cost);
+    j["geometric_consistency"] = absl::GetFlag(FLAGS_geometric_consistency);
     j["depth_pixels"] = result->mvs->fusion.depth_pixels;
     j["fused_points"] = result->mvs->fusion.fused_points;
     j["fused_points_capped"] = result->mvs->fusion.points;
     j["patchmatch_seconds"] = result->mvs->patchmatch_seconds;
     j["fusion_seconds"] = result->mvs->fusion.seconds;
+  }
+  if (const std::string dir = absl::GetFlag(FLAGS_ply_dir); !dir.empty()) {
+    const std::filesystem::path ply =
+        std::filesystem::path(dir) / absl::StrCat(scene_name, "_", views, "v_", result->method, ".ply");
+    std::error_code ignored;  // a folder that cannot be made fails the write below, naming the file
+    std::filesystem::create_directories(ply.parent_path(), ignored);
+    if (const absl::Status written = gaps::write_point_cloud_ply(result->points, ply); !written.ok())
+      return fail(written);
+    j["ply"] = ply.string();
   }
   j["test_views"] = split->test.size();
   j["test_coverage_mean"] = coverage_sum / split->test.size();
