@@ -45,11 +45,7 @@ at::Tensor candidate_statistics(const GaussianModel& model, const std::vector<Ca
     const Camera& first = cameras[begin];
     const int size =
         batch > 0 ? batch : candidate_batch_size(model.size(), first.width, first.height, model.means.device(), c);
-    const size_t limit = begin + static_cast<size_t>(size);
-    size_t end = begin + 1;
-    while (end < std::min(limit, cameras.size()) && cameras[end].width == first.width &&
-           cameras[end].height == first.height)
-      ++end;
+    const size_t end = same_size_run_end(cameras, begin, static_cast<size_t>(size));
     parts.push_back(batch_statistics(model, cameras, begin, end, c));
     begin = end;
   }

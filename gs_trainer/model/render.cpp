@@ -1,5 +1,6 @@
 #include "gs_trainer/model/render.h"
 
+#include <algorithm>
 #include <array>
 #include <deque>
 #include <optional>
@@ -152,13 +153,18 @@ RenderedViews render_same_size_views(const GaussianModel& model, const std::vect
   return {images.features.narrow(3, 0, 3), images.features.select(3, 3), images.alpha};
 }
 
+size_t same_size_run_end(const std::vector<Camera>& cameras, size_t begin, size_t max_count) {
+  const size_t limit = std::min(cameras.size(), begin + std::max<size_t>(max_count, 1));
+  size_t end = begin + 1;
+  while (end < limit && cameras[end].width == cameras[begin].width && cameras[end].height == cameras[begin].height)
+    ++end;
+  return end;
+}
+
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
   std::vector<RenderOutput> out(cameras.size());
   for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
-    end = begin + 1;
-    while (end < cameras.size() && cameras[end].width == cameras[begin].width &&
-           cameras[end].height == cameras[begin].height)
-      ++end;
+    end = same_size_run_end(cameras, begin);
     const RenderedViews views =
         render_same_size_views(model, std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
                                                           cameras.begin() + static_cast<std::ptrdiff_t>(end)));

@@ -1,6 +1,8 @@
 #pragma once
 // Renders a Gaussian model from a camera: colour, the paper's depth (eq. depth_render: alpha-composited
 // distance from the camera centre) and alpha, plus what densification needs.
+#include <cstddef>
+#include <cstdint>
 #include <vector>
 
 #include <ATen/Tensor.h>
@@ -41,6 +43,10 @@ struct RenderedViews {
   at::Tensor alpha;  // V x H x W
 };
 RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras);
+
+// Where the run of cameras that share cameras[begin]'s image size ends, after at most max_count of them: the
+// batches render_same_size_views takes (begin < cameras.size(), max_count >= 1).
+size_t same_size_run_end(const std::vector<Camera>& cameras, size_t begin, size_t max_count = SIZE_MAX);
 
 // Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth
 // of the image it makes. Read off the rasterizer's backward pass (the image is linear in the features, with
