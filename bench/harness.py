@@ -8,6 +8,9 @@ one row to OUT/results.jsonl (with the curve) and OUT/results.csv (without it).
 
   bench/harness.py --config bench/configs/llff_protocol.json --data ../shared/data --out runs/llff \
       [--jobs 4] [--gpus 0,1] [--gaps build/client/gaps] [--flag KEY=VALUE ...] [--only REGEX] [--dry-run]
+
+A flag's value may name the cell's scene and view count as {scene} and {views}, e.g.
+--flag init-ply=clouds/{scene}_{views}v_mvs.ply (the file names of `init_bench --ply_dir`).
 """
 import argparse
 import concurrent.futures
@@ -91,10 +94,11 @@ def expand(config):
     return cells
 
 
-def flag_args(flags):
+def flag_args(flags, cell):
     args = []
     for key, value in flags.items():
         value = str(value).lower() if isinstance(value, bool) else str(value)
+        value = value.replace("{scene}", cell["scene"]).replace("{views}", str(cell["views"]))
         args.append(f"--{key.replace('_', '-')}={value}")
     return args
 
@@ -109,7 +113,7 @@ def command(config, cell, gaps, data, out, extra_flags=()):
         flags[key.lstrip("-")] = value
     return [str(gaps), "train", f"--scene={Path(data) / cell['scene_path']}", f"--views={cell['views']}",
             f"--variant={arm.get('variant', cell['variant'])}", f"--seed={cell['seed']}", f"--out={Path(out) / cell['cell']}",
-            "--quiet"] + flag_args(flags)
+            "--quiet"] + flag_args(flags, cell)
 
 
 def git_commit():

@@ -2,8 +2,8 @@
 // stage and after fusion, the sparse median reprojection error, how much of the held-out test views the
 // points cover (fraction of 16x16 pixel cells hit), and the time. One JSON line per case.
 //   init_bench --method mvs --fern_views 3,6,9 --bonsai_views 12,24 --resolution 8 --json out.jsonl
-// mvs is PatchMatch + fusion, sweep the plane sweep; fusion is capped at --fusion_max_points (0: no cap; a
-// training run caps it at its Gaussian budget).
+// mvs is PatchMatch + fusion, sweep the plane sweep; fusion is capped at --fusion_max_points (0: no cap; -1:
+// the Gaussian budget of a default training run, which caps it so).
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -21,6 +21,9 @@
 #include "absl/strings/str_split.h"
 #include "common/ply.h"
 #include "gs_trainer/init/initializer.h"
+#include "gs_trainer/train/budget.h"
+#include "gs_trainer/train/train_config.h"
+#include "gs_trainer/train/trainer.h"
 
 ABSL_FLAG(std::string, method, "mvs", "mvs, sweep, sparse or random");
 ABSL_FLAG(std::string, fern_views, "3,6,9", "training view counts on LLFF fern (empty: skip)");
@@ -44,7 +47,9 @@ ABSL_FLAG(int, patchmatch_best_views, gaps::PatchMatchOptions{}.best_views,
 ABSL_FLAG(double, patchmatch_max_cost, gaps::PatchMatchOptions{}.max_cost,
           "PatchMatch: pixels whose final cost is higher get no depth");
 ABSL_FLAG(int, fusion_min_views, gaps::FusionOptions{}.min_views, "views a fused point must span");
-ABSL_FLAG(int64_t, fusion_max_points, gaps::FusionOptions{}.max_points, "cap on the fused points (0: none)");
+ABSL_FLAG(int64_t, fusion_max_points, gaps::FusionOptions{}.max_points,
+          "cap on the fused points (0: none; -1: the automatic Gaussian budget of a default run, as `gaps train "
+          "--init mvs` caps them, so that a cloud written with --ply_dir trains as that run's would)");
 ABSL_FLAG(int, num_planes, gaps::DenseOptions{}.num_planes, "plane-sweep depth hypotheses");
 ABSL_FLAG(int, max_neighbors, gaps::DenseOptions{}.max_neighbors, "plane-sweep source views");
 ABSL_FLAG(int, planes_per_chunk, gaps::DenseOptions{}.planes_per_chunk, "planes warped at once");
@@ -79,6 +84,15 @@ std::vector<int> parse_counts(const std::string& text) {
   return counts;
 }
 
+// The Gaussian budget a default `gaps train` run would have on these views (pipeline.cpp caps the fused
+// points at it).
+int64_t default_run_budget(const std::vector<gaps::Camera>& cams, const std::vector<at::Tensor>& images) {
+  std::vector<gaps::TrainingView> views;
+  for (size_t i = 0; i < cams.size(); ++i) views.push_back({cams[i], images[i]});
+  const gaps::TrainConfig defaults;
+  return gaps::gaussian_budget(defaults.max_gaussians, defaults.gaussians_per_variation, views);
+}
+
 // One case; the JSON line, or an "error" field saying what failed.
 nlohmann::json run_case(const std::string& scene_name, const std::filesystem::path& root, int views) {
   nlohmann::json j = {{"scene", scene_name}, {"views", views}, {"resolution", absl::GetFlag(FLAGS_resolution)}};
@@ -101,8 +115,10 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
     cams.push_back(scene->cameras[i]);
     images.push_back(image->to(device));
   }
+  gaps::InitOptions options = init_options();
+  if (options.fusion.max_points < 0) options.fusion.max_points = default_run_budget(cams, images);
   const auto start = std::chrono::steady_clock::now();
-  auto result = gaps::run_initialization(absl::GetFlag(FLAGS_method), cams, images, init_options());
+  auto result = gaps::run_initialization(absl::GetFlag(FLAGS_method), cams, images, options);
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!result.ok()) return fail(result.status());
 
@@ -136,6 +152,7 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
     j["depth_pixels"] = result->mvs->fusion.depth_pixels;
     j["fused_points"] = result->mvs->fusion.fused_points;
     j["fused_points_capped"] = result->mvs->fusion.points;
+    j["max_points"] = options.fusion.max_points;
     j["patchmatch_seconds"] = result->mvs->patchmatch_seconds;
     j["fusion_seconds"] = result->mvs->fusion.seconds;
   }

@@ -190,6 +190,13 @@ class HarnessTest(unittest.TestCase):
         self.assertIn("--init=random", argv)
         self.assertNotIn("--init=mvs", argv)
 
+    def test_flag_values_name_the_cells_scene_and_views(self):
+        code, _ = self.run_harness("--only", "^fern_v(3|6)_vanilla_s0$", "--flag", "init-ply=/c/{scene}_{views}v_mvs.ply")
+        self.assertEqual(code, 0)
+        for views in (3, 6):
+            argv = json.loads((self.out / f"fern_v{views}_vanilla_s0" / "metrics.json").read_text())["argv"]
+            self.assertIn(f"--init-ply=/c/fern_{views}v_mvs.ply", argv)
+
     def test_rows_record_the_initialisation_that_ran(self):
         code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "init=auto")
         self.assertEqual(code, 0)
