@@ -111,9 +111,12 @@ def command(config, cell, gaps, data, out, extra_flags=()):
     for item in extra_flags:
         key, _, value = item.partition("=")
         flags[key.lstrip("-")] = value
+    cell_out = Path(out) / cell["cell"]
+    # A folder without metrics.json is a cell that was stopped part way: train it again from the start.
+    restart = ["--overwrite"] if cell_out.exists() else []
     return [str(gaps), "train", f"--scene={Path(data) / cell['scene_path']}", f"--views={cell['views']}",
-            f"--variant={arm.get('variant', cell['variant'])}", f"--seed={cell['seed']}", f"--out={Path(out) / cell['cell']}",
-            "--quiet"] + flag_args(flags, cell)
+            f"--variant={arm.get('variant', cell['variant'])}", f"--seed={cell['seed']}", f"--out={cell_out}",
+            "--quiet"] + restart + flag_args(flags, cell)
 
 
 def git_commit():

@@ -43,6 +43,8 @@ FAKE_GAPS = textwrap.dedent("""\
     variant, views, seed = args["variant"], int(args["views"]), int(args["seed"])
     if variant == "crash" and not os.path.exists(os.path.join(log_dir, "ALLOW_CRASH")):
         sys.exit(1)
+    if os.path.exists(out) and "--overwrite" not in sys.argv:  # as gaps train refuses an interrupted run's folder
+        sys.exit(2)
     os.makedirs(out, exist_ok=True)
     psnr = 20 + views + 0.1 * seed + (1.0 if variant == "full" else 0.0)
     m = {{"status": "ok", "psnr": psnr, "ssim": 0.5, "lpips": None, "num_gaussians": 1000 * views,
@@ -191,11 +193,21 @@ class HarnessTest(unittest.TestCase):
         self.assertNotIn("--init=mvs", argv)
 
     def test_flag_values_name_the_cells_scene_and_views(self):
-        code, _ = self.run_harness("--only", "^fern_v(3|6)_vanilla_s0$", "--flag", "init-ply=/c/{scene}_{views}v_mvs.ply")
+        code, _ = self.run_harness("--only", "^(fern_v3|bonsai_v12)_vanilla_s0$", "--flag",
+                                   "init-ply=/c/{scene}_{views}v_mvs.ply")
         self.assertEqual(code, 0)
-        for views in (3, 6):
-            argv = json.loads((self.out / f"fern_v{views}_vanilla_s0" / "metrics.json").read_text())["argv"]
-            self.assertIn(f"--init-ply=/c/fern_{views}v_mvs.ply", argv)
+        for scene, views in (("fern", 3), ("bonsai", 12)):
+            argv = json.loads((self.out / f"{scene}_v{views}_vanilla_s0" / "metrics.json").read_text())["argv"]
+            self.assertIn(f"--init-ply=/c/{scene}_{views}v_mvs.ply", argv)
+
+    def test_a_cell_stopped_part_way_trains_again(self):
+        (self.out / "fern_v3_vanilla_s0" / "checkpoint").mkdir(parents=True)  # an interrupted run's folder
+        code, _ = self.run_harness("--only", "^fern_v3_vanilla_s[01]$")
+        self.assertEqual(code, 0)
+        argv = json.loads((self.out / "fern_v3_vanilla_s0" / "metrics.json").read_text())["argv"]
+        self.assertIn("--overwrite", argv)
+        argv = json.loads((self.out / "fern_v3_vanilla_s1" / "metrics.json").read_text())["argv"]
+        self.assertNotIn("--overwrite", argv)
 
     def test_rows_record_the_initialisation_that_ran(self):
         code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "init=auto")
