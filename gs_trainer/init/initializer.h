@@ -73,12 +73,13 @@ double viewing_direction_spread_degrees(const std::vector<Camera>& cameras);
 // kSurroundingViewsDegrees): what decides "auto" here and the paper's pseudo-views per phase (GapsConfig).
 bool views_surround_scene(const std::vector<Camera>& cameras);
 
-// What "auto" resolves to, as measured (bench/configs/patchmatch_init.json, docs/benchmarks.md, "PatchMatch
+// What "auto" resolves to, as measured (bench/configs/patchmatch_settings.json, docs/benchmarks.md, "PatchMatch
 // initialisation"): "sweep" for forward-facing views (fern 3 views, vanilla 20.6 dB from the plane sweep
-// against 19.7 from PatchMatch; equal at 9 views); "mvs" (PatchMatch) when the views surround the scene, with
-// min_depth_coverage = kAutoMinDepthCoverage, so that a capture too sparse for PatchMatch to give most pixels
-// a depth takes the sparse points instead (bonsai 24 views: depth for 38 % of the pixels, vanilla 23.7 dB
-// against 22.7 from the sparse points; bonsai 12 views: 17 %, 15.8 against 17.0).
+// against 19.9 from PatchMatch; PatchMatch 0.1–0.2 dB ahead at 6 and 9 views); "mvs" (PatchMatch) when the
+// views surround the scene, with min_depth_coverage = kAutoMinDepthCoverage, so that a capture too sparse for
+// PatchMatch to give a quarter of the pixels a depth takes the sparse points instead (bonsai 24 views: depth
+// for 57 % of the pixels, vanilla 24.2 dB against 22.7 from the sparse points; bonsai 12 views: 35 %, 17.3
+// against 17.1).
 std::string auto_init_method(const std::vector<Camera>& cameras);
 
 // The depth coverage "auto" asks of PatchMatch on surrounding views (InitOptions::min_depth_coverage).
