@@ -457,10 +457,7 @@ absl::Status ReprojectGenerator::adapt(const std::vector<ReferenceView>& views,
 
 absl::StatusOr<ReprojectResult> ReprojectGenerator::generate_one(const GenerationRequest& request) const {
   GAPS_RETURN_IF_ERROR(validate_reproject_options(options_));
-  GAPS_RETURN_IF_ERROR(check_request_fields(request, "request"));
-  const int used = std::min<int>(options_.num_references, static_cast<int>(request.references.size()));
-  for (int k = 0; k < used; ++k)
-    GAPS_RETURN_IF_ERROR(check_reference(request.references[k], absl::StrCat("request reference ", k)));
+  GAPS_RETURN_IF_ERROR(check_requests({request}, options_.num_references));
   try {
     return reproject(request, options_);
   } catch (const std::exception& e) {

@@ -134,6 +134,12 @@ raster::Intrinsics intrinsics_of(const Camera& c) { return {c.fx, c.fy, c.cx, c.
 }  // namespace
 
 RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
+  const at::NoGradGuard no_grad;
+  return render_same_size_views(model, model.scales(), model.opacities(), cameras);
+}
+
+RenderedViews render_same_size_views(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
+                                     const std::vector<Camera>& cameras) {
   if (cameras.empty()) throw std::invalid_argument("render_same_size_views: no cameras");
   std::vector<at::Tensor> viewmats;
   std::vector<std::array<double, 3>> centres;
@@ -148,8 +154,8 @@ RenderedViews render_same_size_views(const GaussianModel& model, const std::vect
   }
   const at::NoGradGuard no_grad;
   const RasterizedImage images =
-      render_views_forward(model.means, model.quats, model.scales(), model.opacities(), model.sh_dc, model.sh_rest,
-                           model.sh_degree, upload(at::stack(viewmats), model.means.options()), centres, intrinsics);
+      render_views_forward(model.means, model.quats, scales, opacities, model.sh_dc, model.sh_rest, model.sh_degree,
+                           upload(at::stack(viewmats), model.means.options()), centres, intrinsics);
   return {images.features.narrow(3, 0, 3), images.features.select(3, 3), images.alpha};
 }
 
@@ -163,11 +169,14 @@ size_t same_size_run_end(const std::vector<Camera>& cameras, size_t begin, size_
 
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
   std::vector<RenderOutput> out(cameras.size());
+  const at::NoGradGuard no_grad;
+  const at::Tensor scales = model.scales(), opacities = model.opacities();
   for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
     end = same_size_run_end(cameras, begin);
     const RenderedViews views =
-        render_same_size_views(model, std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
-                                                          cameras.begin() + static_cast<std::ptrdiff_t>(end)));
+        render_same_size_views(model, scales, opacities,
+                               std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
+                                                   cameras.begin() + static_cast<std::ptrdiff_t>(end)));
     for (size_t k = begin; k < end; ++k) {
       const auto v = static_cast<int64_t>(k - begin);
       out[k].rgb = views.rgb[v];

@@ -43,6 +43,10 @@ struct RenderedViews {
   at::Tensor alpha;  // V x H x W
 };
 RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras);
+// The same with the model's activations (model.scales(), model.opacities()) given, for callers that render one
+// model in many batches and compute them once.
+RenderedViews render_same_size_views(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
+                                     const std::vector<Camera>& cameras);
 
 // Where the run of cameras that share cameras[begin]'s image size ends, after at most max_count of them: the
 // batches render_same_size_views takes (begin < cameras.size(), max_count >= 1).
