@@ -3,7 +3,6 @@
 #include <algorithm>
 
 #include <ATen/ATen.h>
-#include <ATen/core/grad_mode.h>
 
 #include "gs_trainer/gaps/scores.h"
 #include "gs_trainer/model/render.h"
@@ -24,36 +23,19 @@ int candidate_batch_size(int64_t gaussians, int width, int height, const at::Dev
   return static_cast<int>(std::clamp<int64_t>(kWorkingBytes / std::max<int64_t>(per_view, 1), 1, kMaxBatch));
 }
 
-namespace {
-
-// Statistics of cameras [begin, end), which share one image size, on the model's device.
-at::Tensor batch_statistics(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
-                            const std::vector<Camera>& cameras, size_t begin, size_t end, const GapsConfig& c) {
-  const RenderedViews views =
-      render_same_size_views(model, scales, opacities,
-                             std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
-                                                 cameras.begin() + static_cast<std::ptrdiff_t>(end)));
-  return render_statistics(views.rgb, views.alpha, c);  // render_statistics clamps
-}
-
-}  // namespace
-
 at::Tensor candidate_statistics(const GaussianModel& model, const std::vector<Camera>& cameras, const GapsConfig& c,
                                 int batch) {
   if (cameras.empty()) return at::empty({0, 4}, at::kDouble);
   std::vector<at::Tensor> parts;
-  // The activations once for the pool, not once per batch (a bonsai pool is about 240 batches).
-  const at::NoGradGuard no_grad;
-  const at::Tensor scales = model.scales(), opacities = model.opacities();
-  size_t begin = 0;
-  while (begin < cameras.size()) {
-    const Camera& first = cameras[begin];
-    const int size =
-        batch > 0 ? batch : candidate_batch_size(model.size(), first.width, first.height, model.means.device(), c);
-    const size_t end = same_size_run_end(cameras, begin, static_cast<size_t>(size));
-    parts.push_back(batch_statistics(model, scales, opacities, cameras, begin, end, c));
-    begin = end;
-  }
+  render_same_size_batches(
+      model, cameras,
+      [&](const Camera& first) {
+        return static_cast<size_t>(
+            batch > 0 ? batch : candidate_batch_size(model.size(), first.width, first.height, model.means.device(), c));
+      },
+      [&](size_t, size_t, const RenderedViews& views) {
+        parts.push_back(render_statistics(views.rgb, views.alpha, c));  // render_statistics clamps
+      });
   // Kept on the device until every batch is queued: one copy to the host for the whole pool.
   return at::cat(parts).cpu().contiguous();
 }

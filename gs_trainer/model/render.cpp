@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cstdint>
 #include <deque>
 #include <optional>
 #include <stdexcept>
@@ -131,59 +132,61 @@ namespace {
 
 raster::Intrinsics intrinsics_of(const Camera& c) { return {c.fx, c.fy, c.cx, c.cy, c.width, c.height}; }
 
-}  // namespace
-
-RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
-  const at::NoGradGuard no_grad;
-  return render_same_size_views(model, model.scales(), model.opacities(), cameras);
-}
-
-RenderedViews render_same_size_views(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
-                                     const std::vector<Camera>& cameras) {
-  if (cameras.empty()) throw std::invalid_argument("render_same_size_views: no cameras");
+// render_same_size_views of cameras [begin, end) with the model's activations given (no autograd graph).
+RenderedViews render_same_size_range(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
+                                     const std::vector<Camera>& cameras, size_t begin, size_t end) {
+  if (begin >= end) throw std::invalid_argument("render_same_size_views: no cameras");
   std::vector<at::Tensor> viewmats;
   std::vector<std::array<double, 3>> centres;
   std::vector<raster::Intrinsics> intrinsics;
-  for (const Camera& camera : cameras) {
-    if (camera.width != cameras.front().width || camera.height != cameras.front().height)
+  for (size_t k = begin; k < end; ++k) {
+    const Camera& camera = cameras[k];
+    if (camera.width != cameras[begin].width || camera.height != cameras[begin].height)
       throw std::invalid_argument("render_same_size_views: the cameras differ in image size");
     intrinsics.push_back(intrinsics_of(camera));
     viewmats.push_back(camera.viewmat());
     const Eigen::Vector3d c = camera.center();
     centres.push_back({c.x(), c.y(), c.z()});
   }
-  const at::NoGradGuard no_grad;
   const RasterizedImage images =
       render_views_forward(model.means, model.quats, scales, opacities, model.sh_dc, model.sh_rest, model.sh_degree,
                            upload(at::stack(viewmats), model.means.options()), centres, intrinsics);
   return {images.features.narrow(3, 0, 3), images.features.select(3, 3), images.alpha};
 }
 
-size_t same_size_run_end(const std::vector<Camera>& cameras, size_t begin, size_t max_count) {
-  const size_t limit = std::min(cameras.size(), begin + std::max<size_t>(max_count, 1));
-  size_t end = begin + 1;
-  while (end < limit && cameras[end].width == cameras[begin].width && cameras[end].height == cameras[begin].height)
-    ++end;
-  return end;
+}  // namespace
+
+RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
+  const at::NoGradGuard no_grad;
+  return render_same_size_range(model, model.scales(), model.opacities(), cameras, 0, cameras.size());
+}
+
+void render_same_size_batches(const GaussianModel& model, const std::vector<Camera>& cameras,
+                              const std::function<size_t(const Camera&)>& max_batch,
+                              const std::function<void(size_t begin, size_t end, const RenderedViews&)>& use) {
+  const at::NoGradGuard no_grad;
+  const at::Tensor scales = model.scales(), opacities = model.opacities();
+  for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
+    const size_t limit = std::min(cameras.size(), begin + std::max<size_t>(max_batch(cameras[begin]), 1));
+    end = begin + 1;
+    while (end < limit && cameras[end].width == cameras[begin].width && cameras[end].height == cameras[begin].height)
+      ++end;
+    use(begin, end, render_same_size_range(model, scales, opacities, cameras, begin, end));
+  }
 }
 
 std::vector<RenderOutput> render_views(const GaussianModel& model, const std::vector<Camera>& cameras) {
   std::vector<RenderOutput> out(cameras.size());
-  const at::NoGradGuard no_grad;
-  const at::Tensor scales = model.scales(), opacities = model.opacities();
-  for (size_t begin = 0, end = 0; begin < cameras.size(); begin = end) {
-    end = same_size_run_end(cameras, begin);
-    const RenderedViews views =
-        render_same_size_views(model, scales, opacities,
-                               std::vector<Camera>(cameras.begin() + static_cast<std::ptrdiff_t>(begin),
-                                                   cameras.begin() + static_cast<std::ptrdiff_t>(end)));
-    for (size_t k = begin; k < end; ++k) {
-      const auto v = static_cast<int64_t>(k - begin);
-      out[k].rgb = views.rgb[v];
-      out[k].depth = views.depth[v];
-      out[k].alpha = views.alpha[v];
-    }
-  }
+  render_same_size_batches(
+      model, cameras, [](const Camera&) { return SIZE_MAX; },
+      [&out](size_t begin, size_t end, const RenderedViews& views) {
+        for (size_t k = begin; k < end; ++k) {
+          const auto v = static_cast<int64_t>(k - begin);
+          out[k].rgb = views.rgb[v];
+          out[k].depth = views.depth[v];
+          out[k].alpha = views.alpha[v];
+        }
+      });
   return out;
 }
 

@@ -2,7 +2,7 @@
 // Renders a Gaussian model from a camera: colour, the paper's depth (eq. depth_render: alpha-composited
 // distance from the camera centre) and alpha, plus what densification needs.
 #include <cstddef>
-#include <cstdint>
+#include <functional>
 #include <vector>
 
 #include <ATen/Tensor.h>
@@ -43,14 +43,13 @@ struct RenderedViews {
   at::Tensor alpha;  // V x H x W
 };
 RenderedViews render_same_size_views(const GaussianModel& model, const std::vector<Camera>& cameras);
-// The same with the model's activations (model.scales(), model.opacities()) given, for callers that render one
-// model in many batches and compute them once.
-RenderedViews render_same_size_views(const GaussianModel& model, const at::Tensor& scales, const at::Tensor& opacities,
-                                     const std::vector<Camera>& cameras);
 
-// Where the run of cameras that share cameras[begin]'s image size ends, after at most max_count of them: the
-// batches render_same_size_views takes (begin < cameras.size(), max_count >= 1).
-size_t same_size_run_end(const std::vector<Camera>& cameras, size_t begin, size_t max_count = SIZE_MAX);
+// Renders the cameras as render_same_size_views does, in batches of consecutive cameras of one image size, at
+// most max_batch(first camera of the batch) of them each (>= 1), with the model's activations computed once for
+// all batches; hands each batch to use() with the range [begin, end) of cameras it holds, in order.
+void render_same_size_batches(const GaussianModel& model, const std::vector<Camera>& cameras,
+                              const std::function<size_t(const Camera&)>& max_batch,
+                              const std::function<void(size_t begin, size_t end, const RenderedViews&)>& use);
 
 // Per Gaussian, its blending weight alpha * T summed over every pixel of the view: how many pixels' worth
 // of the image it makes. Read off the rasterizer's backward pass (the image is linear in the features, with
