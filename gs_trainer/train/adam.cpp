@@ -11,9 +11,6 @@
 namespace gaps {
 namespace {
 
-using AdamUpdate = void (*)(at::Tensor& param, const at::Tensor& grad, at::Tensor& exp_avg, at::Tensor& exp_avg_sq,
-                            const backend::AdamStep& step);
-
 // The update in ATen operations, for any device.
 void adam_update_aten(at::Tensor& param, const at::Tensor& grad, at::Tensor& exp_avg, at::Tensor& exp_avg_sq,
                       const backend::AdamStep& step) {
@@ -23,13 +20,14 @@ void adam_update_aten(at::Tensor& param, const at::Tensor& grad, at::Tensor& exp
   param.addcdiv_(exp_avg, denom, -step.lr / step.bias_correction1);
 }
 
-// The fused kernel where this build has it and the tensors suit it (it reads the gradient as one dense
-// array); ATen's operations otherwise.
-AdamUpdate adam_update_for([[maybe_unused]] const at::Tensor& param, [[maybe_unused]] const at::Tensor& grad) {
+// Whether the fused kernel takes this update: a build with it, CUDA tensors and a gradient it can read as one
+// dense array. ATen's operations take the rest.
+bool fused_update_takes([[maybe_unused]] const at::Tensor& param, [[maybe_unused]] const at::Tensor& grad) {
 #if defined(GAPS_CUDA_KERNELS)
-  if (param.is_cuda() && grad.is_contiguous()) return backend::adam_update_cuda;
+  return param.is_cuda() && grad.is_contiguous();
+#else
+  return false;
 #endif
-  return adam_update_aten;
 }
 
 }  // namespace
@@ -50,12 +48,20 @@ void GaussianAdam::step() {
   const double bc1 = 1 - std::pow(beta1_, static_cast<double>(steps_));
   const double bc2 = 1 - std::pow(beta2_, static_cast<double>(steps_));
   at::AutoGradMode no_grad(false);
+  std::vector<backend::AdamTensors> fused;
   for (auto& g : groups_) {
     const at::Tensor& grad = g.param->grad();
     if (!grad.defined()) continue;
     at::Tensor param = g.param->detach();  // shares storage: the update is in place
-    adam_update_for(param, grad)(param, grad, g.exp_avg, g.exp_avg_sq, {g.lr, beta1_, beta2_, eps_, bc1, bc2});
+    const backend::AdamStep constants{g.lr, beta1_, beta2_, eps_, bc1, bc2};
+    if (fused_update_takes(param, grad))
+      fused.push_back({param, grad, g.exp_avg, g.exp_avg_sq, constants});
+    else
+      adam_update_aten(param, grad, g.exp_avg, g.exp_avg_sq, constants);
   }
+#if defined(GAPS_CUDA_KERNELS)
+  backend::adam_update_cuda(fused);
+#endif
 }
 
 void GaussianAdam::zero_grad() {

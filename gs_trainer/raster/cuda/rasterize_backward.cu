@@ -2,10 +2,12 @@
 // per pixel, walking the tile's list back to front in shared-memory batches. Each thread undoes its
 // pixel's compositing (T grows back by 1 / (1 - alpha), `behind` holds the features composited behind)
 // with the operations of cpu/rasterize_backward.cpp. The 32 pixels of a warp then sum their gradients for
-// the current Gaussian with shuffles, and one lane adds the sums to the per-Gaussian gradients with
-// atomics: 32 times fewer atomics than per-pixel ones. The |mean2d| sums are compiled in only where a
-// caller asks for them (absolute-gradient densification). The variants measured against this plain form,
-// all slower, are in docs/benchmarks.md ("CUDA rasterizer against gsplat").
+// the current Gaussian, all slots at once (slot_sums: a butterfly that halves the slots each lane carries at
+// every step, 16 shuffles for 16 slots where one warp sum per slot takes 60), which leaves slot s in lane
+// s * 32 / slots; those lanes add their sums to the per-Gaussian gradients with one atomic instruction
+// between them. The |mean2d| sums are compiled in only where a caller asks for them (absolute-gradient
+// densification). The variants measured against this form are in docs/benchmarks.md ("CUDA rasterizer against
+// gsplat", "Speed: ...").
 // Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
 // deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
 // millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
@@ -27,9 +29,36 @@ constexpr int kBlock = kTile * kTile;
 constexpr int kWarps = kBlock / 32;
 constexpr unsigned kFullMask = 0xffffffffu;
 
-__device__ float warp_sum(float v) {
-  for (int offset = 16; offset > 0; offset /= 2) v += __shfl_xor_sync(kFullMask, v, offset);
-  return v;
+// One butterfly step of slot_sums: lanes whose OFFSET bit is set keep the upper HALF of their slots, the
+// others the lower half, each adding what its partner lane OFFSET away sends of the same half.
+template <int HALF, int OFFSET, int P>
+__device__ __forceinline__ void halve_slots(float (&v)[P], int lane) {
+  const bool upper = (lane & OFFSET) != 0;
+#pragma unroll
+  for (int i = 0; i < HALF; ++i) {
+    const float send = upper ? v[i] : v[i + HALF];
+    const float keep = upper ? v[i + HALF] : v[i];
+    v[i] = keep + __shfl_xor_sync(kFullMask, send, OFFSET);
+  }
+  if constexpr (HALF > 1) halve_slots<HALF / 2, OFFSET / 2>(v, lane);
+}
+
+// The sums over the warp's 32 lanes of each of the P slots (P a power of two, at most 32): slot
+// lane / (32 / P) is returned in that lane, every lane of a group of 32 / P holding the same sum.
+template <int P>
+__device__ __forceinline__ float slot_sums(float (&v)[P], int lane) {
+  static_assert(P >= 2 && P <= 32 && (P & (P - 1)) == 0, "slot_sums takes 2, 4, 8, 16 or 32 slots");
+  halve_slots<P / 2, 16>(v, lane);
+  float sum = v[0];
+#pragma unroll
+  for (int offset = 16 / P; offset > 0; offset /= 2) sum += __shfl_xor_sync(kFullMask, sum, offset);
+  return sum;
+}
+
+constexpr int padded_slots(int n) {
+  int p = 2;
+  while (p < n) p *= 2;
+  return p;
 }
 
 // The gradient slots of one Gaussian.
@@ -124,7 +153,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
             power >= splat.conic_c_opacity.z && raster::alpha_from_power_host_rounding(power, opacity, alpha, gauss);
       }
       if (!__any_sync(kFullMask, valid)) continue;
-      constexpr int kSlots = kFeatures + CMAX;
+      constexpr int kSlots = padded_slots(kFeatures + CMAX);
       float slots[kSlots];
 #pragma unroll
       for (int i = 0; i < kSlots; ++i) slots[i] = 0.f;
@@ -154,19 +183,17 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
         slots[kConicB] = g_conic.b;
         slots[kConicC] = g_conic.c;
         slots[kOpacity] = g_opacity;
-        slots[kAbsX] = fabsf(g_mean.x);
-        slots[kAbsY] = fabsf(g_mean.y);
-      }
-#pragma unroll
-      for (int i = 0; i < kSlots; ++i)
-        if (ABS || (i != kAbsX && i != kAbsY)) slots[i] = warp_sum(slots[i]);
-      if (lane == 0) {
-        const int64_t g = s_id[j];
-#pragma unroll
-        for (int i = 0; i < kSlots; ++i) {
-          float* target = slot_target(a, g, i);
-          if ((ABS || (i != kAbsX && i != kAbsY)) && target != nullptr) atomicAdd(target, slots[i]);
+        if (ABS) {
+          slots[kAbsX] = fabsf(g_mean.x);
+          slots[kAbsY] = fabsf(g_mean.y);
         }
+      }
+      const float sum = slot_sums(slots, lane);
+      constexpr int kLanesPerSlot = 32 / kSlots;
+      const int slot = lane / kLanesPerSlot;
+      if (lane % kLanesPerSlot == 0 && (ABS || (slot != kAbsX && slot != kAbsY))) {
+        float* target = slot_target(a, s_id[j], slot);
+        if (target != nullptr) atomicAdd(target, sum);
       }
     }
   }

@@ -28,7 +28,8 @@ struct CentreF {
   float c[3];
 };
 
-__global__ void shade_forward_kernel(int64_t n, int degree, CentreF centre, const float* __restrict__ means,
+template <int Degree>
+__global__ void shade_forward_kernel(int64_t n, CentreF centre, const float* __restrict__ means,
                                      const float* __restrict__ dc, const float* __restrict__ rest, int64_t stride,
                                      float* __restrict__ out) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
@@ -38,11 +39,15 @@ __global__ void shade_forward_kernel(int64_t n, int degree, CentreF centre, cons
     m[k] = means[3 * i + k];
     d[k] = dc[3 * i + k];
   }
-  raster::shade_one(degree, m, centre.c, d, rest + stride * i, o);
+  raster::shade_one(Degree, m, centre.c, d, rest + stride * i, o);
   reinterpret_cast<float4*>(out)[i] = make_float4(o[0], o[1], o[2], o[3]);
 }
 
-__global__ void shade_backward_kernel(int64_t n, int degree, CentreF centre, const float* __restrict__ means,
+// The degree is a template argument (as in every kernel of this file): with a runtime degree the basis and its
+// gradient were indexed in local memory, which made this the costliest kernel of a training step after the
+// compositing passes.
+template <int Degree>
+__global__ void shade_backward_kernel(int64_t n, CentreF centre, const float* __restrict__ means,
                                       const float* __restrict__ dc, const float* __restrict__ rest, int64_t stride,
                                       const float* __restrict__ g_features, float* __restrict__ g_means,
                                       float* __restrict__ g_dc, float* __restrict__ g_rest) {
@@ -54,10 +59,30 @@ __global__ void shade_backward_kernel(int64_t n, int degree, CentreF centre, con
     d[k] = dc[3 * i + k];
   }
   const float gf[4] = {g_features[4 * i], g_features[4 * i + 1], g_features[4 * i + 2], g_features[4 * i + 3]};
-  raster::shade_one_vjp(degree, m, centre.c, d, rest + stride * i, gf, gm, gd, g_rest + stride * i);
+  raster::shade_one_vjp(Degree, m, centre.c, d, rest + stride * i, gf, gm, gd, g_rest + stride * i);
   for (int k = 0; k < 3; ++k) {
     g_means[3 * i + k] = gm[k];
     g_dc[3 * i + k] = gd[k];
+  }
+}
+
+// Calls f(kernel<degree>) for an SH degree of 0 to 3.
+template <template <int> class KernelOf, typename F>
+void dispatch_degree(int degree, F&& f) {
+  TORCH_CHECK(degree >= 0 && degree <= 3, "the CUDA shading kernels take SH degrees 0 to 3, got ", degree);
+  switch (degree) {
+    case 0:
+      f(KernelOf<0>::kernel);
+      break;
+    case 1:
+      f(KernelOf<1>::kernel);
+      break;
+    case 2:
+      f(KernelOf<2>::kernel);
+      break;
+    default:
+      f(KernelOf<3>::kernel);
+      break;
   }
 }
 
@@ -91,6 +116,19 @@ __global__ void shade_views_forward_kernel(int64_t n, int views, CentresF centre
   }
 }
 
+template <int Degree>
+struct ShadeForward {
+  static constexpr auto kernel = shade_forward_kernel<Degree>;
+};
+template <int Degree>
+struct ShadeViewsForward {
+  static constexpr auto kernel = shade_views_forward_kernel<Degree>;
+};
+template <int Degree>
+struct ShadeBackward {
+  static constexpr auto kernel = shade_backward_kernel<Degree>;
+};
+
 constexpr int kThreads = kElementwiseThreads;
 CentreF to_float(const Centre& c) { return {{float(c.x), float(c.y), float(c.z)}}; }
 
@@ -104,9 +142,11 @@ at::Tensor shade_forward_cuda(const at::Tensor& means_in, const at::Tensor& sh_d
   const int64_t n = means.size(0);
   at::Tensor out = at::empty({n, 4}, means.options());
   if (n == 0) return out;
-  shade_forward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
-      n, degree, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(),
-      rest.size(1) * 3, out.data_ptr<float>());
+  dispatch_degree<ShadeForward>(degree, [&](auto kernel) {
+    kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+        n, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(), rest.size(1) * 3,
+        out.data_ptr<float>());
+  });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return out;
 }
@@ -115,7 +155,6 @@ at::Tensor shade_views_forward_cuda(const at::Tensor& means_in, const at::Tensor
                                     const at::Tensor& sh_rest_in, int degree, const std::vector<Centre>& centres,
                                     const at::Tensor& radii_in) {
   check_inputs(means_in, sh_dc_in, sh_rest_in);
-  TORCH_CHECK(degree >= 0 && degree <= 3, "shade_views_forward_cuda: SH degree must be 0..3, got ", degree);
   const c10::cuda::CUDAGuard guard(means_in.device());
   const auto means = means_in.contiguous(), dc = sh_dc_in.contiguous(), rest = sh_rest_in.contiguous();
   const int64_t n = means.size(0), views = static_cast<int64_t>(centres.size());
@@ -136,20 +175,7 @@ at::Tensor shade_views_forward_cuda(const at::Tensor& means_in, const at::Tensor
           n, count, c, means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(), rest.size(1) * 3,
           radii.data_ptr<int>() + first * n, out.data_ptr<float>() + 4 * first * n);
     };
-    switch (degree) {
-      case 0:
-        launch(shade_views_forward_kernel<0>);
-        break;
-      case 1:
-        launch(shade_views_forward_kernel<1>);
-        break;
-      case 2:
-        launch(shade_views_forward_kernel<2>);
-        break;
-      default:
-        launch(shade_views_forward_kernel<3>);
-        break;
-    }
+    dispatch_degree<ShadeViewsForward>(degree, launch);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
   return out;
@@ -168,10 +194,14 @@ ShadeGrads shade_backward_cuda(const at::Tensor& means_in, const at::Tensor& sh_
   g.sh_dc = at::empty_like(dc);
   g.sh_rest = at::zeros_like(rest);  // rows above the active degree get no gradient
   if (n == 0) return g;
-  shade_backward_kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
-      n, degree, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(),
-      rest.size(1) * 3, g_features.data_ptr<float>(), g.means.data_ptr<float>(), g.sh_dc.data_ptr<float>(),
-      g.sh_rest.data_ptr<float>());
+  TORCH_CHECK(g_features.size(0) == n && g_features.size(1) == 4, "shade_backward_cuda: g_features must be ", n,
+              " x 4, got ", g_features.sizes());
+  dispatch_degree<ShadeBackward>(degree, [&](auto kernel) {
+    kernel<<<blocks_for(n), kThreads, 0, at::cuda::getCurrentCUDAStream()>>>(
+        n, to_float(centre), means.data_ptr<float>(), dc.data_ptr<float>(), rest.data_ptr<float>(), rest.size(1) * 3,
+        g_features.data_ptr<float>(), g.means.data_ptr<float>(), g.sh_dc.data_ptr<float>(),
+        g.sh_rest.data_ptr<float>());
+  });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return g;
 }
