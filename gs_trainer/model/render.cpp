@@ -52,28 +52,6 @@ using torch::autograd::AutogradContext;
 using torch::autograd::tensor_list;
 using torch::autograd::Variable;
 
-// rgb = the first three composited channels + (1 - alpha) * background, as one autograd node (it was a slice, a
-// subtraction, a product and a sum, each a node with its host-side cost in every training step). Forward and
-// backward use the operations autograd used for those nodes, so renders and gradients keep their bits.
-class OverBackgroundFunction : public torch::autograd::Function<OverBackgroundFunction> {
- public:
-  static tensor_list forward(AutogradContext* ctx, Variable features, Variable alpha, Variable background) {
-    const at::Tensor bg = background.view({1, 1, 3});
-    ctx->save_for_backward({bg});
-    ctx->saved_data["channels"] = features.size(2);
-    return {features.narrow(2, 0, 3) + (1 - alpha).unsqueeze(2) * bg};
-  }
-
-  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
-    const at::Tensor bg = ctx->get_saved_variables()[0];
-    const at::Tensor& g = grads[0];
-    const int64_t channels = ctx->saved_data["channels"].toInt();
-    const at::Tensor g_features = at::constant_pad_nd(g, {0, channels - 3});
-    const at::Tensor g_alpha = (g * bg).sum_to_size({g.size(0), g.size(1), 1}).squeeze(2).neg();
-    return {g_features, g_alpha, Variable()};
-  }
-};
-
 // scales = exp(log_scales) and opacities = sigmoid(logits) [* scale], the model's activations, as one autograd node
 // instead of two or three; the backward applies the formulas autograd's own nodes use (ExpBackward's grad * result,
 // MulBackward's grad * other, sigmoid_backward), so gradients keep their bits.
@@ -119,7 +97,7 @@ RenderOutput render(const GaussianModel& model, const Camera& camera, const Rend
                                           proj.radii, camera.width, camera.height, options.means2d_abs_sink);
   RenderOutput out;
   out.rgb = options.background.defined()
-                ? OverBackgroundFunction::apply(raster.features, raster.alpha, upload(options.background, opts))[0]
+                ? composite_over_background(raster.features, raster.alpha, upload(options.background, opts))
                 : raster.features.narrow(2, 0, 3);
   out.depth = raster.features.select(2, 3);
   out.alpha = raster.alpha;

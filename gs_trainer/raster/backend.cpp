@@ -17,16 +17,42 @@ RasterGrads rasterize_backward_cpu_entry(const TileBins& bins, const at::Tensor&
 
 // In the order of RasterBackend's members; every entry has its own type, so a misplaced one does not compile.
 constexpr RasterBackend kCpu{
-    project_forward_cpu,   project_backward_cpu,         shade_forward_cpu,       shade_backward_cpu,
-    bin_tiles_cpu,         project_views_forward_cpu,    shade_views_forward_cpu, rasterize_views_forward_cpu,
-    rasterize_forward_cpu, rasterize_backward_cpu_entry, ssim_forward_cpu,        ssim_backward_cpu,
+    project_forward_cpu,
+    project_backward_cpu,
+    shade_forward_cpu,
+    shade_backward_cpu,
+    bin_tiles_cpu,
+    project_views_forward_cpu,
+    shade_views_forward_cpu,
+    rasterize_views_forward_cpu,
+    rasterize_forward_cpu,
+    rasterize_backward_cpu_entry,
+    ssim_forward_cpu,
+    ssim_backward_cpu,
+    over_background_forward_cpu,
+    over_background_backward_cpu,
+    photometric_forward_cpu,
+    photometric_backward_cpu,
 };
 
 #if defined(GAPS_CUDA_KERNELS)
 constexpr RasterBackend kCudaTable{
-    project_forward_cuda,   project_backward_cuda,      shade_forward_cuda,       shade_backward_cuda,
-    bin_tiles_cuda,         project_views_forward_cuda, shade_views_forward_cuda, rasterize_views_forward_cuda,
-    rasterize_forward_cuda, rasterize_backward_cuda,    ssim_forward_cuda,        ssim_backward_cuda,
+    project_forward_cuda,
+    project_backward_cuda,
+    shade_forward_cuda,
+    shade_backward_cuda,
+    bin_tiles_cuda,
+    project_views_forward_cuda,
+    shade_views_forward_cuda,
+    rasterize_views_forward_cuda,
+    rasterize_forward_cuda,
+    rasterize_backward_cuda,
+    ssim_forward_cuda,
+    ssim_backward_cuda,
+    over_background_forward_cuda,
+    over_background_backward_cuda,
+    photometric_forward_cuda,
+    photometric_backward_cuda,
 };
 constexpr const RasterBackend* kCuda = &kCudaTable;
 #else

@@ -1,5 +1,5 @@
 #pragma once
-// The stages of rasterize_backend.h and the SSIM passes of ssim_backend.h for one device, as a table: the
+// The stages of rasterize_backend.h and the SSIM passes and loss of ssim_backend.h for one device, as a table: the
 // autograd wrappers pick a table by the device of their input, and backend.cpp is the one file that knows
 // whether this build has CUDA kernels.
 #include <c10/core/Device.h>
@@ -27,6 +27,10 @@ struct RasterBackend {
                                     const at::Tensor& g_alpha, bool absolute_grads);
   decltype(&ssim_forward_cpu) ssim_forward;
   decltype(&ssim_backward_cpu) ssim_backward;
+  decltype(&over_background_forward_cpu) over_background_forward;
+  decltype(&over_background_backward_cpu) over_background_backward;
+  decltype(&photometric_forward_cpu) photometric_forward;
+  decltype(&photometric_backward_cpu) photometric_backward;
 };
 
 // The CUDA table for CUDA devices, the CPU one for every other; c10::Error for a CUDA device in a build

@@ -43,46 +43,30 @@ class SsimMapFunction : public torch::autograd::Function<SsimMapFunction> {
   }
 };
 
-// The training loss (1 - lambda) * mean(w * |pred - gt|) + lambda * mean(w * (1 - SSIM map)) as one autograd node
-// (w = 1 when `weight` is undefined; otherwise H x W x 1). Every training step runs it: written with ATen ops it was
-// a dozen autograd nodes whose bookkeeping on the host cost more than their kernels. The gradient is formed with the
-// float operations autograd used for those ops, in the same order, so training results keep their bits.
+// The training loss (backend::photometric_forward) as one autograd node, w = 1 when `weight` is undefined, otherwise
+// H x W x 1. Every training step runs it: written with ATen ops it was a dozen autograd nodes whose bookkeeping on
+// the host cost more than their kernels.
 class PhotometricLossFunction : public torch::autograd::Function<PhotometricLossFunction> {
  public:
   static tensor_list forward(AutogradContext* ctx, Variable pred, Variable gt, std::optional<at::Tensor> weight_in,
                              double lambda) {
     const at::Tensor weight = weight_in.value_or(at::Tensor());
-    const backend::SsimForward f = backend::raster_backend(pred.device()).ssim_forward(pred, gt);
-    const at::Tensor diff = pred - gt;
-    at::Tensor loss;
-    if (weight.defined()) {
-      loss = (1.0 - lambda) * (weight * diff.abs()).mean() + lambda * (weight * (1.0 - f.map)).mean();
-    } else {
-      loss = (1.0 - lambda) * diff.abs().mean() + lambda * (1.0 - f.map.mean());
-    }
-    ctx->save_for_backward({pred, gt, f.partials, diff});
+    const backend::PhotometricForward f =
+        backend::raster_backend(pred.device()).photometric_forward(pred, gt, weight, lambda);
+    ctx->save_for_backward({pred, gt, f.partials});
     ctx->saved_data["lambda"] = lambda;
     // The weight is data, not an input of the graph: it travels outside the saved variables.
     if (weight.defined()) ctx->saved_data["weight"] = weight;
-    return {loss};
+    return {f.loss};
   }
 
   static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
     const auto s = ctx->get_saved_variables();
-    const at::Tensor &pred = s[0], &diff = s[3];
     const at::Tensor weight = ctx->saved_data.count("weight") ? ctx->saved_data["weight"].toTensor() : at::Tensor();
     const double lambda = ctx->saved_data["lambda"].toDouble();
-    const int64_t n = pred.numel();
-    // As autograd: the scalar factors, then the mean's division, then the weight, then |.|'s sign.
-    at::Tensor g_l1 = ((grads[0] * (1.0 - lambda)) / n).expand(pred.sizes());
-    at::Tensor g_map = ((grads[0] * lambda) / n).expand(pred.sizes());
-    if (weight.defined()) {
-      g_l1 = g_l1 * weight;
-      g_map = g_map * weight;
-    }
-    g_map = g_map.neg().contiguous();
-    const at::Tensor g_ssim = backend::raster_backend(pred.device()).ssim_backward(pred, s[1], s[2], g_map);
-    return {g_ssim + g_l1 * diff.sgn(), Variable(), Variable(), Variable()};
+    const at::Tensor g_pred =
+        backend::raster_backend(s[0].device()).photometric_backward(s[0], s[1], s[2], weight, lambda, grads[0]);
+    return {g_pred, Variable(), Variable(), Variable()};
   }
 };
 

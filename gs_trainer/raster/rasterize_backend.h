@@ -87,7 +87,20 @@ RasterGrads rasterize_backward_cpu(const TileBins& bins, const at::Tensor& means
                                    const at::Tensor& opacities, const at::Tensor& features, const RasterOutput& forward,
                                    const at::Tensor& g_features, const at::Tensor& g_alpha);
 
+// rgb = the first three feature channels + (1 - alpha) * background (3 values): H x W x 3. Its backward gives
+// dL/dfeatures (H x W x channels, zero past the third) and dL/dalpha (H x W). The CPU's are the ATen operations
+// autograd differentiated when the compositing was written in them (CPU renders and gradients keep their bits).
+struct BackgroundGrads {
+  at::Tensor features, alpha;
+};
+at::Tensor over_background_forward_cpu(const at::Tensor& features, const at::Tensor& alpha,
+                                       const at::Tensor& background);
+BackgroundGrads over_background_backward_cpu(const at::Tensor& g_rgb, const at::Tensor& background, int64_t channels);
+
 #if defined(GAPS_CUDA_KERNELS)
+at::Tensor over_background_forward_cuda(const at::Tensor& features, const at::Tensor& alpha,
+                                        const at::Tensor& background);
+BackgroundGrads over_background_backward_cuda(const at::Tensor& g_rgb, const at::Tensor& background, int64_t channels);
 Projection project_forward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                                 const at::Tensor& viewmat, const raster::Intrinsics& K);
 ProjectionGrads project_backward_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,

@@ -124,6 +124,25 @@ void check_projection_inputs(const at::Tensor& means, const at::Tensor& quats, c
   TORCH_CHECK(scales.sizes() == means.sizes(), "scales must be N x 3, got ", scales.sizes());
 }
 
+// One autograd node (it was a slice, a subtraction, a product and a sum, each a node with its host-side cost in
+// every training step).
+class OverBackgroundFunction : public torch::autograd::Function<OverBackgroundFunction> {
+ public:
+  static tensor_list forward(AutogradContext* ctx, Variable features, Variable alpha, Variable background) {
+    ctx->save_for_backward({background});
+    ctx->saved_data["channels"] = features.size(2);
+    return {backend::raster_backend(features.device()).over_background_forward(features, alpha, background)};
+  }
+
+  static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
+    const at::Tensor background = ctx->get_saved_variables()[0];
+    const backend::BackgroundGrads g =
+        backend::raster_backend(background.device())
+            .over_background_backward(grads[0], background, ctx->saved_data["channels"].toInt());
+    return {g.features, g.alpha, Variable()};
+  }
+};
+
 }  // namespace
 
 at::Tensor shade_gaussians(const at::Tensor& means, const at::Tensor& sh_dc, const at::Tensor& sh_rest, int degree,
@@ -185,6 +204,17 @@ RasterizedImage render_views_forward(const at::Tensor& means_in, const at::Tenso
   const backend::RasterOutput out = stages.rasterize_views_forward(
       views, p.means2d, p.conics, opacities_in.detach().repeat({views}), p.radii, p.depths, features, width, height);
   return {out.features.view({views, height, width, 4}), out.alpha.view({views, height, width})};
+}
+
+at::Tensor composite_over_background(const at::Tensor& features, const at::Tensor& alpha,
+                                     const at::Tensor& background) {
+  TORCH_CHECK(features.dim() == 3 && features.size(2) >= 3,
+              "composite_over_background: H x W x C features (C >= 3) "
+              "expected, got ",
+              features.sizes());
+  TORCH_CHECK(background.numel() == 3 && background.device() == features.device(),
+              "composite_over_background: the background must be 3 values on the features' device");
+  return OverBackgroundFunction::apply(features, alpha, background)[0];
 }
 
 }  // namespace gaps

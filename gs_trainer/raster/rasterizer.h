@@ -1,5 +1,6 @@
 #pragma once
-// The differentiable rasterizer: three autograd operations, the same on every device.
+// The differentiable rasterizer: three autograd operations, the same on every device, and the compositing over a
+// background.
 //   shade_gaussians:     3D means, SH coefficients, camera centre -> colour and distance per Gaussian
 //   project_gaussians:   3D means, quaternions, scales  -> 2D means, conics (+ depths, radii)
 //   rasterize_gaussians: 2D Gaussians, opacities, per-Gaussian features -> feature image, alpha
@@ -40,6 +41,10 @@ struct RasterizedImage {
 RasterizedImage rasterize_gaussians(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
                                     const at::Tensor& features, const at::Tensor& depths, const at::Tensor& radii,
                                     int width, int height, const at::Tensor& means2d_abs_sink = {});
+
+// rgb = the first three feature channels + (1 - alpha) * background: the image over a background colour (3 values on
+// the features' device), differentiable in features and alpha.
+at::Tensor composite_over_background(const at::Tensor& features, const at::Tensor& alpha, const at::Tensor& background);
 
 // Forward-only renders of the same Gaussians from V cameras of one image size (no autograd graph): viewmats
 // V x 4 x 4, centres the V camera centres, intrinsics one per view (all of one width and height). Stacked: features V x

@@ -87,16 +87,24 @@ GAPS_HD T ssim_value_and_partials(const T m[kMoments], T partials[kPartials]) {
   return s;
 }
 
-// Horizontal pass of g * partials at (y, x, c).
+// dL/dS read from an H x W x C array.
 template <typename T>
-GAPS_HD void horizontal_gradient(const T* partials, const T* g_map, const Shape& s, const Window<T>& win, int y, int x,
-                                 int c, T out[kPartials]) {
+struct MapGradientArray {
+  const T* g;
+  GAPS_HD T operator()(int64_t i) const { return g[i]; }
+};
+
+// Horizontal pass of g * partials at (y, x, c); g_map(i) gives dL/dS at element i (MapGradientArray, or a rule
+// that forms it on the fly).
+template <typename T, typename MapGradient>
+GAPS_HD void horizontal_gradient(const T* partials, const MapGradient& g_map, const Shape& s, const Window<T>& win,
+                                 int y, int x, int c, T out[kPartials]) {
   for (int k = 0; k < kPartials; ++k) out[k] = T(0);
   for (int t = 0; t < kWindow; ++t) {
     const int xx = x + t - kRadius;
     if (xx < 0 || xx >= s.width) continue;
     const int64_t i = (int64_t(y) * s.width + xx) * s.channels + c;
-    const T wg = win.w[t] * g_map[i];
+    const T wg = win.w[t] * g_map(i);
     for (int k = 0; k < kPartials; ++k) out[k] += wg * partials[i * kPartials + k];
   }
 }

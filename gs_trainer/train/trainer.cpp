@@ -129,9 +129,9 @@ absl::Status Trainer::run(const std::function<void(const TrainProgress&)>& on_pr
     if (next_step) {
       auto loss = next_step();
       if (!loss.ok()) return loss.status();
-      loss_sum = loss_sum + *loss;
+      loss_sum.add_(*loss);
     } else {
-      loss_sum = loss_sum + step();
+      loss_sum.add_(step());
     }
     if (iteration_ % report_every != 0 && iteration_ != config_.iterations) continue;
     const double mean_loss = loss_sum.item<double>() / (iteration_ - last_iteration);

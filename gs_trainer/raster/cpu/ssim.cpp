@@ -1,4 +1,4 @@
-// The SSIM map and its backward pass on the CPU (ssim_math.h), rows in parallel.
+// The SSIM map and its backward pass on the CPU (ssim_math.h), rows in parallel, and the training loss over them.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -54,7 +54,7 @@ void backward_impl(const at::Tensor& pred, const at::Tensor& gt, const at::Tenso
   const T* gm = g_map.data_ptr<T>();
   T* r = rows.data_ptr<T>();
   for_each_element(s, [&](int y, int x, int c) {
-    ssim::horizontal_gradient(part, gm, s, win, y, x, c,
+    ssim::horizontal_gradient(part, ssim::MapGradientArray<T>{gm}, s, win, y, x, c,
                               r + ((int64_t(y) * s.width + x) * s.channels + c) * ssim::kPartials);
   });
   const T* p = pred.data_ptr<T>();
@@ -87,6 +87,34 @@ at::Tensor ssim_backward_cpu(const at::Tensor& pred_in, const at::Tensor& gt_in,
   AT_DISPATCH_FLOATING_TYPES(pred.scalar_type(), "ssim_backward_cpu",
                              [&] { backward_impl<scalar_t>(pred, gt, partials, g_map, g_pred); });
   return g_pred;
+}
+
+PhotometricForward photometric_forward_cpu(const at::Tensor& pred, const at::Tensor& gt, const at::Tensor& weight,
+                                           double lambda) {
+  const SsimForward f = ssim_forward_cpu(pred, gt);
+  const at::Tensor diff = pred - gt;
+  at::Tensor loss;
+  if (weight.defined()) {
+    loss = (1.0 - lambda) * (weight * diff.abs()).mean() + lambda * (weight * (1.0 - f.map)).mean();
+  } else {
+    loss = (1.0 - lambda) * diff.abs().mean() + lambda * (1.0 - f.map.mean());
+  }
+  return {loss, f.partials};
+}
+
+at::Tensor photometric_backward_cpu(const at::Tensor& pred, const at::Tensor& gt, const at::Tensor& partials,
+                                    const at::Tensor& weight, double lambda, const at::Tensor& g_loss) {
+  const int64_t n = pred.numel();
+  // As autograd: the scalar factors, then the mean's division, then the weight, then |.|'s sign.
+  at::Tensor g_l1 = ((g_loss * (1.0 - lambda)) / n).expand(pred.sizes());
+  at::Tensor g_map = ((g_loss * lambda) / n).expand(pred.sizes());
+  if (weight.defined()) {
+    g_l1 = g_l1 * weight;
+    g_map = g_map * weight;
+  }
+  g_map = g_map.neg().contiguous();
+  const at::Tensor g_ssim = ssim_backward_cpu(pred, gt, partials, g_map);
+  return g_ssim + g_l1 * (pred - gt).sgn();
 }
 
 }  // namespace gaps::backend
