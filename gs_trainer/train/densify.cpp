@@ -5,6 +5,8 @@
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 
+#include "gs_trainer/train/cuda/densify_stats_cuda.h"
+
 namespace gaps {
 namespace {
 
@@ -66,6 +68,12 @@ void DensityControl::accumulate(const at::Tensor& means2d_grad, const at::Tensor
                                 const at::Tensor& radii, int width, int height) {
   ensure_size(radii.size(0), means2d_grad.options());
   const at::Tensor& g = config_.absolute_gradient && means2d_abs_grad.defined() ? means2d_abs_grad : means2d_grad;
+#if defined(GAPS_CUDA_KERNELS)
+  if (g.is_cuda() && g.scalar_type() == at::kFloat) {
+    backend::accumulate_view_gradients_cuda(g, radii, width, height, grad_accum_, denom_, max_radii_);
+    return;
+  }
+#endif
   // Every step runs this until densification ends, so it is kept to few kernels; radii are 0 exactly where a
   // Gaussian is not visible, which makes them their own mask for the maximum.
   const at::Tensor visible = radii > 0;
