@@ -11,6 +11,7 @@
 #include <ATen/core/grad_mode.h>
 #include <torch/csrc/autograd/custom_function.h>
 
+#include "gs_trainer/model/cuda/activations_cuda.h"
 #include "gs_trainer/raster/rasterizer.h"
 
 namespace gaps {
@@ -53,29 +54,47 @@ using torch::autograd::tensor_list;
 using torch::autograd::Variable;
 
 // scales = exp(log_scales) and opacities = sigmoid(logits) [* scale], the model's activations, as one autograd node
-// instead of two or three; the backward applies the formulas autograd's own nodes use (ExpBackward's grad * result,
-// MulBackward's grad * other, sigmoid_backward), so gradients keep their bits.
+// instead of two or three. On the CPU (and for double precision) the forward and backward are the ATen operations
+// autograd's own nodes use (ExpBackward's grad * result, MulBackward's grad * other, sigmoid_backward), so CPU
+// gradients keep their bits; a CUDA float32 model takes one kernel each way (model/cuda/activations.cu).
 class ActivationsFunction : public torch::autograd::Function<ActivationsFunction> {
  public:
   static tensor_list forward(AutogradContext* ctx, Variable log_scales, Variable logits,
                              std::optional<at::Tensor> opacity_scale) {
+    if (opacity_scale) ctx->saved_data["opacity_scale"] = *opacity_scale;
+#if defined(GAPS_CUDA_KERNELS)
+    if (fused(log_scales)) {
+      const backend::Activations a =
+          backend::activations_forward_cuda(log_scales, logits, opacity_scale.value_or(at::Tensor()));
+      ctx->save_for_backward({a.scales, a.sigmoid});
+      return {a.scales, a.opacities};
+    }
+#endif
     const at::Tensor scales = at::exp(log_scales), sigmoid = at::sigmoid(logits);
     ctx->save_for_backward({scales, sigmoid});
-    if (opacity_scale) ctx->saved_data["opacity_scale"] = *opacity_scale;
     return {scales, opacity_scale ? sigmoid * *opacity_scale : sigmoid};
   }
 
   static tensor_list backward(AutogradContext* ctx, tensor_list grads) {
     const auto s = ctx->get_saved_variables();
+    const at::Tensor opacity_scale =
+        ctx->saved_data.count("opacity_scale") ? ctx->saved_data["opacity_scale"].toTensor() : at::Tensor();
+#if defined(GAPS_CUDA_KERNELS)
+    if (fused(s[0])) {
+      const backend::ActivationGrads g =
+          backend::activations_backward_cuda(grads[0], grads[1], s[0], s[1], opacity_scale);
+      return {g.log_scales, g.logits, Variable()};
+    }
+#endif
     const at::Tensor g_log_scales = grads[0].defined() ? grads[0] * s[0] : at::Tensor();
     at::Tensor g_logits;
-    if (grads[1].defined()) {
-      const at::Tensor g_sigmoid =
-          ctx->saved_data.count("opacity_scale") ? grads[1] * ctx->saved_data["opacity_scale"].toTensor() : grads[1];
-      g_logits = at::sigmoid_backward(g_sigmoid, s[1]);
-    }
+    if (grads[1].defined())
+      g_logits = at::sigmoid_backward(opacity_scale.defined() ? grads[1] * opacity_scale : grads[1], s[1]);
     return {g_log_scales, g_logits, Variable()};
   }
+
+ private:
+  static bool fused(const at::Tensor& t) { return t.is_cuda() && t.scalar_type() == at::kFloat; }
 };
 
 }  // namespace

@@ -8,7 +8,6 @@
 #include <ATen/cuda/CUDAContext.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/empty_like.h>
-#include <ATen/ops/zeros_like.h>
 #include <c10/cuda/CUDAGuard.h>
 
 #include "gs_trainer/raster/cuda/cuda_common.h"
@@ -60,6 +59,8 @@ __global__ void shade_backward_kernel(int64_t n, CentreF centre, const float* __
   }
   const float gf[4] = {g_features[4 * i], g_features[4 * i + 1], g_features[4 * i + 2], g_features[4 * i + 3]};
   raster::shade_one_vjp(Degree, m, centre.c, d, rest + stride * i, gf, gm, gd, g_rest + stride * i);
+  // Coefficients above the active degree get no gradient (written here: no separate clearing pass).
+  for (int64_t k = 3 * ((Degree + 1) * (Degree + 1) - 1); k < stride; ++k) g_rest[stride * i + k] = 0.f;
   for (int k = 0; k < 3; ++k) {
     g_means[3 * i + k] = gm[k];
     g_dc[3 * i + k] = gd[k];
@@ -192,7 +193,7 @@ ShadeGrads shade_backward_cuda(const at::Tensor& means_in, const at::Tensor& sh_
   ShadeGrads g;
   g.means = at::empty_like(means);
   g.sh_dc = at::empty_like(dc);
-  g.sh_rest = at::zeros_like(rest);  // rows above the active degree get no gradient
+  g.sh_rest = at::empty_like(rest);
   if (n == 0) return g;
   TORCH_CHECK(g_features.size(0) == n && g_features.size(1) == 4, "shade_backward_cuda: g_features must be ", n,
               " x 4, got ", g_features.sizes());
