@@ -10,7 +10,9 @@
 namespace gaps {
 namespace {
 
-double max_difference(const at::Tensor& cuda, const at::Tensor& cpu) { return (cuda.cpu() - cpu).abs().max().item<double>(); }
+double max_difference(const at::Tensor& cuda, const at::Tensor& cpu) {
+  return (cuda.cpu() - cpu).abs().max().item<double>();
+}
 
 TEST(ActivationsCuda, MatchAtenWithAndWithoutAnOpacityScale) {
   GAPS_REQUIRE_CUDA_KERNELS();

@@ -24,9 +24,8 @@ __global__ void activations_forward_kernel(int64_t n, const float* __restrict__ 
 
 __global__ void activations_backward_kernel(int64_t n, const float* __restrict__ g_scales,
                                             const float* __restrict__ g_opacities, const float* __restrict__ scales,
-                                            const float* __restrict__ sigmoid,
-                                            const float* __restrict__ opacity_scale, float* __restrict__ g_log_scales,
-                                            float* __restrict__ g_logits) {
+                                            const float* __restrict__ sigmoid, const float* __restrict__ opacity_scale,
+                                            float* __restrict__ g_log_scales, float* __restrict__ g_logits) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   if (g_scales != nullptr)

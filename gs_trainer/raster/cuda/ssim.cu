@@ -49,24 +49,6 @@ __global__ void map_kernel(const float* __restrict__ rows, ssim::Shape s, ssim::
   map[e.i] = ssim::ssim_value_and_partials(m, partials + e.i * ssim::kPartials);
 }
 
-__global__ void gradient_rows_kernel(const float* __restrict__ partials, const float* __restrict__ g_map, ssim::Shape s,
-                                     ssim::Window<float> win, float* __restrict__ rows) {
-  Element e;
-  if (!element_at(s, e)) return;
-  ssim::horizontal_gradient(partials, ssim::MapGradientArray<float>{g_map}, s, win, e.y, e.x, e.c,
-                            rows + e.i * ssim::kPartials);
-}
-
-__global__ void prediction_gradient_kernel(const float* __restrict__ rows, const float* __restrict__ pred,
-                                           const float* __restrict__ gt, ssim::Shape s, ssim::Window<float> win,
-                                           float* __restrict__ g_pred) {
-  Element e;
-  if (!element_at(s, e)) return;
-  float b[ssim::kPartials];
-  ssim::vertical_pass<float, ssim::kPartials>(rows, s, win, e.y, e.x, e.c, b);
-  g_pred[e.i] = ssim::prediction_gradient(b, pred[e.i], gt[e.i]);
-}
-
 constexpr unsigned kFullMask = 0xffffffffu;
 constexpr int kWarps = kElementwiseThreads / 32;
 
@@ -122,30 +104,66 @@ struct LossMapGradient {
   __device__ float operator()(int64_t i) const { return *g_loss * scale * loss_weight(weight, i, channels); }
 };
 
-__global__ void loss_gradient_rows_kernel(const float* __restrict__ partials, LossMapGradient g_map, ssim::Shape s,
-                                          ssim::Window<float> win, float* __restrict__ rows) {
+ssim::Shape shape_of(const at::Tensor& image) {
+  return {static_cast<int>(image.size(0)), static_cast<int>(image.size(1)), static_cast<int>(image.size(2))};
+}
+
+// The L1 term's gradient of the training loss, (1 - lambda) / n * w * dL/dloss * sign(pred - gt).
+struct L1Gradient {
+  const float* g_loss;
+  const float* weight;
+  float scale;  // (1 - lambda) / n
+  int channels;
+  __device__ float operator()(int64_t i, float pred, float gt) const {
+    const float diff = pred - gt;
+    const float sign = diff > 0.f ? 1.f : (diff < 0.f ? -1.f : 0.f);
+    return *g_loss * scale * loss_weight(weight, i, channels) * sign;
+  }
+};
+
+// The plain SSIM backward adds nothing.
+struct NoExtraGradient {
+  __device__ float operator()(int64_t, float, float) const { return 0.f; }
+};
+
+template <typename MapGradient>
+__global__ void gradient_rows_kernel(const float* __restrict__ partials, MapGradient g_map, ssim::Shape s,
+                                     ssim::Window<float> win, float* __restrict__ rows) {
   Element e;
   if (!element_at(s, e)) return;
   ssim::horizontal_gradient(partials, g_map, s, win, e.y, e.x, e.c, rows + e.i * ssim::kPartials);
 }
 
-// The SSIM term's gradient plus the L1 term's, (1 - lambda) / n * w * dL/dloss * sign(pred - gt).
-__global__ void loss_prediction_gradient_kernel(const float* __restrict__ rows, const float* __restrict__ pred,
-                                                const float* __restrict__ gt, ssim::Shape s, ssim::Window<float> win,
-                                                const float* __restrict__ g_loss, const float* __restrict__ weight,
-                                                float l1_scale, float* __restrict__ g_pred) {
+template <typename ExtraGradient>
+__global__ void prediction_gradient_kernel(const float* __restrict__ rows, const float* __restrict__ pred,
+                                           const float* __restrict__ gt, ssim::Shape s, ssim::Window<float> win,
+                                           ExtraGradient extra, float* __restrict__ g_pred) {
   Element e;
   if (!element_at(s, e)) return;
   float b[ssim::kPartials];
   ssim::vertical_pass<float, ssim::kPartials>(rows, s, win, e.y, e.x, e.c, b);
-  const float diff = pred[e.i] - gt[e.i];
-  const float sign = diff > 0.f ? 1.f : (diff < 0.f ? -1.f : 0.f);
-  g_pred[e.i] = ssim::prediction_gradient(b, pred[e.i], gt[e.i]) +
-                *g_loss * l1_scale * loss_weight(weight, e.i, s.channels) * sign;
+  g_pred[e.i] = ssim::prediction_gradient(b, pred[e.i], gt[e.i]) + extra(e.i, pred[e.i], gt[e.i]);
 }
 
-ssim::Shape shape_of(const at::Tensor& image) {
-  return {static_cast<int>(image.size(0)), static_cast<int>(image.size(1)), static_cast<int>(image.size(2))};
+// dL/dpred through the SSIM passes for dL/dS = g_map(i), plus extra(i, pred, gt) per element; pred, gt and
+// partials contiguous on the current device.
+template <typename MapGradient, typename ExtraGradient>
+at::Tensor ssim_gradient(const at::Tensor& pred, const at::Tensor& gt, const at::Tensor& partials,
+                         const MapGradient& g_map, const ExtraGradient& extra) {
+  const ssim::Shape s = shape_of(pred);
+  const auto win = ssim::gaussian_window<float>();
+  at::Tensor g_pred = at::empty_like(pred);
+  const int64_t n = pred.numel();
+  if (n == 0) return g_pred;
+  at::Tensor rows = at::empty({s.height, s.width, s.channels, ssim::kPartials}, pred.options());
+  const auto stream = at::cuda::getCurrentCUDAStream();
+  gradient_rows_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(partials.data_ptr<float>(), g_map, s, win,
+                                                                          rows.data_ptr<float>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  prediction_gradient_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(
+      rows.data_ptr<float>(), pred.data_ptr<float>(), gt.data_ptr<float>(), s, win, extra, g_pred.data_ptr<float>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  return g_pred;
 }
 
 }  // namespace
@@ -178,22 +196,9 @@ at::Tensor ssim_backward_cuda(const at::Tensor& pred_in, const at::Tensor& gt_in
   check_cuda_float("pred", pred_in);
   check_cuda_float("g_map", g_map_in);
   const c10::cuda::CUDAGuard guard(pred_in.device());
-  const auto pred = pred_in.contiguous(), gt = gt_in.contiguous(), partials = partials_in.contiguous();
   const auto g_map = g_map_in.contiguous();
-  const ssim::Shape s = shape_of(pred);
-  const auto win = ssim::gaussian_window<float>();
-  at::Tensor g_pred = at::empty_like(pred);
-  const int64_t n = pred.numel();
-  if (n == 0) return g_pred;
-  at::Tensor rows = at::empty({s.height, s.width, s.channels, ssim::kPartials}, pred.options());
-  const auto stream = at::cuda::getCurrentCUDAStream();
-  gradient_rows_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(
-      partials.data_ptr<float>(), g_map.data_ptr<float>(), s, win, rows.data_ptr<float>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  prediction_gradient_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(
-      rows.data_ptr<float>(), pred.data_ptr<float>(), gt.data_ptr<float>(), s, win, g_pred.data_ptr<float>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  return g_pred;
+  return ssim_gradient(pred_in.contiguous(), gt_in.contiguous(), partials_in.contiguous(),
+                       ssim::MapGradientArray<float>{g_map.data_ptr<float>()}, NoExtraGradient{});
 }
 
 namespace {
@@ -249,27 +254,15 @@ at::Tensor photometric_backward_cuda(const at::Tensor& pred_in, const at::Tensor
   check_cuda_float("dL/dloss", g_loss_in);
   TORCH_CHECK(g_loss_in.numel() == 1, "the loss gradient must be one value, got ", g_loss_in.sizes());
   const c10::cuda::CUDAGuard guard(pred_in.device());
-  const auto pred = pred_in.contiguous(), gt = gt_in.contiguous(), partials = partials_in.contiguous();
-  const auto g_loss = g_loss_in.contiguous();
+  const auto pred = pred_in.contiguous(), g_loss = g_loss_in.contiguous();
   at::Tensor weight;
   const float* w = weight_pointer(weight_in, pred, weight);
-  const ssim::Shape s = shape_of(pred);
-  const auto win = ssim::gaussian_window<float>();
-  at::Tensor g_pred = at::empty_like(pred);
-  const int64_t n = pred.numel();
-  if (n == 0) return g_pred;
-  at::Tensor rows = at::empty({s.height, s.width, s.channels, ssim::kPartials}, pred.options());
-  const auto stream = at::cuda::getCurrentCUDAStream();
-  const float inv_n = 1.f / static_cast<float>(n);
-  const LossMapGradient g_map{g_loss.data_ptr<float>(), w, -static_cast<float>(lambda) * inv_n, s.channels};
-  loss_gradient_rows_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(partials.data_ptr<float>(), g_map, s,
-                                                                               win, rows.data_ptr<float>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  loss_prediction_gradient_kernel<<<blocks_for(n), kElementwiseThreads, 0, stream>>>(
-      rows.data_ptr<float>(), pred.data_ptr<float>(), gt.data_ptr<float>(), s, win, g_loss.data_ptr<float>(), w,
-      static_cast<float>(1 - lambda) * inv_n, g_pred.data_ptr<float>());
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-  return g_pred;
+  const int channels = static_cast<int>(pred.size(2));
+  const float inv_n = pred.numel() > 0 ? 1.f / static_cast<float>(pred.numel()) : 0.f;
+  const float* g = g_loss.data_ptr<float>();
+  return ssim_gradient(pred, gt_in.contiguous(), partials_in.contiguous(),
+                       LossMapGradient{g, w, -static_cast<float>(lambda) * inv_n, channels},
+                       L1Gradient{g, w, static_cast<float>(1 - lambda) * inv_n, channels});
 }
 
 }  // namespace gaps::backend
