@@ -64,16 +64,11 @@ constexpr int padded_slots(int n) {
 // The gradient slots of one Gaussian.
 enum Slot { kMeanX, kMeanY, kConicA, kConicB, kConicC, kOpacity, kAbsX, kAbsY, kFeatures };
 
-// The largest n_contrib of a warp: entries past it were walked by none of the warp's pixels.
-__device__ int warp_max(int v) {
+// The largest n_contrib of the block: entries past it were walked by no pixel of the tile.
+__device__ int block_max(int v, int* s_warp) {
   for (int offset = 16; offset > 0; offset /= 2) v = max(v, __shfl_xor_sync(kFullMask, v, offset));
-  return v;
-}
-
-// The largest of the warps' maxima: entries past it were walked by no pixel of the tile.
-__device__ int block_max(int warp_value, int* s_warp) {
   const int thread = threadIdx.y * kTile + threadIdx.x;
-  if (thread % 32 == 0) s_warp[thread / 32] = warp_value;
+  if (thread % 32 == 0) s_warp[thread / 32] = v;
   __syncthreads();
   int m = s_warp[0];
   for (int w = 1; w < kWarps; ++w) m = max(m, s_warp[w]);
@@ -131,8 +126,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
   for (int ch = 0; ch < CMAX; ++ch) behind[ch] = last_feat[ch] = 0.f;
 
   const int begin = a.ranges[2 * tile];
-  const int warp_contrib = warp_max(contrib);
-  const int max_contrib = block_max(warp_contrib, s_warp);
+  const int max_contrib = block_max(contrib, s_warp);
   for (int batch_end = begin + max_contrib; batch_end > begin; batch_end -= kBlock) {
     __syncthreads();  // the previous batch is consumed
     // Staged back to front: slot j holds entry batch_end - 1 - j.
@@ -146,10 +140,8 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
     }
     __syncthreads();
     const int batch = min(kBlock, batch_end - begin);
-    // A warp starts at its own furthest entry: tiles whose pixels stop at different depths (an edge, a
-    // saturated region) leave most warps far fewer entries than the block's maximum. The bounds are
-    // warp-uniform, so every lane runs every iteration and the warp shuffles below are safe.
-    for (int j = max(0, batch_end - begin - warp_contrib); j < batch; ++j) {
+    // Every lane runs every iteration (the bounds are block-uniform), so the warp shuffles below are safe.
+    for (int j = 0; j < batch; ++j) {
       const int entry = batch_end - 1 - j - begin;  // position in the tile's list
       const StagedSplat splat = s_splat[j];
       const float opacity = splat.conic_c_opacity.y;
