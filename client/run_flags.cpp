@@ -27,6 +27,22 @@ ABSL_FLAG(
     int, init_resolution, 0,
     "downscale factor of the images the initialisation (sparse, mvs, sweep) reads, e.g. 4 to triangulate from larger "
     "images than -r 8 trains on (0: --resolution)");
+ABSL_FLAG(int, patchmatch_best_views, gaps::PatchMatchOptions{}.best_views,
+          "mvs: a depth hypothesis's cost is the mean of its best this many source views' costs (2 suits views around "
+          "a scene, where most surfaces are seen by two neighbours; COLMAP uses 3)");
+ABSL_FLAG(double, patchmatch_max_cost, gaps::PatchMatchOptions{}.max_cost,
+          "mvs: pixels whose final cost (1 - NCC plus the geometric term) is higher get no depth (higher: more, "
+          "less reliable depths)");
+ABSL_FLAG(int, patchmatch_iterations, gaps::PatchMatchOptions{}.iterations,
+          "mvs: PatchMatch propagation sweeps (each updates the red, then the black pixels)");
+ABSL_FLAG(int, patchmatch_max_image_side, gaps::PatchMatchOptions{}.max_image_side,
+          "mvs: PatchMatch works on the views downsampled to this longest side");
+ABSL_FLAG(bool, patchmatch_geometric_consistency, gaps::PatchMatchOptions{}.geometric_consistency,
+          "mvs: the geometric-consistency pass against the other views' depth maps");
+ABSL_FLAG(int, fusion_min_views, gaps::FusionOptions{}.min_views,
+          "mvs: views (the reference included) that must agree on a pixel's point for fusion to keep it");
+ABSL_FLAG(double, fusion_max_normal_error, gaps::FusionOptions{}.max_normal_error_deg,
+          "mvs: largest angle in degrees between the normals of pixels fused into one point");
 ABSL_FLAG(std::string, init_cache, "",
           "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), no-gaps or no-dropgaussian");
@@ -64,7 +80,12 @@ std::filesystem::path default_init_cache() {
 cli::FlagGroup scene_flags() {
   return {"scene", {"scene", "views", "resolution", "init", "init_ply", "random_points"}};
 }
-cli::FlagGroup local_init_flags() { return {"initialisation", {"init_resolution", "init_cache"}}; }
+cli::FlagGroup local_init_flags() {
+  return {
+      "initialisation",
+      {"init_resolution", "init_cache", "patchmatch_best_views", "patchmatch_max_cost", "patchmatch_iterations",
+       "patchmatch_max_image_side", "patchmatch_geometric_consistency", "fusion_min_views", "fusion_max_normal_error"}};
+}
 cli::FlagGroup run_flags() { return {"run", {"variant", "config", "gaps_config", "eval_every"}}; }
 cli::FlagGroup training_option_flags() {
   return {"training options (gaps options lists them; also keys of --config)", training_option_flag_names()};
@@ -89,6 +110,13 @@ absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults) {
   if (!o.init_ply.empty()) o.init = "ply";
   o.random_points = absl::GetFlag(FLAGS_random_points);
   o.init_resolution = absl::GetFlag(FLAGS_init_resolution);
+  o.patchmatch.best_views = absl::GetFlag(FLAGS_patchmatch_best_views);
+  o.patchmatch.max_cost = absl::GetFlag(FLAGS_patchmatch_max_cost);
+  o.patchmatch.iterations = absl::GetFlag(FLAGS_patchmatch_iterations);
+  o.patchmatch.max_image_side = absl::GetFlag(FLAGS_patchmatch_max_image_side);
+  o.patchmatch.geometric_consistency = absl::GetFlag(FLAGS_patchmatch_geometric_consistency);
+  o.fusion.min_views = absl::GetFlag(FLAGS_fusion_min_views);
+  o.fusion.max_normal_error_deg = absl::GetFlag(FLAGS_fusion_max_normal_error);
   o.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
   if (o.init_cache_dir.empty()) o.init_cache_dir = default_init_cache();
   o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);

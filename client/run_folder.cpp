@@ -117,6 +117,7 @@ absl::Status write_run_record(const fs::path& out, const RunRecord& record) {
                             {"init_cache", absolute_path(o.init_cache_dir)},
                             {"random_points", o.random_points},
                             {"init_resolution", o.init_resolution},
+                            {"init_options", mvs_settings_json(o)},
                             {"lpips_backbone", absolute_path(o.lpips_backbone)},
                             {"lpips_weights", absolute_path(o.lpips_weights)},
                             {"eval_every", o.eval_every},
@@ -145,6 +146,9 @@ absl::StatusOr<RunRecord> read_run_record(const fs::path& out) {
     o.init_cache_dir = j.at("init_cache").get<std::string>();
     o.random_points = j.at("random_points");
     o.init_resolution = j.at("init_resolution");
+    if (j.contains("init_options"))
+      if (absl::Status s = read_mvs_settings(j["init_options"], o); !s.ok())
+        return input_data_error(absl::DataLossError(absl::StrCat(path.string(), ": ", s.message())));
     o.lpips_backbone = j.at("lpips_backbone").get<std::string>();
     o.lpips_weights = j.at("lpips_weights").get<std::string>();
     o.eval_every = j.at("eval_every");

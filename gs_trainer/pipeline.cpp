@@ -5,6 +5,7 @@
 #include <fstream>
 #include <optional>
 #include <set>
+#include <type_traits>
 
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
@@ -129,6 +130,8 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   init.random_points = o.random_points;
   init.seed = o.config.seed;
   init.dense_workspace = dense_workspace;
+  init.patchmatch = o.patchmatch;
+  init.fusion = o.fusion;
   // No more fused points than the Gaussians the run may grow to (FusionOptions::max_points says why).
   init.fusion.max_points = gaussian_budget(o.config.max_gaussians, o.config.gaussians_per_variation, train);
   std::string report;
@@ -263,6 +266,10 @@ absl::Status check_scene(const RunOptions& o) {
   if (o.init_resolution < 0)
     return usage_error(
         absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));
+  if (absl::Status s = validate_patchmatch_options(o.patchmatch); !s.ok())
+    return usage_error(absl::StrCat("PatchMatch: ", s.message()));
+  if (absl::Status s = validate_fusion_options(o.fusion); !s.ok())
+    return usage_error(absl::StrCat("fusion: ", s.message()));
   GAPS_ASSIGN_OR_RETURN(const Scene scene, load_scene_at(o, o.resolution));
   GAPS_RETURN_IF_ERROR(protocol_split(scene, o.views).status());
   if (o.init == "scene" && !scene.points)
@@ -277,6 +284,42 @@ std::vector<std::string> run_output_names() {
       "points.ply",      "sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt", "dense"};
 }
 
+namespace {
+
+// One table for both directions, so that a setting cannot be written without being read back.
+// Options: RunOptions or const RunOptions.
+template <typename Options, typename Visit>
+void visit_mvs_settings(Options& o, Visit&& visit) {
+  visit("patchmatch", "best_views", o.patchmatch.best_views);
+  visit("patchmatch", "max_cost", o.patchmatch.max_cost);
+  visit("patchmatch", "iterations", o.patchmatch.iterations);
+  visit("patchmatch", "max_image_side", o.patchmatch.max_image_side);
+  visit("patchmatch", "geometric_consistency", o.patchmatch.geometric_consistency);
+  visit("fusion", "min_views", o.fusion.min_views);
+  visit("fusion", "max_normal_error_deg", o.fusion.max_normal_error_deg);
+}
+
+}  // namespace
+
+nlohmann::json mvs_settings_json(const RunOptions& options) {
+  nlohmann::json j = {{"patchmatch", nlohmann::json::object()}, {"fusion", nlohmann::json::object()}};
+  visit_mvs_settings(options, [&](const char* group, const char* key, const auto& value) { j[group][key] = value; });
+  return j;
+}
+
+absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& options) {
+  absl::Status status;
+  visit_mvs_settings(options, [&](const char* group, const char* key, auto& value) {
+    if (!status.ok() || !settings.contains(group) || !settings[group].contains(key)) return;
+    try {
+      value = settings[group][key].get<std::remove_reference_t<decltype(value)>>();
+    } catch (const std::exception& e) {
+      status = absl::InvalidArgumentError(absl::StrCat(group, ".", key, ": ", e.what()));
+    }
+  });
+  return status;
+}
+
 nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
   nlohmann::json j;
   j["iterations"] = r.config.iterations;
@@ -287,6 +330,7 @@ nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
   j["init"] = o.init;
   j["init_method"] = r.init_method;
   j["init_resolution"] = o.init_resolution > 0 ? o.init_resolution : o.resolution;
+  j["init_options"] = mvs_settings_json(o);
   j["random_points"] = o.random_points;
   j["variant"] = variant_name(o.variant);
   if (o.variant != Variant::kVanilla) {

@@ -9,6 +9,8 @@
 #include "absl/status/statusor.h"
 #include "gs_trainer/eval/metrics.h"
 #include "gs_trainer/gaps/training.h"
+#include "gs_trainer/init/fusion.h"
+#include "gs_trainer/init/patchmatch.h"
 #include "gs_trainer/run_stats.h"
 #include "gs_trainer/scene/scene.h"
 #include "gs_trainer/train/trainer.h"
@@ -36,6 +38,10 @@ struct RunOptions {
   int64_t random_points = 20000;
   // Downscale factor of the images the initialisation (sparse, mvs, sweep) reads; 0: the training resolution.
   int init_resolution = 0;
+  // PatchMatch and fusion settings of "mvs" (and of "auto" where it picks "mvs"). fusion.max_points is not
+  // the user's: the run's Gaussian budget replaces it (FusionOptions::max_points says why).
+  PatchMatchOptions patchmatch;
+  FusionOptions fusion;
   // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
   std::filesystem::path lpips_backbone;
   std::filesystem::path lpips_weights;  // LPIPS v0.1 linear layers (vgg.pth)
@@ -92,6 +98,13 @@ struct RunResult {
 // metrics.json's record of what ran: the run-level options and, from `result`, the effective TrainConfig and
 // (for the method's variants) GapsConfig and generator.
 nlohmann::json run_configuration_json(const RunOptions& options, const RunResult& result);
+
+// The initialisation settings a user may change (RunOptions::patchmatch, ::fusion without max_points), as
+// metrics.json and a run folder's record keep them: {"patchmatch": {...}, "fusion": {...}}.
+nlohmann::json mvs_settings_json(const RunOptions& options);
+// Reads what mvs_settings_json wrote into `options`; keys it lacks keep their values (records written before the
+// settings existed). Errors name the key whose value is not of the right type.
+absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& options);
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;
 

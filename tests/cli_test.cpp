@@ -131,10 +131,29 @@ TEST_F(Cli, UnknownOrAbsentDevicesAreUsageErrorsInEveryProgram) {
 // view order and RNG, so the result matches to the bit here; seed noise would be the tolerance otherwise).
 TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
   if (!fs::exists(kFern)) GTEST_SKIP() << "benchmark data not found at " << kFern;
-  const std::vector<std::string> run = {
-      kGaps,          "train",  "--scene",         kFern.string(), "-r",       "8",   "--iterations", "80",
-      "--init",       "random", "--random-points", "400",          "--device", "cpu", "--eval-every", "20",
-      "--save-every", "20",     "--report=false"};
+  const std::vector<std::string> run = {kGaps,
+                                        "train",
+                                        "--scene",
+                                        kFern.string(),
+                                        "-r",
+                                        "8",
+                                        "--iterations",
+                                        "80",
+                                        "--init",
+                                        "random",
+                                        "--random-points",
+                                        "400",
+                                        "--device",
+                                        "cpu",
+                                        "--eval-every",
+                                        "20",
+                                        "--save-every",
+                                        "20",
+                                        "--report=false",
+                                        "--patchmatch-best-views",
+                                        "3",
+                                        "--fusion-min-views",
+                                        "3"};
   auto with_out = [&](const fs::path& out) {
     std::vector<std::string> argv = run;
     argv.insert(argv.end(), {"--out", out.string()});
@@ -166,6 +185,10 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
   const nlohmann::json resumed = read_json(dir_ / "stopped" / "metrics.json");
   EXPECT_EQ(resumed["status"], "ok");
   EXPECT_EQ(resumed["iterations"], 80);
+  // The initialisation settings travel through the run record to the resumed run's metrics.
+  EXPECT_EQ(resumed["init_options"], whole["init_options"]);
+  EXPECT_EQ(resumed["init_options"]["patchmatch"]["best_views"], 3) << resumed["init_options"];
+  EXPECT_EQ(resumed["init_options"]["fusion"]["min_views"], 3) << resumed["init_options"];
   EXPECT_NEAR(resumed["psnr"].get<double>(), whole["psnr"].get<double>(), 1e-6);
   // The curve goes on across the stop: the points before it were kept with the checkpoint.
   ASSERT_EQ(resumed["curve"].size(), whole["curve"].size());
@@ -201,6 +224,15 @@ TEST_F(Cli, SubmitSendsTheTrainFlagsAndTheJobRecordsThem) {
   // A flag of gaps train only is refused by submit, naming who takes it.
   expect_failure(test::run_command(kGaps + " submit " + scene().string() + " --init-resolution 2" + at), 2,
                  "--init-resolution is not a flag of gaps submit; gaps train, gaps init take it");
+  expect_failure(test::run_command(kGaps + " submit " + scene().string() + " --patchmatch-max-cost 1" + at), 2,
+                 "--patchmatch-max-cost is not a flag of gaps submit; gaps train, gaps init take it");
+  // Out-of-range initialisation settings are refused before the scene is read, naming the setting.
+  expect_failure(test::run_command(kGaps + " init " + scene().string() + " --patchmatch-best-views 0 --out " +
+                                   (dir_ / "refused").string()),
+                 2, "PatchMatch: best_views must be >= 1, got 0");
+  expect_failure(test::run_command(kGaps + " init " + scene().string() + " --fusion-max-normal-error 0 --out " +
+                                   (dir_ / "refused").string()),
+                 2, "fusion: max_normal_error_deg must be in (0, 180], got 0");
 }
 
 TEST_F(Cli, HelpExitsZeroAndListsExactlyEachCommandsFlags) {

@@ -587,6 +587,55 @@ TEST_F(MvsInit, FernThreeViewsWritesPointsAndADenseWorkspace) {
   }
 }
 
+// The run's PatchMatch and fusion settings reach the initialisation: on the same depth maps, a looser normal
+// check in fusion (30 degrees instead of 10) keeps more points. PatchMatch is made cheap for the CPU (fewer
+// sweeps, no geometric pass), which the settings also carry. Settings out of range are refused first.
+TEST_F(MvsInit, FernSettingsReachTheInitialisationAndAreChecked) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
+  RunOptions o;
+  o.scene_dir = fern;
+  o.views = 3;
+  o.resolution = 16;
+  o.init = "mvs";
+  o.config.device = "cpu";
+  o.patchmatch.iterations = 3;
+  o.patchmatch.geometric_consistency = false;
+  const auto points_with = [&](double max_normal_error_deg) -> int64_t {
+    RunOptions run = o;
+    run.fusion.max_normal_error_deg = max_normal_error_deg;
+    run.out_dir = dir_ / ("normal_error_" + std::to_string(static_cast<int>(max_normal_error_deg)));
+    std::string log;
+    const absl::Status done = run_init_only(run, [&](const std::string& line) { log += line + "\n"; });
+    EXPECT_TRUE(done.ok()) << done;
+    EXPECT_TRUE(test::contains(log, "init: mvs, ")) << log;
+    auto points = read_point_cloud_ply(run.out_dir / "points.ply");
+    EXPECT_TRUE(points.ok()) << points.status();
+    return points.ok() ? points->xyz.size(0) : 0;
+  };
+  const int64_t strict = points_with(10), loose = points_with(30);
+  std::cout << "fern 3 views at -r 16: " << strict << " points with normals within 10 degrees, " << loose
+            << " within 30\n";
+  EXPECT_GT(strict, 0);
+  EXPECT_GT(loose, strict);
+
+  const auto refusal = [&](RunOptions bad) {
+    bad.out_dir = dir_ / "refused";
+    return run_init_only(bad, [](const std::string&) {});
+  };
+  RunOptions bad = o;
+  bad.patchmatch.max_cost = 0;
+  absl::Status refused = refusal(bad);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(test::contains(std::string(refused.message()), "PatchMatch: max_cost must be > 0")) << refused;
+  bad = o;
+  bad.fusion.min_views = 0;
+  refused = refusal(bad);
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(test::contains(std::string(refused.message()), "fusion: min_views must be >= 1")) << refused;
+  EXPECT_FALSE(fs::exists(dir_ / "refused" / "points.ply"));
+}
+
 class InitResolution : public test::TempDirTest {};
 
 // The initialisation may read larger images than training uses: fern at -r 8 triangulated from its -r 4

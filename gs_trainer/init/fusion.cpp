@@ -97,8 +97,21 @@ at::Tensor to_tensor(std::vector<float>& values) {
 
 }  // namespace
 
+absl::Status validate_fusion_options(const FusionOptions& o) {
+  if (o.min_views < 1) return absl::InvalidArgumentError(absl::StrCat("min_views must be >= 1, got ", o.min_views));
+  if (!(o.max_depth_error > 0) || !(o.max_reprojection_px > 0))
+    return absl::InvalidArgumentError(absl::StrCat("max_depth_error and max_reprojection_px must be > 0, got ",
+                                                   o.max_depth_error, " and ", o.max_reprojection_px));
+  if (!(o.max_normal_error_deg > 0 && o.max_normal_error_deg <= 180))
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_normal_error_deg must be in (0, 180], got ", o.max_normal_error_deg));
+  if (o.max_points < 0) return absl::InvalidArgumentError(absl::StrCat("max_points must be >= 0, got ", o.max_points));
+  return absl::OkStatus();
+}
+
 absl::StatusOr<FusedCloud> fuse_patchmatch_maps(const std::vector<ViewDepthNormal>& maps,
                                                 const FusionOptions& options) {
+  if (absl::Status s = validate_fusion_options(options); !s.ok()) return s;
   const auto start = std::chrono::steady_clock::now();
   FusedCloud out;
   std::vector<FusionView> views;

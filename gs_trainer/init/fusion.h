@@ -43,12 +43,15 @@ struct FusedCloud {
   FusionStats stats;
 };
 
+// OK, or InvalidArgument naming the first option out of its range.
+absl::Status validate_fusion_options(const FusionOptions& options);
+
 // Visits the views in order and their pixels in row-major order; an unfused pixel with a depth starts a
 // cluster, its 3D point is projected into every other view and that view's pixel there joins when its depth,
 // reprojection and normal agree (FusionOptions). A cluster of >= min_views views becomes a point: the mean
 // position and colour and the normalised mean normal of its pixels, which are then marked fused and start no
 // cluster of their own. Pixels of a cluster that is too small stay free to join or start another.
-// Errors: a map whose depth, normal or image does not match its camera's size.
+// Errors: options out of range, a map whose depth, normal or image does not match its camera's size.
 absl::StatusOr<FusedCloud> fuse_patchmatch_maps(const std::vector<ViewDepthNormal>& maps,
                                                 const FusionOptions& options = {});
 

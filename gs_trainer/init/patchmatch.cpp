@@ -12,9 +12,8 @@
 #include "gs_trainer/init/working_view.h"
 
 namespace gaps {
-namespace {
 
-absl::Status validate_options(const PatchMatchOptions& o) {
+absl::Status validate_patchmatch_options(const PatchMatchOptions& o) {
   if (o.max_image_side < 8)
     return absl::InvalidArgumentError(absl::StrCat("max_image_side ", o.max_image_side, " < 8"));
   if (o.window_radius < 1 || o.window_step < 1)
@@ -32,8 +31,11 @@ absl::Status validate_options(const PatchMatchOptions& o) {
     return absl::InvalidArgumentError("min_triangulation_angle_deg must be in [0, 90)");
   if (!(o.geometric_regularizer >= 0) || !(o.geometric_max_error_px > 0))
     return absl::InvalidArgumentError("geometric_regularizer must be >= 0 and geometric_max_error_px > 0");
+  if (!(o.max_cost > 0)) return absl::InvalidArgumentError(absl::StrCat("max_cost must be > 0, got ", o.max_cost));
   return absl::OkStatus();
 }
+
+namespace {
 
 absl::Status validate_view(const PatchMatchInput& in, size_t i) {
   const Camera& c = in.cameras[i];
@@ -147,7 +149,7 @@ void sweep(const pm::Backend& backend, const pm::Problem& p, int iteration) {
 
 absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchInput& input,
                                                                const PatchMatchOptions& options) {
-  if (absl::Status s = validate_options(options); !s.ok()) return s;
+  if (absl::Status s = validate_patchmatch_options(options); !s.ok()) return s;
   if (absl::Status s = validate(input); !s.ok()) return s;
   const size_t n = input.cameras.size();
   if (n == 0) return std::vector<ViewDepthNormal>{};

@@ -49,6 +49,9 @@ struct PatchMatchInput {
   std::vector<std::vector<int>> sources;
 };
 
+// OK, or InvalidArgument naming the first option out of its range.
+absl::Status validate_patchmatch_options(const PatchMatchOptions& options);
+
 // One view's result at the working resolution (CPU tensors).
 struct ViewDepthNormal {
   Camera camera;      // at the working resolution
