@@ -530,19 +530,30 @@ TEST(Initializer, FernThreeViewsSweep) {
   std::cout << "fern 3 views: " << result->points.xyz.size(0) << " points in " << seconds << " s\n";
 }
 
-class MvsInit : public test::TempDirTest {};
+// `--init mvs` on fern, 3 views at -r 16 (252x189, to keep PatchMatch on the CPU short).
+class MvsInit : public test::TempDirTest {
+ protected:
+  void SetUp() override {
+    TempDirTest::SetUp();
+    if (!fs::exists(fern_)) GTEST_SKIP() << "no benchmark data at " << fern_;
+  }
 
-// `gaps init --init mvs` on fern, 3 views at -r 16 (252x189, to keep PatchMatch on the CPU short): the
-// points, and the COLMAP dense workspace beside them.
+  RunOptions fern_mvs() const {
+    RunOptions o;
+    o.scene_dir = fern_;
+    o.views = 3;
+    o.resolution = 16;
+    o.init = "mvs";
+    o.config.device = "cpu";
+    return o;
+  }
+
+  const fs::path fern_ = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+};
+
+// `gaps init --init mvs`: the points, and the COLMAP dense workspace beside them.
 TEST_F(MvsInit, FernThreeViewsWritesPointsAndADenseWorkspace) {
-  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
-  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
-  RunOptions o;
-  o.scene_dir = fern;
-  o.views = 3;
-  o.resolution = 16;
-  o.init = "mvs";
-  o.config.device = "cpu";
+  RunOptions o = fern_mvs();
   o.out_dir = dir_ / "init";
   std::string log;
   const absl::Status done = run_init_only(o, [&](const std::string& line) { log += line + "\n"; });
@@ -578,7 +589,7 @@ TEST_F(MvsInit, FernThreeViewsWritesPointsAndADenseWorkspace) {
 
   SceneLoadOptions load;
   load.resolution = 16;
-  auto scene = load_scene(fern, load);
+  auto scene = load_scene(fern_, load);
   ASSERT_TRUE(scene.ok()) << scene.status();
   for (int i : {0, 8, 16}) {
     const double coverage = view_coverage(scene->cameras[i], points->xyz);
@@ -591,14 +602,7 @@ TEST_F(MvsInit, FernThreeViewsWritesPointsAndADenseWorkspace) {
 // check in fusion (30 degrees instead of 10) keeps more points. PatchMatch is made cheap for the CPU (fewer
 // sweeps, no geometric pass), which the settings also carry. Settings out of range are refused first.
 TEST_F(MvsInit, FernSettingsReachTheInitialisationAndAreChecked) {
-  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
-  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
-  RunOptions o;
-  o.scene_dir = fern;
-  o.views = 3;
-  o.resolution = 16;
-  o.init = "mvs";
-  o.config.device = "cpu";
+  RunOptions o = fern_mvs();
   o.patchmatch.iterations = 3;
   o.patchmatch.geometric_consistency = false;
   const auto points_with = [&](double max_normal_error_deg) -> int64_t {
