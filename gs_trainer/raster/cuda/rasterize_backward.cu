@@ -97,16 +97,9 @@ __device__ float* slot_target(const BackwardArgs& a, int64_t g, int slot) {
   return nullptr;
 }
 
-// Blocks per SM the colour + depth kernel (CMAX 4) is compiled for. At 47 registers an SM holds 5 blocks, 660 on
-// a 132-SM H100 or H200: a 504x378 image's 768 tiles then ran in two waves, the second a seventh full. 40
-// registers (12 bytes spilled) hold 6, and the 768 tiles run in one. The 16-channel kernel would spill 400 bytes,
-// so it keeps its registers.
-template <int CMAX>
-constexpr int kMinBlocksPerSm = CMAX <= 4 ? 6 : 1;
-
 // ABS: also sum the absolute 2D-mean gradients (only absolute-gradient densification asks for them).
 template <int CMAX, bool ABS>
-__global__ void __launch_bounds__(kBlock, kMinBlocksPerSm<CMAX>) rasterize_backward_kernel(BackwardArgs a) {
+__global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
   const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
   const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
   const int thread = threadIdx.y * kTile + threadIdx.x;
