@@ -48,14 +48,14 @@ std::vector<cli::CommandSpec> gaps_commands() {
               "evaluates on the test views: point_cloud.ply, renders/, metrics.json and report.html in --out. The\n"
               "state is saved to OUT/checkpoint every --save-every iterations and on SIGINT/SIGTERM; --resume OUT\n"
               "continues such a run with the settings it was started with.",
-              {scene_flags(), local_init_flags(), run_flags(), generator_flags(), output_flags(), checkpoint_flags(),
-               training_option_flags(), gaps_option_flags()},
+              {scene_flags(), mvs_flags(), local_init_flags(), run_flags(), generator_flags(), output_flags(),
+               checkpoint_flags(), training_option_flags(), gaps_option_flags()},
               1, "the scene folder"),
       command("init", "gaps init --scene DIR --views N --out DIR [flags]",
               "Writes only the initial point cloud of the training views, as points.ply and a COLMAP text model\n"
               "(sparse/0/) in --out; when the mvs method made it, also its depth and normal maps and fused cloud as a\n"
               "COLMAP dense workspace (dense/).",
-              {scene_flags(), local_init_flags(), only("outputs", {"out", "overwrite"}),
+              {scene_flags(), mvs_flags(), local_init_flags(), only("outputs", {"out", "overwrite"}),
                only("options", {"device", "seed"})},
               1, "the scene folder"),
       command("demo", "gaps demo [--out DIR] [flags]",
@@ -63,12 +63,12 @@ std::vector<cli::CommandSpec> gaps_commands() {
               "and prints the PSNR on the held-out views (default --out gaps-demo).",
               {only("initialisation", {"init", "random_points"}), run_flags(), generator_flags(), output_flags(),
                training_option_flags(), gaps_option_flags()}),
-      command(
-          "submit", "gaps submit SCENE [flags]    (or --scene DIR)",
-          "Uploads a scene (its images at --resolution, undistorted, with their cameras) to a gaps-trainer as a\n"
-          "job with the same scene and run flags as gaps train, and prints the job id.",
-          {scene_flags(), run_flags(), submit_flags(), remote_flags(), training_option_flags(), gaps_option_flags()}, 1,
-          "the scene folder"),
+      command("submit", "gaps submit SCENE [flags]    (or --scene DIR)",
+              "Uploads a scene (its images at --resolution, undistorted, with their cameras) to a gaps-trainer as a\n"
+              "job with the same scene and run flags as gaps train, and prints the job id.",
+              {scene_flags(), mvs_flags(), run_flags(), submit_flags(), remote_flags(), training_option_flags(),
+               gaps_option_flags()},
+              1, "the scene folder"),
       command("watch", "gaps watch JOB [flags]",
               "Follows a job: progress, phases, log lines, final status; exit status 0 when it succeeded.",
               {only("display", {"quiet"}), remote_flags()}, 1, "the job id"),

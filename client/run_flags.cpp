@@ -80,12 +80,12 @@ std::filesystem::path default_init_cache() {
 cli::FlagGroup scene_flags() {
   return {"scene", {"scene", "views", "resolution", "init", "init_ply", "random_points"}};
 }
-cli::FlagGroup local_init_flags() {
-  return {
-      "initialisation",
-      {"init_resolution", "init_cache", "patchmatch_best_views", "patchmatch_max_cost", "patchmatch_iterations",
-       "patchmatch_max_image_side", "patchmatch_geometric_consistency", "fusion_min_views", "fusion_max_normal_error"}};
+cli::FlagGroup mvs_flags() {
+  return {"PatchMatch initialisation (--init mvs)",
+          {"patchmatch_best_views", "patchmatch_max_cost", "patchmatch_iterations", "patchmatch_max_image_side",
+           "patchmatch_geometric_consistency", "fusion_min_views", "fusion_max_normal_error"}};
 }
+cli::FlagGroup local_init_flags() { return {"initialisation", {"init_resolution", "init_cache"}}; }
 cli::FlagGroup run_flags() { return {"run", {"variant", "config", "gaps_config", "eval_every"}}; }
 cli::FlagGroup training_option_flags() {
   return {"training options (gaps options lists them; also keys of --config)", training_option_flag_names()};

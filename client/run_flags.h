@@ -15,8 +15,9 @@ namespace gaps::client {
 
 // --scene, --views, -r/--resolution, --init, --init-ply, --random-points.
 cli::FlagGroup scene_flags();
-// What only an initialisation computed here uses: --init-resolution, --init-cache, and the PatchMatch and fusion
-// settings of --init mvs (--patchmatch-*, --fusion-*).
+// The PatchMatch and fusion settings of --init mvs (--patchmatch-*, --fusion-*), for a run here or submitted.
+cli::FlagGroup mvs_flags();
+// What only an initialisation computed here uses: --init-resolution, --init-cache.
 cli::FlagGroup local_init_flags();
 // --variant, --config, --gaps-config, --eval-every; with training_option_flags() and gaps_option_flags().
 cli::FlagGroup run_flags();

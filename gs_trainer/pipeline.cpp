@@ -286,35 +286,40 @@ std::vector<std::string> run_output_names() {
 
 namespace {
 
-// One table for both directions, so that a setting cannot be written without being read back.
+// One table for both directions, so that a setting cannot be written without being read back. The names
+// are the flags' (and gaps.v1.InitSettings's fields).
 // Options: RunOptions or const RunOptions.
 template <typename Options, typename Visit>
 void visit_mvs_settings(Options& o, Visit&& visit) {
-  visit("patchmatch", "best_views", o.patchmatch.best_views);
-  visit("patchmatch", "max_cost", o.patchmatch.max_cost);
-  visit("patchmatch", "iterations", o.patchmatch.iterations);
-  visit("patchmatch", "max_image_side", o.patchmatch.max_image_side);
-  visit("patchmatch", "geometric_consistency", o.patchmatch.geometric_consistency);
-  visit("fusion", "min_views", o.fusion.min_views);
-  visit("fusion", "max_normal_error_deg", o.fusion.max_normal_error_deg);
+  visit("patchmatch_best_views", o.patchmatch.best_views);
+  visit("patchmatch_max_cost", o.patchmatch.max_cost);
+  visit("patchmatch_iterations", o.patchmatch.iterations);
+  visit("patchmatch_max_image_side", o.patchmatch.max_image_side);
+  visit("patchmatch_geometric_consistency", o.patchmatch.geometric_consistency);
+  visit("fusion_min_views", o.fusion.min_views);
+  visit("fusion_max_normal_error", o.fusion.max_normal_error_deg);
 }
 
 }  // namespace
 
 nlohmann::json mvs_settings_json(const RunOptions& options) {
-  nlohmann::json j = {{"patchmatch", nlohmann::json::object()}, {"fusion", nlohmann::json::object()}};
-  visit_mvs_settings(options, [&](const char* group, const char* key, const auto& value) { j[group][key] = value; });
+  nlohmann::json j = nlohmann::json::object();
+  visit_mvs_settings(options, [&](const char* name, const auto& value) { j[name] = value; });
   return j;
 }
 
 absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& options) {
+  if (!settings.is_object()) return absl::InvalidArgumentError("init settings: not a JSON object");
+  const nlohmann::json known = mvs_settings_json(options);
+  for (const auto& [name, value] : settings.items())
+    if (!known.contains(name)) return absl::InvalidArgumentError(absl::StrCat("init settings: unknown '", name, "'"));
   absl::Status status;
-  visit_mvs_settings(options, [&](const char* group, const char* key, auto& value) {
-    if (!status.ok() || !settings.contains(group) || !settings[group].contains(key)) return;
+  visit_mvs_settings(options, [&](const char* name, auto& value) {
+    if (!status.ok() || !settings.contains(name)) return;
     try {
-      value = settings[group][key].get<std::remove_reference_t<decltype(value)>>();
+      value = settings[name].get<std::remove_reference_t<decltype(value)>>();
     } catch (const std::exception& e) {
-      status = absl::InvalidArgumentError(absl::StrCat(group, ".", key, ": ", e.what()));
+      status = absl::InvalidArgumentError(absl::StrCat("init settings: ", name, ": ", e.what()));
     }
   });
   return status;

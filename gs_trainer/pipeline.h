@@ -99,11 +99,13 @@ struct RunResult {
 // (for the method's variants) GapsConfig and generator.
 nlohmann::json run_configuration_json(const RunOptions& options, const RunResult& result);
 
-// The initialisation settings a user may change (RunOptions::patchmatch, ::fusion without max_points), as
-// metrics.json and a run folder's record keep them: {"patchmatch": {...}, "fusion": {...}}.
+// The initialisation settings a user may change (RunOptions::patchmatch, ::fusion without max_points) as one
+// JSON object keyed by the flags' names ("patchmatch_best_views", ..., "fusion_max_normal_error"): what
+// metrics.json and a run folder's record keep, and the fields of gaps.v1.InitSettings.
 nlohmann::json mvs_settings_json(const RunOptions& options);
-// Reads what mvs_settings_json wrote into `options`; keys it lacks keep their values (records written before the
-// settings existed). Errors name the key whose value is not of the right type.
+// Reads such an object into `options`; settings it lacks keep their values (a job that sets a few, records written
+// before the settings existed). Errors name an unknown setting or one whose value has the wrong type; ranges are
+// check_scene's.
 absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& options);
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;

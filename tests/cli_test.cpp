@@ -18,6 +18,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "common/cli/command_line.h"
+#include "gs_trainer/init/patchmatch.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/process_util.h"
 #include "tests/test_util.h"
@@ -187,8 +188,8 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
   EXPECT_EQ(resumed["iterations"], 80);
   // The initialisation settings travel through the run record to the resumed run's metrics.
   EXPECT_EQ(resumed["init_options"], whole["init_options"]);
-  EXPECT_EQ(resumed["init_options"]["patchmatch"]["best_views"], 3) << resumed["init_options"];
-  EXPECT_EQ(resumed["init_options"]["fusion"]["min_views"], 3) << resumed["init_options"];
+  EXPECT_EQ(resumed["init_options"]["patchmatch_best_views"], 3) << resumed["init_options"];
+  EXPECT_EQ(resumed["init_options"]["fusion_min_views"], 3) << resumed["init_options"];
   EXPECT_NEAR(resumed["psnr"].get<double>(), whole["psnr"].get<double>(), 1e-6);
   // The curve goes on across the stop: the points before it were kept with the checkpoint.
   ASSERT_EQ(resumed["curve"].size(), whole["curve"].size());
@@ -207,7 +208,8 @@ TEST_F(Cli, SubmitSendsTheTrainFlagsAndTheJobRecordsThem) {
   auto [code, out] = test::run_command(
       kGaps + " submit --scene " + scene().string() +
       " --resolution 1 --variant vanilla --iterations 20 --init random --random-points 300 --eval-every 10"
-      " --max-gaussians 1234 --gaussians-per-variation 2 --watch --quiet" +
+      " --max-gaussians 1234 --gaussians-per-variation 2 --patchmatch-best-views 3 --fusion-max-normal-error 20"
+      " --watch --quiet" +
       at);
   ASSERT_EQ(code, 0) << out << trainer.log_text();
   std::smatch m;
@@ -221,11 +223,15 @@ TEST_F(Cli, SubmitSendsTheTrainFlagsAndTheJobRecordsThem) {
   EXPECT_EQ(metrics["curve"][0]["iteration"], 10);
   EXPECT_EQ(metrics["max_gaussians"], 1234);
   EXPECT_EQ(metrics["config"]["gaussians_per_variation"], 2.0);
+  // The PatchMatch settings given travel with the job; the others keep the defaults.
+  EXPECT_EQ(metrics["init_options"]["patchmatch_best_views"], 3) << metrics["init_options"];
+  EXPECT_EQ(metrics["init_options"]["fusion_max_normal_error"], 20.0) << metrics["init_options"];
+  EXPECT_EQ(metrics["init_options"]["patchmatch_max_cost"], PatchMatchOptions{}.max_cost) << metrics["init_options"];
   // A flag of gaps train only is refused by submit, naming who takes it.
   expect_failure(test::run_command(kGaps + " submit " + scene().string() + " --init-resolution 2" + at), 2,
                  "--init-resolution is not a flag of gaps submit; gaps train, gaps init take it");
-  expect_failure(test::run_command(kGaps + " submit " + scene().string() + " --patchmatch-max-cost 1" + at), 2,
-                 "--patchmatch-max-cost is not a flag of gaps submit; gaps train, gaps init take it");
+  expect_failure(test::run_command(kGaps + " submit " + scene().string() + " --patchmatch-max-cost 0" + at), 2,
+                 "PatchMatch: max_cost must be > 0, got 0");
   // Out-of-range initialisation settings are refused before the scene is read, naming the setting.
   expect_failure(test::run_command(kGaps + " init " + scene().string() + " --patchmatch-best-views 0 --out " +
                                    (dir_ / "refused").string()),

@@ -275,6 +275,23 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   const auto unknown = run_options_from_proto(config, false, "", "cpu");
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(unknown.status().message().find("unknown init 'colmap' (auto, mvs"), std::string_view::npos);
+
+  // PatchMatch and fusion settings: those set arrive, the others keep the defaults, ranges are checked.
+  config.set_init("mvs");
+  ASSERT_TRUE(
+      rpc::set_fields({{"patchmatch_best_views", 3}, {"fusion_max_normal_error", 25.0}}, config.mutable_init_settings())
+          .ok());
+  o = run_options_from_proto(config, false, "", "cpu");
+  ASSERT_TRUE(o.ok()) << o.status();
+  EXPECT_EQ(o->patchmatch.best_views, 3);
+  EXPECT_DOUBLE_EQ(o->fusion.max_normal_error_deg, 25.0);
+  EXPECT_DOUBLE_EQ(o->patchmatch.max_cost, PatchMatchOptions{}.max_cost);
+  EXPECT_EQ(o->fusion.min_views, FusionOptions{}.min_views);
+  config.mutable_init_settings()->set_fusion_min_views(0);
+  const auto refused = run_options_from_proto(config, false, "", "cpu");
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("config: fusion: min_views must be >= 1, got 0"), std::string_view::npos)
+      << refused.status();
 }
 
 // Blocks in generate() until released, so tests can fill the worker's queue.
