@@ -61,12 +61,8 @@ absl::StatusOr<v1::JobSpec> spec_from_flags() {
   c->set_eval_every(o.eval_every);
   GAPS_RETURN_IF_ERROR(rpc::set_fields(run.given.training, c->mutable_training()));
   GAPS_RETURN_IF_ERROR(rpc::set_fields(run.given.gaps, c->mutable_gaps()));
-  // The initialisation settings that differ from the defaults (the trainer has the defaults).
-  const nlohmann::json init = mvs_settings_json(o), defaults = mvs_settings_json(RunOptions{});
-  nlohmann::json changed = nlohmann::json::object();
-  for (const auto& [name, value] : init.items())
-    if (value != defaults.at(name)) changed[name] = value;
-  GAPS_RETURN_IF_ERROR(rpc::set_fields(changed, c->mutable_init_settings()));
+  // Only the initialisation settings that differ from the defaults (the trainer has the defaults).
+  GAPS_RETURN_IF_ERROR(rpc::set_fields(changed_mvs_settings(o), c->mutable_init_settings()));
   return spec;
 }
 

@@ -11,6 +11,8 @@
 #include <ATen/core/grad_mode.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_replace.h"
 #include "common/device.h"
 #include "common/error_kind.h"
 #include "common/image_io.h"
@@ -101,12 +103,23 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
 }
 
 // *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
+// Settings only "mvs" reads, given to a run whose points came from another method, would do nothing unseen.
+void note_unused_mvs_settings(const RunOptions& o, const std::string& method, const Log& log) {
+  if (method == "mvs") return;
+  std::vector<std::string> flags;
+  const nlohmann::json changed = changed_mvs_settings(o);
+  for (const auto& [name, value] : changed.items()) flags.push_back("--" + absl::StrReplaceAll(name, {{"_", "-"}}));
+  if (!flags.empty())
+    log(absl::StrCat("init: ", absl::StrJoin(flags, ", "), " not used: the points came from ", method));
+}
+
 // dense_workspace: InitOptions::dense_workspace.
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train, const Log& log,
                                           std::string* method_used = nullptr,
                                           const std::filesystem::path& dense_workspace = {}) {
   if (method_used) *method_used = o.init;
+  if (o.init == "ply" || o.init == "scene") note_unused_mvs_settings(o, o.init, log);
   if (o.init == "ply") {
     if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
     return read_point_cloud_ply(o.init_ply);
@@ -134,9 +147,11 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   init.fusion = o.fusion;
   // No more fused points than the Gaussians the run may grow to (FusionOptions::max_points says why).
   init.fusion.max_points = gaussian_budget(o.config.max_gaussians, o.config.gaussians_per_variation, train);
-  std::string report;
-  auto points = initialize_points(o.init, cameras, images, init, &report, method_used);
+  std::string report, method;
+  auto points = initialize_points(o.init, cameras, images, init, &report, &method);
   if (!report.empty()) log(report);
+  if (method_used) *method_used = method;
+  if (points.ok()) note_unused_mvs_settings(o, method, log);
   return points;
 }
 
@@ -306,6 +321,14 @@ nlohmann::json mvs_settings_json(const RunOptions& options) {
   nlohmann::json j = nlohmann::json::object();
   visit_mvs_settings(options, [&](const char* name, const auto& value) { j[name] = value; });
   return j;
+}
+
+nlohmann::json changed_mvs_settings(const RunOptions& options) {
+  const nlohmann::json defaults = mvs_settings_json(RunOptions{}), settings = mvs_settings_json(options);
+  nlohmann::json changed = nlohmann::json::object();
+  for (const auto& [name, value] : settings.items())
+    if (value != defaults.at(name)) changed[name] = value;
+  return changed;
 }
 
 absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& options) {

@@ -103,6 +103,8 @@ nlohmann::json run_configuration_json(const RunOptions& options, const RunResult
 // JSON object keyed by the flags' names ("patchmatch_best_views", ..., "fusion_max_normal_error"): what
 // metrics.json and a run folder's record keep, and the fields of gaps.v1.InitSettings.
 nlohmann::json mvs_settings_json(const RunOptions& options);
+// The settings of mvs_settings_json that differ from the defaults.
+nlohmann::json changed_mvs_settings(const RunOptions& options);
 // Reads such an object into `options`; settings it lacks keep their values (a job that sets a few, records written
 // before the settings existed). Errors name an unknown setting or one whose value has the wrong type; ranges are
 // check_scene's.

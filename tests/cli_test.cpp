@@ -162,6 +162,9 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
   };
   auto [code, log] = test::run_command(absl::StrJoin(with_out(dir_ / "whole"), " "));
   ASSERT_EQ(code, 0) << log;
+  // PatchMatch settings with another method are said to do nothing.
+  EXPECT_TRUE(contains(log, "init: --fusion-min-views, --patchmatch-best-views not used: the points came from random"))
+      << log;
 
   Process stopped(with_out(dir_ / "stopped"), dir_ / "stopped.log");
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(2);
