@@ -102,7 +102,6 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
   return views;
 }
 
-// *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
 // Settings only "mvs" reads, given to a run whose points came from another method, would do nothing unseen.
 void note_unused_mvs_settings(const RunOptions& o, const std::string& method, const Log& log) {
   if (method == "mvs") return;
@@ -113,6 +112,7 @@ void note_unused_mvs_settings(const RunOptions& o, const std::string& method, co
     log(absl::StrCat("init: ", absl::StrJoin(flags, ", "), " not used: the points came from ", method));
 }
 
+// *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
 // dense_workspace: InitOptions::dense_workspace.
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train, const Log& log,
