@@ -281,10 +281,7 @@ absl::Status check_scene(const RunOptions& o) {
   if (o.init_resolution < 0)
     return usage_error(
         absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));
-  if (absl::Status s = validate_patchmatch_options(o.patchmatch); !s.ok())
-    return usage_error(absl::StrCat("PatchMatch: ", s.message()));
-  if (absl::Status s = validate_fusion_options(o.fusion); !s.ok())
-    return usage_error(absl::StrCat("fusion: ", s.message()));
+  if (absl::Status s = validate_mvs_settings(o); !s.ok()) return usage_error(s.message());
   GAPS_ASSIGN_OR_RETURN(const Scene scene, load_scene_at(o, o.resolution));
   GAPS_RETURN_IF_ERROR(protocol_split(scene, o.views).status());
   if (o.init == "scene" && !scene.points)
@@ -346,6 +343,14 @@ absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& optio
     }
   });
   return status;
+}
+
+absl::Status validate_mvs_settings(const RunOptions& options) {
+  if (absl::Status s = validate_patchmatch_options(options.patchmatch); !s.ok())
+    return absl::InvalidArgumentError(absl::StrCat("PatchMatch: ", s.message()));
+  if (absl::Status s = validate_fusion_options(options.fusion); !s.ok())
+    return absl::InvalidArgumentError(absl::StrCat("fusion: ", s.message()));
+  return absl::OkStatus();
 }
 
 nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {

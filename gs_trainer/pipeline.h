@@ -107,8 +107,10 @@ nlohmann::json mvs_settings_json(const RunOptions& options);
 nlohmann::json changed_mvs_settings(const RunOptions& options);
 // Reads such an object into `options`; settings it lacks keep their values (a job that sets a few, records written
 // before the settings existed). Errors name an unknown setting or one whose value has the wrong type; ranges are
-// check_scene's.
+// validate_mvs_settings's.
 absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& options);
+// The range check of those settings: InvalidArgument prefixed "PatchMatch: " or "fusion: ".
+absl::Status validate_mvs_settings(const RunOptions& options);
 
 using ProgressCallback = std::function<void(const TrainProgress&)>;
 

@@ -39,10 +39,8 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
   }
   if (absl::Status s = read_mvs_settings(rpc::present_fields(c.init_settings()), o); !s.ok())
     return absl::InvalidArgumentError(absl::StrCat("config: ", s.message()));
-  if (absl::Status s = validate_patchmatch_options(o.patchmatch); !s.ok())
-    return absl::InvalidArgumentError(absl::StrCat("config: PatchMatch: ", s.message()));
-  if (absl::Status s = validate_fusion_options(o.fusion); !s.ok())
-    return absl::InvalidArgumentError(absl::StrCat("config: fusion: ", s.message()));
+  if (absl::Status s = validate_mvs_settings(o); !s.ok())
+    return absl::InvalidArgumentError(absl::StrCat("config: ", s.message()));
   if (trainer_device.empty()) return o;
   // A job may name the device type its trainer trains on; the trainer decides which card.
   if (c.training().has_device() && at::Device(o.config.device).type() != at::Device(trainer_device).type())
