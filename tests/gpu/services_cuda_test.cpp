@@ -1,7 +1,8 @@
 // The deployment users run on a GPU: gaps-worker and gaps-trainer started as processes with --device cuda,
 // a job of the method submitted through the client, at least one pseudo-view generated and admitted, and the
 // finished model rendered on the GPU through RenderView (as `gaps render --job` does).
-#include <fstream>
+// A vanilla job on fern initialised by PatchMatch on the trainer's GPU with settings of its own (InitSettings).
+#include <filesystem>
 #include <memory>
 #include <string>
 #include <vector>
@@ -29,10 +30,8 @@ struct FinishedJob {
 };
 
 struct ServicesOnCuda : test::TempDirTest {
-  // Starts the worker with `worker_flags` and a trainer on cuda with `trainer_flags`, and runs a job of the
-  // method on a small synthetic scene through the client to its end.
-  void run_full_job(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags,
-                    const nlohmann::json& gaps_fields, FinishedJob* finished) {
+  // Starts the worker with `worker_flags` and a trainer on cuda with `trainer_flags`, and connects the client.
+  void start_services(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags) {
     std::vector<std::string> worker_args = {GAPS_WORKER_BIN, "--listen", "127.0.0.1:0"};
     worker_args.insert(worker_args.end(), worker_flags.begin(), worker_flags.end());
     worker_ = std::make_unique<Process>(worker_args, dir_ / "worker.log");
@@ -51,7 +50,32 @@ struct ServicesOnCuda : test::TempDirTest {
     trainer_ = std::make_unique<Process>(trainer_args, dir_ / "trainer.log");
     const int trainer_port = trainer_->wait_for_port();
     ASSERT_GT(trainer_port, 0) << trainer_->log_text();
+    auto client = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {});
+    ASSERT_TRUE(client.ok()) << client.status();
+    client_ = std::make_unique<client::TrainerClient>(std::move(*client));
+  }
 
+  // Submits `spec` with `scene`, follows it to its end counting its phases, and fetches its files into fetched/.
+  void run_job(const v1::JobSpec& spec, const client::PreparedScene& scene, FinishedJob* finished) {
+    auto job = client_->submit(spec, scene);
+    ASSERT_TRUE(job.ok()) << job.status();
+    finished->id = *job;
+    auto status = client_->watch(*job, [&](const v1::JobEvent& e) {
+      if (!e.has_phase_finished()) return;
+      ++finished->phases;
+      finished->skipped += e.phase_finished().skipped();
+      finished->admitted += e.phase_finished().admitted();
+    });
+    ASSERT_TRUE(status.ok()) << status.status() << "\n" << trainer_->log_text();
+    finished->status = *status;
+    auto files = client_->fetch(*job, dir_ / "fetched");
+    ASSERT_TRUE(files.ok()) << files.status();
+  }
+
+  // A job of the method on a small synthetic scene, through services started as start_services does.
+  void run_full_job(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags,
+                    const nlohmann::json& gaps_fields, FinishedJob* finished) {
+    ASSERT_NO_FATAL_FAILURE(start_services(worker_flags, trainer_flags));
     SyntheticSceneOptions scene_options;
     scene_options.images = 9;
     scene_options.width = 96;
@@ -70,22 +94,7 @@ struct ServicesOnCuda : test::TempDirTest {
     nlohmann::json fields = {{"warmup_iterations", 100}, {"phase_interval", 100}, {"n_active", 4}};
     fields.update(gaps_fields);
     ASSERT_TRUE(rpc::set_fields(fields, spec.mutable_config()->mutable_gaps()).ok());
-    auto client = client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {});
-    ASSERT_TRUE(client.ok()) << client.status();
-    client_ = std::make_unique<client::TrainerClient>(std::move(*client));
-    auto job = client_->submit(spec, *scene);
-    ASSERT_TRUE(job.ok()) << job.status();
-    finished->id = *job;
-    auto status = client_->watch(*job, [&](const v1::JobEvent& e) {
-      if (!e.has_phase_finished()) return;
-      ++finished->phases;
-      finished->skipped += e.phase_finished().skipped();
-      finished->admitted += e.phase_finished().admitted();
-    });
-    ASSERT_TRUE(status.ok()) << status.status() << "\n" << trainer_->log_text();
-    finished->status = *status;
-    auto files = client_->fetch(*job, dir_ / "fetched");
-    ASSERT_TRUE(files.ok()) << files.status();
+    ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, finished));
   }
 
   std::unique_ptr<Process> worker_, trainer_;
@@ -101,8 +110,7 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
   EXPECT_EQ(job.phases, 2);
   EXPECT_EQ(job.skipped, 0) << worker_->log_text();
   EXPECT_GE(job.admitted, 1);
-  std::ifstream metrics_file(dir_ / "fetched" / "metrics.json");
-  const nlohmann::json metrics = nlohmann::json::parse(metrics_file);
+  const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
   EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
   EXPECT_EQ(metrics["peak_memory"]["kind"], "cuda_allocator");
 
@@ -160,6 +168,36 @@ TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
     EXPECT_GT(phases[k]["seconds"]["generation"].get<double>(), 0.0);
   }
   EXPECT_EQ(test::read_json(dir_ / "fetched" / "metrics.json")["peak_memory"]["kind"], "cuda_allocator");
+}
+
+// A job whose initialisation runs PatchMatch on the trainer's GPU from fern's 3 training views with PatchMatch and
+// fusion settings of its own (InitSettings, what gaps submit --patchmatch-... sends).
+TEST_F(ServicesOnCuda, AJobWithInitSettingsRunsPatchMatchOnTheTrainersGpu) {
+  GAPS_REQUIRE_CUDA();
+  const std::filesystem::path fern = GAPS_DATA_DIR "/llff/fern";
+  if (!std::filesystem::exists(fern)) GTEST_SKIP() << "no LLFF fern under " << fern;
+  ASSERT_NO_FATAL_FAILURE(start_services({"--backend", "reproject", "--device", "cuda"}, {}));
+  auto scene = client::prepare_scene(fern, 8);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  v1::JobSpec spec;
+  spec.set_name("fern-mvs");
+  spec.mutable_config()->set_views(3);
+  spec.mutable_config()->set_init("mvs");
+  spec.mutable_config()->set_variant("vanilla");
+  ASSERT_TRUE(
+      rpc::set_fields({{"iterations", 200}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
+  ASSERT_TRUE(rpc::set_fields({{"patchmatch_iterations", 3}, {"fusion_max_normal_error", 30.0}},
+                              spec.mutable_config()->mutable_init_settings())
+                  .ok());
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
+  EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
+  EXPECT_EQ(metrics["init_method"], "mvs") << trainer_->log_text();
+  EXPECT_EQ(metrics["init_options"]["patchmatch_iterations"], 3) << metrics["init_options"];
+  EXPECT_EQ(metrics["init_options"]["fusion_max_normal_error"], 30.0) << metrics["init_options"];
+  EXPECT_EQ(metrics["init_options"]["patchmatch_best_views"], 2) << metrics["init_options"];  // a default
 }
 
 }  // namespace
