@@ -1,4 +1,4 @@
-"""Tests of bench/harness.py, bench/tables.py and bench/charts.py.
+"""Tests of bench/harness.py, bench/tables.py, bench/charts.py and bench/kernel_profile.py.
 
 The harness runs against a stand-in for `gaps train` (a script writing metrics.json as the trainer does),
 so resuming, concurrency, GPU assignment, divergence and crashes can be checked in seconds.
@@ -19,6 +19,7 @@ BENCH = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(BENCH))
 import charts  # noqa: E402
 import harness  # noqa: E402
+import kernel_profile  # noqa: E402
 import tables  # noqa: E402
 
 # Stands in for `gaps train`: PSNR from views, seed and variant; variant "no-gaps" diverges (exit 3 with a
@@ -377,6 +378,42 @@ class ChartsTest(unittest.TestCase):
                 dict(row("fern", 3, "vanilla_init_r4", 0, 21.5, gaussians=950), init="mvs", init_resolution=4)]
         self.assertEqual(charts.budget_points(runs), {"vanilla": [(300.0, 21.0, True), (1000.0, 20.0, False)]})
         self.assertEqual(charts.base_variant("vanilla"), "vanilla")
+
+
+class KernelProfileTest(unittest.TestCase):
+    HEADER = ["ID", "Kernel Name", "Grid Size", "Section Name", "Metric Name", "Metric Unit", "Metric Value",
+              "Rule Name", "Rule Type", "Rule Description", "Estimated Speedup Type", "Estimated Speedup"]
+
+    def ncu_csv(self, launches):
+        out = io.StringIO()
+        out.write("==PROF== Connected to process 1 (rasterizer_speed_bench)\n")
+        out.write('{"case":"100k_504x378"}\n')  # the benchmark's own output, interleaved
+        w = csv.writer(out, quoting=csv.QUOTE_ALL)
+        w.writerow(self.HEADER)
+        for launch_id, grid, duration, issued, divergence in launches:
+            w.writerow([launch_id, "rasterize_backward_kernel", grid, "GPU Speed Of Light Throughput", "Duration", "ns",
+                        f"{duration:,}", "", "", "", "", ""])
+            w.writerow([launch_id, "rasterize_backward_kernel", grid, "Scheduler Statistics",
+                        "Issued Warp Per Scheduler", "", str(issued), "", "", "", "", ""])
+            w.writerow([launch_id, "rasterize_backward_kernel", grid, "WarpStateStats", "", "", "",
+                        "ThreadDivergence", "OPT", "...", "local", str(divergence)])
+        return out.getvalue()
+
+    def test_the_median_launch_of_each_grid_with_its_rules(self):
+        text = self.ncu_csv([(0, "(32, 24, 1)", 702144, 0.77, 22.1), (1, "(32, 24, 1)", 600000, 0.70, 20.0),
+                             (2, "(32, 24, 1)", 900000, 0.80, 25.0), (3, "(63, 63, 1)", 2574656, 0.87, 31.8)])
+        lines = list(kernel_profile.summarise(text))
+        self.assertEqual([l["image"] for l in lines], ["100k and 300k at 504x378", "1M at 1000x1000"])
+        self.assertEqual(lines[0]["launches"], 3)
+        self.assertEqual(lines[0]["duration_ns"], 702144.0)  # the middle of 600000, 702144, 900000
+        self.assertEqual(lines[0]["issued_warp_per_scheduler"], 0.77)
+        self.assertEqual(lines[0]["rules_estimated_speedup_pct"], {"ThreadDivergence": 22.1})
+        self.assertEqual(lines[1]["duration_ns"], 2574656.0)
+
+    def test_a_csv_without_rows_is_refused(self):
+        with self.assertRaises(SystemExit) as refused:
+            list(kernel_profile.summarise("==PROF== No kernels were profiled.\n"))
+        self.assertIn("no ncu rows", str(refused.exception))
 
 
 if __name__ == "__main__":
