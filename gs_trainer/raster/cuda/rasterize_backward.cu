@@ -5,16 +5,16 @@
 // the current Gaussian, all slots at once (slot_sums: a butterfly that halves the slots each lane carries at
 // every step, 16 shuffles for 16 slots where one warp sum per slot takes 60), which leaves slot s in lane
 // s * 32 / slots; those lanes add their sums to the per-Gaussian gradients with one atomic instruction
-// between them. The |mean2d| sums are compiled in only where a caller asks for them (absolute-gradient
-// densification). The variants measured against this form are in docs/benchmarks.md ("CUDA rasterizer against
-// gsplat", "Speed: ...").
-// Float atomics make the last bits of a gradient depend on the order warps finish (relative ~1e-7); a
-// deterministic order would need per-(tile, Gaussian) partial sums plus a second sort, far from cheap at
-// millions of intersections. This file alone is compiled with FMA contraction: its gradients are float
-// sums in another order than the CPU's anyway, and the alpha decisions it must share with the forward
-// pass come from gaussian_power, which is written with unfused intrinsics.
+// between them. Tiles start longest list first (longest_first_kernel). The |mean2d| sums are compiled in only where a
+// caller asks for them (absolute-gradient densification). The variants measured against this form are in
+// docs/benchmarks.md ("CUDA rasterizer against gsplat", "Speed: ..."). Float atomics make the last bits of a gradient
+// depend on the order warps finish (relative ~1e-7); a deterministic order would need per-(tile, Gaussian) partial sums
+// plus a second sort, far from cheap at millions of intersections. This file alone is compiled with FMA contraction:
+// its gradients are float sums in another order than the CPU's anyway, and the alpha decisions it must share with the
+// forward pass come from gaussian_power, which is written with unfused intrinsics.
 #include <ATen/core/Tensor.h>
 #include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
 #include <c10/cuda/CUDAGuard.h>
 
@@ -76,6 +76,7 @@ __device__ int block_max(int v, int* s_warp) {
 }
 
 struct BackwardArgs : CompositeInputs {
+  const int32_t* __restrict__ tile_order;  // block b composites tile tile_order[b]
   const float* __restrict__ final_T;
   const int32_t* __restrict__ n_contrib;
   const float* __restrict__ g_out_features;  // H x W x C
@@ -87,21 +88,60 @@ struct BackwardArgs : CompositeInputs {
   float* __restrict__ g_means2d_abs;         // N x 2
 };
 
-// Where the sum of a gradient slot goes; nullptr for padding slots past the channels.
-__device__ float* slot_target(const BackwardArgs& a, int64_t g, int slot) {
-  if (slot < kConicA) return a.g_means2d + 2 * g + (slot - kMeanX);
-  if (slot < kOpacity) return a.g_conics + 3 * g + (slot - kConicA);
-  if (slot == kOpacity) return a.g_opacities + g;
-  if (slot < kFeatures) return a.g_means2d_abs + 2 * g + (slot - kAbsX);
-  if (slot - kFeatures < a.channels) return a.g_features + g * a.channels + (slot - kFeatures);
-  return nullptr;
+// Where a lane adds the sum of its gradient slot: base + g * stride for Gaussian g. A lane's slot is fixed for the
+// whole kernel, so this is worked out once; base is nullptr for lanes that add nothing (the other lanes holding
+// the same slot, padding slots past the channels, the |mean2d| slots unless ABS).
+struct SlotTarget {
+  float* base = nullptr;
+  int stride = 0;
+};
+
+template <bool ABS>
+__device__ SlotTarget slot_target(const BackwardArgs& a, int slot) {
+  if (slot < kConicA) return {a.g_means2d + (slot - kMeanX), 2};
+  if (slot < kOpacity) return {a.g_conics + (slot - kConicA), 3};
+  if (slot == kOpacity) return {a.g_opacities, 1};
+  if (slot < kFeatures) return ABS ? SlotTarget{a.g_means2d_abs + (slot - kAbsX), 2} : SlotTarget{};
+  if (slot - kFeatures < a.channels) return {a.g_features + (slot - kFeatures), a.channels};
+  return {};
+}
+
+// The tiles, longest lists first (to within 9 %: eight buckets per doubling of the length). Blocks start in
+// launch order, so the last blocks to start, those that run while the other SMs fall idle, are the short ones:
+// 768 tiles (504x378) take 1.2 waves of 660 blocks, and in that order the second wave's tail is the shortest
+// tiles' instead of whichever came last in the image. One block; the order within a bucket is arbitrary.
+constexpr int kOrderBuckets = 256;
+constexpr int kOrderThreads = 1024;
+
+__device__ int length_bucket(const int32_t* ranges, int tile) {
+  const int n = ranges[2 * tile + 1] - ranges[2 * tile];
+  return min(kOrderBuckets - 1, __float2int_rd(8.f * __log2f(static_cast<float>(n) + 1.f)));
+}
+
+__global__ void __launch_bounds__(kOrderThreads)
+    longest_first_kernel(int tiles, const int32_t* __restrict__ ranges, int32_t* __restrict__ order) {
+  __shared__ int s_next[kOrderBuckets];
+  for (int b = threadIdx.x; b < kOrderBuckets; b += kOrderThreads) s_next[b] = 0;
+  __syncthreads();
+  for (int t = threadIdx.x; t < tiles; t += kOrderThreads) atomicAdd(&s_next[length_bucket(ranges, t)], 1);
+  __syncthreads();
+  if (threadIdx.x == 0) {  // each bucket's first position, the longest bucket at 0
+    int start = 0;
+    for (int b = kOrderBuckets - 1; b >= 0; --b) {
+      const int count = s_next[b];
+      s_next[b] = start;
+      start += count;
+    }
+  }
+  __syncthreads();
+  for (int t = threadIdx.x; t < tiles; t += kOrderThreads) order[atomicAdd(&s_next[length_bucket(ranges, t)], 1)] = t;
 }
 
 // ABS: also sum the absolute 2D-mean gradients (only absolute-gradient densification asks for them).
 template <int CMAX, bool ABS>
 __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs a) {
-  const int tile = blockIdx.y * a.tiles_x + blockIdx.x;
-  const int px = blockIdx.x * kTile + threadIdx.x, py = blockIdx.y * kTile + threadIdx.y;
+  const int tile = a.tile_order[blockIdx.x];
+  const int px = (tile % a.tiles_x) * kTile + threadIdx.x, py = (tile / a.tiles_x) * kTile + threadIdx.y;
   const int thread = threadIdx.y * kTile + threadIdx.x;
   const int lane = thread % 32;
   const bool inside = px < a.width && py < a.height;
@@ -124,6 +164,10 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
   float last_alpha = 0.f;
   float behind[CMAX], last_feat[CMAX];
   for (int ch = 0; ch < CMAX; ++ch) behind[ch] = last_feat[ch] = 0.f;
+
+  constexpr int kSlots = padded_slots(kFeatures + CMAX);
+  constexpr int kLanesPerSlot = 32 / kSlots;
+  const SlotTarget target = lane % kLanesPerSlot == 0 ? slot_target<ABS>(a, lane / kLanesPerSlot) : SlotTarget{};
 
   const int begin = a.ranges[2 * tile];
   const int max_contrib = block_max(contrib, s_warp);
@@ -153,13 +197,12 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
             power >= splat.conic_c_opacity.z && raster::alpha_from_power_host_rounding(power, opacity, alpha, gauss);
       }
       if (!__any_sync(kFullMask, valid)) continue;
-      constexpr int kSlots = padded_slots(kFeatures + CMAX);
       float slots[kSlots];
 #pragma unroll
       for (int i = 0; i < kSlots; ++i) slots[i] = 0.f;
       if (valid) {
-        const float inv_one_minus_alpha = 1.f / (1.f - alpha);
-        T *= inv_one_minus_alpha;  // transmittance in front of this Gaussian
+        const float inv_one_minus_alpha = __frcp_rn(1.f - alpha);  // 1 / (1 - alpha), rounded alike
+        T *= inv_one_minus_alpha;                                  // transmittance in front of this Gaussian
         const float t = T;
         const float* f = s_feat + j * CMAX;
         float g_alpha = 0.f;
@@ -189,12 +232,7 @@ __global__ void __launch_bounds__(kBlock) rasterize_backward_kernel(BackwardArgs
         }
       }
       const float sum = slot_sums(slots, lane);
-      constexpr int kLanesPerSlot = 32 / kSlots;
-      const int slot = lane / kLanesPerSlot;
-      if (lane % kLanesPerSlot == 0 && (ABS || (slot != kAbsX && slot != kAbsY))) {
-        float* target = slot_target(a, s_id[j], slot);
-        if (target != nullptr) atomicAdd(target, sum);
-      }
+      if (target.base != nullptr) atomicAdd(target.base + static_cast<int64_t>(s_id[j]) * target.stride, sum);
     }
   }
 }
@@ -235,7 +273,14 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
   if (n == 0) return grads;
 
   const int tiles_x = (width + kTile - 1) / kTile, tiles_y = (height + kTile - 1) / kTile;
+  const int tiles = tiles_x * tiles_y;
+  const at::Tensor tile_order = at::empty({tiles}, ranges.options());
+  const auto stream = at::cuda::getCurrentCUDAStream();
+  longest_first_kernel<<<1, kOrderThreads, 0, stream>>>(tiles, ranges.data_ptr<int32_t>(),
+                                                        tile_order.data_ptr<int32_t>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
   const BackwardArgs args{composite_inputs(width, height, tiles_x, ranges, ids, means2d, conics, opacities, features),
+                          tile_order.data_ptr<int32_t>(),
                           final_T.data_ptr<float>(),
                           n_contrib.data_ptr<int32_t>(),
                           g_features.data_ptr<float>(),
@@ -246,8 +291,7 @@ RasterGrads rasterize_backward_cuda(const TileBins& bins, const at::Tensor& mean
                           grads.features.data_ptr<float>(),
                           absolute_grads ? grads.means2d_abs.data_ptr<float>() : nullptr};
   dispatch_channels(channels, [&](auto cmax) {
-    const dim3 grid(tiles_x, tiles_y), block(kTile, kTile);
-    const auto stream = at::cuda::getCurrentCUDAStream();
+    const dim3 grid(tiles), block(kTile, kTile);
     if (absolute_grads)
       rasterize_backward_kernel<decltype(cmax)::value, true><<<grid, block, 0, stream>>>(args);
     else
