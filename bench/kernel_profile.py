@@ -21,8 +21,10 @@ import subprocess
 import sys
 
 SECTIONS = ["SpeedOfLight", "Occupancy", "SchedulerStats", "WarpStateStats", "MemoryWorkloadAnalysis"]
-# rasterizer_speed_bench's cases by their grid of 16x16 tiles (100k and 300k share 504x378).
-CASES = {"(32, 24, 1)": "100k and 300k at 504x378", "(63, 63, 1)": "1M at 1000x1000"}
+# rasterizer_speed_bench's cases by their grid of 16x16 tiles, two-dimensional or one block per tile in a row
+# (100k and 300k share 504x378).
+CASES = {"(32, 24, 1)": "100k and 300k at 504x378", "(768, 1, 1)": "100k and 300k at 504x378",
+         "(63, 63, 1)": "1M at 1000x1000", "(3969, 1, 1)": "1M at 1000x1000"}
 METRICS = {
     "Duration": "duration_ns",
     "Elapsed Cycles": "elapsed_cycles",
