@@ -410,6 +410,12 @@ class KernelProfileTest(unittest.TestCase):
         self.assertEqual(lines[0]["rules_estimated_speedup_pct"], {"ThreadDivergence": 22.1})
         self.assertEqual(lines[1]["duration_ns"], 2574656.0)
 
+    def test_one_block_per_tile_in_a_row_names_the_same_cases(self):
+        text = self.ncu_csv([(0, "(768, 1, 1)", 538816, 0.82, 20.0), (1, "(3969, 1, 1)", 2026912, 0.89, 23.2),
+                             (2, "(5, 7, 1)", 1000, 0.5, 1.0)])
+        self.assertEqual([l["image"] for l in kernel_profile.summarise(text)],
+                         ["100k and 300k at 504x378", "1M at 1000x1000", "?"])
+
     def test_a_csv_without_rows_is_refused(self):
         with self.assertRaises(SystemExit) as refused:
             list(kernel_profile.summarise("==PROF== No kernels were profiled.\n"))
