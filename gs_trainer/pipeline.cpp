@@ -12,7 +12,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "absl/strings/str_replace.h"
+#include "common/cli/command_line.h"
 #include "common/device.h"
 #include "common/error_kind.h"
 #include "common/image_io.h"
@@ -107,7 +107,7 @@ void note_unused_mvs_settings(const RunOptions& o, const std::string& method, co
   if (method == "mvs") return;
   std::vector<std::string> flags;
   const nlohmann::json changed = changed_mvs_settings(o);
-  for (const auto& [name, value] : changed.items()) flags.push_back("--" + absl::StrReplaceAll(name, {{"_", "-"}}));
+  for (const auto& [name, value] : changed.items()) flags.push_back(cli::display_name(name));
   if (!flags.empty())
     log(absl::StrCat("init: ", absl::StrJoin(flags, ", "), " not used: the points came from ", method));
 }
