@@ -47,6 +47,8 @@ ABSL_FLAG(int, patchmatch_best_views, gaps::PatchMatchOptions{}.best_views,
 ABSL_FLAG(double, patchmatch_max_cost, gaps::PatchMatchOptions{}.max_cost,
           "PatchMatch: pixels whose final cost is higher get no depth");
 ABSL_FLAG(int, fusion_min_views, gaps::FusionOptions{}.min_views, "views a fused point must span");
+ABSL_FLAG(bool, fusion_add_sparse, gaps::FusionOptions{}.add_sparse_points,
+          "add the sparse stage's points to the fused cloud");
 ABSL_FLAG(int64_t, fusion_max_points, gaps::FusionOptions{}.max_points,
           "cap on the fused points (0: none; -1: the automatic Gaussian budget of a default run, as `gaps train "
           "--init mvs` caps them, so that a cloud written with --ply_dir trains as that run's would)");
@@ -71,6 +73,7 @@ gaps::InitOptions init_options() {
   o.patchmatch.best_views = absl::GetFlag(FLAGS_patchmatch_best_views);
   o.patchmatch.max_cost = absl::GetFlag(FLAGS_patchmatch_max_cost);
   o.fusion.min_views = absl::GetFlag(FLAGS_fusion_min_views);
+  o.fusion.add_sparse_points = absl::GetFlag(FLAGS_fusion_add_sparse);
   o.fusion.max_points = absl::GetFlag(FLAGS_fusion_max_points);
   return o;
 }
@@ -149,6 +152,7 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
     j["best_views"] = absl::GetFlag(FLAGS_patchmatch_best_views);
     j["max_cost"] = absl::GetFlag(FLAGS_patchmatch_max_cost);
     j["geometric_consistency"] = absl::GetFlag(FLAGS_geometric_consistency);
+    j["add_sparse"] = options.fusion.add_sparse_points;
     j["depth_pixels"] = result->mvs->fusion.depth_pixels;
     j["fused_points"] = result->mvs->fusion.fused_points;
     j["fused_points_capped"] = result->mvs->fusion.points;

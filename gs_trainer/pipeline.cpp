@@ -310,6 +310,7 @@ void visit_mvs_settings(Options& o, Visit&& visit) {
   visit("patchmatch_geometric_consistency", o.patchmatch.geometric_consistency);
   visit("fusion_min_views", o.fusion.min_views);
   visit("fusion_max_normal_error", o.fusion.max_normal_error_deg);
+  visit("fusion_add_sparse", o.fusion.add_sparse_points);
 }
 
 }  // namespace

@@ -17,6 +17,8 @@
 #include <unistd.h>
 #include <Eigen/Dense>
 
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "common/io_util.h"
 #include "common/ply.h"
 #include "gs_trainer/init/colmap_dense.h"
@@ -449,6 +451,39 @@ TEST(Initializer, MvsOnASyntheticPlaneAutoSharesItsCacheEntryAndTheWorkspaceIsWr
   ASSERT_TRUE(covered.ok()) << covered.status();
   EXPECT_EQ(covered->method, "mvs");
   remove_tree(dir);
+}
+
+// FusionOptions::add_sparse_points: the cloud is the fused points plus every triangulated point, and the cap
+// applies to the two together; the sparse points' positions are kept exactly when there is no cap.
+TEST(Initializer, MvsAddsTheSparsePointsUnderTheCap) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(320, 240, 300);
+  const std::vector<at::Tensor> images = render_all(plane, cams);
+  InitOptions o = small_patchmatch();
+  auto fused_only = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(fused_only.ok()) << fused_only.status();
+  ASSERT_EQ(fused_only->method, "mvs");
+  ASSERT_TRUE(fused_only->sparse);
+  const int64_t fused = fused_only->points.xyz.size(0), sparse = fused_only->sparse->points;
+  ASSERT_GT(sparse, 0);
+
+  o.fusion.add_sparse_points = true;
+  auto both = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(both.ok()) << both.status();
+  EXPECT_EQ(both->method, "mvs");
+  ASSERT_EQ(both->points.xyz.size(0), fused + sparse);
+  EXPECT_TRUE(at::equal(both->points.xyz.narrow(0, 0, fused), fused_only->points.xyz));
+  EXPECT_EQ(both->points.rgb.size(0), fused + sparse);
+  const std::string note = absl::StrCat("mvs: ", fused, " fused + ", sparse, " sparse points -> ", fused + sparse);
+  EXPECT_TRUE(std::any_of(both->notes.begin(), both->notes.end(), [&](const std::string& n) {
+    return n.rfind(note, 0) == 0;
+  })) << absl::StrJoin(both->notes, "\n");
+
+  o.fusion.max_points = fused / 2;
+  auto capped = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(capped.ok()) << capped.status();
+  EXPECT_LE(capped->points.xyz.size(0), fused / 2);
+  EXPECT_GT(capped->points.xyz.size(0), fused / 4);
 }
 
 TEST(AutoInitialisation, ViewingDirectionSpreadIsTheLargestPairwiseAngle) {

@@ -26,6 +26,10 @@ struct FusionOptions {
   // budget (train/budget.h, "how many Gaussians a scene needs"), so a larger cloud would start training past
   // what the scene needs and leave it nothing to place where the gradients ask for detail.
   int64_t max_points = 0;
+  // The initialisation (initializer.h) adds the sparse stage's triangulated points to the fused cloud (then
+  // capped at max_points as one cloud). PatchMatch leaves surfaces seen by few views without depth (bonsai 12
+  // views: 35 % of the pixels), where SIFT tracks spanning several views still place points.
+  bool add_sparse_points = false;
 };
 
 struct FusionStats {

@@ -58,7 +58,7 @@ std::string describe_mvs_options(const PatchMatchOptions& p, const FusionOptions
       p.max_image_side, p.window_radius, p.window_step, p.sigma_color, p.iterations, p.max_source_views, p.best_views,
       p.min_triangulation_angle_deg, p.geometric_consistency, p.geometric_iterations, p.geometric_regularizer,
       p.geometric_max_error_px, p.max_cost, p.seed, f.max_depth_error, f.max_reprojection_px, f.max_normal_error_deg,
-      f.min_views, f.max_points, min_depth_coverage);
+      f.min_views, f.max_points, f.add_sparse_points, min_depth_coverage);
 }
 
 std::string describe_camera(const Camera& c, const at::Tensor& image) {
@@ -115,6 +115,22 @@ std::string mvs_note(const MvsStats& m, const FusionOptions& o) {
       "views -> %d after voxel grid (voxel %.4g, cap %s), %.1f s",
       m.views_with_sources, m.patchmatch_seconds, absl::StrJoin(f.depth_pixels, ", "), f.clusters, f.fused_points,
       o.min_views, f.points, f.voxel_size, o.max_points > 0 ? absl::StrCat(o.max_points) : "none", f.seconds);
+}
+
+// The fused cloud with the sparse stage's points added (FusionOptions::add_sparse_points), capped at
+// max_points as one cloud; *note says what was added.
+PointCloud add_sparse_points(const PointCloud& fused, const PointCloud& sparse, int64_t max_points, std::string* note) {
+  if (!sparse.xyz.defined() || sparse.xyz.size(0) == 0) {
+    *note = "mvs: no sparse points to add";
+    return fused;
+  }
+  const auto cpu = [](const at::Tensor& t) { return t.to(at::kCPU, at::kFloat); };
+  const PointCloud merged{at::cat({cpu(fused.xyz), cpu(sparse.xyz)}), at::cat({cpu(fused.rgb), cpu(sparse.rgb)})};
+  double voxel_size = 0.0;
+  PointCloud capped = max_points > 0 ? cap_points(merged, max_points, &voxel_size) : merged;
+  *note = absl::StrFormat("mvs: %d fused + %d sparse points -> %d (voxel %.4g)", fused.xyz.size(0), sparse.xyz.size(0),
+                          capped.xyz.size(0), voxel_size);
+  return capped;
 }
 
 // Why triangulation gave too few points, from its statistics.
@@ -176,6 +192,11 @@ absl::StatusOr<std::string> dense_stage(const std::string& method, const std::ve
   if (!opts.dense_workspace.empty())
     GAPS_RETURN_IF_ERROR(write_colmap_dense_workspace(opts.dense_workspace, mvs->maps, mvs->fused, sparse.points));
   r->points = std::move(mvs->fused.points);
+  if (opts.fusion.add_sparse_points) {
+    std::string note;
+    r->points = add_sparse_points(r->points, sparse.points, opts.fusion.max_points, &note);
+    r->notes.push_back(note);
+  }
   r->method = method;
   return why;
 }
