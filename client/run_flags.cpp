@@ -16,8 +16,7 @@ ABSL_FLAG(
 ABSL_FLAG(int, views, 3, "number of training views (benchmark split; <= 0 uses every non-test view)");
 ABSL_FLAG(int, resolution, 8, "image downscale factor (uses images_R/ when present)");
 ABSL_FLAG(std::string, init, "auto",
-          "initial points: auto (sweep for forward-facing views; mvs for views that surround the scene, sparse when "
-          "its depth covers under 25% of the pixels), mvs "
+          "initial points: auto (mvs, or sparse when PatchMatch gives under 25% of the pixels a depth), mvs "
           "(PatchMatch stereo on the training views), sweep (the older plane sweep), sparse, random, scene or ply");
 ABSL_FLAG(std::string, init_ply, "",
           "PLY for --init ply (given alone, implies it): a full 3DGS model (opacity, scale_*, rot_*: training "
@@ -28,8 +27,8 @@ ABSL_FLAG(
     "downscale factor of the images the initialisation (sparse, mvs, sweep) reads, e.g. 4 to triangulate from larger "
     "images than -r 8 trains on (0: --resolution)");
 ABSL_FLAG(int, patchmatch_best_views, gaps::PatchMatchOptions{}.best_views,
-          "mvs: a depth hypothesis's cost is the mean of its best this many source views' costs (2 suits views around "
-          "a scene, where most surfaces are seen by two neighbours; COLMAP uses 3)");
+          "mvs: a depth hypothesis's cost is the mean of its best this many source views' costs (1 suits few views, "
+          "where most surfaces are seen well by one neighbour, fusion then asking two views to agree; COLMAP uses 3)");
 ABSL_FLAG(double, patchmatch_max_cost, gaps::PatchMatchOptions{}.max_cost,
           "mvs: pixels whose final cost (1 - NCC plus the geometric term) is higher get no depth (higher: more, "
           "less reliable depths)");

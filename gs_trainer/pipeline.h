@@ -25,8 +25,7 @@ struct RunOptions {
   int views = 3;       // training views (<= 0: every non-test view)
   int resolution = 8;  // downscale factor
   std::filesystem::path out_dir;
-  // "auto" ("sweep" for forward-facing views, "mvs" for views that surround the scene, or "sparse" when its
-  // depth maps cover under a quarter of the pixels: auto_init_method),
+  // "auto" ("mvs", or "sparse" when its depth maps cover under a quarter of the pixels),
   // "mvs" (sparse triangulation + PatchMatch stereo and fusion from the training views only; falls back to
   // "sparse", then "random", saying why), "sweep" (the same with the older plane sweep), "sparse", "random"
   // (uniform in the training cameras' frusta), "scene" (points shipped with the scene, e.g. a COLMAP model:

@@ -387,7 +387,7 @@ InitOptions small_patchmatch() {
   return o;
 }
 
-TEST(Initializer, MvsOnASyntheticPlaneAutoSharesItsCacheEntryAndTheWorkspaceIsWritten) {
+TEST(Initializer, MvsOnASyntheticPlaneIsWhatAutoTakesAndWritesTheWorkspace) {
   const TexturedPlane plane;
   const std::vector<Camera> cams = three_cameras(320, 240, 300);
   const std::vector<at::Tensor> images = render_all(plane, cams);
@@ -409,12 +409,12 @@ TEST(Initializer, MvsOnASyntheticPlaneAutoSharesItsCacheEntryAndTheWorkspaceIsWr
   const at::Tensor distance = (at::matmul(first->points.xyz, n) - plane.normal.dot(plane.point)).abs();
   EXPECT_LT(distance.median().item<double>(), 0.05);
 
-  // "auto" on these forward-facing views is the plane sweep, and says why it chose it.
+  // "auto" is PatchMatch too (these maps cover far more than its 25 %), and says what it asks.
   auto chosen = run_initialization("auto", cams, images, o);
   ASSERT_TRUE(chosen.ok()) << chosen.status();
-  EXPECT_EQ(chosen->method, "sweep");
+  EXPECT_EQ(chosen->method, "mvs");
   ASSERT_FALSE(chosen->notes.empty());
-  EXPECT_EQ(chosen->notes[0].rfind("auto: sweep (viewing directions span ", 0), 0u) << chosen->notes[0];
+  EXPECT_EQ(chosen->notes[0], "auto: mvs, the sparse points if its depth maps cover under 25% of the pixels");
 
   // A dense workspace needs the maps: computed again, not read from the cache.
   o.dense_workspace = dir / "workspace";
@@ -498,21 +498,21 @@ TEST(AutoInitialisation, ViewingDirectionSpreadIsTheLargestPairwiseAngle) {
   const Camera left = look_at("left", {-0.5, 0, 0}, {0, 0, 10}, 64, 48, 50);
   const Camera right = look_at("right", {0.5, 0, 0}, {0, 0, 10}, 64, 48, 50);
   EXPECT_NEAR(viewing_direction_spread_degrees({left, right}), 2.0 * std::atan(0.05) * 180.0 / M_PI, 1e-6);
-  EXPECT_EQ(auto_init_method({left, right}), "sweep");
-  EXPECT_EQ(auto_init_method({ahead, side, behind}), "mvs");
+  EXPECT_FALSE(views_surround_scene({left, right}));
+  EXPECT_TRUE(views_surround_scene({ahead, side, behind}));
 }
 
 // The benchmark scenes: fern is forward-facing, bonsai's training views surround the tree.
-TEST(AutoInitialisation, FernTakesTheSweepAndBonsaiTakesPatchMatch) {
+TEST(AutoInitialisation, FernFacesOneWayAndBonsaiIsSurrounded) {
   const fs::path data(GAPS_DATA_DIR);
   const struct {
     const char* path;
     int views;
-    const char* method;
-  } cases[] = {{"llff/fern", 3, "sweep"},
-               {"llff/fern", 9, "sweep"},
-               {"mipnerf360/bonsai", 12, "mvs"},
-               {"mipnerf360/bonsai", 24, "mvs"}};
+    bool surround;
+  } cases[] = {{"llff/fern", 3, false},
+               {"llff/fern", 9, false},
+               {"mipnerf360/bonsai", 12, true},
+               {"mipnerf360/bonsai", 24, true}};
   for (const auto& c : cases) {
     if (!fs::exists(data / c.path)) GTEST_SKIP() << "no benchmark data at " << data / c.path;
     SceneLoadOptions load;
@@ -525,7 +525,7 @@ TEST(AutoInitialisation, FernTakesTheSweepAndBonsaiTakesPatchMatch) {
     for (int i : split->train) cams.push_back(scene->cameras[i]);
     std::cout << c.path << ", " << c.views << " views: viewing directions span "
               << viewing_direction_spread_degrees(cams) << " degrees\n";
-    EXPECT_EQ(auto_init_method(cams), c.method) << c.path << ", " << c.views << " views";
+    EXPECT_EQ(views_surround_scene(cams), c.surround) << c.path << ", " << c.views << " views";
   }
 }
 

@@ -266,7 +266,7 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   EXPECT_EQ(o->gaps.warmup_iterations, 40);
   EXPECT_EQ(o->gaps.phase_interval, GapsConfig().phase_interval);
   EXPECT_EQ(o->variant, Variant::kFull);
-  EXPECT_EQ(o->init, "auto");  // unset: the capture decides (sweep, mvs or sparse)
+  EXPECT_EQ(o->init, "auto");  // unset: PatchMatch, or the sparse points where it covers too little
   config.set_init("sparse");
   EXPECT_EQ(run_options_from_proto(config, false, "", "cpu")->init, "sparse");
   config.set_init("points");

@@ -308,10 +308,6 @@ bool views_surround_scene(const std::vector<Camera>& cameras) {
   return viewing_direction_spread_degrees(cameras) > kSurroundingViewsDegrees;
 }
 
-std::string auto_init_method(const std::vector<Camera>& cameras) {
-  return views_surround_scene(cameras) ? "mvs" : "sweep";
-}
-
 namespace {
 
 absl::StatusOr<InitResult> cached_or_computed(const std::string& method, const std::vector<Camera>& train_cameras,
@@ -344,14 +340,12 @@ absl::StatusOr<InitResult> run_initialization(const std::string& method, const s
                                               const std::vector<at::Tensor>& train_images, const InitOptions& opts) {
   GAPS_RETURN_IF_ERROR(check_inputs(method, train_cameras, train_images));
   if (method != "auto") return cached_or_computed(method, train_cameras, train_images, opts);
-  const std::string chosen = auto_init_method(train_cameras);
   InitOptions auto_opts = opts;
-  if (chosen == "mvs") auto_opts.min_depth_coverage = std::max(opts.min_depth_coverage, kAutoMinDepthCoverage);
-  GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed(chosen, train_cameras, train_images, auto_opts));
-  r.notes.insert(
-      r.notes.begin(),
-      absl::StrFormat("auto: %s (viewing directions span %.0f degrees; over %.0f the views surround the scene)", chosen,
-                      viewing_direction_spread_degrees(train_cameras), kSurroundingViewsDegrees));
+  auto_opts.min_depth_coverage = std::max(opts.min_depth_coverage, kAutoMinDepthCoverage);
+  GAPS_ASSIGN_OR_RETURN(InitResult r, cached_or_computed("mvs", train_cameras, train_images, auto_opts));
+  r.notes.insert(r.notes.begin(), absl::StrFormat("auto: mvs, the sparse points if its depth maps cover under %.0f%% "
+                                                  "of the pixels",
+                                                  100 * kAutoMinDepthCoverage));
   return r;
 }
 

@@ -6,8 +6,7 @@
 //   "sparse" SIFT matching + triangulation with the known poses (sparse.h);
 //   "random" uniform points in the cameras' frusta (gaussians.h).
 // A method that cannot produce enough points falls back to the next one and says why in the report.
-// "auto" picks by the capture (auto_init_method): "mvs" for forward-facing views, "sparse" for views that
-// surround the scene.
+// "auto" is "mvs" asking its depth maps to cover kAutoMinDepthCoverage of the pixels (else the sparse points).
 #include <cstdint>
 #include <filesystem>
 #include <optional>
@@ -40,7 +39,7 @@ struct InitOptions {
   int64_t min_dense_points = 1000;  // fewer fused points: "mvs" or "sweep" has failed
   // "mvs" has failed when its depth maps give a depth to less than this fraction of the views' pixels (at
   // the working resolution): a cloud of the few well-matched regions leaves the rest of the scene without
-  // points. 0 for an explicit --init mvs; "auto" on views that surround the scene asks kAutoMinDepthCoverage.
+  // points. 0 for an explicit --init mvs; "auto" asks kAutoMinDepthCoverage.
   double min_depth_coverage = 0.0;
   // Non-empty: when "mvs" makes the points, its depth and normal maps and fused cloud are also written here
   // as a COLMAP dense workspace (colmap_dense.h). Only a computation has the maps, so the cache is then
@@ -70,19 +69,15 @@ inline constexpr double kSurroundingViewsDegrees = 90.0;
 double viewing_direction_spread_degrees(const std::vector<Camera>& cameras);
 
 // Whether the views surround the scene (their viewing directions spread over more than
-// kSurroundingViewsDegrees): what decides "auto" here and the paper's pseudo-views per phase (GapsConfig).
+// kSurroundingViewsDegrees): what decides the paper's pseudo-views per phase (GapsConfig).
 bool views_surround_scene(const std::vector<Camera>& cameras);
 
-// What "auto" resolves to, as measured (bench/configs/patchmatch_settings.json, docs/benchmarks.md, "PatchMatch
-// initialisation"): "sweep" for forward-facing views (fern 3 views, vanilla 20.6 dB from the plane sweep
-// against 19.9 from PatchMatch; PatchMatch 0.1–0.2 dB ahead at 6 and 9 views); "mvs" (PatchMatch) when the
-// views surround the scene, with min_depth_coverage = kAutoMinDepthCoverage, so that a capture too sparse for
-// PatchMatch to give a quarter of the pixels a depth takes the sparse points instead (bonsai 24 views: depth
-// for 57 % of the pixels, vanilla 24.2 dB against 22.7 from the sparse points; bonsai 12 views: 35 %, 17.3
-// against 17.1).
-std::string auto_init_method(const std::vector<Camera>& cameras);
-
-// The depth coverage "auto" asks of PatchMatch on surrounding views (InitOptions::min_depth_coverage).
+// "auto" is PatchMatch ("mvs") with this depth coverage asked of it (InitOptions::min_depth_coverage), so that a
+// capture too sparse for PatchMatch to give a quarter of the pixels a depth takes the sparse points instead.
+// PatchMatch trains best or as well as the alternatives on every capture measured (docs/benchmarks.md, "best_views
+// 1"): fern 3 views 20.9 / 22.5 dB (vanilla / full) against the plane sweep's 20.8 / 22.3, fern 6 and 9
+// 0.1–0.2 dB ahead of the sweep, bonsai 12 views 19.4 / 20.0 against the sparse points' 17.1 / 18.1, bonsai 24
+// (best_views 2) 24.2 / 24.8 against 22.7 / 23.6.
 inline constexpr double kAutoMinDepthCoverage = 0.25;
 
 // The full result. images[i] is HxWx3 float in [0, 1] at cameras[i]'s size, on any device. Errors only for

@@ -22,11 +22,13 @@ struct PatchMatchOptions {
   double sigma_color = 0.2;  // bilateral weight of a window pixel: exp(-|grey - centre grey| / sigma_color)
   int iterations = 6;        // photometric sweeps (each updates the red, then the black pixels)
   int max_source_views = 8;  // candidate source views per reference view (select_neighbors)
-  // A hypothesis's cost: the mean over the best this many source views' costs. Two, not COLMAP's three:
-  // around a scene with few views most surfaces are seen by two neighbours only, and a third source that
-  // cannot judge the point counts the worst cost, so the mean stays above max_cost (bonsai 12 views: depth for
-  // 17 % of the pixels with 3, 35 % with 2; trained PSNR up 0.3–1.7 dB, docs/benchmarks.md).
-  int best_views = 2;
+  // A hypothesis's cost: the mean over the best this many source views' costs. One, not COLMAP's three: with
+  // few views most surfaces are seen well by one or two neighbours only, and a source that cannot judge the
+  // point (occluded, outside its image) counts the worst cost, so a mean over more sources stays above max_cost
+  // where the best source matches well. Fusion still asks two views' depths to agree, which rejects what one
+  // source matched by chance. Trained PSNR (docs/benchmarks.md, "best_views 1"): bonsai 12 views +2.1 dB against
+  // 2 (which had gained 1.7 over 3), fern 3 views +1.2, fern 6 unchanged.
+  int best_views = 1;
   double min_triangulation_angle_deg = 1.0;  // sources seeing the point under a smaller angle do not count
   // Geometric consistency (COLMAP's geom_consistency): cost + regularizer * min(forward-backward reprojection
   // error in pixels, max_error_px) against the photometric depth maps of the sources.

@@ -197,7 +197,7 @@ TEST_F(ServicesOnCuda, AJobWithInitSettingsRunsPatchMatchOnTheTrainersGpu) {
   EXPECT_EQ(metrics["init_method"], "mvs") << trainer_->log_text();
   EXPECT_EQ(metrics["init_options"]["patchmatch_iterations"], 3) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["fusion_max_normal_error"], 30.0) << metrics["init_options"];
-  EXPECT_EQ(metrics["init_options"]["patchmatch_best_views"], 2) << metrics["init_options"];  // a default
+  EXPECT_EQ(metrics["init_options"]["patchmatch_best_views"], 1) << metrics["init_options"];  // a default
 }
 
 }  // namespace
