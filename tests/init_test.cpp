@@ -437,7 +437,7 @@ TEST(Initializer, MvsOnASyntheticPlaneIsWhatAutoTakesAndWritesTheWorkspace) {
   EXPECT_NE(report.find("init: sparse, "), std::string::npos) << report;
   EXPECT_FALSE(fs::exists(strict.dense_workspace));
 
-  // So does mvs whose maps leave too many pixels without a depth (what "auto" asks on surrounding views).
+  // So does mvs whose maps leave too many pixels without a depth (what "auto" asks).
   InitOptions covering = o;
   covering.cache_dir.clear();
   covering.dense_workspace.clear();

@@ -194,6 +194,8 @@ TEST(PatchMatchMath, AggregationAveragesTheBestSources) {
   EXPECT_EQ(chosen, (1u << 2) | (1u << 3));
   EXPECT_FLOAT_EQ(pm::mean_of_best(costs, 4, 9, &chosen), 0.725f);  // fewer sources than best_views: all
   EXPECT_EQ(chosen, 15u);
+  EXPECT_FLOAT_EQ(pm::mean_of_best(costs, 4, 1, &chosen), 0.1f);  // the default: the best source alone
+  EXPECT_EQ(chosen, 1u << 2);
 }
 
 // ---- Whole runs on synthetic scenes (4 views of 96x72, 30 degrees apart; see tests/synthetic_stereo.h).
@@ -234,6 +236,24 @@ TEST(PatchMatchStereo, RecoversASphereBeforeAPlane) {
   const auto result = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), ss::small_view_options());
   ASSERT_TRUE(result.ok()) << result.status();
   expect_accurate(ss::measure_all(scene, views, *result), 0.5);
+}
+
+// The default judges a hypothesis by its best source alone (best_views 1: what trains best with 3–24 views,
+// docs/benchmarks.md): its maps meet the same accuracy bars on both scenes, the geometric pass rejecting what one
+// source matched by chance.
+TEST(PatchMatchStereo, TheBestSourceAloneMeetsTheSameBars) {
+  PatchMatchOptions o = ss::small_view_options();
+  o.best_views = PatchMatchOptions{}.best_views;
+  ASSERT_EQ(o.best_views, 1);
+  for (const ss::Scene& scene : {ss::slanted_plane(), ss::sphere_before_plane()}) {
+    const std::vector<ss::View> views = ss::render_views(scene);
+    const auto result = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o);
+    ASSERT_TRUE(result.ok()) << result.status();
+    const ss::Accuracy a = ss::measure_all(scene, views, *result);
+    std::cout << a.accurate << " of " << a.valid << " estimates within 1%, " << a.valid << " of " << a.covisible
+              << " covisible pixels estimated\n";
+    expect_accurate(a, scene.spheres.empty() ? 0.75 : 0.5);
+  }
 }
 
 // The bars above are not met by chance: without sweeps (random hypotheses only) or with every image handed to
