@@ -348,6 +348,17 @@ TEST(Initializer, SweepOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   // Another method, other views or other PatchMatch or fusion options get another key.
   EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("sweep", cams, images, o));
   EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("sweep", cams, images, o));
+  // The first and last of the mvs key's fields count too (a format one conversion short once dropped the
+  // depth-coverage bar, so "auto" and "mvs" shared clouds).
+  InitOptions changed = o;
+  changed.patchmatch.best_views = o.patchmatch.best_views + 1;
+  EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("mvs", cams, images, changed));
+  changed = o;
+  changed.fusion.add_sparse_points = !o.fusion.add_sparse_points;
+  EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("mvs", cams, images, changed));
+  changed = o;
+  changed.min_depth_coverage = 0.25;
+  EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("mvs", cams, images, changed));
   EXPECT_NE(init_cache_key("sweep", {cams[0], cams[1]}, {images[0], images[1]}, o),
             init_cache_key("sweep", cams, images, o));
   InitOptions other = o;

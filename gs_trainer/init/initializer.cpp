@@ -53,7 +53,7 @@ std::string describe_options(const InitOptions& o) {
 
 std::string describe_mvs_options(const PatchMatchOptions& p, const FusionOptions& f, double min_depth_coverage) {
   return absl::StrFormat(
-      "patchmatch %d %d %d %.6g %d %d %d %.6g %d %d %.6g %.6g %.6g %d | fusion %.6g %.6g %.6g %d %d"
+      "patchmatch %d %d %d %.6g %d %d %d %.6g %d %d %.6g %.6g %.6g %d | fusion %.6g %.6g %.6g %d %d %d"
       " | coverage %.6g",
       p.max_image_side, p.window_radius, p.window_step, p.sigma_color, p.iterations, p.max_source_views, p.best_views,
       p.min_triangulation_angle_deg, p.geometric_consistency, p.geometric_iterations, p.geometric_regularizer,
