@@ -35,6 +35,8 @@ ABSL_FLAG(std::string, json, "", "append the result lines to this file");
 ABSL_FLAG(bool, guided_matching, gaps::SparseOptions{}.guided_matching, "epipolar-guided matching");
 ABSL_FLAG(double, contrast_threshold, gaps::SparseOptions{}.contrast_threshold, "SIFT contrast threshold");
 ABSL_FLAG(int, max_features, gaps::SparseOptions{}.max_features, "SIFT keypoints per image");
+ABSL_FLAG(int, sparse_max_image_side, gaps::SparseOptions{}.max_image_side,
+          "SIFT and triangulation on the views downsampled to this longest side (0: as read)");
 ABSL_FLAG(int, max_image_side, gaps::DenseOptions{}.max_image_side, "plane-sweep working resolution");
 ABSL_FLAG(int, patchmatch_max_image_side, gaps::PatchMatchOptions{}.max_image_side, "PatchMatch working resolution");
 ABSL_FLAG(int, patchmatch_iterations, gaps::PatchMatchOptions{}.iterations, "PatchMatch photometric sweeps");
@@ -63,6 +65,7 @@ gaps::InitOptions init_options() {
   o.sparse.guided_matching = absl::GetFlag(FLAGS_guided_matching);
   o.sparse.contrast_threshold = absl::GetFlag(FLAGS_contrast_threshold);
   o.sparse.max_features = absl::GetFlag(FLAGS_max_features);
+  o.sparse.max_image_side = absl::GetFlag(FLAGS_sparse_max_image_side);
   o.dense.max_image_side = absl::GetFlag(FLAGS_max_image_side);
   o.dense.num_planes = absl::GetFlag(FLAGS_num_planes);
   o.dense.max_neighbors = absl::GetFlag(FLAGS_max_neighbors);
@@ -142,6 +145,7 @@ nlohmann::json run_case(const std::string& scene_name, const std::filesystem::pa
     j["sparse_points"] = result->sparse->points;
     j["median_reprojection_px"] = result->sparse->median_reprojection_px;
     j["sparse_seconds"] = result->sparse->seconds;
+    j["sparse_max_image_side"] = options.sparse.max_image_side;
   }
   if (result->dense) {
     j["fused_points"] = result->dense->fused_before_voxel;

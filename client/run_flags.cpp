@@ -45,6 +45,9 @@ ABSL_FLAG(double, fusion_max_normal_error, gaps::FusionOptions{}.max_normal_erro
 ABSL_FLAG(bool, fusion_add_sparse, gaps::FusionOptions{}.add_sparse_points,
           "mvs: add the sparse stage's triangulated points to the fused cloud (they reach surfaces PatchMatch leaves "
           "without depth)");
+ABSL_FLAG(int, sparse_max_image_side, gaps::SparseOptions{}.max_image_side,
+          "mvs, sweep, sparse: SIFT and triangulation work on the views downsampled to this longest side, so that "
+          "--init-resolution can give PatchMatch larger views without slowing SIFT (0: the views as read)");
 ABSL_FLAG(std::string, init_cache, "",
           "folder caching initial point clouds (default: $GAPS_CACHE/init or ~/.cache/gaps/init)");
 ABSL_FLAG(std::string, variant, "vanilla", "vanilla, full (the paper's method), no-gaps or no-dropgaussian");
@@ -85,7 +88,8 @@ cli::FlagGroup scene_flags() {
 cli::FlagGroup mvs_flags() {
   return {"PatchMatch initialisation (--init mvs)",
           {"patchmatch_best_views", "patchmatch_max_cost", "patchmatch_iterations", "patchmatch_max_image_side",
-           "patchmatch_geometric_consistency", "fusion_min_views", "fusion_max_normal_error", "fusion_add_sparse"}};
+           "patchmatch_geometric_consistency", "fusion_min_views", "fusion_max_normal_error", "fusion_add_sparse",
+           "sparse_max_image_side"}};
 }
 cli::FlagGroup local_init_flags() { return {"initialisation", {"init_resolution", "init_cache"}}; }
 cli::FlagGroup run_flags() { return {"run", {"variant", "config", "gaps_config", "eval_every"}}; }
@@ -120,6 +124,7 @@ absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults) {
   o.fusion.min_views = absl::GetFlag(FLAGS_fusion_min_views);
   o.fusion.max_normal_error_deg = absl::GetFlag(FLAGS_fusion_max_normal_error);
   o.fusion.add_sparse_points = absl::GetFlag(FLAGS_fusion_add_sparse);
+  o.sparse.max_image_side = absl::GetFlag(FLAGS_sparse_max_image_side);
   o.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
   if (o.init_cache_dir.empty()) o.init_cache_dir = default_init_cache();
   o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);

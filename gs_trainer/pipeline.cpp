@@ -10,6 +10,7 @@
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 #include <nlohmann/json.hpp>
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "common/cli/command_line.h"
@@ -103,11 +104,14 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
 }
 
 // Settings only "mvs" reads, given to a run whose points came from another method, would do nothing unseen.
+// (The sparse stage's setting is read by every method that triangulates.)
 void note_unused_mvs_settings(const RunOptions& o, const std::string& method, const Log& log) {
   if (method == "mvs") return;
+  const bool triangulated = method == "sweep" || method == "sparse";
   std::vector<std::string> flags;
   const nlohmann::json changed = changed_mvs_settings(o);
-  for (const auto& [name, value] : changed.items()) flags.push_back(cli::display_name(name));
+  for (const auto& [name, value] : changed.items())
+    if (!(triangulated && absl::StartsWith(name, "sparse_"))) flags.push_back(cli::display_name(name));
   if (!flags.empty())
     log(absl::StrCat("init: ", absl::StrJoin(flags, ", "), " not used: the points came from ", method));
 }
@@ -143,6 +147,7 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   init.random_points = o.random_points;
   init.seed = o.config.seed;
   init.dense_workspace = dense_workspace;
+  init.sparse = o.sparse;
   init.patchmatch = o.patchmatch;
   init.fusion = o.fusion;
   // No more fused points than the Gaussians the run may grow to (FusionOptions::max_points says why).
@@ -311,6 +316,7 @@ void visit_mvs_settings(Options& o, Visit&& visit) {
   visit("fusion_min_views", o.fusion.min_views);
   visit("fusion_max_normal_error", o.fusion.max_normal_error_deg);
   visit("fusion_add_sparse", o.fusion.add_sparse_points);
+  visit("sparse_max_image_side", o.sparse.max_image_side);
 }
 
 }  // namespace
@@ -351,6 +357,8 @@ absl::Status validate_mvs_settings(const RunOptions& options) {
     return absl::InvalidArgumentError(absl::StrCat("PatchMatch: ", s.message()));
   if (absl::Status s = validate_fusion_options(options.fusion); !s.ok())
     return absl::InvalidArgumentError(absl::StrCat("fusion: ", s.message()));
+  if (absl::Status s = validate_sparse_options(options.sparse); !s.ok())
+    return absl::InvalidArgumentError(absl::StrCat("sparse: ", s.message()));
   return absl::OkStatus();
 }
 

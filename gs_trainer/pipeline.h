@@ -11,6 +11,7 @@
 #include "gs_trainer/gaps/training.h"
 #include "gs_trainer/init/fusion.h"
 #include "gs_trainer/init/patchmatch.h"
+#include "gs_trainer/init/sparse.h"
 #include "gs_trainer/run_stats.h"
 #include "gs_trainer/scene/scene.h"
 #include "gs_trainer/train/trainer.h"
@@ -41,6 +42,8 @@ struct RunOptions {
   // the user's: the run's Gaussian budget replaces it (FusionOptions::max_points says why).
   PatchMatchOptions patchmatch;
   FusionOptions fusion;
+  // The sparse stage's settings; only max_image_side is the user's (it is read by "sparse" and "sweep" too).
+  SparseOptions sparse;
   // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
   std::filesystem::path lpips_backbone;
   std::filesystem::path lpips_weights;  // LPIPS v0.1 linear layers (vgg.pth)

@@ -154,7 +154,9 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
                                         "--patchmatch-best-views",
                                         "3",
                                         "--fusion-min-views",
-                                        "3"};
+                                        "3",
+                                        "--sparse-max-image-side",
+                                        "64"};
   auto with_out = [&](const fs::path& out) {
     std::vector<std::string> argv = run;
     argv.insert(argv.end(), {"--out", out.string()});
@@ -163,7 +165,9 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
   auto [code, log] = test::run_command(absl::StrJoin(with_out(dir_ / "whole"), " "));
   ASSERT_EQ(code, 0) << log;
   // PatchMatch settings with another method are said to do nothing.
-  EXPECT_TRUE(contains(log, "init: --fusion-min-views, --patchmatch-best-views not used: the points came from random"))
+  EXPECT_TRUE(contains(log,
+                       "init: --fusion-min-views, --patchmatch-best-views, --sparse-max-image-side not used: the "
+                       "points came from random"))
       << log;
 
   Process stopped(with_out(dir_ / "stopped"), dir_ / "stopped.log");

@@ -24,6 +24,7 @@
 #include "gs_trainer/init/colmap_dense.h"
 #include "gs_trainer/init/plane_sweep.h"
 #include "gs_trainer/init/sparse.h"
+#include "gs_trainer/init/working_view.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/scene/colmap.h"
 #include "tests/synthetic_stereo.h"
@@ -218,6 +219,41 @@ TEST(Sparse, TriangulatesASyntheticPlane) {
   EXPECT_GT(on_plane, 0.95 * result->stats.points);
 }
 
+// SparseOptions::max_image_side: SIFT and triangulation on the views brought down to a longest side give the
+// points those smaller views give, in world units (on the plane), and the option's range is checked.
+TEST(Sparse, DownsampledViewsTriangulateInWorldUnits) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(640, 480, 600);
+  const std::vector<at::Tensor> images = render_all(plane, cams);
+  SparseOptions capped;
+  capped.max_image_side = 320;
+  auto result = sparse_reconstruct(cams, images, capped);
+  ASSERT_TRUE(result.ok()) << result.status();
+  std::vector<Camera> small_cams;
+  std::vector<at::Tensor> small_images;
+  for (size_t i = 0; i < cams.size(); ++i) {
+    auto [c, im] = working_view(cams[i], images[i], 320);
+    EXPECT_EQ(c.width, 320);
+    small_cams.push_back(c);
+    small_images.push_back(im);
+  }
+  auto small = sparse_reconstruct(small_cams, small_images);
+  ASSERT_TRUE(small.ok()) << small.status();
+  EXPECT_GT(result->stats.points, 50);
+  EXPECT_EQ(result->stats.points, small->stats.points);
+  EXPECT_TRUE(at::equal(result->points.xyz, small->points.xyz));
+  const auto xyz = result->points.xyz.accessor<float, 2>();
+  int on_plane = 0;
+  for (int64_t i = 0; i < result->points.xyz.size(0); ++i)
+    on_plane += std::abs(plane.normal.dot(Eigen::Vector3d(xyz[i][0], xyz[i][1], xyz[i][2]) - plane.point)) < 0.04;
+  EXPECT_GT(on_plane, 0.95 * result->stats.points);
+
+  capped.max_image_side = 16;
+  const auto refused = sparse_reconstruct(cams, images, capped);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(test::contains(std::string(refused.status().message()), "max_image_side must be 0")) << refused.status();
+}
+
 TEST(PlaneSweep, RecoversTheDepthOfATexturedPlane) {
   const TexturedPlane plane;
   const std::vector<Camera> cams = three_cameras(160, 120, 150);
@@ -356,6 +392,9 @@ TEST(Initializer, SweepOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   changed = o;
   changed.fusion.add_sparse_points = !o.fusion.add_sparse_points;
   EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("mvs", cams, images, changed));
+  changed = o;
+  changed.sparse.max_image_side = 320;
+  EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("sparse", cams, images, changed));
   changed = o;
   changed.min_depth_coverage = 0.25;
   EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("mvs", cams, images, changed));
@@ -689,19 +728,21 @@ TEST_F(MvsInit, FernSettingsReachTheInitialisationAndAreChecked) {
 class InitResolution : public test::TempDirTest {};
 
 // The initialisation may read larger images than training uses: fern at -r 8 triangulated from its -r 4
-// images. Same views, same poses, more pixels: more points.
+// images. Same views, same poses, more pixels: more points; unless the sparse stage brings them back down
+// (--sparse-max-image-side, which "sparse" reads, so it is not reported unused).
 TEST_F(InitResolution, FernTriangulatesMoreFromLargerImages) {
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
-  const auto points_at = [&](int init_resolution, std::string* log) -> int64_t {
+  const auto points_at = [&](int init_resolution, std::string* log, int sparse_max_image_side = 0) -> int64_t {
     RunOptions o;
     o.scene_dir = fern;
     o.views = 3;
     o.resolution = 8;
     o.init = "sparse";
     o.init_resolution = init_resolution;
+    o.sparse.max_image_side = sparse_max_image_side;
     o.config.device = "cpu";
-    o.out_dir = dir_ / ("init_r" + std::to_string(init_resolution));
+    o.out_dir = dir_ / absl::StrCat("init_r", init_resolution, "_", sparse_max_image_side);
     const absl::Status done = run_init_only(o, [&](const std::string& line) { *log += line + "\n"; });
     EXPECT_TRUE(done.ok()) << done;
     auto points = read_point_cloud_ply(o.out_dir / "points.ply");
@@ -716,6 +757,12 @@ TEST_F(InitResolution, FernTriangulatesMoreFromLargerImages) {
   EXPECT_NE(larger_log.find("init: reading the training views at 1008x756 (init resolution 4)"), std::string::npos)
       << larger_log;
   EXPECT_GT(from_larger, at_training);
+  std::string capped_log;
+  const int64_t capped = points_at(4, &capped_log, 504);
+  std::cout << "from 1008x756 with SIFT at 504x378: " << capped << "\n";
+  EXPECT_GT(capped, 0);
+  EXPECT_LT(capped, from_larger);
+  EXPECT_EQ(capped_log.find("not used"), std::string::npos) << capped_log;
 
   RunOptions negative;
   negative.scene_dir = fern;

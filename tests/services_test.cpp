@@ -278,16 +278,20 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
 
   // PatchMatch and fusion settings: those set arrive, the others keep the defaults, ranges are checked.
   config.set_init("mvs");
-  ASSERT_TRUE(
-      rpc::set_fields({{"patchmatch_best_views", 3}, {"fusion_max_normal_error", 25.0}, {"fusion_add_sparse", true}},
-                      config.mutable_init_settings())
-          .ok());
+  ASSERT_TRUE(rpc::set_fields({{"patchmatch_best_views", 3},
+                               {"fusion_max_normal_error", 25.0},
+                               {"fusion_add_sparse", true},
+                               {"sparse_max_image_side", 504}},
+                              config.mutable_init_settings())
+                  .ok());
   o = run_options_from_proto(config, false, "", "cpu");
   ASSERT_TRUE(o.ok()) << o.status();
   EXPECT_EQ(o->patchmatch.best_views, 3);
   EXPECT_DOUBLE_EQ(o->fusion.max_normal_error_deg, 25.0);
   EXPECT_TRUE(o->fusion.add_sparse_points);
   EXPECT_FALSE(FusionOptions{}.add_sparse_points);
+  EXPECT_EQ(o->sparse.max_image_side, 504);
+  EXPECT_EQ(SparseOptions{}.max_image_side, 0);
   EXPECT_DOUBLE_EQ(o->patchmatch.max_cost, PatchMatchOptions{}.max_cost);
   EXPECT_EQ(o->fusion.min_views, FusionOptions{}.min_views);
   config.mutable_init_settings()->set_fusion_min_views(0);

@@ -42,13 +42,13 @@ std::string describe_options(const InitOptions& o) {
   const SparseOptions& s = o.sparse;
   const DenseOptions& d = o.dense;
   return absl::StrFormat(
-      "random %d seed %d minpts %d %d | sparse %d %.6g %.6g %.6g %.6g %.6g %d | dense %d %d %d %d %d %.6g %d %.6g "
+      "random %d seed %d minpts %d %d | sparse %d %.6g %.6g %.6g %.6g %.6g %d %d | dense %d %d %d %d %d %.6g %d %.6g "
       "%.6g %.6g %d %.6g %.6g %.6g %d",
       o.random_points, o.seed, o.min_sparse_points, o.min_dense_points, s.max_features, s.contrast_threshold, s.ratio,
-      s.max_epipolar_px, s.max_reprojection_px, s.min_angle_deg, s.refine_iterations, d.max_image_side, d.num_planes,
-      d.window, d.max_neighbors, d.planes_per_chunk, d.depth_margin, d.min_points_for_range, d.min_score, d.min_margin,
-      d.min_texture_std, d.min_consistent_views, d.max_relative_depth_diff, d.max_reprojection_px, d.max_colour_diff,
-      d.max_points);
+      s.max_epipolar_px, s.max_reprojection_px, s.min_angle_deg, s.refine_iterations, s.max_image_side,
+      d.max_image_side, d.num_planes, d.window, d.max_neighbors, d.planes_per_chunk, d.depth_margin,
+      d.min_points_for_range, d.min_score, d.min_margin, d.min_texture_std, d.min_consistent_views,
+      d.max_relative_depth_diff, d.max_reprojection_px, d.max_colour_diff, d.max_points);
 }
 
 std::string describe_mvs_options(const PatchMatchOptions& p, const FusionOptions& f, double min_depth_coverage) {

@@ -11,6 +11,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/features2d.hpp>
 #include "absl/strings/str_cat.h"
+#include "gs_trainer/init/working_view.h"
 
 namespace gaps {
 namespace {
@@ -326,10 +327,33 @@ TrackVerdict triangulate_track(const std::vector<Camera>& cameras, std::vector<O
   return TrackVerdict::kReprojection;
 }
 
+absl::Status validate_sparse_options(const SparseOptions& options) {
+  if (options.max_image_side != 0 && options.max_image_side < kMinSparseImageSide)
+    return absl::InvalidArgumentError(absl::StrCat("max_image_side must be 0 (the views as given) or at least ",
+                                                   kMinSparseImageSide, ", got ", options.max_image_side));
+  return absl::OkStatus();
+}
+
 absl::StatusOr<SparseResult> sparse_reconstruct(const std::vector<Camera>& cameras,
                                                 const std::vector<at::Tensor>& images, const SparseOptions& options) {
   const auto start = std::chrono::steady_clock::now();
   if (absl::Status s = check_view_images(cameras, images); !s.ok()) return s;
+  if (absl::Status s = validate_sparse_options(options); !s.ok()) return s;
+  if (options.max_image_side > 0) {
+    std::vector<Camera> small_cameras;
+    std::vector<at::Tensor> small_images;
+    for (size_t i = 0; i < cameras.size(); ++i) {
+      auto [camera, image] = working_view(cameras[i], images[i], options.max_image_side);
+      small_cameras.push_back(camera);
+      small_images.push_back(image);
+    }
+    SparseOptions as_given = options;
+    as_given.max_image_side = 0;
+    absl::StatusOr<SparseResult> result = sparse_reconstruct(small_cameras, small_images, as_given);
+    if (result.ok())
+      result->stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    return result;
+  }
   const int views = static_cast<int>(cameras.size());
   SparseResult result;
   SparseStats& stats = result.stats;

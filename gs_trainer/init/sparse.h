@@ -33,6 +33,10 @@ struct SparseOptions {
   double max_reprojection_px = 2.0;  // every kept observation of a point
   double min_angle_deg = 1.5;        // largest angle between two observing rays
   int refine_iterations = 5;         // Gauss-Newton steps after the DLT
+  // > 0: SIFT and triangulation work on the views brought down to this longest side (the points stay in world
+  // units), so that PatchMatch can read larger views (--init-resolution) without SIFT's matching growing with
+  // them: fern 9 views' SIFT takes 30.7 s at -r 4 against 1.4 s at -r 8 on two cores. 0: the views as given.
+  int max_image_side = 0;
 };
 
 // One 2D observation of a track: a view index and a pixel position in camera.h's convention (pixel (i, j)
@@ -74,6 +78,10 @@ struct SparseResult {
   std::vector<std::vector<int>> point_views;  // views observing each point (for neighbour selection)
   SparseStats stats;
 };
+
+// InvalidArgument naming the first option out of range (max_image_side: 0, or at least kMinSparseImageSide).
+inline constexpr int kMinSparseImageSide = 32;
+absl::Status validate_sparse_options(const SparseOptions& options);
 
 // One HxWx3 image per camera, at the camera's size; the error names the first view that is not.
 absl::Status check_view_images(const std::vector<Camera>& cameras, const std::vector<at::Tensor>& images);
