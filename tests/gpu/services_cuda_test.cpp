@@ -186,9 +186,10 @@ TEST_F(ServicesOnCuda, AJobWithInitSettingsRunsPatchMatchOnTheTrainersGpu) {
   spec.mutable_config()->set_variant("vanilla");
   ASSERT_TRUE(
       rpc::set_fields({{"iterations", 200}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
-  ASSERT_TRUE(rpc::set_fields({{"patchmatch_iterations", 3}, {"fusion_max_normal_error", 30.0}},
-                              spec.mutable_config()->mutable_init_settings())
-                  .ok());
+  ASSERT_TRUE(
+      rpc::set_fields({{"patchmatch_iterations", 3}, {"fusion_max_normal_error", 30.0}, {"sparse_max_image_side", 400}},
+                      spec.mutable_config()->mutable_init_settings())
+          .ok());
   FinishedJob job;
   ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, &job));
   EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
@@ -198,6 +199,7 @@ TEST_F(ServicesOnCuda, AJobWithInitSettingsRunsPatchMatchOnTheTrainersGpu) {
   EXPECT_EQ(metrics["init_options"]["patchmatch_iterations"], 3) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["fusion_max_normal_error"], 30.0) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["patchmatch_best_views"], 1) << metrics["init_options"];  // a default
+  EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 400) << metrics["init_options"];
 }
 
 }  // namespace
