@@ -229,15 +229,9 @@ TEST(Sparse, DownsampledViewsTriangulateInWorldUnits) {
   capped.max_image_side = 320;
   auto result = sparse_reconstruct(cams, images, capped);
   ASSERT_TRUE(result.ok()) << result.status();
-  std::vector<Camera> small_cams;
-  std::vector<at::Tensor> small_images;
-  for (size_t i = 0; i < cams.size(); ++i) {
-    auto [c, im] = working_view(cams[i], images[i], 320);
-    EXPECT_EQ(c.width, 320);
-    small_cams.push_back(c);
-    small_images.push_back(im);
-  }
-  auto small = sparse_reconstruct(small_cams, small_images);
+  const WorkingViews views = working_views(cams, images, 320);
+  for (const Camera& c : views.cameras) EXPECT_EQ(c.width, 320);
+  auto small = sparse_reconstruct(views.cameras, views.images);
   ASSERT_TRUE(small.ok()) << small.status();
   EXPECT_GT(result->stats.points, 50);
   EXPECT_EQ(result->stats.points, small->stats.points);

@@ -411,15 +411,10 @@ absl::StatusOr<DenseResult> dense_reconstruct(const std::vector<Camera>& cameras
   if (cameras.size() < 2) return absl::FailedPreconditionError("multi-view stereo needs at least two views");
   if (options.window < 3 || options.window % 2 == 0)
     return absl::InvalidArgumentError(absl::StrCat("ZNCC window must be odd and >= 3, got ", options.window));
-  std::vector<Camera> cams;
-  std::vector<at::Tensor> imgs;
-  for (size_t i = 0; i < cameras.size(); ++i) {
+  for (size_t i = 0; i < cameras.size(); ++i)
     if (images[i].dim() != 3 || images[i].size(0) != cameras[i].height || images[i].size(1) != cameras[i].width)
       return absl::InvalidArgumentError(absl::StrCat("image of ", cameras[i].name, " does not match its camera"));
-    auto [c, im] = working_view(cameras[i], images[i], options.max_image_side);
-    cams.push_back(c);
-    imgs.push_back(im);
-  }
+  const auto [cams, imgs] = working_views(cameras, images, options.max_image_side);
 
   DenseResult result;
   for (size_t r = 0; r < cams.size(); ++r) {

@@ -340,16 +340,10 @@ absl::StatusOr<SparseResult> sparse_reconstruct(const std::vector<Camera>& camer
   if (absl::Status s = check_view_images(cameras, images); !s.ok()) return s;
   if (absl::Status s = validate_sparse_options(options); !s.ok()) return s;
   if (options.max_image_side > 0) {
-    std::vector<Camera> small_cameras;
-    std::vector<at::Tensor> small_images;
-    for (size_t i = 0; i < cameras.size(); ++i) {
-      auto [camera, image] = working_view(cameras[i], images[i], options.max_image_side);
-      small_cameras.push_back(camera);
-      small_images.push_back(image);
-    }
+    const WorkingViews small = working_views(cameras, images, options.max_image_side);
     SparseOptions as_given = options;
     as_given.max_image_side = 0;
-    absl::StatusOr<SparseResult> result = sparse_reconstruct(small_cameras, small_images, as_given);
+    absl::StatusOr<SparseResult> result = sparse_reconstruct(small.cameras, small.images, as_given);
     if (result.ok())
       result->stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     return result;

@@ -18,4 +18,14 @@ std::pair<Camera, at::Tensor> working_view(const Camera& camera, const at::Tenso
   return {camera.resized(w, h), small};
 }
 
+WorkingViews working_views(const std::vector<Camera>& cameras, const std::vector<at::Tensor>& images, int max_side) {
+  WorkingViews views;
+  for (size_t i = 0; i < cameras.size(); ++i) {
+    auto [camera, image] = working_view(cameras[i], images[i], max_side);
+    views.cameras.push_back(camera);
+    views.images.push_back(image);
+  }
+  return views;
+}
+
 }  // namespace gaps
