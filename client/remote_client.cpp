@@ -44,6 +44,40 @@ absl::StatusOr<PreparedScene> prepare_scene(const fs::path& scene_dir, int resol
   return out;
 }
 
+absl::Status add_larger_training_views(const RunOptions& o, PreparedScene* scene) {
+  SceneLoadOptions load;
+  load.resolution = o.resolution;
+  GAPS_ASSIGN_OR_RETURN(const Scene at_training, load_scene(o.scene_dir, load));
+  GAPS_ASSIGN_OR_RETURN(const Split split, benchmark_split(static_cast<int>(at_training.cameras.size()), o.views));
+  std::vector<Camera> train;
+  for (int i : split.train) train.push_back(at_training.cameras[i]);
+  if (!auto_reads_larger_views(o, train)) return absl::OkStatus();
+  // Any failure from here on means the scene has no usable views that large: NotFound, saying why.
+  const auto none = [](const absl::Status& why) { return absl::NotFoundError(why.message()); };
+  if (o.resolution < 2 || o.resolution % 2 != 0)
+    return absl::NotFoundError(absl::StrCat("resolution ", o.resolution, " has no half"));
+  load.resolution = o.resolution / 2;
+  const absl::StatusOr<Scene> larger = load_scene(o.scene_dir, load);
+  if (!larger.ok()) return none(larger.status());
+  if (larger->cameras.size() != at_training.cameras.size())
+    return absl::NotFoundError(absl::StrCat("the scene lists ", larger->cameras.size(), " views at resolution ",
+                                            load.resolution, " and ", at_training.cameras.size(), " at ",
+                                            o.resolution));
+  std::vector<std::pair<int, std::string>> images;
+  for (int i : split.train) {
+    const Camera& camera = larger->cameras[i];
+    if (camera.name != at_training.cameras[i].name)
+      return absl::NotFoundError(absl::StrCat("the scene lists ", camera.name, " at resolution ", load.resolution,
+                                              " where it lists ", at_training.cameras[i].name, " at ", o.resolution));
+    absl::StatusOr<at::Tensor> image = load_camera_image(camera);
+    if (!image.ok()) return none(image.status());
+    GAPS_ASSIGN_OR_RETURN(std::string png, encode_png(*image, camera.name));
+    images.emplace_back(i, std::move(png));
+  }
+  scene->larger_images = std::move(images);
+  return absl::OkStatus();
+}
+
 TrainerClient::TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, std::string token)
     : address_(std::move(address)),
       channel_(std::move(channel)),
@@ -97,6 +131,9 @@ absl::StatusOr<std::string> TrainerClient::submit(v1::JobSpec spec, const Prepar
   const auto write = [&writer](const v1::SubmitJobRequest& request) { return writer->Write(request); };
   for (size_t i = 0; open && i < scene.images.size(); ++i)
     open = rpc::write_file_chunks(v1::FileChunk::IMAGE, static_cast<int>(i), scene.images[i], write);
+  for (size_t k = 0; open && k < scene.larger_images.size(); ++k)
+    open = rpc::write_file_chunks(v1::FileChunk::LARGER_IMAGE, scene.larger_images[k].first,
+                                  scene.larger_images[k].second, write);
   if (open && !scene.points_ply.empty())
     open = rpc::write_file_chunks(v1::FileChunk::POINTS, 0, scene.points_ply, write);
   if (open) writer->WritesDone();

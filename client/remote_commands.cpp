@@ -43,9 +43,11 @@ namespace {
 
 // The job `gaps train` would run with the same flags, checked as there (the scene included) so that a job is
 // refused before its upload; only the options the files and flags set are sent (the trainer has the defaults).
-absl::StatusOr<v1::JobSpec> spec_from_flags() {
+// *options: the run's options.
+absl::StatusOr<v1::JobSpec> spec_from_flags(RunOptions* options) {
   GAPS_ASSIGN_OR_RETURN(const FlagRun run, run_from_flags());
   const RunOptions& o = run.options;
+  *options = o;
   if (o.scene_dir.empty()) return usage_error("the scene folder is missing (gaps submit SCENE or --scene DIR)");
   if (o.init == "scene")
     return usage_error("--init scene is not available to gaps submit (only the images and cameras are uploaded)");
@@ -110,11 +112,18 @@ absl::StatusOr<int> watch(TrainerClient& client, const std::string& job_id) {
 }
 
 absl::StatusOr<int> submit() {
-  GAPS_ASSIGN_OR_RETURN(const v1::JobSpec spec, spec_from_flags());
+  RunOptions o;
+  GAPS_ASSIGN_OR_RETURN(const v1::JobSpec spec, spec_from_flags(&o));
   GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect_trainer());
-  const std::string scene_dir = absl::GetFlag(FLAGS_scene);
-  absl::StatusOr<PreparedScene> scene = prepare_scene(scene_dir, absl::GetFlag(FLAGS_resolution));
+  absl::StatusOr<PreparedScene> scene = prepare_scene(o.scene_dir, o.resolution);
   if (!scene.ok()) return input_data_error(scene.status());
+  if (absl::Status larger = add_larger_training_views(o, &*scene); absl::IsNotFound(larger))
+    std::fprintf(stderr,
+                 "init: auto: no views at twice the training size for PatchMatch (%s): the trainer reads the "
+                 "training views\n",
+                 std::string(larger.message()).c_str());
+  else if (!larger.ok())
+    return input_data_error(larger);
   if (const std::string ply = absl::GetFlag(FLAGS_init_ply); !ply.empty()) {
     absl::StatusOr<std::string> points = read_file_bytes(ply, "point cloud");
     if (!points.ok()) return input_data_error(points.status());

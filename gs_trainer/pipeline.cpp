@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <fstream>
 #include <optional>
 #include <set>
@@ -103,6 +104,68 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
   return views;
 }
 
+std::vector<Camera> cameras_of(const std::vector<TrainingView>& views) {
+  std::vector<Camera> cameras;
+  for (const auto& v : views) cameras.push_back(v.camera);
+  return cameras;
+}
+
+// The training views at twice their size: from o.larger_views_dir (a service job's upload), or the scene at
+// half the training resolution; *resolution: the downscale factor they are at, relative to the scene as loaded.
+absl::StatusOr<std::vector<TrainingView>> larger_training_views(const RunOptions& o,
+                                                                const std::vector<TrainingView>& train, const Log& log,
+                                                                double* resolution) {
+  if (!o.larger_views_dir.empty()) {
+    std::vector<TrainingView> views;
+    for (const auto& v : train) {
+      const std::filesystem::path file = o.larger_views_dir / v.camera.name;
+      GAPS_ASSIGN_OR_RETURN(const auto size, read_image_size(file));
+      Camera camera = v.camera.resized(size.first, size.second);
+      camera.image_path = file;
+      GAPS_ASSIGN_OR_RETURN(at::Tensor image, load_camera_image(camera));
+      views.push_back({camera, image});
+    }
+    *resolution = o.resolution / 2.0;
+    return views;
+  }
+  if (o.resolution < 2 || o.resolution % 2 != 0)
+    return absl::NotFoundError(absl::StrCat("resolution ", o.resolution, " has no half"));
+  RunOptions half = o;
+  half.init_resolution = o.resolution / 2;
+  *resolution = half.init_resolution;
+  return views_for_initialisation(half, train, log);
+}
+
+// The views the initialisation reads, the options it runs with and the views' downscale factor: "auto"'s larger
+// views where auto_reads_larger_views holds and they can be read, else o's.
+struct InitInputs {
+  RunOptions options;
+  std::vector<TrainingView> views;
+  double resolution = 0;
+};
+
+absl::StatusOr<InitInputs> initialisation_inputs(const RunOptions& o, const std::vector<TrainingView>& train,
+                                                 const Log& log) {
+  if (auto_reads_larger_views(o, cameras_of(train))) {
+    double resolution = 0;
+    absl::StatusOr<std::vector<TrainingView>> views = larger_training_views(o, train, log, &resolution);
+    if (views.ok()) {
+      int side = 0;
+      for (const auto& v : train) side = std::max({side, v.camera.width, v.camera.height});
+      RunOptions larger = o;
+      larger.patchmatch.max_image_side = 2 * side;
+      larger.sparse.max_image_side = side;
+      log(absl::StrCat("init: auto: the views face one way, so PatchMatch reads them at twice the training size (",
+                       2 * side, " pixels on the longest side) and SIFT at the training size"));
+      return InitInputs{std::move(larger), *std::move(views), resolution};
+    }
+    log(absl::StrCat("init: auto: no views at twice the training size for PatchMatch (", views.status().message(),
+                     "): it reads the training views"));
+  }
+  GAPS_ASSIGN_OR_RETURN(std::vector<TrainingView> views, views_for_initialisation(o, train, log));
+  return InitInputs{o, std::move(views), static_cast<double>(o.init_resolution > 0 ? o.init_resolution : o.resolution)};
+}
+
 // Settings only "mvs" reads, given to a run whose points came from another method, would do nothing unseen.
 // (The sparse stage's setting is read by every method that triangulates.)
 void note_unused_mvs_settings(const RunOptions& o, const std::string& method, const Log& log) {
@@ -116,13 +179,16 @@ void note_unused_mvs_settings(const RunOptions& o, const std::string& method, co
     log(absl::StrCat("init: ", absl::StrJoin(flags, ", "), " not used: the points came from ", method));
 }
 
-// *method_used (if given): the method that made the points (o.init, "auto" resolved, fallbacks taken).
-// dense_workspace: InitOptions::dense_workspace.
+InitRecord init_record(const std::string& method, const RunOptions& used, double resolution) {
+  return {method, resolution, used.patchmatch, used.fusion, used.sparse};
+}
+
+// *record (if given): what made the points (InitRecord). dense_workspace: InitOptions::dense_workspace.
 absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scene,
                                           const std::vector<TrainingView>& train, const Log& log,
-                                          std::string* method_used = nullptr,
+                                          InitRecord* record = nullptr,
                                           const std::filesystem::path& dense_workspace = {}) {
-  if (method_used) *method_used = o.init;
+  if (record) *record = init_record(o.init, o, o.init_resolution > 0 ? o.init_resolution : o.resolution);
   if (o.init == "ply" || o.init == "scene") note_unused_mvs_settings(o, o.init, log);
   if (o.init == "ply") {
     if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
@@ -133,39 +199,38 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
     log("warning: initialising from the scene's own points; they may have been reconstructed with the test views");
     return *scene.points;
   }
-  std::vector<Camera> cameras;
+  GAPS_ASSIGN_OR_RETURN(const InitInputs inputs, initialisation_inputs(o, train, log));
+  const RunOptions& used = inputs.options;
+  std::vector<Camera> cameras = cameras_of(inputs.views);
   std::vector<at::Tensor> images;
-  GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> views, views_for_initialisation(o, train, log));
   // On the run's device (views at another init resolution are read to the CPU): it picks PatchMatch's path.
   const at::Device device(o.config.device);
-  for (const auto& v : views) {
-    cameras.push_back(v.camera);
-    images.push_back(v.image.to(device));
-  }
+  for (const auto& v : inputs.views) images.push_back(v.image.to(device));
   InitOptions init;
-  init.cache_dir = o.init_cache_dir;
-  init.random_points = o.random_points;
-  init.seed = o.config.seed;
+  init.cache_dir = used.init_cache_dir;
+  init.random_points = used.random_points;
+  init.seed = used.config.seed;
   init.dense_workspace = dense_workspace;
-  init.sparse = o.sparse;
-  init.patchmatch = o.patchmatch;
-  init.fusion = o.fusion;
+  init.sparse = used.sparse;
+  init.patchmatch = used.patchmatch;
+  init.fusion = used.fusion;
   // No more fused points than the Gaussians the run may grow to (FusionOptions::max_points says why).
-  init.fusion.max_points = gaussian_budget(o.config.max_gaussians, o.config.gaussians_per_variation, train);
+  init.fusion.max_points = gaussian_budget(used.config.max_gaussians, used.config.gaussians_per_variation, train);
   std::string report, method;
-  auto points = initialize_points(o.init, cameras, images, init, &report, &method);
+  auto points = initialize_points(used.init, cameras, images, init, &report, &method);
   if (!report.empty()) log(report);
-  if (method_used) *method_used = method;
+  if (record) *record = init_record(method, used, inputs.resolution);
+  // The user's settings, not auto's choices, are what a note on unused settings speaks of.
   if (points.ok()) note_unused_mvs_settings(o, method, log);
   return points;
 }
 
 // The model training starts from: the Gaussians of a full 3DGS PLY given as --init-ply (every property, so
 // that training continues it; its SH brought to the run's degree), or gaussians_from_points of the initial
-// points. *method_used as in initial_points, "ply-model" for a full model.
+// points. *record as in initial_points, method "ply-model" for a full model.
 absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& scene,
                                             const std::vector<TrainingView>& train, const Log& log,
-                                            std::string* method_used) {
+                                            InitRecord* record) {
   if (o.init == "ply" && !o.init_ply.empty()) {
     GAPS_ASSIGN_OR_RETURN(const PlyVertices vertices, read_ply_vertices(o.init_ply));
     if (holds_gaussians(vertices)) {
@@ -176,13 +241,13 @@ absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& sc
         log(absl::StrCat("init: SH degree ", model.max_sh_degree, " -> ", o.config.max_sh_degree,
                          " (max_sh_degree): bands ",
                          model.max_sh_degree < o.config.max_sh_degree ? "added as zeros" : "dropped"));
-      *method_used = "ply-model";
+      *record = init_record("ply-model", o, o.resolution);
       return with_sh_degree(std::move(model), o.config.max_sh_degree);
     }
     log(absl::StrCat("init: ", o.init_ply.string(),
                      " is a point cloud (no opacity, scale_*, rot_*): Gaussians made from its points"));
   }
-  GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, scene, train, log, method_used));
+  GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, scene, train, log, record));
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
   return gaussians_from_points(points, o.config.max_sh_degree);
 }
@@ -352,6 +417,16 @@ absl::Status read_mvs_settings(const nlohmann::json& settings, RunOptions& optio
   return status;
 }
 
+bool auto_reads_larger_views(const RunOptions& o, const std::vector<Camera>& train) {
+  if (o.init != "auto" || train.empty() || o.init_resolution != 0 ||
+      o.sparse.max_image_side != SparseOptions{}.max_image_side ||
+      o.patchmatch.max_image_side != PatchMatchOptions{}.max_image_side)
+    return false;
+  int side = 0;
+  for (const Camera& c : train) side = std::max({side, c.width, c.height});
+  return 2 * side <= kAutoLargerViewsMaxSide && !views_surround_scene(train);
+}
+
 absl::Status validate_mvs_settings(const RunOptions& options) {
   if (absl::Status s = validate_patchmatch_options(options.patchmatch); !s.ok())
     return absl::InvalidArgumentError(absl::StrCat("PatchMatch: ", s.message()));
@@ -370,9 +445,18 @@ nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
   j["device"] = r.config.device;
   j["seed"] = r.config.seed;
   j["init"] = o.init;
-  j["init_method"] = r.init_method;
-  j["init_resolution"] = o.init_resolution > 0 ? o.init_resolution : o.resolution;
-  j["init_options"] = mvs_settings_json(o);
+  j["init_method"] = r.init.method;
+  // A downscale factor of the scene, written as an integer where it is one (0.5: a service job's larger views).
+  const double init_resolution = r.init.resolution > 0 ? r.init.resolution : o.resolution;
+  if (init_resolution == std::floor(init_resolution))
+    j["init_resolution"] = static_cast<int>(init_resolution);
+  else
+    j["init_resolution"] = init_resolution;
+  RunOptions used = o;  // the initialisation's settings as it ran them
+  used.patchmatch = r.init.patchmatch;
+  used.fusion = r.init.fusion;
+  used.sparse = r.init.sparse;
+  j["init_options"] = mvs_settings_json(used);
   j["random_points"] = o.random_points;
   j["variant"] = variant_name(o.variant);
   if (o.variant != Variant::kVanilla) {
@@ -425,9 +509,7 @@ class TrainingRun {
   // The method's options as used: n_active resolved from the training views' layout when 0.
   GapsConfig effective_gaps() const {
     GapsConfig gaps = o_.gaps;
-    std::vector<Camera> cameras;
-    for (const auto& v : references_) cameras.push_back(v.camera);
-    gaps.n_active = n_active_for(o_.gaps, views_surround_scene(cameras));
+    gaps.n_active = n_active_for(o_.gaps, views_surround_scene(cameras_of(references_)));
     return gaps;
   }
 
@@ -629,9 +711,9 @@ absl::Status run_init_only(const RunOptions& o, const Log& log) {
   GAPS_RETURN_IF_ERROR(check_device(o.config.device));
   GAPS_RETURN_IF_ERROR(check_scene(o));
   GAPS_ASSIGN_OR_RETURN(const LoadedScene loaded, load_scene_and_training_views(o, at::Device(o.config.device), log));
-  std::string method;
+  InitRecord record;
   GAPS_ASSIGN_OR_RETURN(const PointCloud points,
-                        initial_points(o, loaded.scene, loaded.train, log, &method, o.out_dir / "dense"));
+                        initial_points(o, loaded.scene, loaded.train, log, &record, o.out_dir / "dense"));
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
   std::vector<Camera> cameras;
@@ -639,7 +721,7 @@ absl::Status run_init_only(const RunOptions& o, const Log& log) {
   GAPS_RETURN_IF_ERROR(write_init_as_colmap(o.out_dir / "sparse" / "0", cameras, points));
   log(absl::StrCat(points.xyz.size(0), " points written to ", (o.out_dir / "points.ply").string(), " and ",
                    (o.out_dir / "sparse" / "0").string()));
-  if (method == "mvs")
+  if (record.method == "mvs")
     log(absl::StrCat("the PatchMatch depth and normal maps and the fused cloud: COLMAP dense workspace in ",
                      (o.out_dir / "dense").string()));
   return absl::OkStatus();
@@ -655,8 +737,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> test, load_views(loaded.scene, loaded.split.test, device));
   RunResult result;
   result.summary = loaded.summary;
-  GAPS_ASSIGN_OR_RETURN(const GaussianModel initial,
-                        initial_model(o, loaded.scene, loaded.train, log, &result.init_method));
+  GAPS_ASSIGN_OR_RETURN(const GaussianModel initial, initial_model(o, loaded.scene, loaded.train, log, &result.init));
 
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_run_cameras(o.out_dir / "cameras.json", loaded.train, test));

@@ -26,7 +26,8 @@ struct RunOptions {
   int views = 3;       // training views (<= 0: every non-test view)
   int resolution = 8;  // downscale factor
   std::filesystem::path out_dir;
-  // "auto" ("mvs", or "sparse" when its depth maps cover under a quarter of the pixels),
+  // "auto" ("mvs", or "sparse" when its depth maps cover under a quarter of the pixels; on larger views where the
+  // training views face one way: kAutoLargerViewsMaxSide),
   // "mvs" (sparse triangulation + PatchMatch stereo and fusion from the training views only; falls back to
   // "sparse", then "random", saying why), "sweep" (the same with the older plane sweep), "sparse", "random"
   // (uniform in the training cameras' frusta), "scene" (points shipped with the scene, e.g. a COLMAP model:
@@ -38,6 +39,10 @@ struct RunOptions {
   int64_t random_points = 20000;
   // Downscale factor of the images the initialisation (sparse, mvs, sweep) reads; 0: the training resolution.
   int init_resolution = 0;
+  // The training views at twice their size, one image per view under the view's name (what a service job's upload
+  // carries): read by "auto" where it reads larger views (kAutoLargerViewsMaxSide), instead of the scene at half
+  // the resolution. Empty: the scene's.
+  std::filesystem::path larger_views_dir;
   // PatchMatch and fusion settings of "mvs" (and of "auto" where it picks "mvs"). fusion.max_points is not
   // the user's: the run's Gaussian budget replaces it (FusionOptions::max_points says why).
   PatchMatchOptions patchmatch;
@@ -73,6 +78,28 @@ struct RunOptions {
   double checkpoint_every_seconds = 0;
 };
 
+// "auto" on a forward-facing capture gives PatchMatch the training views at twice their size (the scene read at
+// half the training resolution, e.g. fern's 1008x756 for -r 8, or a service job's uploaded larger views) when
+// that is at most this many pixels on the longest side, and keeps SIFT at the training size; only where the user
+// left --init-resolution, --patchmatch-max-image-side and --sparse-max-image-side at their defaults, and only when
+// such views exist (otherwise it says so and reads the training views). On fern it gains 0.3–0.5 dB at 3, 6 and 9
+// views; around bonsai (12 views) the larger views cost 0.4–0.75 dB, so captures whose views surround the scene
+// keep the training views (docs/benchmarks.md, "Larger views for PatchMatch alone").
+inline constexpr int kAutoLargerViewsMaxSide = 1024;
+
+// Whether "auto" asks for the training views (their cameras `train`) at twice their size: the rule above.
+bool auto_reads_larger_views(const RunOptions& options, const std::vector<Camera>& train);
+
+// What made a run's initial points: the method (RunOptions::init with "auto" resolved, fallbacks taken), the
+// downscale factor of the views it read and its settings as used ("auto"'s larger views applied).
+struct InitRecord {
+  std::string method;
+  double resolution = 0;  // 0.5: a service job's larger views (RunOptions::larger_views_dir)
+  PatchMatchOptions patchmatch;
+  FusionOptions fusion;
+  SparseOptions sparse;
+};
+
 struct RunResult {
   ImageMetrics metrics;
   std::vector<ImageMetrics> per_view;
@@ -84,7 +111,7 @@ struct RunResult {
   std::vector<CurvePoint> curve;  // ends with the final evaluation when eval_every > 0
   PeakMemory peak_memory;
   std::optional<double> generator_seconds;  // method variants only
-  std::string init_method;  // what made the initial points: RunOptions::init with "auto" resolved, fallbacks taken
+  InitRecord init;
   // The method's diffusion phases: how many ran and how many were skipped because no generator answered.
   // A run with skipped phases trained on fewer pseudo-views than it was asked to: metrics.json says
   // "degraded": true, and the services mark the job DEGRADED.

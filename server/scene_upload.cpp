@@ -1,6 +1,7 @@
 #include "server/scene_upload.h"
 
 #include <cerrno>
+#include <cstdlib>
 #include <cstring>
 #include <fstream>
 #include <set>
@@ -59,6 +60,8 @@ class UploadWriter {
         return add_image(chunk);
       case v1::FileChunk::POINTS:
         return add_points(chunk);
+      case v1::FileChunk::LARGER_IMAGE:
+        return add_larger_image(chunk);
       default:
         return absl::InvalidArgumentError(absl::StrCat("file chunk of unknown kind ", chunk.kind()));
     }
@@ -69,6 +72,8 @@ class UploadWriter {
     GAPS_RETURN_IF_ERROR(switch_to(fs::path()));
     if (started_images_ != upload_->images)
       return absl::InvalidArgumentError(absl::StrCat("image ", started_images_ - 1, " is incomplete (no last chunk)"));
+    if (larger_open_ >= 0)
+      return absl::InvalidArgumentError(absl::StrCat("larger image ", larger_open_, " is incomplete (no last chunk)"));
     if (upload_->spec.has_points() && !points_complete_)
       return absl::InvalidArgumentError("the announced point cloud is missing or incomplete");
     return absl::OkStatus();
@@ -86,6 +91,30 @@ class UploadWriter {
     if (index == started_images_) ++started_images_;
     GAPS_RETURN_IF_ERROR(append(upload_->image_file(index), chunk.data()));
     if (chunk.last()) ++upload_->images;
+    return absl::OkStatus();
+  }
+
+  absl::Status add_larger_image(const v1::FileChunk& chunk) {
+    const int index = chunk.index();
+    if (upload_->images < upload_->spec.cameras_size())
+      return absl::InvalidArgumentError(
+          absl::StrCat("larger image for camera ", index, " before every image arrived (they follow the images)"));
+    if (index != larger_open_) {
+      if (larger_open_ >= 0)
+        return absl::InvalidArgumentError(
+            absl::StrCat("larger image ", larger_open_, " is incomplete (no last chunk)"));
+      const int after = upload_->larger_images.empty() ? -1 : upload_->larger_images.back();
+      if (index <= after || index >= upload_->spec.cameras_size())
+        return absl::InvalidArgumentError(absl::StrCat("larger image for camera ", index, " out of order or range (",
+                                                       upload_->spec.cameras_size(), " cameras, last sent ", after,
+                                                       ")"));
+      larger_open_ = index;
+    }
+    GAPS_RETURN_IF_ERROR(append(upload_->larger_image_file(index), chunk.data()));
+    if (chunk.last()) {
+      upload_->larger_images.push_back(index);
+      larger_open_ = -1;
+    }
     return absl::OkStatus();
   }
 
@@ -122,26 +151,32 @@ class UploadWriter {
   uint64_t max_bytes_;
   uint64_t received_ = 0;
   int started_images_ = 0;
+  int larger_open_ = -1;  // the larger image being received, if any
   bool points_complete_ = false;
   std::ofstream out_;
   fs::path open_;
 };
 
-// One uploaded image: read back (one at a time), its header checked against the camera before decoding.
-absl::Status check_uploaded_image(const fs::path& file, const Camera& camera, const std::string& what) {
+// One uploaded image: read back (one at a time), its header checked before decoding: `scale` times the camera's
+// size, within `tolerance` pixels on each side (a larger view's size was rounded from the full one's).
+absl::Status check_uploaded_image(const fs::path& file, const Camera& camera, const std::string& what, int scale = 1,
+                                  int tolerance = 0) {
   absl::StatusOr<std::string> bytes = read_file_bytes(file, "uploaded image");
   if (!bytes.ok()) return store_failed("read back", absl::StatusCodeToString(bytes.status().code()));
   absl::StatusOr<std::pair<int, int>> size = decode_image_size(*bytes, what);
   if (!size.ok()) return invalid(size.status());
-  if (size->first != camera.width || size->second != camera.height)
-    return absl::InvalidArgumentError(absl::StrCat(what, ": image is ", size->first, "x", size->second,
-                                                   " but its camera says ", camera.width, "x", camera.height));
+  const int width = scale * camera.width, height = scale * camera.height;
+  if (std::abs(size->first - width) > tolerance || std::abs(size->second - height) > tolerance)
+    return absl::InvalidArgumentError(absl::StrCat(what, ": image is ", size->first, "x", size->second, " but ",
+                                                   scale == 1 ? "its camera says " : "twice its camera's size is ",
+                                                   width, "x", height));
   return invalid(decode_image(*bytes, what).status());
 }
 
 }  // namespace
 
 fs::path SceneUpload::image_file(int index) const { return dir / "upload" / absl::StrCat("image_", index); }
+fs::path SceneUpload::larger_image_file(int index) const { return dir / "upload" / absl::StrCat("larger_", index); }
 fs::path SceneUpload::points_file() const { return dir / "upload" / "points.ply"; }
 
 absl::StatusOr<SceneUpload> receive_upload(const UploadMessageSource& next, uint64_t max_bytes, const fs::path& dir) {
@@ -188,6 +223,10 @@ absl::Status write_uploaded_scene(const SceneUpload& upload) {
         check_uploaded_image(upload.image_file(i), camera, absl::StrCat("image ", i, " (", camera.name, ")")));
     decoded.push_back(std::move(camera));
   }
+  for (int i : upload.larger_images)
+    GAPS_RETURN_IF_ERROR(check_uploaded_image(upload.larger_image_file(i), decoded[i],
+                                              absl::StrCat("larger image of camera ", i, " (", decoded[i].name, ")"),
+                                              /*scale=*/2, /*tolerance=*/1));
   if (spec.has_points()) {
     // The reader names the file it read; the client knows it as the uploaded point cloud, not by our path.
     const fs::path ply = upload.points_file();
@@ -205,6 +244,14 @@ absl::Status write_uploaded_scene(const SceneUpload& upload) {
     fs::rename(upload.image_file(i), upload.dir / file, ec);
     if (ec) return store_failed("rename", ec.message());
     frames.push_back(frame_json(decoded[i], file));
+  }
+  if (!upload.larger_images.empty()) {
+    fs::create_directories(upload.dir / kLargerViewsFolder, ec);
+    if (ec) return store_failed("create folder", ec.message());
+  }
+  for (int i : upload.larger_images) {
+    fs::rename(upload.larger_image_file(i), upload.dir / kLargerViewsFolder / decoded[i].name, ec);
+    if (ec) return store_failed("rename", ec.message());
   }
   if (spec.has_points()) {
     fs::rename(upload.points_file(), upload.dir / "points.ply", ec);

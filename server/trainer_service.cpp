@@ -392,6 +392,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
   if (!options.ok()) return fail(options.status());
   RunOptions& o = *options;
   o.scene_dir = dir / "scene";
+  if (std::error_code ec; fs::is_directory(o.scene_dir / kLargerViewsFolder, ec))
+    o.larger_views_dir = o.scene_dir / kLargerViewsFolder;
   o.out_dir = dir / "out";
   o.init_cache_dir = options_.data_dir / "init_cache";
   std::unique_ptr<RemoteGenerator> generator;

@@ -7,6 +7,8 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <functional>
 #include <iostream>
 #include <random>
 #include <string>
@@ -16,9 +18,11 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 #include <Eigen/Dense>
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/ply.h"
 #include "gs_trainer/init/colmap_dense.h"
@@ -767,6 +771,128 @@ TEST_F(InitResolution, FernTriangulatesMoreFromLargerImages) {
   const absl::Status refused = run_init_only(negative, [](const std::string&) {});
   EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(std::string(refused.message()).find("init resolution must be >= 0"), std::string::npos) << refused;
+}
+
+// "auto" on fern (forward-facing) at -r 16: PatchMatch reads the -r 8 views (504x378), SIFT stays at the training
+// size, and metrics.json records the resolution and settings as used. A user's own --init-resolution keeps them.
+// PatchMatch is made cheap for the CPU; auto leaves the settings other than the views' sizes alone.
+TEST_F(InitResolution, AutoGivesPatchMatchTwiceTheTrainingSizeOnForwardFacingCaptures) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
+  RunOptions o;
+  o.scene_dir = fern;
+  o.views = 3;
+  o.resolution = 16;
+  o.patchmatch.iterations = 3;
+  o.patchmatch.geometric_consistency = false;
+  o.config.device = "cpu";
+  o.config.iterations = 10;
+  o.html_report = false;
+  o.save_renders = false;
+  o.out_dir = dir_ / "auto";
+  std::string log;
+  const auto logged = [&](const std::string& line) { log += line + "\n"; };
+  const absl::StatusOr<RunResult> run = run_pipeline(o, {}, logged);
+  ASSERT_TRUE(run.ok()) << run.status() << "\n" << log;
+  EXPECT_TRUE(test::contains(log,
+                             "init: auto: the views face one way, so PatchMatch reads them at twice the "
+                             "training size (504 pixels on the longest side)"))
+      << log;
+  EXPECT_TRUE(test::contains(log, "init: reading the training views at 504x378 (init resolution 8)")) << log;
+  EXPECT_EQ(run->init.method, "mvs") << log;
+  EXPECT_DOUBLE_EQ(run->init.resolution, 8.0);
+  EXPECT_EQ(run->init.patchmatch.max_image_side, 504);
+  EXPECT_EQ(run->init.sparse.max_image_side, 252);
+  EXPECT_EQ(run->init.patchmatch.iterations, 3);
+  EXPECT_FALSE(test::contains(log, "not used")) << log;
+  std::ifstream file(o.out_dir / "metrics.json");
+  const nlohmann::json metrics = nlohmann::json::parse(file);
+  EXPECT_EQ(metrics["init_resolution"], 8) << metrics;
+  EXPECT_EQ(metrics["init_options"]["patchmatch_max_image_side"], 504) << metrics["init_options"];
+  EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 252) << metrics["init_options"];
+
+  RunOptions own = o;
+  own.init_resolution = 16;
+  own.out_dir = dir_ / "own";
+  std::string own_log;
+  ASSERT_TRUE(run_init_only(own, [&](const std::string& line) { own_log += line + "\n"; }).ok()) << own_log;
+  EXPECT_FALSE(test::contains(own_log, "twice the training size")) << own_log;
+  EXPECT_TRUE(test::contains(own_log, "init: mvs, ")) << own_log;
+}
+
+// The rule of auto_reads_larger_views on the benchmark scenes' cameras: fern's training views (forward-facing,
+// 504 pixels at -r 8) are read larger, bonsai's (surrounding) are not; nor fern's when a user sets the views'
+// sizes, when another method is asked for, or when twice the views would exceed kAutoLargerViewsMaxSide.
+TEST(AutoInitialisation, LargerViewsForForwardFacingSmallViewsOnly) {
+  const auto training_cameras = [](const fs::path& root, int resolution, int views) {
+    SceneLoadOptions load;
+    load.resolution = resolution;
+    const absl::StatusOr<Scene> scene = load_scene(root, load);
+    EXPECT_TRUE(scene.ok()) << scene.status();
+    std::vector<Camera> cameras;
+    if (!scene.ok()) return cameras;
+    const absl::StatusOr<Split> split = benchmark_split(static_cast<int>(scene->cameras.size()), views);
+    EXPECT_TRUE(split.ok()) << split.status();
+    if (!split.ok()) return cameras;
+    for (int i : split->train) cameras.push_back(scene->cameras[i]);
+    return cameras;
+  };
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  const fs::path bonsai = fs::path(GAPS_DATA_DIR) / "mipnerf360" / "bonsai";
+  if (!fs::exists(fern) || !fs::exists(bonsai)) GTEST_SKIP() << "no benchmark data under " << GAPS_DATA_DIR;
+  const RunOptions defaults;
+  const std::vector<Camera> fern3 = training_cameras(fern, 8, 3);
+  EXPECT_TRUE(auto_reads_larger_views(defaults, fern3));
+  EXPECT_TRUE(auto_reads_larger_views(defaults, training_cameras(fern, 8, 9)));
+  EXPECT_FALSE(auto_reads_larger_views(defaults, training_cameras(bonsai, 8, 12)));
+  EXPECT_FALSE(auto_reads_larger_views(defaults, training_cameras(bonsai, 8, 24)));
+  EXPECT_FALSE(auto_reads_larger_views(defaults, training_cameras(fern, 4, 3))) << "2016 pixels: above the limit";
+  EXPECT_FALSE(auto_reads_larger_views(defaults, {}));
+  for (const auto& set : std::vector<std::function<void(RunOptions&)>>{
+           [](RunOptions& o) { o.init = "mvs"; }, [](RunOptions& o) { o.init_resolution = 8; },
+           [](RunOptions& o) { o.patchmatch.max_image_side = 1008; },
+           [](RunOptions& o) { o.sparse.max_image_side = 504; }}) {
+    RunOptions o;
+    set(o);
+    EXPECT_FALSE(auto_reads_larger_views(o, fern3));
+  }
+  RunOptions other_settings;
+  other_settings.patchmatch.iterations = 3;
+  other_settings.fusion.add_sparse_points = true;
+  EXPECT_TRUE(auto_reads_larger_views(other_settings, fern3)) << "settings other than the sizes leave the rule alone";
+}
+
+// A scene without views at twice the training size (here fern with its -r 16 images alone) trains from the
+// training views, and says so.
+TEST_F(InitResolution, AutoWithoutLargerViewsReadsTheTrainingViews) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
+  SceneLoadOptions load;
+  load.resolution = 16;
+  const absl::StatusOr<Scene> scene = load_scene(fern, load);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  const fs::path small = dir_ / "fern_small";
+  fs::create_directories(small / "images_16");
+  fs::copy_file(fern / "poses_bounds.npy", small / "poses_bounds.npy");
+  for (const Camera& camera : scene->cameras) {
+    const absl::StatusOr<at::Tensor> image = load_camera_image(camera);
+    ASSERT_TRUE(image.ok()) << image.status();
+    ASSERT_TRUE(write_png(small / "images_16" / fs::path(camera.name).filename(), *image).ok());
+  }
+  RunOptions o;
+  o.scene_dir = small;
+  o.views = 3;
+  o.resolution = 16;
+  o.patchmatch.iterations = 3;
+  o.patchmatch.geometric_consistency = false;
+  o.config.device = "cpu";
+  o.out_dir = dir_ / "small";
+  std::string log;
+  ASSERT_TRUE(run_init_only(o, [&](const std::string& line) { log += line + "\n"; }).ok()) << log;
+  EXPECT_TRUE(test::contains(log, "init: auto: no views at twice the training size for PatchMatch (")) << log;
+  EXPECT_FALSE(test::contains(log, "PatchMatch reads them at twice")) << log;
+  EXPECT_TRUE(test::contains(log, "): it reads the training views")) << log;
+  EXPECT_TRUE(test::contains(log, "init: mvs, ")) << log;
 }
 
 }  // namespace

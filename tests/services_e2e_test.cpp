@@ -613,5 +613,53 @@ TEST_F(Services, TrainAndSubmitRecordTheSameConfigurationForEveryOption) {
     EXPECT_EQ(local[key], remote[key]) << key;
 }
 
+// "auto" on a forward-facing capture reads the training views at twice their size: `gaps submit` uploads them
+// (FileChunk::LARGER_IMAGE), so the service starts from the very cloud `gaps train` starts from. PatchMatch is
+// made cheap for the CPU; fern 3 views at -r 16, PatchMatch on the -r 8 views.
+TEST_F(Services, TrainAndSubmitStartAutoFromTheSameLargerViews) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
+  const std::string gaps_cli = GAPS_CLI_BIN;
+  const std::string run_flags =
+      " --views 3 --resolution 16 --variant vanilla --iterations 20 --device cpu --eval-every 0 --quiet"
+      " --patchmatch-iterations 3 --patchmatch-geometric-consistency=false";
+  auto [code, out] = run_command(gaps_cli + " train --scene " + fern.string() + " --out " + (dir_ / "local").string() +
+                                 " --init-cache " + (dir_ / "cache").string() + run_flags);
+  ASSERT_EQ(code, 0) << out;
+  const std::string larger =
+      "init: auto: the views face one way, so PatchMatch reads them at twice the training "
+      "size (504 pixels on the longest side)";
+  EXPECT_NE(out.find(larger), std::string::npos) << out;
+  const std::string local_out = out;
+  std::smatch local_points, remote_points;
+  ASSERT_TRUE(std::regex_search(local_out, local_points, std::regex("initial points: ([0-9]+)"))) << out;
+
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  const std::string common =
+      " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " + (dir_ / "token").string();
+  std::tie(code, out) = run_command(gaps_cli + " submit " + fern.string() + run_flags + " --watch" + common);
+  ASSERT_EQ(code, 0) << out << trainer->log_text();
+  EXPECT_NE(out.find(larger), std::string::npos) << out;
+  ASSERT_TRUE(std::regex_search(out, remote_points, std::regex("initial points: ([0-9]+)"))) << out;
+  EXPECT_EQ(local_points[1], remote_points[1]) << "the same views and settings make the same cloud\n"
+                                               << local_out << "\n"
+                                               << out;
+  std::smatch m;
+  ASSERT_TRUE(std::regex_search(out, m, std::regex("job-[0-9a-f]+"))) << out;
+  std::tie(code, out) =
+      run_command(gaps_cli + " fetch " + std::string(m[0]) + " -o " + (dir_ / "remote").string() + common);
+  ASSERT_EQ(code, 0) << out;
+  const nlohmann::json local = read_json(dir_ / "local" / "metrics.json");
+  const nlohmann::json remote = read_json(dir_ / "remote" / "metrics.json");
+  EXPECT_EQ(local["init_method"], "mvs");
+  EXPECT_EQ(remote["init_method"], "mvs");
+  EXPECT_EQ(local["init_options"], remote["init_options"]);
+  EXPECT_EQ(local["init_options"]["patchmatch_max_image_side"], 504) << local["init_options"];
+  EXPECT_EQ(local["init_options"]["sparse_max_image_side"], 252) << local["init_options"];
+  EXPECT_EQ(local["init_resolution"], 8);
+  EXPECT_EQ(remote["init_resolution"], 0.5) << "twice the size of the upload";
+}
+
 }  // namespace
 }  // namespace gaps

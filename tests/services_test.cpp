@@ -8,10 +8,12 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <condition_variable>
 #include <fstream>
 #include <functional>
+#include <iterator>
 #include <optional>
 #include <set>
 #include <thread>
@@ -979,6 +981,7 @@ TEST_F(TrainerWithWorker, BackendNotesReachThePhaseEntryAndTheJobLog) {
 struct UploadParts {
   v1::JobSpec spec;
   std::vector<std::string> images;
+  std::vector<std::pair<int, std::string>> larger_images;  // by camera index
   std::string points_ply;
 };
 
@@ -991,6 +994,8 @@ std::vector<v1::SubmitJobRequest> submit_messages(const UploadParts& parts, size
   };
   for (size_t i = 0; i < parts.images.size(); ++i)
     rpc::write_file_chunks(v1::FileChunk::IMAGE, static_cast<int>(i), parts.images[i], keep, chunk_bytes);
+  for (const auto& [index, image] : parts.larger_images)
+    rpc::write_file_chunks(v1::FileChunk::LARGER_IMAGE, index, image, keep, chunk_bytes);
   if (!parts.points_ply.empty()) rpc::write_file_chunks(v1::FileChunk::POINTS, 0, parts.points_ply, keep, chunk_bytes);
   return messages;
 }
@@ -1117,6 +1122,51 @@ TEST_F(UploadTest, CorruptUploadsAreInvalidArgumentsNamingTheProblem) {
   upload = good;
   upload.spec.mutable_cameras(0)->set_fx(1e30);
   expect_invalid("focal lengths");
+}
+
+// A PNG of random pixels, width x height.
+std::string random_png(int width, int height) {
+  absl::StatusOr<std::string> png = encode_png(at::rand({height, width, 3}), "random");
+  EXPECT_TRUE(png.ok()) << png.status();
+  return png.ok() ? *png : std::string();
+}
+
+// FileChunk::LARGER_IMAGE: views at twice their camera's size (within a pixel) land in the scene's larger-views
+// folder under the cameras' image names; anything else is refused, naming the camera.
+TEST_F(UploadTest, LargerViewsAreKeptUnderTheCamerasNamesAndChecked) {
+  upload.larger_images = {{1, random_png(64, 48)}, {4, random_png(65, 47)}};
+  ASSERT_TRUE(write().ok()) << write();
+  for (const auto& [index, image] : upload.larger_images)
+    EXPECT_EQ(*read_file_bytes(dir_ / "scene" / kLargerViewsFolder / upload.spec.cameras(index).name()), image);
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir_ / "scene" / kLargerViewsFolder), fs::directory_iterator()), 2);
+  EXPECT_TRUE(load_scene(dir_ / "scene").ok()) << "the folder is beside the scene, not in it";
+
+  const UploadParts good = upload;
+  const auto refused = [&](const std::string& folder, const std::string& needle) {
+    const absl::Status st = write(folder);
+    EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
+    EXPECT_TRUE(absl::StrContains(st.message(), needle)) << st;
+  };
+  upload.larger_images = {{1, random_png(64, 50)}};
+  refused("wrong_size", "larger image of camera 1 (" + upload.spec.cameras(1).name() +
+                            "): image is 64x50 but twice its camera's size is 64x48");
+  upload.larger_images = {{2, "not an image"}};
+  refused("corrupt", "larger image of camera 2");
+  upload.larger_images = {{4, random_png(64, 48)}, {1, random_png(64, 48)}};
+  refused("out_of_order", "larger image for camera 1 out of order or range (9 cameras, last sent 4)");
+  upload.larger_images = {{9, random_png(64, 48)}};
+  refused("out_of_range", "larger image for camera 9 out of order or range");
+
+  upload = good;
+  std::vector<v1::SubmitJobRequest> early = submit_messages(upload, 100000);
+  std::rotate(early.begin() + 1, early.end() - 2, early.end());  // the two larger images before the images
+  const absl::Status st = receive(early, dir_ / "early").status();
+  EXPECT_EQ(st.code(), absl::StatusCode::kInvalidArgument) << st;
+  EXPECT_TRUE(absl::StrContains(st.message(), "larger image for camera 1 before every image arrived")) << st;
+  std::vector<v1::SubmitJobRequest> cut = submit_messages(upload, 100);
+  cut.pop_back();
+  const absl::Status incomplete = receive(cut, dir_ / "cut").status();
+  EXPECT_TRUE(absl::StrContains(incomplete.message(), "larger image 4 is incomplete")) << incomplete;
 }
 
 TEST_F(UploadTest, AnUploadedPointCloudIsKeptAndABrokenOneRefused) {

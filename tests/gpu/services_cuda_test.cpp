@@ -202,5 +202,37 @@ TEST_F(ServicesOnCuda, AJobWithInitSettingsRunsPatchMatchOnTheTrainersGpu) {
   EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 400) << metrics["init_options"];
 }
 
+// A job left at init "auto" on fern (forward-facing): gaps submit uploads the 3 training views at twice their size
+// (1008x756) and the trainer runs PatchMatch on them on its GPU, as `gaps train` would.
+TEST_F(ServicesOnCuda, AnAutoJobRunsPatchMatchOnTheUploadedLargerViewsOnTheTrainersGpu) {
+  GAPS_REQUIRE_CUDA();
+  const std::filesystem::path fern = GAPS_DATA_DIR "/llff/fern";
+  if (!std::filesystem::exists(fern)) GTEST_SKIP() << "no LLFF fern under " << fern;
+  ASSERT_NO_FATAL_FAILURE(start_services({"--backend", "reproject", "--device", "cuda"}, {}));
+  RunOptions o;
+  o.scene_dir = fern;
+  o.views = 3;
+  o.resolution = 8;
+  auto scene = client::prepare_scene(fern, o.resolution);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  ASSERT_TRUE(client::add_larger_training_views(o, &*scene).ok());
+  ASSERT_EQ(scene->larger_images.size(), 3u);
+  v1::JobSpec spec;
+  spec.set_name("fern-auto");
+  spec.mutable_config()->set_views(3);
+  spec.mutable_config()->set_variant("vanilla");
+  ASSERT_TRUE(
+      rpc::set_fields({{"iterations", 200}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
+  EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
+  EXPECT_EQ(metrics["init_method"], "mvs") << trainer_->log_text();
+  EXPECT_EQ(metrics["init_resolution"], 0.5) << metrics;
+  EXPECT_EQ(metrics["init_options"]["patchmatch_max_image_side"], 1008) << metrics["init_options"];
+  EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 504) << metrics["init_options"];
+}
+
 }  // namespace
 }  // namespace gaps
