@@ -723,7 +723,21 @@ TEST_F(MvsInit, FernSettingsReachTheInitialisationAndAreChecked) {
   EXPECT_FALSE(fs::exists(dir_ / "refused" / "points.ply"));
 }
 
-class InitResolution : public test::TempDirTest {};
+class InitResolution : public test::TempDirTest {
+ protected:
+  // "auto" on 3 views of `scene` at -r 16, PatchMatch made cheap for the CPU (auto leaves the settings other than
+  // the views' sizes alone).
+  static RunOptions cheap_auto(const fs::path& scene) {
+    RunOptions o;
+    o.scene_dir = scene;
+    o.views = 3;
+    o.resolution = 16;
+    o.patchmatch.iterations = 3;
+    o.patchmatch.geometric_consistency = false;
+    o.config.device = "cpu";
+    return o;
+  }
+};
 
 // The initialisation may read larger images than training uses: fern at -r 8 triangulated from its -r 4
 // images. Same views, same poses, more pixels: more points; unless the sparse stage brings them back down
@@ -775,17 +789,10 @@ TEST_F(InitResolution, FernTriangulatesMoreFromLargerImages) {
 
 // "auto" on fern (forward-facing) at -r 16: PatchMatch reads the -r 8 views (504x378), SIFT stays at the training
 // size, and metrics.json records the resolution and settings as used. A user's own --init-resolution keeps them.
-// PatchMatch is made cheap for the CPU; auto leaves the settings other than the views' sizes alone.
 TEST_F(InitResolution, AutoGivesPatchMatchTwiceTheTrainingSizeOnForwardFacingCaptures) {
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern)) GTEST_SKIP() << "no benchmark data at " << fern;
-  RunOptions o;
-  o.scene_dir = fern;
-  o.views = 3;
-  o.resolution = 16;
-  o.patchmatch.iterations = 3;
-  o.patchmatch.geometric_consistency = false;
-  o.config.device = "cpu";
+  RunOptions o = cheap_auto(fern);
   o.config.iterations = 10;
   o.html_report = false;
   o.save_renders = false;
@@ -879,13 +886,7 @@ TEST_F(InitResolution, AutoWithoutLargerViewsReadsTheTrainingViews) {
     ASSERT_TRUE(image.ok()) << image.status();
     ASSERT_TRUE(write_png(small / "images_16" / fs::path(camera.name).filename(), *image).ok());
   }
-  RunOptions o;
-  o.scene_dir = small;
-  o.views = 3;
-  o.resolution = 16;
-  o.patchmatch.iterations = 3;
-  o.patchmatch.geometric_consistency = false;
-  o.config.device = "cpu";
+  RunOptions o = cheap_auto(small);
   o.out_dir = dir_ / "small";
   std::string log;
   ASSERT_TRUE(run_init_only(o, [&](const std::string& line) { log += line + "\n"; }).ok()) << log;

@@ -113,6 +113,25 @@ struct Services : test::TempDirTest {
     return s;
   }
 
+  // The flags that reach the started trainer.
+  std::string trainer_flags() const {
+    return " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " + (dir_ / "token").string();
+  }
+
+  // `gaps submit SCENE FLAGS --watch` to the started trainer, then `gaps fetch` of its job into `fetched`;
+  // *out: what submit printed.
+  void submit_watch_fetch(const fs::path& scene, const std::string& flags, const fs::path& fetched, std::string* out) {
+    const std::string gaps_cli = GAPS_CLI_BIN;
+    int code = 0;
+    std::tie(code, *out) = run_command(gaps_cli + " submit " + scene.string() + flags + " --watch" + trainer_flags());
+    ASSERT_EQ(code, 0) << *out;
+    std::smatch m;
+    ASSERT_TRUE(std::regex_search(*out, m, std::regex("job-[0-9a-f]+"))) << *out;
+    const auto [fetch_code, fetch_out] =
+        run_command(gaps_cli + " fetch " + std::string(m[0]) + " -o " + fetched.string() + trainer_flags());
+    ASSERT_EQ(fetch_code, 0) << fetch_out;
+  }
+
   int worker_port = -1;
   int trainer_port = -1;
   int trainer_starts = 0;
@@ -585,16 +604,8 @@ TEST_F(Services, TrainAndSubmitRecordTheSameConfigurationForEveryOption) {
   auto worker = start_worker();
   auto trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
-  const std::string common =
-      " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " + (dir_ / "token").string();
-  std::tie(code, out) = run_command(gaps_cli + " submit " + fern.string() + run_flags + " --watch" + common);
-  ASSERT_EQ(code, 0) << out << trainer->log_text();
+  ASSERT_NO_FATAL_FAILURE(submit_watch_fetch(fern, run_flags, dir_ / "remote", &out)) << trainer->log_text();
   EXPECT_NE(out.find("seed = 4 from the command line, over 3 in"), std::string::npos) << out;
-  std::smatch m;
-  ASSERT_TRUE(std::regex_search(out, m, std::regex("job-[0-9a-f]+"))) << out;
-  std::tie(code, out) =
-      run_command(gaps_cli + " fetch " + std::string(m[0]) + " -o " + (dir_ / "remote").string() + common);
-  ASSERT_EQ(code, 0) << out;
 
   nlohmann::json local = read_json(dir_ / "local" / "metrics.json");
   nlohmann::json remote = read_json(dir_ / "remote" / "metrics.json");
@@ -636,20 +647,12 @@ TEST_F(Services, TrainAndSubmitStartAutoFromTheSameLargerViews) {
 
   auto trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
-  const std::string common =
-      " --trainer 127.0.0.1:" + std::to_string(trainer_port) + " --token-file " + (dir_ / "token").string();
-  std::tie(code, out) = run_command(gaps_cli + " submit " + fern.string() + run_flags + " --watch" + common);
-  ASSERT_EQ(code, 0) << out << trainer->log_text();
+  ASSERT_NO_FATAL_FAILURE(submit_watch_fetch(fern, run_flags, dir_ / "remote", &out)) << trainer->log_text();
   EXPECT_NE(out.find(larger), std::string::npos) << out;
   ASSERT_TRUE(std::regex_search(out, remote_points, std::regex("initial points: ([0-9]+)"))) << out;
   EXPECT_EQ(local_points[1], remote_points[1]) << "the same views and settings make the same cloud\n"
                                                << local_out << "\n"
                                                << out;
-  std::smatch m;
-  ASSERT_TRUE(std::regex_search(out, m, std::regex("job-[0-9a-f]+"))) << out;
-  std::tie(code, out) =
-      run_command(gaps_cli + " fetch " + std::string(m[0]) + " -o " + (dir_ / "remote").string() + common);
-  ASSERT_EQ(code, 0) << out;
   const nlohmann::json local = read_json(dir_ / "local" / "metrics.json");
   const nlohmann::json remote = read_json(dir_ / "remote" / "metrics.json");
   EXPECT_EQ(local["init_method"], "mvs");

@@ -72,6 +72,17 @@ struct ServicesOnCuda : test::TempDirTest {
     ASSERT_TRUE(files.ok()) << files.status();
   }
 
+  // run_job for a job whose points PatchMatch makes on the trainer's GPU: it succeeds on CUDA from "mvs"; *metrics:
+  // its metrics.json.
+  void run_mvs_job(const v1::JobSpec& spec, const client::PreparedScene& scene, nlohmann::json* metrics) {
+    FinishedJob job;
+    ASSERT_NO_FATAL_FAILURE(run_job(spec, scene, &job));
+    EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+    *metrics = test::read_json(dir_ / "fetched" / "metrics.json");
+    EXPECT_EQ((*metrics)["device"].get<std::string>().rfind("cuda", 0), 0u) << (*metrics)["device"];
+    EXPECT_EQ((*metrics)["init_method"], "mvs") << trainer_->log_text();
+  }
+
   // A job of the method on a small synthetic scene, through services started as start_services does.
   void run_full_job(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags,
                     const nlohmann::json& gaps_fields, FinishedJob* finished) {
@@ -190,12 +201,8 @@ TEST_F(ServicesOnCuda, AJobWithInitSettingsRunsPatchMatchOnTheTrainersGpu) {
       rpc::set_fields({{"patchmatch_iterations", 3}, {"fusion_max_normal_error", 30.0}, {"sparse_max_image_side", 400}},
                       spec.mutable_config()->mutable_init_settings())
           .ok());
-  FinishedJob job;
-  ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, &job));
-  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
-  const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
-  EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
-  EXPECT_EQ(metrics["init_method"], "mvs") << trainer_->log_text();
+  nlohmann::json metrics;
+  ASSERT_NO_FATAL_FAILURE(run_mvs_job(spec, *scene, &metrics));
   EXPECT_EQ(metrics["init_options"]["patchmatch_iterations"], 3) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["fusion_max_normal_error"], 30.0) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["patchmatch_best_views"], 1) << metrics["init_options"];  // a default
@@ -223,12 +230,8 @@ TEST_F(ServicesOnCuda, AnAutoJobRunsPatchMatchOnTheUploadedLargerViewsOnTheTrain
   spec.mutable_config()->set_variant("vanilla");
   ASSERT_TRUE(
       rpc::set_fields({{"iterations", 200}, {"device", "cuda"}}, spec.mutable_config()->mutable_training()).ok());
-  FinishedJob job;
-  ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, &job));
-  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
-  const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
-  EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
-  EXPECT_EQ(metrics["init_method"], "mvs") << trainer_->log_text();
+  nlohmann::json metrics;
+  ASSERT_NO_FATAL_FAILURE(run_mvs_job(spec, *scene, &metrics));
   EXPECT_EQ(metrics["init_resolution"], 0.5) << metrics;
   EXPECT_EQ(metrics["init_options"]["patchmatch_max_image_side"], 1008) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 504) << metrics["init_options"];
