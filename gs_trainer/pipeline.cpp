@@ -104,6 +104,13 @@ absl::StatusOr<std::vector<TrainingView>> views_for_initialisation(const RunOpti
   return views;
 }
 
+// The longest side of any of these cameras' images, in pixels (0 for none).
+int longest_side(const std::vector<Camera>& cameras) {
+  int side = 0;
+  for (const Camera& c : cameras) side = std::max({side, c.width, c.height});
+  return side;
+}
+
 std::vector<Camera> cameras_of(const std::vector<TrainingView>& views) {
   std::vector<Camera> cameras;
   for (const auto& v : views) cameras.push_back(v.camera);
@@ -146,12 +153,12 @@ struct InitInputs {
 
 absl::StatusOr<InitInputs> initialisation_inputs(const RunOptions& o, const std::vector<TrainingView>& train,
                                                  const Log& log) {
-  if (auto_reads_larger_views(o, cameras_of(train))) {
+  const std::vector<Camera> cameras = cameras_of(train);
+  if (auto_reads_larger_views(o, cameras)) {
     double resolution = 0;
     absl::StatusOr<std::vector<TrainingView>> views = larger_training_views(o, train, log, &resolution);
     if (views.ok()) {
-      int side = 0;
-      for (const auto& v : train) side = std::max({side, v.camera.width, v.camera.height});
+      const int side = longest_side(cameras);
       RunOptions larger = o;
       larger.patchmatch.max_image_side = 2 * side;
       larger.sparse.max_image_side = side;
@@ -426,9 +433,7 @@ bool auto_reads_larger_views(const RunOptions& o, const std::vector<Camera>& tra
       o.sparse.max_image_side != SparseOptions{}.max_image_side ||
       o.patchmatch.max_image_side != PatchMatchOptions{}.max_image_side)
     return false;
-  int side = 0;
-  for (const Camera& c : train) side = std::max({side, c.width, c.height});
-  return 2 * side <= kAutoLargerViewsMaxSide && !views_surround_scene(train);
+  return 2 * longest_side(train) <= kAutoLargerViewsMaxSide && !views_surround_scene(train);
 }
 
 absl::Status validate_mvs_settings(const RunOptions& options) {
