@@ -41,34 +41,33 @@ absl::StatusOr<PreparedScene> prepare_scene(const fs::path& scene_dir, int resol
     rpc::encode_camera(sent, &out.cameras.emplace_back());
     out.images.push_back(std::move(png));
   }
+  out.source_cameras = std::move(scene.cameras);
   return out;
 }
 
 absl::Status add_larger_training_views(const RunOptions& o, PreparedScene* scene) {
-  SceneLoadOptions load;
-  load.resolution = o.resolution;
-  GAPS_ASSIGN_OR_RETURN(const Scene at_training, load_scene(o.scene_dir, load));
-  GAPS_ASSIGN_OR_RETURN(const Split split, benchmark_split(static_cast<int>(at_training.cameras.size()), o.views));
+  const std::vector<Camera>& at_training = scene->source_cameras;
+  GAPS_ASSIGN_OR_RETURN(const Split split, benchmark_split(static_cast<int>(at_training.size()), o.views));
   std::vector<Camera> train;
-  for (int i : split.train) train.push_back(at_training.cameras[i]);
+  for (int i : split.train) train.push_back(at_training[i]);
   if (!auto_reads_larger_views(o, train)) return absl::OkStatus();
   // Any failure from here on means the scene has no usable views that large: NotFound, saying why.
   const auto none = [](const absl::Status& why) { return absl::NotFoundError(why.message()); };
   if (o.resolution < 2 || o.resolution % 2 != 0)
     return absl::NotFoundError(absl::StrCat("resolution ", o.resolution, " has no half"));
+  SceneLoadOptions load;
   load.resolution = o.resolution / 2;
   const absl::StatusOr<Scene> larger = load_scene(o.scene_dir, load);
   if (!larger.ok()) return none(larger.status());
-  if (larger->cameras.size() != at_training.cameras.size())
+  if (larger->cameras.size() != at_training.size())
     return absl::NotFoundError(absl::StrCat("the scene lists ", larger->cameras.size(), " views at resolution ",
-                                            load.resolution, " and ", at_training.cameras.size(), " at ",
-                                            o.resolution));
+                                            load.resolution, " and ", at_training.size(), " at ", o.resolution));
   std::vector<std::pair<int, std::string>> images;
   for (int i : split.train) {
     const Camera& camera = larger->cameras[i];
-    if (camera.name != at_training.cameras[i].name)
+    if (camera.name != at_training[i].name)
       return absl::NotFoundError(absl::StrCat("the scene lists ", camera.name, " at resolution ", load.resolution,
-                                              " where it lists ", at_training.cameras[i].name, " at ", o.resolution));
+                                              " where it lists ", at_training[i].name, " at ", o.resolution));
     absl::StatusOr<at::Tensor> image = load_camera_image(camera);
     if (!image.ok()) return none(image.status());
     GAPS_ASSIGN_OR_RETURN(std::string png, encode_png(*image, camera.name));

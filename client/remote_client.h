@@ -25,14 +25,15 @@ struct PreparedScene {
   std::vector<std::string> images;
   // Some cameras' views at twice their size, PNG, by camera index in increasing order (FileChunk::LARGER_IMAGE).
   std::vector<std::pair<int, std::string>> larger_images;
-  std::string points_ply;  // optional initial point cloud
+  std::string points_ply;              // optional initial point cloud
+  std::vector<Camera> source_cameras;  // the scene's cameras as loaded, in the order of `cameras`
 };
 
 // Loads a scene folder (LLFF, COLMAP or transforms.json) at downscale factor `resolution`.
 absl::StatusOr<PreparedScene> prepare_scene(const std::filesystem::path& scene_dir, int resolution);
 
-// Adds to `scene` (prepared from options.scene_dir at options.resolution) the job's training views at twice their
-// size, read from the scene at half the resolution, when the job's "auto" reads them (auto_reads_larger_views),
+// Adds to `scene` (prepare_scene's, from options.scene_dir at options.resolution) the job's training views at twice
+// their size, read from the scene at half the resolution, when the job's "auto" reads them (auto_reads_larger_views),
 // so that the trainer initialises from what `gaps train` would. Nothing otherwise. NotFound, with nothing added,
 // when it would but the scene has no views that large (the trainer then reads the training views).
 absl::Status add_larger_training_views(const RunOptions& options, PreparedScene* scene);
