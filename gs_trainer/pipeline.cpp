@@ -328,6 +328,16 @@ absl::StatusOr<LoadedScene> load_scene_and_training_views(const RunOptions& o, c
   return loaded;
 }
 
+// o with "auto"'s budget where it holds for these training views (with_auto_budget), said in the log.
+RunOptions budgeted_options(const RunOptions& o, const std::vector<TrainingView>& train, const Log& log) {
+  RunOptions used = with_auto_budget(o, cameras_of(train));
+  if (used.config.gaussians_per_variation == kAutoLargerViewsGaussiansPerVariation &&
+      o.config.gaussians_per_variation < 0)
+    log(absl::StrCat("budget: auto: the views face one way, so ", used.config.gaussians_per_variation,
+                     " Gaussians per unit of their total variation (--gaussians-per-variation sets another)"));
+  return used;
+}
+
 // cameras.json (gs_trainer/scene/cameras_json.h): the training views, then the test views.
 absl::Status write_run_cameras(const std::filesystem::path& path, const std::vector<TrainingView>& train,
                                const std::vector<TrainingView>& test) {
@@ -434,6 +444,16 @@ bool auto_reads_larger_views(const RunOptions& o, const std::vector<Camera>& tra
       o.patchmatch.max_image_side != PatchMatchOptions{}.max_image_side)
     return false;
   return 2 * longest_side(train) <= kAutoLargerViewsMaxSide && !views_surround_scene(train);
+}
+
+RunOptions with_auto_budget(const RunOptions& options, const std::vector<Camera>& train) {
+  RunOptions used = options;
+  double& density = used.config.gaussians_per_variation;
+  if (density < 0)
+    density = options.config.max_gaussians == 0 && auto_reads_larger_views(options, train)
+                  ? kAutoLargerViewsGaussiansPerVariation
+                  : kDefaultGaussiansPerVariation;
+  return used;
 }
 
 absl::Status validate_mvs_settings(const RunOptions& options) {
@@ -720,14 +740,13 @@ absl::Status run_init_only(const RunOptions& o, const Log& log) {
   GAPS_RETURN_IF_ERROR(check_device(o.config.device));
   GAPS_RETURN_IF_ERROR(check_scene(o));
   GAPS_ASSIGN_OR_RETURN(const LoadedScene loaded, load_scene_and_training_views(o, at::Device(o.config.device), log));
+  const RunOptions used = budgeted_options(o, loaded.train, log);
   InitRecord record;
   GAPS_ASSIGN_OR_RETURN(const PointCloud points,
-                        initial_points(o, loaded.scene, loaded.train, log, &record, o.out_dir / "dense"));
+                        initial_points(used, loaded.scene, loaded.train, log, &record, o.out_dir / "dense"));
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_point_cloud_ply(points, o.out_dir / "points.ply"));
-  std::vector<Camera> cameras;
-  for (const auto& v : loaded.train) cameras.push_back(v.camera);
-  GAPS_RETURN_IF_ERROR(write_init_as_colmap(o.out_dir / "sparse" / "0", cameras, points));
+  GAPS_RETURN_IF_ERROR(write_init_as_colmap(o.out_dir / "sparse" / "0", cameras_of(loaded.train), points));
   log(absl::StrCat(points.xyz.size(0), " points written to ", (o.out_dir / "points.ply").string(), " and ",
                    (o.out_dir / "sparse" / "0").string()));
   if (record.method == "mvs")
@@ -746,12 +765,14 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> test, load_views(loaded.scene, loaded.split.test, device));
   RunResult result;
   result.summary = loaded.summary;
-  GAPS_ASSIGN_OR_RETURN(const GaussianModel initial, initial_model(o, loaded.scene, loaded.train, log, &result.init));
+  const RunOptions used = budgeted_options(o, loaded.train, log);
+  GAPS_ASSIGN_OR_RETURN(const GaussianModel initial,
+                        initial_model(used, loaded.scene, loaded.train, log, &result.init));
 
   GAPS_RETURN_IF_ERROR(make_folder(o.out_dir));
   GAPS_RETURN_IF_ERROR(write_run_cameras(o.out_dir / "cameras.json", loaded.train, test));
   const PeakMemoryMeter memory(device);
-  TrainingRun run(o, log, initial, std::move(loaded.train), device);
+  TrainingRun run(used, log, initial, std::move(loaded.train), device);
   result.max_gaussians = run.trainer().config().max_gaussians;
   result.config = run.trainer().config();
   result.gaps = run.effective_gaps();

@@ -90,6 +90,18 @@ inline constexpr int kAutoLargerViewsMaxSide = 1024;
 // Whether "auto" asks for the training views (their cameras `train`) at twice their size: the rule above.
 bool auto_reads_larger_views(const RunOptions& options, const std::vector<Camera>& train);
 
+// Where auto_reads_larger_views holds (whether or not the larger views exist), the automatic Gaussian budget
+// (TrainConfig::gaussians_per_variation < 0, the default) is this many per unit of the training views' total
+// variation instead of kDefaultGaussiansPerVariation (3.5), unless --max-gaussians is given. On fern at 3, 6 and 9
+// views (3 seeds each) vanilla gains 0.24–0.33 dB and the full method −0.12 to +0.10 dB with 57 % of the Gaussians;
+// around bonsai k = 2 costs up to 0.34 dB, and there the rule does not hold (docs/benchmarks.md, "The Gaussian budget
+// on the PatchMatch clouds").
+inline constexpr double kAutoLargerViewsGaussiansPerVariation = 2.0;
+
+// `options` with an automatic budget density (< 0) resolved for the training cameras `train`: the value above
+// where it holds, else kDefaultGaussiansPerVariation. What a run initialises and trains with.
+RunOptions with_auto_budget(const RunOptions& options, const std::vector<Camera>& train);
+
 // What made a run's initial points: the method (RunOptions::init with "auto" resolved, fallbacks taken), the
 // downscale factor of the views it read and its settings as used ("auto"'s larger views applied).
 struct InitRecord {

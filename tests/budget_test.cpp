@@ -89,6 +89,10 @@ TEST(AutomaticBudget, TheTrainerResolvesItIntoMaxGaussians) {
   config.max_gaussians = 0;
   config.gaussians_per_variation = 0;  // unlimited
   EXPECT_EQ(Trainer(one_gaussian(), two_edge_views(), config).config().max_gaussians, 0);
+  config.gaussians_per_variation = TrainConfig{}.gaussians_per_variation;  // automatic: the default density
+  ASSERT_LT(config.gaussians_per_variation, 0);
+  EXPECT_EQ(Trainer(one_gaussian(), two_edge_views(), config).config().max_gaussians,
+            automatic_budget(two_edge_views(), kDefaultGaussiansPerVariation));
 }
 
 struct BudgetRun : test::TempDirTest {};

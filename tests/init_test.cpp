@@ -31,6 +31,7 @@
 #include "gs_trainer/init/working_view.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/scene/colmap.h"
+#include "gs_trainer/train/budget.h"
 #include "tests/synthetic_stereo.h"
 #include "tests/test_util.h"
 
@@ -812,8 +813,13 @@ TEST_F(InitResolution, AutoGivesPatchMatchTwiceTheTrainingSizeOnForwardFacingCap
   EXPECT_EQ(run->init.sparse.max_image_side, 252);
   EXPECT_EQ(run->init.patchmatch.iterations, 3);
   EXPECT_FALSE(test::contains(log, "not used")) << log;
+  EXPECT_TRUE(test::contains(log, "budget: auto: the views face one way, so 2 Gaussians per unit")) << log;
+  EXPECT_TRUE(test::contains(log, absl::StrCat("automatic budget: ", run->max_gaussians, " Gaussians (2 per unit")))
+      << log;
+  EXPECT_EQ(run->config.gaussians_per_variation, kAutoLargerViewsGaussiansPerVariation);
   std::ifstream file(o.out_dir / "metrics.json");
   const nlohmann::json metrics = nlohmann::json::parse(file);
+  EXPECT_EQ(metrics["config"]["gaussians_per_variation"], kAutoLargerViewsGaussiansPerVariation) << metrics["config"];
   EXPECT_EQ(metrics["init_resolution"], 8) << metrics;
   EXPECT_EQ(metrics["init_options"]["patchmatch_max_image_side"], 504) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 252) << metrics["init_options"];
@@ -824,26 +830,29 @@ TEST_F(InitResolution, AutoGivesPatchMatchTwiceTheTrainingSizeOnForwardFacingCap
   std::string own_log;
   ASSERT_TRUE(run_init_only(own, [&](const std::string& line) { own_log += line + "\n"; }).ok()) << own_log;
   EXPECT_FALSE(test::contains(own_log, "twice the training size")) << own_log;
+  EXPECT_FALSE(test::contains(own_log, "budget: auto")) << own_log;
   EXPECT_TRUE(test::contains(own_log, "init: mvs, ")) << own_log;
+}
+
+// The cameras of a benchmark scene's training views at a resolution (none, with a failure, if it cannot be read).
+std::vector<Camera> training_cameras(const fs::path& root, int resolution, int views) {
+  SceneLoadOptions load;
+  load.resolution = resolution;
+  const absl::StatusOr<Scene> scene = load_scene(root, load);
+  EXPECT_TRUE(scene.ok()) << scene.status();
+  std::vector<Camera> cameras;
+  if (!scene.ok()) return cameras;
+  const absl::StatusOr<Split> split = benchmark_split(static_cast<int>(scene->cameras.size()), views);
+  EXPECT_TRUE(split.ok()) << split.status();
+  if (!split.ok()) return cameras;
+  for (int i : split->train) cameras.push_back(scene->cameras[i]);
+  return cameras;
 }
 
 // The rule of auto_reads_larger_views on the benchmark scenes' cameras: fern's training views (forward-facing,
 // 504 pixels at -r 8) are read larger, bonsai's (surrounding) are not; nor fern's when a user sets the views'
 // sizes, when another method is asked for, or when twice the views would exceed kAutoLargerViewsMaxSide.
 TEST(AutoInitialisation, LargerViewsForForwardFacingSmallViewsOnly) {
-  const auto training_cameras = [](const fs::path& root, int resolution, int views) {
-    SceneLoadOptions load;
-    load.resolution = resolution;
-    const absl::StatusOr<Scene> scene = load_scene(root, load);
-    EXPECT_TRUE(scene.ok()) << scene.status();
-    std::vector<Camera> cameras;
-    if (!scene.ok()) return cameras;
-    const absl::StatusOr<Split> split = benchmark_split(static_cast<int>(scene->cameras.size()), views);
-    EXPECT_TRUE(split.ok()) << split.status();
-    if (!split.ok()) return cameras;
-    for (int i : split->train) cameras.push_back(scene->cameras[i]);
-    return cameras;
-  };
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   const fs::path bonsai = fs::path(GAPS_DATA_DIR) / "mipnerf360" / "bonsai";
   if (!fs::exists(fern) || !fs::exists(bonsai)) GTEST_SKIP() << "no benchmark data under " << GAPS_DATA_DIR;
@@ -867,6 +876,35 @@ TEST(AutoInitialisation, LargerViewsForForwardFacingSmallViewsOnly) {
   other_settings.patchmatch.iterations = 3;
   other_settings.fusion.add_sparse_points = true;
   EXPECT_TRUE(auto_reads_larger_views(other_settings, fern3)) << "settings other than the sizes leave the rule alone";
+}
+
+// The automatic budget density (TrainConfig's default, < 0) is kAutoLargerViewsGaussiansPerVariation where auto
+// reads the larger views (fern), kDefaultGaussiansPerVariation elsewhere (bonsai, another method, a count given);
+// a density the user gives is kept, the default's own value too.
+TEST(AutoInitialisation, ASmallerBudgetWhereItReadsLargerViews) {
+  const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
+  const fs::path bonsai = fs::path(GAPS_DATA_DIR) / "mipnerf360" / "bonsai";
+  if (!fs::exists(fern) || !fs::exists(bonsai)) GTEST_SKIP() << "no benchmark data under " << GAPS_DATA_DIR;
+  const std::vector<Camera> fern3 = training_cameras(fern, 8, 3);
+  const auto density = [&](const RunOptions& o, const std::vector<Camera>& cameras) {
+    return with_auto_budget(o, cameras).config.gaussians_per_variation;
+  };
+  const RunOptions defaults;
+  EXPECT_EQ(density(defaults, fern3), kAutoLargerViewsGaussiansPerVariation);
+  EXPECT_EQ(density(defaults, training_cameras(bonsai, 8, 24)), kDefaultGaussiansPerVariation);
+  RunOptions mvs;
+  mvs.init = "mvs";
+  EXPECT_EQ(density(mvs, fern3), kDefaultGaussiansPerVariation);
+  for (const double given : {kDefaultGaussiansPerVariation, 5.0, 0.0}) {
+    RunOptions own;
+    own.config.gaussians_per_variation = given;
+    EXPECT_EQ(density(own, fern3), given);
+  }
+  RunOptions own_count;
+  own_count.config.max_gaussians = 50000;
+  const RunOptions counted = with_auto_budget(own_count, fern3);
+  EXPECT_EQ(counted.config.gaussians_per_variation, kDefaultGaussiansPerVariation);
+  EXPECT_EQ(counted.config.max_gaussians, 50000);
 }
 
 // A scene without views at twice the training size (here fern with its -r 16 images alone) trains from the

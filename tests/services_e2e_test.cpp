@@ -582,10 +582,14 @@ TEST_F(Services, RenderJobDrawsPathsWithTheJobsCamerasAndAJobFromItsPlyContinues
 TEST_F(Services, TrainAndSubmitRecordTheSameConfigurationForEveryOption) {
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
-  // Short, CPU, and with phases: the overrides keep those while every value still differs from its default.
-  const nlohmann::json training = test::non_default_options(
-      train_config_options(),
-      {{"iterations", 60}, {"device", "cpu"}, {"opacity_reset_interval", 5000}, {"max_gaussians", 30000}, {"seed", 3}});
+  // Short, CPU, and with phases: the overrides keep those while every value still differs from its default (a
+  // budget density given, not another automatic one, which the run resolves).
+  const nlohmann::json training = test::non_default_options(train_config_options(), {{"iterations", 60},
+                                                                                     {"device", "cpu"},
+                                                                                     {"opacity_reset_interval", 5000},
+                                                                                     {"max_gaussians", 30000},
+                                                                                     {"gaussians_per_variation", 2.5},
+                                                                                     {"seed", 3}});
   const nlohmann::json gaps = test::non_default_options(
       gaps_config_options(), {{"warmup_iterations", 20}, {"phase_interval", 20}, {"n_active", 2}});
   std::ofstream(dir_ / "training.json") << training.dump(2);

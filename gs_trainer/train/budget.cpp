@@ -18,8 +18,8 @@ int64_t automatic_budget(const std::vector<TrainingView>& views, double gaussian
 }
 
 int64_t gaussian_budget(int64_t max_gaussians, double gaussians_per_variation, const std::vector<TrainingView>& views) {
-  if (max_gaussians > 0 || gaussians_per_variation <= 0) return std::max<int64_t>(max_gaussians, 0);  // a count wins
-  return automatic_budget(views, gaussians_per_variation);
+  if (max_gaussians > 0 || gaussians_per_variation == 0) return std::max<int64_t>(max_gaussians, 0);  // a count wins
+  return automatic_budget(views, gaussians_per_variation < 0 ? kDefaultGaussiansPerVariation : gaussians_per_variation);
 }
 
 }  // namespace gaps

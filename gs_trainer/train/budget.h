@@ -16,11 +16,15 @@ namespace gaps {
 
 struct TrainingView;
 
+// The density a negative gaussians_per_variation (TrainConfig's default) stands for, where the pipeline does not
+// choose another (with_auto_budget in gs_trainer/pipeline.h).
+inline constexpr double kDefaultGaussiansPerVariation = 3.5;
+
 // gaussians_per_variation × Σ_views total_variation, at least 1.
 int64_t automatic_budget(const std::vector<TrainingView>& views, double gaussians_per_variation);
 
-// The most Gaussians a run may grow to: max_gaussians when given (> 0), else the automatic budget, or 0
-// (no limit) when gaussians_per_variation is 0 as well.
+// The most Gaussians a run may grow to: max_gaussians when given (> 0), else the automatic budget (at
+// kDefaultGaussiansPerVariation when gaussians_per_variation < 0), or 0 (no limit) when gaussians_per_variation is 0.
 int64_t gaussian_budget(int64_t max_gaussians, double gaussians_per_variation, const std::vector<TrainingView>& views);
 
 }  // namespace gaps

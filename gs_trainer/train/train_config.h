@@ -46,10 +46,11 @@ namespace gaps {
   X(int64_t, max_gaussians, 0, 0, 1e9,                                                                             \
     "> 0: densification grows the model up to this many Gaussians, preferring the largest gradients; 0: the "      \
     "automatic budget (gaussians_per_variation) decides")                                                          \
-  X(double, gaussians_per_variation, 3.5, 0, 1e6,                                                                  \
+  X(double, gaussians_per_variation, -1, -1, 1e6,                                                                  \
     "automatic Gaussian budget when max_gaussians is 0: this many per unit of the training views' total "          \
-    "variation; 0 = unlimited growth as in 3DGS. 3.5 gives 31-46 % of 3DGS's model on fern and bonsai at equal "    \
-    "or higher test PSNR (docs/benchmarks.md, \"A model no larger than the scene needs\")")                        \
+    "variation; 0 = unlimited growth as in 3DGS; < 0 (default) = 3.5, or 2 where --init auto reads the views at "  \
+    "twice their size (forward-facing captures; gs_trainer/pipeline.h). 3.5 gives 31-46 % of 3DGS's model on "     \
+    "fern and bonsai at equal or higher test PSNR (docs/benchmarks.md, \"A model no larger than the scene needs\")") \
   X(double, prune_min_contribution, 0.0, 0, 1e12,                                                                  \
     "at the end of densification, remove Gaussians whose blending weight summed over every pixel of every "        \
     "training view is below this many pixels; 0 = keep all")                                                       \
