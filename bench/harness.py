@@ -133,9 +133,15 @@ def git_commit():
         return "unknown"
 
 
-def describe_device(gpu):
-    """The GPU's name (for the device the cell ran on), else the CPU model."""
-    if gpu is not None and shutil.which("nvidia-smi"):
+def describe_device(gpu, run_device):
+    """What the cell ran on: for a run on CUDA (run_device, metrics.json's "cuda" or "cuda:N") the GPU's
+    name, else the CPU model. The GPU is the harness's slot (gpu), else the one CUDA_VISIBLE_DEVICES (or the
+    machine) shows the run at its ordinal."""
+    if str(run_device).startswith("cuda") and shutil.which("nvidia-smi"):
+        if gpu is None:
+            ordinal = int(run_device.split(":", 1)[1]) if ":" in run_device else 0
+            visible = [v for v in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if v.strip()]
+            gpu = visible[ordinal].strip() if ordinal < len(visible) else str(ordinal)
         result = subprocess.run(["nvidia-smi", f"--id={gpu}", "--query-gpu=name", "--format=csv,noheader"],
                                 capture_output=True, text=True)
         if result.returncode == 0 and result.stdout.strip():
@@ -225,7 +231,7 @@ def run_cell(config, cell, args, gpus, results, commit, log):
         if metrics is None or code not in (0, EXIT_DIVERGED):
             log(f"FAILED {cell['cell']} (exit status {code}; see {log_dir / (cell['cell'] + '.log')})")
             return False
-        device = describe_device(gpu)
+        device = describe_device(gpu, metrics.get("device"))
         # What only the harness knows, kept with the cell so its row can be rebuilt later.
         with open(Path(args.out) / cell["cell"] / "harness.json", "w") as f:
             json.dump({"device": device, "wall_seconds": wall, "gpu": gpu, "commit": commit}, f)

@@ -12,6 +12,7 @@ import sys
 import tempfile
 import textwrap
 import unittest
+import unittest.mock
 from contextlib import redirect_stdout
 from pathlib import Path
 
@@ -53,7 +54,7 @@ FAKE_GAPS = textwrap.dedent("""\
           "peak_memory": {{"kind": "cuda_allocator", "bytes": 2 ** 30}}, "iterations": 100, "resolution": 8,
           "init": args.get("init"), "init_method": "sparse" if args.get("init") == "auto" else args.get("init"),
           "init_resolution": int(args.get("init-resolution") or 8),
-          "device": "cuda", "argv": sys.argv[1:],
+          "device": args.get("device", "cuda"), "argv": sys.argv[1:],
           "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
           "curve": [{{"iteration": 50, "train_seconds": 5.0, "psnr": psnr - 1, "ssim": 0.4, "lpips": None,
                       "num_gaussians": 500}},
@@ -183,6 +184,25 @@ class HarnessTest(unittest.TestCase):
         code, _ = self.run_harness("--gpus", "3,5", "--only", "^fern_v3_vanilla")
         self.assertEqual(code, 0, "the two cells did not run at the same time")
         self.assertEqual(sorted(c["gpu"] for c in self.calls()), ["3", "5"])
+
+    def test_rows_name_the_gpu_a_cuda_run_used_and_the_cpu_otherwise(self):
+        bin_dir = self.dir / "bin"
+        bin_dir.mkdir()
+        smi = bin_dir / "nvidia-smi"  # names GPU N "Card N"
+        smi.write_text("#!/bin/sh\necho \"Card ${1#--id=}\"\n")
+        smi.chmod(smi.stat().st_mode | stat.S_IEXEC)
+        env = {"PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "CUDA_VISIBLE_DEVICES": "4,6"}
+        with unittest.mock.patch.dict(os.environ, env):
+            self.assertEqual(self.run_harness("--only", "^fern_v3_vanilla_s0$")[0], 0)
+            self.assertEqual(self.run_harness("--only", "^fern_v3_vanilla_s1$", "--flag", "device=cuda:1")[0], 0)
+            self.assertEqual(self.run_harness("--only", "^fern_v3_full_s0$", "--gpus", "2")[0], 0)
+            self.assertEqual(self.run_harness("--only", "^fern_v3_full_s1$", "--gpus", "2", "--flag", "device=cpu")[0], 0)
+        devices = {r["cell"]: r["device"] for r in self.rows()}
+        self.assertEqual(devices["fern_v3_vanilla_s0"], "cuda: Card 4")
+        self.assertEqual(devices["fern_v3_vanilla_s1"], "cuda:1: Card 6")
+        self.assertEqual(devices["fern_v3_full_s0"], "cuda: Card 2")
+        self.assertTrue(devices["fern_v3_full_s1"].startswith("cpu: ") and "Card" not in devices["fern_v3_full_s1"],
+                        devices["fern_v3_full_s1"])
 
     def test_extra_flags_and_only(self):
         code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "device=cuda", "--flag", "init=random")
