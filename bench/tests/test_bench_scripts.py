@@ -20,6 +20,7 @@ BENCH = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(BENCH))
 import charts  # noqa: E402
 import harness  # noqa: E402
+import init_times  # noqa: E402
 import kernel_profile  # noqa: E402
 import tables  # noqa: E402
 
@@ -289,6 +290,42 @@ ROWS = [
     row("fern", 6, "vanilla", 0, 24.0), row("fern", 6, "full", 0, 25.0),
     row("trex", 6, "vanilla", 0, 23.0), row("trex", 6, "full", 0, None, status="diverged"),
 ]
+
+
+class InitTimesTest(unittest.TestCase):
+    def test_cases_and_summary_lines_are_parsed(self):
+        self.assertEqual(init_times.parse_cases(["llff/fern:3,9", "m/b:12"]),
+                         [("llff/fern", 3), ("llff/fern", 9), ("m/b", 12)])
+        with self.assertRaises(SystemExit):
+            init_times.parse_cases(["llff/fern"])
+        log = "init: sparse, 563 points from 3 training views\ninit: mvs, 44937 points from 3 training views, cached"
+        self.assertEqual(init_times.parse_summary(log), ("mvs", 44937))
+        self.assertIsNone(init_times.parse_summary("error: no such scene"))
+
+    def test_each_case_runs_with_an_empty_cache_and_failures_are_recorded(self):
+        with tempfile.TemporaryDirectory() as tmp:
+            gaps = Path(tmp) / "gaps"  # "auto" resolves to mvs; "sweep" fails; every cache folder must be new
+            gaps.write_text(textwrap.dedent("""\
+                #!{python}
+                import os, sys
+                args = dict(a[2:].split("=", 1) for a in sys.argv[2:])
+                if os.path.exists(args["init-cache"]):
+                    sys.exit("cache exists")
+                if args["init"] == "sweep":
+                    sys.exit("error: sweep failed")
+                print("init: " + {{"auto": "mvs"}}.get(args["init"], args["init"]) + ", " + args["views"] + "0 points from "
+                      + args["views"] + " training views")
+                """).format(python=sys.executable))
+            gaps.chmod(gaps.stat().st_mode | stat.S_IEXEC)
+            out = Path(tmp) / "rows.jsonl"
+            with redirect_stdout(io.StringIO()):
+                code = init_times.main(["--gaps", str(gaps), "--data", tmp, "--out", str(out),
+                                        "--methods", "auto,sweep", "--cases", "llff/fern:3,9"])
+            rows = [json.loads(line) for line in out.read_text().splitlines()]
+        self.assertEqual(code, 1)
+        self.assertEqual([(r["views"], r["method"], r["method_used"], r["points"]) for r in rows],
+                         [(3, "auto", "mvs", 30), (3, "sweep", None, None), (9, "auto", "mvs", 90), (9, "sweep", None, None)])
+        self.assertEqual([r.get("error") for r in rows], [None, "error: sweep failed", None, "error: sweep failed"])
 
 
 class TablesTest(unittest.TestCase):
