@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from harness import describe_device
+
 SUMMARY = re.compile(r"^init: (\w+), (\d+) points from (\d+) training views", re.MULTILINE)
 DEFAULT_CASES = ["llff/fern:3,6,9", "mipnerf360/bonsai:12,24"]
 
@@ -75,7 +77,7 @@ def main(argv=None):
         for path, views in parse_cases(args.cases):
             for method in args.methods.split(","):
                 row = time_case(args.gaps, args.data, path, views, method, args.device, args.resolution)
-                row.update(commit=args.commit, machine=platform.node())
+                row.update(commit=args.commit, machine=f"{platform.node()}: {describe_device(None, args.device)}")
                 out.write(json.dumps(row) + "\n")
                 out.flush()
                 failed += "error" in row
