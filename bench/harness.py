@@ -32,7 +32,8 @@ REPO = Path(__file__).resolve().parent.parent
 CSV_FIELDS = [
     "config", "cell", "scene", "views", "variant", "seed", "status", "psnr", "ssim", "lpips",
     "num_gaussians", "max_gaussians", "peak_memory_bytes", "peak_memory_kind", "train_seconds", "generator_seconds",
-    "wall_seconds", "iterations", "resolution", "init", "init_resolution", "commit", "device", "error",
+    "wall_seconds", "iterations", "resolution", "init", "init_resolution", "init_points", "init_seconds",
+    "init_from_cache", "commit", "device", "error",
 ]
 # `gaps train` exits with 3 when the run diverged: metrics.json then records it (a result, not a crash).
 EXIT_DIVERGED = 3
@@ -169,6 +170,9 @@ def row_from_metrics(config, cell, metrics, commit, device, wall_seconds):
         # The method that made the points (metrics.json's init_method: "auto" resolved, fallbacks taken).
         "init": metrics.get("init_method") or metrics.get("init"),
         "init_resolution": metrics.get("init_resolution") or metrics.get("resolution"),
+        # The initial Gaussians and the seconds to them (metrics.json since they were recorded; None before).
+        "init_points": metrics.get("init_points"), "init_seconds": metrics.get("init_seconds"),
+        "init_from_cache": metrics.get("init_from_cache"),
         "commit": commit, "device": f"{metrics.get('device')}: {device}",
         "error": metrics.get("error"), "curve": metrics.get("curve", []),
     }

@@ -228,9 +228,13 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   // No more fused points than the Gaussians the run may grow to (FusionOptions::max_points says why).
   init.fusion.max_points = gaussian_budget(used.config.max_gaussians, used.config.gaussians_per_variation, train);
   std::string report, method;
-  auto points = initialize_points(used.init, cameras, images, init, &report, &method);
+  bool from_cache = false;
+  auto points = initialize_points(used.init, cameras, images, init, &report, &method, &from_cache);
   if (!report.empty()) log(report);
-  if (record) *record = init_record(method, used, inputs.resolution);
+  if (record) {
+    *record = init_record(method, used, inputs.resolution);
+    record->from_cache = from_cache;
+  }
   // The user's settings, not auto's choices, are what a note on unused settings speaks of.
   if (points.ok()) note_unused_mvs_settings(o, method, log);
   return points;
@@ -239,9 +243,9 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
 // The model training starts from: the Gaussians of a full 3DGS PLY given as --init-ply (every property, so
 // that training continues it; its SH brought to the run's degree), or gaussians_from_points of the initial
 // points. *record as in initial_points, method "ply-model" for a full model.
-absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& scene,
-                                            const std::vector<TrainingView>& train, const Log& log,
-                                            InitRecord* record) {
+absl::StatusOr<GaussianModel> initial_model_of(const RunOptions& o, const Scene& scene,
+                                               const std::vector<TrainingView>& train, const Log& log,
+                                               InitRecord* record) {
   if (o.init == "ply" && !o.init_ply.empty()) {
     GAPS_ASSIGN_OR_RETURN(const PlyVertices vertices, read_ply_vertices(o.init_ply));
     if (holds_gaussians(vertices)) {
@@ -261,6 +265,17 @@ absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& sc
   GAPS_ASSIGN_OR_RETURN(const PointCloud points, initial_points(o, scene, train, log, record));
   log(absl::StrCat("initial points: ", points.xyz.size(0)));
   return gaussians_from_points(points, o.config.max_sh_degree);
+}
+
+// initial_model_of, with the count and the wall-clock seconds in *record.
+absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& scene,
+                                            const std::vector<TrainingView>& train, const Log& log,
+                                            InitRecord* record) {
+  const auto start = std::chrono::steady_clock::now();
+  GAPS_ASSIGN_OR_RETURN(GaussianModel model, initial_model_of(o, scene, train, log, record));
+  record->points = model.size();
+  record->seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return model;
 }
 
 absl::Status write_json(const std::filesystem::path& path, const nlohmann::json& j) {
@@ -486,6 +501,9 @@ nlohmann::json run_configuration_json(const RunOptions& o, const RunResult& r) {
   used.fusion = r.init.fusion;
   used.sparse = r.init.sparse;
   j["init_options"] = mvs_settings_json(used);
+  j["init_points"] = r.init.points;
+  j["init_seconds"] = r.init.seconds;
+  j["init_from_cache"] = r.init.from_cache;
   j["random_points"] = o.random_points;
   j["variant"] = variant_name(o.variant);
   if (o.variant != Variant::kVanilla) {

@@ -103,13 +103,17 @@ inline constexpr double kAutoLargerViewsGaussiansPerVariation = 2.0;
 RunOptions with_auto_budget(const RunOptions& options, const std::vector<Camera>& train);
 
 // What made a run's initial points: the method (RunOptions::init with "auto" resolved, fallbacks taken), the
-// downscale factor of the views it read and its settings as used ("auto"'s larger views applied).
+// downscale factor of the views it read and its settings as used ("auto"'s larger views applied); then what it
+// gave and cost in this process (a resumed run initialises again, usually from the cache).
 struct InitRecord {
   std::string method;
   double resolution = 0;  // 0.5: a service job's larger views (RunOptions::larger_views_dir)
   PatchMatchOptions patchmatch;
   FusionOptions fusion;
   SparseOptions sparse;
+  int64_t points = 0;       // the initial Gaussians
+  double seconds = 0.0;     // wall clock from reading the views for it to the initial model
+  bool from_cache = false;  // the points were read from the init cache, not computed
 };
 
 struct RunResult {

@@ -380,6 +380,15 @@ TEST(Initializer, SweepOnASyntheticPlaneAndTheCacheReturnsIdenticalPoints) {
   EXPECT_EQ(second->method, "sweep");
   EXPECT_TRUE(at::equal(first->points.xyz, second->points.xyz));
   EXPECT_TRUE(at::equal(first->points.rgb, second->points.rgb));
+  // initialize_points says whether its points came from the cache (metrics.json's init_from_cache).
+  bool from_cache = false;
+  std::string method;
+  ASSERT_TRUE(initialize_points("sweep", cams, images, o, nullptr, &method, &from_cache).ok());
+  EXPECT_TRUE(from_cache);
+  InitOptions uncached = o;
+  uncached.cache_dir.clear();
+  ASSERT_TRUE(initialize_points("sparse", cams, images, uncached, nullptr, &method, &from_cache).ok());
+  EXPECT_FALSE(from_cache);
   // Another method, other views or other PatchMatch or fusion options get another key.
   EXPECT_NE(init_cache_key("sparse", cams, images, o), init_cache_key("sweep", cams, images, o));
   EXPECT_NE(init_cache_key("mvs", cams, images, o), init_cache_key("sweep", cams, images, o));
@@ -823,6 +832,13 @@ TEST_F(InitResolution, AutoGivesPatchMatchTwiceTheTrainingSizeOnForwardFacingCap
   EXPECT_EQ(metrics["init_resolution"], 8) << metrics;
   EXPECT_EQ(metrics["init_options"]["patchmatch_max_image_side"], 504) << metrics["init_options"];
   EXPECT_EQ(metrics["init_options"]["sparse_max_image_side"], 252) << metrics["init_options"];
+  // What the initialisation gave and cost: the initial Gaussians as logged, its seconds, computed (no cache here).
+  EXPECT_GT(run->init.points, 0);
+  EXPECT_TRUE(test::contains(log, absl::StrCat("initial points: ", run->init.points, "\n"))) << log;
+  EXPECT_EQ(metrics["init_points"], run->init.points) << metrics;
+  EXPECT_GT(metrics["init_seconds"].get<double>(), 0.0) << metrics;
+  EXPECT_DOUBLE_EQ(metrics["init_seconds"].get<double>(), run->init.seconds);
+  EXPECT_EQ(metrics["init_from_cache"], false) << metrics;
 
   RunOptions own = o;
   own.init_resolution = 16;

@@ -11,6 +11,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/str_format.h"
 #include "gs_trainer/pipeline.h"
 #include "gs_trainer/report.h"
 #include "gs_trainer/synthetic.h"
@@ -132,8 +133,10 @@ TEST_F(RunMonitoring, CurvePeakMemoryAndReportOfAVanillaRun) {
   // Two test views of the synthetic scene, each as ground truth and render.
   EXPECT_EQ(count(html, "src=\"data:image/png;base64,"), 4);
   EXPECT_NE(html.find("No pseudo-view phases"), std::string::npos);
-  EXPECT_NE(html.find("<tr><th>initial points</th><td>" + m["init_method"].get<std::string>() + "</td></tr>"),
-            std::string::npos);
+  const std::string init_row = absl::StrFormat("<tr><th>initial points</th><td>%s, %d points in %.1f s</td></tr>",
+                                               m["init_method"].get<std::string>(), m["init_points"].get<int64_t>(),
+                                               m["init_seconds"].get<double>());
+  EXPECT_NE(html.find(init_row), std::string::npos) << init_row;
 }
 
 TEST_F(RunMonitoring, ReportShowsAdmittedAndRejectedPseudoViewsAndGeneratorTime) {

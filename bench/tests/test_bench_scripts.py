@@ -55,6 +55,7 @@ FAKE_GAPS = textwrap.dedent("""\
           "peak_memory": {{"kind": "cuda_allocator", "bytes": 2 ** 30}}, "iterations": 100, "resolution": 8,
           "init": args.get("init"), "init_method": "sparse" if args.get("init") == "auto" else args.get("init"),
           "init_resolution": int(args.get("init-resolution") or 8),
+          "init_points": 100 * views, "init_seconds": 0.5, "init_from_cache": seed > 0,
           "device": args.get("device", "cuda"), "argv": sys.argv[1:],
           "gpu": os.environ.get("CUDA_VISIBLE_DEVICES"),
           "curve": [{{"iteration": 50, "train_seconds": 5.0, "psnr": psnr - 1, "ssim": 0.4, "lpips": None,
@@ -236,6 +237,10 @@ class HarnessTest(unittest.TestCase):
         self.assertEqual(code, 0)
         self.assertEqual(self.rows()[0]["init"], "sparse")  # "auto" as resolved by the trainer
         self.assertEqual(self.rows()[0]["init_resolution"], 8)
+        self.assertEqual((self.rows()[0]["init_points"], self.rows()[0]["init_seconds"]), (300, 0.5))
+        self.assertIs(self.rows()[0]["init_from_cache"], False)
+        with open(self.out / "results.csv") as f:
+            self.assertEqual(next(csv.DictReader(f))["init_points"], "300")
 
     def test_arms_run_a_variant_under_their_own_label_and_flags(self):
         self.write_config({"scenes": [{"name": "fern", "path": "llff/fern"}], "views": [3],

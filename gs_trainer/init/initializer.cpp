@@ -351,9 +351,10 @@ absl::StatusOr<InitResult> run_initialization(const std::string& method, const s
 
 absl::StatusOr<PointCloud> initialize_points(const std::string& method, const std::vector<Camera>& train_cameras,
                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts,
-                                             std::string* report, std::string* method_used) {
+                                             std::string* report, std::string* method_used, bool* from_cache) {
   GAPS_ASSIGN_OR_RETURN(InitResult r, run_initialization(method, train_cameras, train_images, opts));
   if (method_used) *method_used = r.method;
+  if (from_cache) *from_cache = r.from_cache;
   if (report) {
     std::string& out = *report;
     if (r.from_cache) absl::StrAppend(&out, "init: reusing ", r.cache_file.string(), " (computed earlier:)\n");

@@ -85,11 +85,13 @@ inline constexpr double kAutoMinDepthCoverage = 0.25;
 absl::StatusOr<InitResult> run_initialization(const std::string& method, const std::vector<Camera>& train_cameras,
                                               const std::vector<at::Tensor>& train_images, const InitOptions& opts);
 
-// The points only; *report (if given) gets the statistics and the warning lines, newline-terminated, and
-// *method_used (if given) the method that made the points ("auto" resolved, fallbacks taken).
+// The points only; *report (if given) gets the statistics and the warning lines, newline-terminated,
+// *method_used (if given) the method that made the points ("auto" resolved, fallbacks taken) and *from_cache
+// (if given) whether they were read from the cache instead of computed.
 absl::StatusOr<PointCloud> initialize_points(const std::string& method, const std::vector<Camera>& train_cameras,
                                              const std::vector<at::Tensor>& train_images, const InitOptions& opts,
-                                             std::string* report, std::string* method_used = nullptr);
+                                             std::string* report, std::string* method_used = nullptr,
+                                             bool* from_cache = nullptr);
 
 // Cache file stem: <scene>_<N>v_<W>x<H>_<method>_<16 hex digits> where the hash covers the method, every
 // camera (name, size, intrinsics, pose, bounds), a fingerprint of every image and the options (the PatchMatch
