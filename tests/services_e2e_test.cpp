@@ -623,8 +623,8 @@ TEST_F(Services, TrainAndSubmitRecordTheSameConfigurationForEveryOption) {
     local.erase(key);
     remote.erase(key);
   }
-  for (const char* key :
-       {"config", "gaps", "iterations", "views", "device", "seed", "init", "init_method", "random_points", "variant"})
+  for (const char* key : {"config", "gaps", "iterations", "views", "device", "seed", "init", "init_method",
+                          "init_points", "random_points", "variant"})
     EXPECT_EQ(local[key], remote[key]) << key;
 }
 
