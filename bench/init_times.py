@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from harness import describe_device
+from harness import describe_device, git_commit
 
 SUMMARY = re.compile(r"^init: (\w+), (\d+) points from (\d+) training views", re.MULTILINE)
 DEFAULT_CASES = ["llff/fern:3,6,9", "mipnerf360/bonsai:12,24"]
@@ -70,14 +70,16 @@ def main(argv=None):
     parser.add_argument("--resolution", type=int, default=8)
     parser.add_argument("--methods", default="auto,mvs,sweep,sparse")
     parser.add_argument("--cases", nargs="+", default=DEFAULT_CASES, help="PATH:VIEWS[,VIEWS...] under --data")
-    parser.add_argument("--commit", default="", help="recorded in every row")
+    parser.add_argument("--commit", default="", help="recorded in every row (default: git HEAD of this checkout)")
     args = parser.parse_args(argv)
+    recorded = {"commit": args.commit or git_commit(),
+                "machine": f"{platform.node()}: {describe_device(None, args.device)}"}
     failed = 0
     with open(args.out, "a") as out:
         for path, views in parse_cases(args.cases):
             for method in args.methods.split(","):
                 row = time_case(args.gaps, args.data, path, views, method, args.device, args.resolution)
-                row.update(commit=args.commit, machine=f"{platform.node()}: {describe_device(None, args.device)}")
+                row.update(recorded)
                 out.write(json.dumps(row) + "\n")
                 out.flush()
                 failed += "error" in row
