@@ -1,14 +1,10 @@
 #include "gs_trainer/init/initializer.h"
 
-#include <unistd.h>
-
 #include <algorithm>
 #include <cmath>
-#include <fstream>
 #include <system_error>
 
 #include <ATen/ATen.h>
-#include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_join.h"
@@ -16,6 +12,7 @@
 #include "common/ply.h"
 #include "common/status_macros.h"
 #include "gs_trainer/init/colmap_dense.h"
+#include "gs_trainer/init/init_cache.h"
 #include "gs_trainer/scene/bounds.h"
 #include "gs_trainer/scene/colmap.h"
 
@@ -238,45 +235,6 @@ absl::StatusOr<InitResult> compute(const std::string& method, const std::vector<
   return r;
 }
 
-fs::path meta_path(const fs::path& ply) { return fs::path(ply).replace_extension(".json"); }
-
-// A cached result, or nullopt when there is none (or it cannot be read: then it is recomputed).
-std::optional<InitResult> read_cache(const fs::path& ply) {
-  std::error_code ec;
-  if (!fs::exists(ply, ec) || !fs::exists(meta_path(ply), ec)) return std::nullopt;
-  auto points = read_point_cloud_ply(ply);
-  if (!points.ok()) return std::nullopt;
-  std::ifstream in(meta_path(ply));
-  const nlohmann::json meta = nlohmann::json::parse(in, nullptr, /*allow_exceptions=*/false);
-  if (meta.is_discarded() || !meta.contains("method")) return std::nullopt;
-  InitResult r;
-  r.points = std::move(*points);
-  r.method = meta["method"].get<std::string>();
-  r.warnings = meta.value("warnings", std::vector<std::string>{});
-  r.notes = meta.value("notes", std::vector<std::string>{});
-  r.cache_file = ply;
-  r.from_cache = true;
-  return r;
-}
-
-// Writes the PLY (via a temporary file, so a concurrent reader never sees half of one) and the metadata,
-// then returns the points as read back, so that a first run and a cached run give identical points.
-absl::StatusOr<PointCloud> write_cache(const fs::path& ply, const InitResult& r) {
-  std::error_code ec;
-  fs::create_directories(ply.parent_path(), ec);
-  // Per process: concurrent runs of one scene (a benchmark matrix) may fill the same cache entry at once.
-  const fs::path tmp = fs::path(ply).concat(absl::StrCat(".tmp", getpid()));
-  GAPS_RETURN_IF_ERROR(write_point_cloud_ply(r.points, tmp));
-  nlohmann::json meta = {{"method", r.method}, {"warnings", r.warnings}, {"notes", r.notes}};
-  std::ofstream out(meta_path(ply));
-  out << meta.dump(2) << "\n";
-  out.close();
-  if (!out) return absl::InternalError(absl::StrCat(meta_path(ply).string(), ": cannot write"));
-  fs::rename(tmp, ply, ec);
-  if (ec) return absl::InternalError(absl::StrCat(ply.string(), ": cannot write: ", ec.message()));
-  return read_point_cloud_ply(ply);
-}
-
 }  // namespace
 
 std::string init_cache_key(const std::string& method, const std::vector<Camera>& cameras,
@@ -317,13 +275,14 @@ absl::StatusOr<InitResult> cached_or_computed(const std::string& method, const s
   if (!opts.cache_dir.empty() && method != "random") {
     cache = opts.cache_dir / (init_cache_key(method, train_cameras, train_images, opts) + ".ply");
     const bool needs_maps = method == "mvs" && !opts.dense_workspace.empty();
-    if (std::optional<InitResult> cached = needs_maps ? std::nullopt : read_cache(cache)) return std::move(*cached);
+    if (std::optional<InitResult> cached = needs_maps ? std::nullopt : read_init_cache(cache))
+      return std::move(*cached);
   }
   GAPS_ASSIGN_OR_RETURN(InitResult r, compute(method, train_cameras, train_images, opts));
   r.points.xyz = r.points.xyz.to(at::kCPU, at::kFloat).contiguous();
   r.points.rgb = r.points.rgb.to(at::kCPU, at::kFloat).contiguous();
   if (!cache.empty()) {
-    auto stored = write_cache(cache, r);
+    auto stored = write_init_cache(cache, r);
     if (stored.ok()) {
       r.points = std::move(*stored);
       r.cache_file = cache;
