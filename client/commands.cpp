@@ -46,8 +46,9 @@ std::vector<cli::CommandSpec> gaps_commands() {
               "       gaps train --resume OUT [--save-every N] [--quiet]",
               "Reconstructs a scene from N training views (the sparse-view split: every 8th image is a test view) and\n"
               "evaluates on the test views: point_cloud.ply, renders/, metrics.json and report.html in --out. The\n"
-              "state is saved to OUT/checkpoint every --save-every iterations and on SIGINT/SIGTERM; --resume OUT\n"
-              "continues such a run with the settings it was started with.",
+              "state is saved to OUT/checkpoint every --save-every iterations and on SIGINT/SIGTERM (before training\n"
+              "began, a stop ends the run at once: nothing to save yet); --resume OUT continues such a run with the\n"
+              "settings it was started with.",
               {scene_flags(), mvs_flags(), local_init_flags(), run_flags(), generator_flags(), output_flags(),
                checkpoint_flags(), training_option_flags(), gaps_option_flags()},
               1, "the scene folder"),

@@ -1,5 +1,7 @@
 #include "client/local_commands.h"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -27,8 +29,18 @@ namespace {
 // The signal that asked a `gaps train` run to stop (0: none): the run saves its state and ends at the next
 // iteration. A second signal ends the process the default way, for a run stuck before its next iteration.
 std::atomic<int> g_stop_signal{0};
+// Set by the training loop's first question whether to stop. Before it (reading the scene, the
+// initialisation, which takes minutes on a CPU) there is no state to save, so a stop signal ends the process
+// at once with g_stopped_early_message; finished initialisations are already in the cache.
+std::atomic<bool> g_training{false};
+std::string g_stopped_early_message;
 
 extern "C" void on_stop_signal(int signal) {
+  if (!g_training.load()) {
+    // Only async-signal-safe calls here: the message was formatted beforehand.
+    (void)!write(STDERR_FILENO, g_stopped_early_message.data(), g_stopped_early_message.size());
+    _exit(128 + signal);
+  }
   if (g_stop_signal.exchange(signal) == 0) return;
   std::signal(signal, SIG_DFL);
   std::raise(signal);
@@ -137,7 +149,13 @@ int run_train(const cli::CommandLine& line) {
     saved_at = iteration;
     std::cerr << "checkpoint at iteration " << iteration << "\n";
   };
-  o.should_stop = [] { return g_stop_signal.load() != 0; };
+  o.should_stop = [] {
+    g_training = true;
+    return g_stop_signal.load() != 0;
+  };
+  g_stopped_early_message =
+      absl::StrCat("gaps train: stopped before training began, with nothing to save; ", "gaps train --resume ",
+                   o.out_dir.string(), " starts it again (a finished initialisation is reused from the cache)\n");
   install_stop_handlers();
   const absl::StatusOr<RunResult> result = run_with_generator(o, record->backend, record->backend_options);
   if (const int signal = g_stop_signal.load(); signal != 0 && absl::IsCancelled(result.status())) {

@@ -206,6 +206,31 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
                  "the run there has ended");
 }
 
+// A stop during the initialisation (minutes of PatchMatch on a CPU) ends the run at once: there is nothing to
+// save yet, and the first signal must not be left waiting for the first iteration.
+TEST_F(Cli, AStopBeforeTrainingBeganEndsTheRunAtOnce) {
+  if (!fs::exists(kFern)) GTEST_SKIP() << "benchmark data not found at " << kFern;
+  const fs::path out = dir_ / "stopped_in_init";
+  Process run({kGaps, "train", "--scene", kFern.string(), "-r", "8", "--iterations", "100", "--init", "mvs",
+               "--init-resolution", "4", "--init-cache", (dir_ / "empty_cache").string(), "--device", "cpu", "--out",
+               out.string()},
+              out.string() + ".log");
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(2);
+  while (!contains(run.log_text(), "init: reading the training views") && run.running() &&
+         std::chrono::steady_clock::now() < deadline)
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  ASSERT_TRUE(run.running()) << run.log_text();
+  // PatchMatch on the 1008x756 views takes minutes on a CPU; the run must end well before it would.
+  ASSERT_EQ(run.stop(SIGTERM, std::chrono::seconds(30)), 128 + SIGTERM) << run.log_text();
+  const std::string log = run.log_text();
+  EXPECT_TRUE(contains(log, "stopped before training began, with nothing to save; gaps train --resume " + out.string() +
+                                " starts it again"))
+      << log;
+  EXPECT_FALSE(contains(log, "init: mvs, ")) << log;  // it did not finish the initialisation first
+  EXPECT_FALSE(fs::exists(out / "checkpoint"));
+  EXPECT_TRUE(fs::exists(out / "run.json"));  // what --resume starts again from
+}
+
 TEST_F(Cli, SubmitSendsTheTrainFlagsAndTheJobRecordsThem) {
   Process trainer({kTrainer, "--listen", "127.0.0.1:0", "--data-dir", (dir_ / "data").string(), "--device", "cpu"},
                   dir_ / "trainer.log");
