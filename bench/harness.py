@@ -11,6 +11,10 @@ one row to OUT/results.jsonl (with the curve) and OUT/results.csv (without it).
 
 A flag's value may name the cell's scene and view count as {scene} and {views}, e.g.
 --flag init-ply=clouds/{scene}_{views}v_mvs.ply (the file names of `init_bench --ply_dir`).
+
+Stopped by SIGTERM, SIGINT or SIGHUP (`timeout`, Ctrl-C, a closed terminal), the harness stops its running
+cells too (each `gaps train` saves and exits; one still running --stop-grace seconds later is killed), starts
+no more, and exits with 128 + the signal; a stopped cell trains again from the start on the next run.
 """
 import argparse
 import concurrent.futures
@@ -22,6 +26,7 @@ import platform
 import queue
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -215,7 +220,48 @@ def read_metrics(out, cell):
         return json.load(f)
 
 
-def run_cell(config, cell, args, gpus, results, commit, log):
+class Cells:
+    """The running `gaps train` processes, each in its own session so that only the harness receives a
+    terminal's Ctrl-C and passes it on once (a second signal would kill a run before it saves)."""
+
+    def __init__(self, grace_seconds):
+        self.lock = threading.Lock()
+        self.running = set()
+        self.stop_signal = None
+        self.grace_seconds = grace_seconds
+
+    def start(self, cmd, **popen_args):
+        """The started process, or None once the harness is stopping."""
+        with self.lock:
+            if self.stop_signal is not None:
+                return None
+            process = subprocess.Popen(cmd, start_new_session=True, **popen_args)
+            self.running.add(process)
+            return process
+
+    def finished(self, process):
+        with self.lock:
+            self.running.discard(process)
+
+    def stop(self, signum, _frame=None):
+        with self.lock:
+            first = self.stop_signal is None
+            self.stop_signal = signum
+            running = list(self.running)
+        for process in running:
+            process.send_signal(signal.SIGTERM)
+        if first:
+            threading.Thread(target=self._kill_after_grace, daemon=True).start()
+
+    def _kill_after_grace(self):
+        time.sleep(self.grace_seconds)
+        with self.lock:
+            running = list(self.running)
+        for process in running:
+            process.kill()
+
+
+def run_cell(config, cell, args, gpus, results, commit, log, cells):
     gpu = gpus.get() if gpus else None
     try:
         cmd = command(config, cell, args.gaps, args.data, args.out, args.flag)
@@ -224,13 +270,20 @@ def run_cell(config, cell, args, gpus, results, commit, log):
             env["CUDA_VISIBLE_DEVICES"] = gpu
         log_dir = Path(args.out) / "logs"
         log_dir.mkdir(parents=True, exist_ok=True)
-        log(f"start  {cell['cell']}" + (f" on GPU {gpu}" if gpu is not None else ""))
         start = time.monotonic()
         with open(log_dir / f"{cell['cell']}.log", "w") as f:
             f.write(" ".join(cmd) + "\n")
             f.flush()
-            code = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env).returncode
+            process = cells.start(cmd, stdout=f, stderr=subprocess.STDOUT, env=env)
+            if process is None:
+                return None
+            log(f"start  {cell['cell']}" + (f" on GPU {gpu}" if gpu is not None else ""))
+            code = process.wait()
+            cells.finished(process)
         wall = time.monotonic() - start
+        if cells.stop_signal is not None and code != 0:
+            log(f"stopped {cell['cell']} (exit status {code})")
+            return None
         metrics = read_metrics(args.out, cell)
         if metrics is None or code not in (0, EXIT_DIVERGED):
             log(f"FAILED {cell['cell']} (exit status {code}; see {log_dir / (cell['cell'] + '.log')})")
@@ -263,6 +316,9 @@ def main(argv=None):
     parser.add_argument("--only", default="", help="regular expression: only cells whose name matches")
     parser.add_argument("--commit", default="", help="recorded in every row (default: git HEAD of this checkout)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands of the unfinished cells")
+    parser.add_argument("--stop-grace", type=float, default=60.0, metavar="SECONDS",
+                        help="once stopped by a signal, how long a running cell may take to save and exit before "
+                        "it is killed (default 60)")
     args = parser.parse_args(argv)
     gpu_ids = [g.strip() for g in args.gpus.split(",") if g.strip()]
     if args.jobs is None:
@@ -305,9 +361,22 @@ def main(argv=None):
         gpus = queue.Queue()
         for slot in range(args.jobs):  # the slots of the jobs, spread round-robin over the devices
             gpus.put(gpu_ids[slot % len(gpu_ids)])
-    with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log), pending))
+    cells = Cells(args.stop_grace)
+    stop_signals = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+    previous = {s: signal.signal(s, cells.stop) for s in stop_signals}
+    try:
+        with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
+            outcomes = list(pool.map(lambda c: run_cell(config, c, args, gpus, results, commit, log, cells),
+                                     pending))
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
     failed = outcomes.count(False)
+    if cells.stop_signal is not None:
+        name = signal.Signals(cells.stop_signal).name
+        log(f"{config['name']}: stopped by {name}: {outcomes.count(True)} cells run, {failed} failed, "
+            f"{outcomes.count(None)} not finished (they train again on the next run); rows in {results.jsonl}")
+        return 128 + cells.stop_signal
     log(f"{config['name']}: {len(pending) - failed} cells run, {failed} failed; rows in {results.jsonl}")
     return 1 if failed else 0
 

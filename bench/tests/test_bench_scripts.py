@@ -7,10 +7,13 @@ import csv
 import io
 import json
 import os
+import signal
 import stat
+import subprocess
 import sys
 import tempfile
 import textwrap
+import time
 import unittest
 import unittest.mock
 from contextlib import redirect_stdout
@@ -25,10 +28,12 @@ import kernel_profile  # noqa: E402
 import tables  # noqa: E402
 
 # Stands in for `gaps train`: PSNR from views, seed and variant; variant "no-gaps" diverges (exit 3 with a
-# metrics.json saying so), "crash" fails without metrics unless ALLOW_CRASH exists; every call is logged.
+# metrics.json saying so), "crash" fails without metrics unless ALLOW_CRASH exists; "slow" trains for two
+# minutes unless SIGTERM stops it (exit 143, as gaps train after saving), "stubborn" ignores SIGTERM; every
+# call is logged.
 FAKE_GAPS = textwrap.dedent("""\
     #!{python}
-    import json, os, sys, time
+    import json, os, signal, sys, time
     args = dict(a[2:].split("=", 1) for a in sys.argv[2:] if "=" in a)
     out = args["out"]
     log_dir = os.path.dirname(out)
@@ -44,6 +49,11 @@ FAKE_GAPS = textwrap.dedent("""\
                 sys.exit(1)
             time.sleep(0.05)
     variant, views, seed = args["variant"], int(args["views"]), int(args["seed"])
+    if variant in ("slow", "stubborn"):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN if variant == "stubborn" else lambda *_: sys.exit(143))
+        with open(os.path.join(log_dir, "pid_" + os.path.basename(out)), "w") as f:
+            f.write(str(os.getpid()))
+        time.sleep(120)
     if variant == "crash" and not os.path.exists(os.path.join(log_dir, "ALLOW_CRASH")):
         sys.exit(1)
     if os.path.exists(out) and "--overwrite" not in sys.argv:  # as gaps train refuses an interrupted run's folder
@@ -100,6 +110,19 @@ class HarnessTest(unittest.TestCase):
             code = harness.main(["--config", str(self.config), "--data", "/data", "--out", str(self.out),
                                  "--gaps", str(self.gaps), "--commit", "abc123"] + list(extra))
         return code, output.getvalue()
+
+    def start_harness_process(self, *extra):
+        """The harness as its own process, for the signals only a main thread can receive."""
+        return subprocess.Popen(
+            [sys.executable, str(BENCH / "harness.py"), "--config", str(self.config), "--data", "/data", "--out",
+             str(self.out), "--gaps", str(self.gaps), "--commit", "abc123"] + list(extra),
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def wait_for_files(self, paths):
+        deadline = time.monotonic() + 30
+        while not all(p.exists() and p.read_text() for p in paths) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        self.assertTrue(all(p.exists() for p in paths), paths)
 
     def rows(self):
         with open(self.out / "results.jsonl") as f:
@@ -231,6 +254,35 @@ class HarnessTest(unittest.TestCase):
         self.assertIn("--overwrite", argv)
         argv = json.loads((self.out / "fern_v3_vanilla_s1" / "metrics.json").read_text())["argv"]
         self.assertNotIn("--overwrite", argv)
+
+    def test_a_stopped_harness_stops_its_cells_and_starts_no_more(self):
+        # As `timeout` or Ctrl-C stops it: no cell may go on training unseen beside the next matrix.
+        self.write_config({"name": "unit", "scenes": [{"name": "fern", "path": "llff/fern"}], "views": [3],
+                           "variants": ["slow", "stubborn"], "seeds": [0, 1], "flags": {}})
+        process = self.start_harness_process("--jobs", "2", "--stop-grace", "1", "--only", "_s0$")
+        pid_files = [self.out / "pid_fern_v3_slow_s0", self.out / "pid_fern_v3_stubborn_s0"]
+        self.wait_for_files(pid_files)
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=30)
+        self.assertEqual(process.returncode, 128 + signal.SIGTERM, output)
+        self.assertIn("stopped by SIGTERM: 0 cells run, 0 failed, 2 not finished", output)
+        self.assertIn("stopped fern_v3_slow_s0 (exit status 143)", output)
+        self.assertIn("stopped fern_v3_stubborn_s0 (exit status -9)", output)
+        for pid_file in pid_files:
+            with self.assertRaises(ProcessLookupError):
+                os.kill(int(pid_file.read_text()), 0)
+        self.assertFalse((self.out / "results.jsonl").exists() and (self.out / "results.jsonl").read_text())
+
+    def test_cells_after_a_stop_are_not_started(self):
+        self.write_config({"name": "unit", "scenes": [{"name": "fern", "path": "llff/fern"}], "views": [3],
+                           "variants": ["slow"], "seeds": [0, 1, 2], "flags": {}})
+        process = self.start_harness_process("--jobs", "1")
+        self.wait_for_files([self.out / "pid_fern_v3_slow_s0"])
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=30)
+        self.assertEqual(process.returncode, 128 + signal.SIGINT, output)
+        self.assertEqual([c["cell"] for c in self.calls()], ["fern_v3_slow_s0"])
+        self.assertIn("3 not finished", output)  # the stopped cell and the two never started
 
     def test_rows_record_the_initialisation_that_ran(self):
         code, _ = self.run_harness("--only", "^fern_v3_vanilla_s0$", "--flag", "init=auto")
