@@ -29,9 +29,9 @@ namespace {
 // The signal that asked a `gaps train` run to stop (0: none): the run saves its state and ends at the next
 // iteration. A second signal ends the process the default way, for a run stuck before its next iteration.
 std::atomic<int> g_stop_signal{0};
-// Set by the training loop's first question whether to stop. Before it (reading the scene, the
-// initialisation, which takes minutes on a CPU) there is no state to save, so a stop signal ends the process
-// at once with g_stopped_early_message; finished initialisations are already in the cache.
+// Set just before training's first iteration. Before it (reading the scene, the initialisation, which takes
+// minutes on a CPU) there is no state to save, so a stop signal ends the process at once with
+// g_stopped_early_message; finished initialisations are already in the cache.
 std::atomic<bool> g_training{false};
 std::string g_stopped_early_message;
 
@@ -149,10 +149,8 @@ int run_train(const cli::CommandLine& line) {
     saved_at = iteration;
     std::cerr << "checkpoint at iteration " << iteration << "\n";
   };
-  o.should_stop = [] {
-    g_training = true;
-    return g_stop_signal.load() != 0;
-  };
+  o.should_stop = [] { return g_stop_signal.load() != 0; };
+  o.on_training_started = [] { g_training = true; };
   g_stopped_early_message =
       absl::StrCat("gaps train: stopped before training began, with nothing to save; ", "gaps train --resume ",
                    o.out_dir.string(), " starts it again (a finished initialisation is reused from the cache)\n");

@@ -219,6 +219,7 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   for (const auto& v : inputs.views) images.push_back(v.image.to(device));
   InitOptions init;
   init.cache_dir = used.init_cache_dir;
+  init.should_stop = o.should_stop;
   init.random_points = used.random_points;
   init.seed = used.config.seed;
   init.dense_workspace = dense_workspace;
@@ -604,6 +605,7 @@ class TrainingRun {
   // the test views are evaluated into the curve.
   absl::Status train(const ProgressCallback& on_progress, const std::vector<TrainingView>& test, const Lpips* lpips) {
     start_ = last_save_ = std::chrono::steady_clock::now();
+    if (o_.on_training_started) o_.on_training_started();
     return trainer_.run(on_progress, 10, [&] { return monitored_step(test, lpips); });
   }
 

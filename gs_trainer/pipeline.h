@@ -62,8 +62,12 @@ struct RunOptions {
   int eval_every = 0;
   // A self-contained report.html in out_dir (metrics, curve, renders next to ground truth, pseudo-views).
   bool html_report = true;
-  // Polled before every iteration; returning true stops the run with CANCELLED (the model so far is saved).
+  // Polled before every iteration, and during the initialisation between its stages and PatchMatch's
+  // sweeps; returning true stops the run with CANCELLED (once training began, the model so far is saved).
   std::function<bool()> should_stop;
+  // Called once, just before training's first iteration (after a resume: its first one): from then on a stop
+  // has a state to save.
+  std::function<void()> on_training_started;
   // Told about each diffusion phase (see GapsTraining::set_phase_observer).
   GapsTraining::PhaseObserver on_phase;
   // When set, the training state is saved there at the start of every diffusion phase and when the run is

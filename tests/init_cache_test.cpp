@@ -65,8 +65,7 @@ TEST(InitCache, AReaderNeverSeesAnEntryHalfRewritten) {
   while (writing) {
     const std::optional<InitResult> r = read_init_cache(ply);
     ++reads;
-    if (!r || r->method != "sweep" || r->notes.size() != big.notes.size() || r->points.xyz.size(0) != 20000)
-      ++misses;
+    if (!r || r->method != "sweep" || r->notes.size() != big.notes.size() || r->points.xyz.size(0) != 20000) ++misses;
   }
   writer.join();
   EXPECT_GT(reads, 0);

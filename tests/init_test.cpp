@@ -513,6 +513,34 @@ TEST(Initializer, MvsOnASyntheticPlaneIsWhatAutoTakesAndWritesTheWorkspace) {
 
 // FusionOptions::add_sparse_points: the cloud is the fused points plus every triangulated point, and the cap
 // applies to the two together; the sparse points' positions are kept exactly when there is no cap.
+// A stopped initialisation ends CANCELLED, whatever stage it is in: no fallback to other points (a
+// cancelled job must not train on them) and nothing cached (the next run computes the whole thing).
+TEST(Initializer, AStopEndsItCancelledWithoutFallbackOrCache) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(320, 240, 300);
+  const std::vector<at::Tensor> images = render_all(plane, cams);
+  const fs::path dir = fs::temp_directory_path() / ("gaps_init_stop_test_" + std::to_string(::getpid()));
+  InitOptions o = small_patchmatch();
+  o.cache_dir = dir;
+  for (const int stop_at : {1, 2, 3, 5}) {  // before and after the sparse points, then in PatchMatch's sweeps
+    int asked = 0;
+    o.should_stop = [&] { return ++asked == stop_at; };
+    for (const std::string method : {"auto", "mvs"}) {
+      asked = 0;
+      const auto r = run_initialization(method, cams, images, o);
+      EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled) << method << " " << stop_at << ": " << r.status();
+      EXPECT_EQ(asked, stop_at) << method;
+    }
+  }
+  EXPECT_FALSE(fs::exists(dir) && !fs::is_empty(dir));
+  o.should_stop = [] { return false; };
+  const auto whole = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  EXPECT_EQ(whole->method, "mvs");
+  EXPECT_FALSE(whole->from_cache);
+  remove_tree(dir);
+}
+
 TEST(Initializer, MvsAddsTheSparsePointsUnderTheCap) {
   const TexturedPlane plane;
   const std::vector<Camera> cams = three_cameras(320, 240, 300);

@@ -276,6 +276,27 @@ TEST(PatchMatchStereo, TheBarsFailWithoutSweepsOrWithImagesOnTheWrongCameras) {
   EXPECT_LT(ss::measure_all(scene, views, *wrong).accurate_fraction(), 0.2);
 }
 
+// A stop request is heard before every sweep (a cancelled job must not wait out minutes of CPU PatchMatch);
+// one that never comes changes nothing.
+TEST(PatchMatchStereo, AStopRequestEndsItBeforeTheNextSweep) {
+  const std::vector<ss::View> views = ss::render_views(ss::slanted_plane(), 48, 36);
+  PatchMatchOptions o = ss::small_view_options();
+  o.iterations = 2;
+  o.geometric_iterations = 1;
+  int asked = 0;
+  const auto stopped = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o, [&] { return ++asked == 3; });
+  EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
+  EXPECT_EQ(asked, 3);
+  EXPECT_EQ(stopped.status().message(), "PatchMatch stopped at view 1");  // view 0's two sweeps ran
+
+  asked = 0;
+  const auto whole = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o, [&] { return ++asked < 0; });
+  const auto plain = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o);
+  ASSERT_TRUE(whole.ok() && plain.ok());
+  EXPECT_EQ(asked, static_cast<int>(views.size()) * (o.iterations + o.geometric_iterations));
+  for (size_t v = 0; v < views.size(); ++v) EXPECT_TRUE((*whole)[v].depth.equal((*plain)[v].depth));
+}
+
 // Counter-based random numbers: the same seed gives the same maps, another seed other ones.
 TEST(PatchMatchStereo, IsDeterministicPerSeed) {
   const std::vector<ss::View> views = ss::render_views(ss::slanted_plane(), 48, 36);

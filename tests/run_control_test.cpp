@@ -100,16 +100,38 @@ TEST_F(RunControlTest, OtherGeneratorErrorsStillFailTheRun) {
 
 TEST_F(RunControlTest, ShouldStopCancelsAndKeepsTheModel) {
   RunOptions o = options(nullptr);
-  int polls = 0;
+  int polls = 0, started = 0;
   o.should_stop = [&] { return ++polls > 25; };
+  o.on_training_started = [&] { ++started; };
   int last_iteration = 0;
   auto r = run_pipeline(
       o, [&](const TrainProgress& p) { last_iteration = p.iteration; }, [](const std::string&) {});
   ASSERT_FALSE(r.ok());
   EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(started, 1);
   EXPECT_LE(last_iteration, 25);
   EXPECT_TRUE(std::filesystem::exists(dir_ / "out" / "point_cloud.ply"));
   EXPECT_FALSE(std::filesystem::exists(dir_ / "out" / "metrics.json"));
+}
+
+// A stop during the initialisation (PatchMatch here) ends the run there: CANCELLED before training began,
+// with neither a model nor a checkpoint to keep.
+TEST_F(RunControlTest, AStopDuringTheInitialisationCancelsBeforeTraining) {
+  RunOptions o = options(nullptr);
+  o.init = "mvs";
+  o.init_cache_dir = dir_ / "init_cache";
+  o.checkpoint_dir = dir_ / "checkpoint";
+  int polls = 0, started = 0;
+  o.should_stop = [&] { return ++polls == 3; };  // in PatchMatch's first sweep
+  o.on_training_started = [&] { ++started; };
+  std::vector<std::string> log;
+  auto r = run_pipeline(o, nullptr, [&](const std::string& line) { log.push_back(line); });
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kCancelled) << r.status();
+  EXPECT_EQ(r.status().message(), "PatchMatch stopped at view 0");
+  EXPECT_EQ(polls, 3);
+  EXPECT_EQ(started, 0);
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "out" / "point_cloud.ply"));
+  EXPECT_FALSE(std::filesystem::exists(dir_ / "checkpoint"));
 }
 
 // A stop checkpoints where the run is (a crash leaves only the phase checkpoints: see services_e2e_test).

@@ -2,6 +2,7 @@
 // The "mvs" initialisation's dense stage: PatchMatch stereo (patchmatch.h) on the training views, each view's
 // depth range and source views taken from the sparse stage as the plane sweep takes them, then fusion
 // (fusion.h).
+#include <functional>
 #include <vector>
 
 #include <ATen/Tensor.h>
@@ -29,10 +30,11 @@ struct MvsResult {
 // `images` at their cameras' sizes, on the device that picks PatchMatch's path (CUDA tensors: the kernels).
 // Depth ranges: view_depth_range with `range` (its depth_margin and min_points_for_range); sources:
 // select_neighbors, up to patchmatch.max_source_views. Fails on invalid input, when no view has both a depth
-// range and a source, or when PatchMatch fails.
+// range and a source, or when PatchMatch fails (CANCELLED when `should_stop` stopped it).
 absl::StatusOr<MvsResult> patchmatch_reconstruct(const std::vector<Camera>& cameras,
                                                  const std::vector<at::Tensor>& images, const SparseResult& sparse,
                                                  const PatchMatchOptions& patchmatch, const FusionOptions& fusion,
-                                                 const DenseOptions& range);
+                                                 const DenseOptions& range,
+                                                 const std::function<bool()>& should_stop = {});
 
 }  // namespace gaps

@@ -179,7 +179,9 @@ absl::StatusOr<std::string> dense_stage(const std::string& method, const std::ve
     }
     return why;
   }
-  auto mvs = patchmatch_reconstruct(cameras, images, sparse, opts.patchmatch, opts.fusion, opts.dense);
+  auto mvs =
+      patchmatch_reconstruct(cameras, images, sparse, opts.patchmatch, opts.fusion, opts.dense, opts.should_stop);
+  if (absl::IsCancelled(mvs.status())) return mvs.status();  // stopped, not failed: no fallback
   if (!mvs.ok()) return std::string(mvs.status().message());
   r->mvs = mvs->stats;
   r->notes.push_back(mvs_note(mvs->stats, opts.fusion));
@@ -196,6 +198,12 @@ absl::StatusOr<std::string> dense_stage(const std::string& method, const std::ve
   }
   r->method = method;
   return why;
+}
+
+absl::Status stop_requested(const InitOptions& opts, absl::string_view where) {
+  if (opts.should_stop && opts.should_stop())
+    return absl::CancelledError(absl::StrCat("initialisation stopped ", where));
+  return absl::OkStatus();
 }
 
 // The fallback chain, without the cache.
@@ -215,7 +223,9 @@ absl::StatusOr<InitResult> compute(const std::string& method, const std::vector<
     return fall_back_to_random(
         absl::StrCat(method, ": degenerate baseline, all ", cameras.size(), " training cameras share one centre"));
 
+  GAPS_RETURN_IF_ERROR(stop_requested(opts, "before the sparse points"));
   GAPS_ASSIGN_OR_RETURN(SparseResult sparse, sparse_reconstruct(cameras, images, opts.sparse));
+  GAPS_RETURN_IF_ERROR(stop_requested(opts, "after the sparse points"));
   r.sparse = sparse.stats;
   r.notes.push_back(sparse_note(sparse.stats));
   const bool sparse_ok = sparse.stats.points >= opts.min_sparse_points;

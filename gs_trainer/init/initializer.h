@@ -9,6 +9,7 @@
 // "auto" is "mvs" asking its depth maps to cover kAutoMinDepthCoverage of the pixels (else the sparse points).
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <optional>
 #include <string>
 #include <vector>
@@ -45,6 +46,9 @@ struct InitOptions {
   // as a COLMAP dense workspace (colmap_dense.h). Only a computation has the maps, so the cache is then
   // written but not read.
   std::filesystem::path dense_workspace;
+  // Asked between the stages and between PatchMatch's sweeps: true ends the initialisation with CANCELLED,
+  // caching nothing (a cancelled job, a stopping service: on a CPU PatchMatch alone takes minutes).
+  std::function<bool()> should_stop;
 };
 
 struct InitResult {

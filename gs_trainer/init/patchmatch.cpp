@@ -7,6 +7,7 @@
 #include <c10/core/DeviceGuard.h>
 #include <Eigen/Dense>
 #include "absl/strings/str_cat.h"
+#include "common/status_macros.h"
 #include "gs_trainer/init/patchmatch_backend.h"
 #include "gs_trainer/init/patchmatch_host.h"
 #include "gs_trainer/init/working_view.h"
@@ -145,10 +146,16 @@ void sweep(const pm::Backend& backend, const pm::Problem& p, int iteration) {
   backend.update(p, 1, iteration);
 }
 
+absl::Status stop_check(const std::function<bool()>& should_stop, size_t view) {
+  if (should_stop && should_stop()) return absl::CancelledError(absl::StrCat("PatchMatch stopped at view ", view));
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchInput& input,
-                                                               const PatchMatchOptions& options) {
+                                                               const PatchMatchOptions& options,
+                                                               const std::function<bool()>& should_stop) {
   if (absl::Status s = validate_patchmatch_options(options); !s.ok()) return s;
   if (absl::Status s = validate(input); !s.ok()) return s;
   const size_t n = input.cameras.size();
@@ -180,7 +187,10 @@ absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchI
   // Photometric sweeps of every view, then (COLMAP's order) geometric ones against those photometric maps.
   for (size_t i : active) {
     (*backend)->init(problems[i]);
-    for (int it = 0; it < options.iterations; ++it) sweep(**backend, problems[i], it);
+    for (int it = 0; it < options.iterations; ++it) {
+      GAPS_RETURN_IF_ERROR(stop_check(should_stop, i));
+      sweep(**backend, problems[i], it);
+    }
   }
   if (options.geometric_consistency) {
     std::vector<at::Tensor> photometric;
@@ -190,7 +200,10 @@ absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchI
       p.geometric = true;
       for (int k = 0; k < p.num_sources; ++k) p.sources[k].depth = photometric[input.sources[i][k]].data_ptr<float>();
       (*backend)->rescore(p);
-      for (int g = 0; g < options.geometric_iterations; ++g) sweep(**backend, p, options.iterations + g);
+      for (int g = 0; g < options.geometric_iterations; ++g) {
+        GAPS_RETURN_IF_ERROR(stop_check(should_stop, i));
+        sweep(**backend, p, options.iterations + g);
+      }
     }
   }
   for (size_t i : active) (*backend)->filter(problems[i]);

@@ -6,6 +6,7 @@
 // source-view selection, then a geometric-consistency pass against the other views' depth maps.
 // One semantics, two paths: CUDA kernels for GPU tensors, a CPU loop for CPU tensors (same per-pixel code).
 #include <cstdint>
+#include <functional>
 #include <utility>
 #include <vector>
 
@@ -66,7 +67,9 @@ struct ViewDepthNormal {
 // Depth and normal maps for every view (views without sources or range come back with depth all 0).
 // Errors name the problem: mismatched sizes, an image not HxWx3, an empty or inverted depth range, a source
 // index out of range, images on different devices, CUDA asked for in a build without the kernels.
+// `should_stop`, when given, is asked before every sweep: true ends it with CANCELLED.
 absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchInput& input,
-                                                               const PatchMatchOptions& options = {});
+                                                               const PatchMatchOptions& options = {},
+                                                               const std::function<bool()>& should_stop = {});
 
 }  // namespace gaps
