@@ -152,7 +152,7 @@ int run_train(const cli::CommandLine& line) {
   o.should_stop = [] { return g_stop_signal.load() != 0; };
   o.on_training_started = [] { g_training = true; };
   g_stopped_early_message =
-      absl::StrCat("gaps train: stopped before training began, with nothing to save; ", "gaps train --resume ",
+      absl::StrCat("gaps train: stopped before training began, with nothing to save; gaps train --resume ",
                    o.out_dir.string(), " starts it again (a finished initialisation is reused from the cache)\n");
   install_stop_handlers();
   const absl::StatusOr<RunResult> result = run_with_generator(o, record->backend, record->backend_options);
