@@ -454,6 +454,42 @@ TEST_F(Services, CancelStopsARunningJob) {
   EXPECT_FALSE(fs::exists(dir_ / "fetched" / "metrics.json"));
 }
 
+// A job cancelled while still initialising stops there (between the stages, or at the next PatchMatch
+// sweep), not once its initialisation is done: this one's PatchMatch alone would take minutes on a CPU.
+TEST_F(Services, CancelStopsAJobStillInitialising) {
+  auto trainer = start_trainer();
+  ASSERT_GT(trainer_port, 0) << trainer->log_text();
+  client::TrainerClient client = connect();
+  SyntheticSceneOptions s;
+  s.images = 9;
+  s.width = 640;
+  s.height = 480;
+  ASSERT_TRUE(write_synthetic_scene(dir_ / "large", s).ok());
+  auto scene = client::prepare_scene(dir_ / "large", 1);
+  ASSERT_TRUE(scene.ok()) << scene.status();
+  v1::JobSpec job_spec = spec("vanilla", 100);
+  job_spec.mutable_config()->set_init("mvs");
+  ASSERT_TRUE(rpc::set_fields({{"patchmatch_iterations", 60}, {"patchmatch_max_image_side", 640}},
+                              job_spec.mutable_config()->mutable_init_settings())
+                  .ok());
+  auto job = client.submit(job_spec, *scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  bool cancel_sent = false;
+  auto final_status = client.watch(*job, [&](const v1::JobEvent& e) {
+    if (!cancel_sent && e.has_state_changed() && e.state_changed() == v1::RUNNING) {
+      cancel_sent = true;
+      EXPECT_TRUE(client.cancel(*job).ok());
+    }
+  });
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_EQ(final_status->state(), v1::CANCELLED) << final_status->error();
+  EXPECT_TRUE(std::regex_match(final_status->error(),
+                               std::regex("cancelled: (PatchMatch stopped at view [0-9]+|initialisation stopped "
+                                          "(before|after) the sparse points)")))
+      << final_status->error();
+  EXPECT_EQ(final_status->iteration(), 0);
+}
+
 // Runs a command line, returning its exit code and output.
 TEST_F(Services, CommandLineSubmitWatchListFetch) {
   auto worker = start_worker();
