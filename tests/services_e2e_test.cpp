@@ -89,14 +89,14 @@ struct Services : test::TempDirTest {
     return std::move(*c);
   }
 
-  // A small synthetic scene for quick jobs.
-  client::PreparedScene synthetic_scene() {
+  // A synthetic scene of 9 images in dir_/<folder>, by default small for quick jobs.
+  client::PreparedScene synthetic_scene(int width = 64, int height = 48, const std::string& folder = "synthetic") {
     SyntheticSceneOptions s;
     s.images = 9;
-    s.width = 64;
-    s.height = 48;
-    EXPECT_TRUE(write_synthetic_scene(dir_ / "synthetic", s).ok());
-    auto scene = client::prepare_scene(dir_ / "synthetic", 1);
+    s.width = width;
+    s.height = height;
+    EXPECT_TRUE(write_synthetic_scene(dir_ / folder, s).ok());
+    auto scene = client::prepare_scene(dir_ / folder, 1);
     EXPECT_TRUE(scene.ok()) << scene.status();
     return *scene;
   }
@@ -460,19 +460,13 @@ TEST_F(Services, CancelStopsAJobStillInitialising) {
   auto trainer = start_trainer();
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
   client::TrainerClient client = connect();
-  SyntheticSceneOptions s;
-  s.images = 9;
-  s.width = 640;
-  s.height = 480;
-  ASSERT_TRUE(write_synthetic_scene(dir_ / "large", s).ok());
-  auto scene = client::prepare_scene(dir_ / "large", 1);
-  ASSERT_TRUE(scene.ok()) << scene.status();
+  const client::PreparedScene scene = synthetic_scene(640, 480, "large");
   v1::JobSpec job_spec = spec("vanilla", 100);
   job_spec.mutable_config()->set_init("mvs");
   ASSERT_TRUE(rpc::set_fields({{"patchmatch_iterations", 60}, {"patchmatch_max_image_side", 640}},
                               job_spec.mutable_config()->mutable_init_settings())
                   .ok());
-  auto job = client.submit(job_spec, *scene);
+  auto job = client.submit(job_spec, scene);
   ASSERT_TRUE(job.ok()) << job.status();
   bool cancel_sent = false;
   auto final_status = client.watch(*job, [&](const v1::JobEvent& e) {
