@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Speed-vs-accuracy charts from the harness's rows (results.jsonl), as PNG and SVG (matplotlib, Agg).
 
-Per config, scene and view count: test PSNR against wall-clock training time, one line per run through the
-points of its evaluation curve, coloured by variant. Per config: final test PSNR against the number of
+Per config, scene and view count: test PSNR, and test LPIPS where the runs measured it, against wall-clock
+training time, one line per run through the points of its evaluation curve, coloured by variant. Per config: final test PSNR against the number of
 Gaussians, one point per run. Across configs, per scene and view count where runs under a Gaussian budget
 exist: test PSNR against the model size, one line per method through its budgets (mean over seeds; the
 hollow marker is unlimited growth). An index (README.md) in the output folder lists and captions every chart.
@@ -60,34 +60,42 @@ def save(fig, out, stem, formats):
     return paths
 
 
-def label_psnr_axes(ax, xlabel, heading, grid_which="major", **legend):
-    """Every chart's y axis is test PSNR: labels, heading, grid and legend (keyword arguments go to the legend)."""
+# The metrics a curve chart can plot: y-axis label and name in titles and file names.
+CURVE_METRICS = {"psnr": ("test PSNR, dB", "test PSNR"), "lpips": ("test LPIPS-VGG (lower is better)", "test LPIPS")}
+
+
+def label_psnr_axes(ax, xlabel, heading, grid_which="major", ylabel=CURVE_METRICS["psnr"][0], **legend):
+    """A chart's labels, heading, grid and legend (keyword arguments go to the legend); the y axis is test PSNR
+    unless `ylabel` says otherwise."""
     ax.set_xlabel(xlabel)
-    ax.set_ylabel("test PSNR, dB")
+    ax.set_ylabel(ylabel)
     ax.set_title(heading)
     ax.grid(alpha=0.3, which=grid_which)
     ax.legend(**legend)
 
 
-def psnr_vs_time(config, scene, views, rows, out, formats):
+def metric_vs_time(config, scene, views, rows, out, formats, metric="psnr"):
+    """`metric` (psnr or lpips) of every run's evaluation curve against its training time; nothing when no
+    curve has the metric (LPIPS is null in runs without LPIPS weights)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     colours = label_colours({r["variant"] for r in rows})
     labelled = set()
     for r in sorted(rows, key=lambda r: (tables.variant_key(r["variant"]), r["seed"])):
-        curve = [p for p in r.get("curve") or [] if p.get("psnr") is not None]
+        curve = [p for p in r.get("curve") or [] if p.get(metric) is not None]
         if not curve:
             continue
-        ax.plot([p["train_seconds"] for p in curve], [p["psnr"] for p in curve], marker="o", markersize=3,
+        ax.plot([p["train_seconds"] for p in curve], [p[metric] for p in curve], marker="o", markersize=3,
                 linewidth=1.2, alpha=0.85, color=colours[r["variant"]],
                 label=None if r["variant"] in labelled else r["variant"])
         labelled.add(r["variant"])
     if not labelled:
         plt.close(fig)
         return []
+    ylabel, name = CURVE_METRICS[metric]
     label_psnr_axes(ax, "training time, s (evaluations excluded)",
-                    f"{scene}, {views} views: test PSNR over training time ({config})",
+                    f"{scene}, {views} views: {name} over training time ({config})", ylabel=ylabel,
                     title="variant (one line per seed)")
-    return save(fig, out, f"{config}_{scene}_v{views}_psnr_vs_time", formats)
+    return save(fig, out, f"{config}_{scene}_v{views}_{metric}_vs_time", formats)
 
 
 def psnr_vs_gaussians(config, rows, out, formats):
@@ -213,9 +221,10 @@ def render_all(rows, out, formats):
         rows_c = by_config[config]
         for scene, views in sorted({(r["scene"], r["views"]) for r in rows_c}):
             subset = [r for r in rows_c if (r["scene"], r["views"]) == (scene, views)]
-            paths = psnr_vs_time(config, scene, views, subset, out, formats)
-            if paths:
-                written.append((f"{config}: {scene}, {views} views — test PSNR over training time", paths))
+            for metric, (_, name) in CURVE_METRICS.items():
+                paths = metric_vs_time(config, scene, views, subset, out, formats, metric)
+                if paths:
+                    written.append((f"{config}: {scene}, {views} views — {name} over training time", paths))
         paths = psnr_vs_gaussians(config, rows_c, out, formats)
         if paths:
             written.append((f"{config}: test PSNR against the number of Gaussians", paths))

@@ -312,7 +312,7 @@ def main(argv=None):
                         "through CUDA_VISIBLE_DEVICES (default: leave it as it is)")
     parser.add_argument("--flag", action="append", default=[], metavar="KEY=VALUE",
                         help="a gaps train flag for every cell, overriding the config's (repeatable), e.g. "
-                        "--flag device=cuda --flag lpips-backbone=/models/vgg16.pth")
+                        "--flag device=cuda --flag lpips-weights=/models/vgg16_lpips_v0.1.safetensors")
     parser.add_argument("--only", default="", help="regular expression: only cells whose name matches")
     parser.add_argument("--commit", default="", help="recorded in every row (default: git HEAD of this checkout)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands of the unfinished cells")

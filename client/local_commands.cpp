@@ -55,7 +55,7 @@ int report(const std::string& command, const absl::StatusOr<RunResult>& result, 
   if (!result.ok()) return fail(command, result.status());
   const auto& m = result->metrics;
   std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training\n", m.psnr,
-                               m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : "n/a (no backbone)",
+                               m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : lpips_missing_note(),
                                result->num_gaussians, result->train_seconds);
   if (result->degraded())
     std::cout << "DEGRADED: " << result->phases_skipped << " of " << result->phases

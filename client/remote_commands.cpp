@@ -93,7 +93,10 @@ void print_event(const v1::JobEvent& e, ProgressPrinter& progress) {
 void print_status(const v1::JobStatus& s) {
   std::cout << absl::StrFormat("%s  %-9s  %-16s  %6d/%-6d  %8lld Gaussians", s.job_id(), v1::JobState_Name(s.state()),
                                s.name(), s.iteration(), s.iterations(), static_cast<long long>(s.num_gaussians()));
-  if (s.state() == v1::SUCCEEDED) std::cout << absl::StrFormat("  PSNR %.2f  SSIM %.4f", s.psnr(), s.ssim());
+  if (s.state() == v1::SUCCEEDED) {
+    std::cout << absl::StrFormat("  PSNR %.2f  SSIM %.4f", s.psnr(), s.ssim());
+    std::cout << (s.has_lpips() ? absl::StrFormat("  LPIPS %.4f", s.lpips()) : std::string("  LPIPS n/a"));
+  }
   if (s.degraded())
     std::cout << absl::StrFormat("  DEGRADED: %d of %d diffusion phases skipped", s.phases_skipped(), s.phases());
   if (!s.error().empty()) std::cout << "  " << s.error();

@@ -322,11 +322,9 @@ absl::StatusOr<std::vector<TrainingView>> test_views(const RunOptions& o, const 
 }
 
 absl::StatusOr<std::optional<Lpips>> lpips_for(const RunOptions& o) {
-  if (o.lpips_backbone.empty()) return std::nullopt;
-  absl::StatusOr<Lpips> lpips = Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string());
+  absl::StatusOr<std::optional<Lpips>> lpips = load_lpips(o.lpips_weights, o.lpips_backbone, at::Device(o.config.device));
   if (!lpips.ok()) return input_data_error(lpips.status());
-  lpips->to(at::Device(o.config.device));
-  return std::optional<Lpips>(std::move(*lpips));
+  return lpips;
 }
 
 nlohmann::json lpips_json(const std::optional<double>& value) {
@@ -363,7 +361,7 @@ absl::Status evaluate(const cli::CommandLine& line) {
         {{"image", test[i].camera.name}, {"psnr", v.psnr}, {"ssim", v.ssim}, {"lpips", lpips_json(v.lpips)}});
   }
   std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d views, %d Gaussians\n", mean.psnr,
-                               mean.ssim, mean.lpips ? lpips_text(mean.lpips) : "n/a (no backbone)", per_view.size(),
+                               mean.ssim, mean.lpips ? lpips_text(mean.lpips) : lpips_missing_note(), per_view.size(),
                                model.size());
   const std::string out_flag = absl::GetFlag(FLAGS_out);
   const fs::path out = !out_flag.empty()    ? fs::path(out_flag)

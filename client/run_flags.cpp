@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "common/error_kind.h"
 #include "common/status_macros.h"
+#include "gs_trainer/eval/lpips.h"
 
 ABSL_FLAG(
     std::string, scene, "",
@@ -64,8 +65,12 @@ ABSL_FLAG(bool, overwrite, false,
           "reuse a non-empty output folder: first remove what an earlier run wrote there (other files stay)");
 ABSL_FLAG(bool, report, true, "write report.html (metrics, curve, renders next to ground truth, pseudo-views)");
 ABSL_FLAG(bool, quiet, false, "no progress output");
-ABSL_FLAG(std::string, lpips_backbone, "", "VGG16 weights (torchvision vgg16-397923af.pth); LPIPS is null without");
-ABSL_FLAG(std::string, lpips_weights, "", "LPIPS v0.1 linear weights (vgg.pth)");
+ABSL_FLAG(std::string, lpips_weights, "",
+          "LPIPS-VGG weights (default: the file scripts/setup.sh makes, ~/.cache/gaps/lpips/"
+          "vgg16_lpips_v0.1.safetensors, when present; none: no LPIPS); with --lpips-backbone, lpips' v0.1 vgg.pth");
+ABSL_FLAG(std::string, lpips_backbone, "",
+          "a torchvision VGG16 state dict (vgg16-397923af.pth) to pair with --lpips-weights vgg.pth instead of the "
+          "set-up's file");
 ABSL_FLAG(std::string, resume, "",
           "continue the interrupted run in this output folder, with the settings it was started with");
 ABSL_FLAG(int, save_every, 2000,
@@ -80,7 +85,35 @@ std::filesystem::path default_init_cache() {
   return {};
 }
 
+// --lpips-weights empty: the set-up's file if it is there (a file that is there but broken is an error when
+// the run loads it); when it is not, LPIPS is null and the run says why (lpips_missing_note()).
+absl::Status lpips_from_flags(RunOptions& o) {
+  const std::string weights = absl::GetFlag(FLAGS_lpips_weights);
+  o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);
+  if (weights == kLpipsOff) {
+    if (!o.lpips_backbone.empty()) return usage_error("--lpips-backbone with --lpips-weights=none: pick one");
+    o.lpips_weights.clear();
+    return absl::OkStatus();
+  }
+  if (!weights.empty()) {
+    o.lpips_weights = weights;
+    return absl::OkStatus();
+  }
+  if (!o.lpips_backbone.empty()) return usage_error("--lpips-backbone needs --lpips-weights (lpips' v0.1 vgg.pth)");
+  std::error_code ec;
+  const std::filesystem::path set_up = default_lpips_weights_path();
+  o.lpips_weights = !set_up.empty() && std::filesystem::exists(set_up, ec) ? set_up : std::filesystem::path();
+  return absl::OkStatus();
+}
+
 }  // namespace
+
+std::string lpips_missing_note() {
+  const std::string weights = absl::GetFlag(FLAGS_lpips_weights);
+  if (weights == kLpipsOff) return "off (--lpips-weights=none)";
+  return absl::StrCat("n/a (no LPIPS weights at ", default_lpips_weights_path().string(),
+                      ": bash scripts/setup.sh makes them)");
+}
 
 cli::FlagGroup scene_flags() {
   return {"scene", {"scene", "views", "resolution", "init", "init_ply", "random_points"}};
@@ -127,8 +160,7 @@ absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults) {
   o.sparse.max_image_side = absl::GetFlag(FLAGS_sparse_max_image_side);
   o.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
   if (o.init_cache_dir.empty()) o.init_cache_dir = default_init_cache();
-  o.lpips_backbone = absl::GetFlag(FLAGS_lpips_backbone);
-  o.lpips_weights = absl::GetFlag(FLAGS_lpips_weights);
+  GAPS_RETURN_IF_ERROR(lpips_from_flags(o));
   o.eval_every = absl::GetFlag(FLAGS_eval_every);
   o.html_report = absl::GetFlag(FLAGS_report);
   if (o.eval_every < 0) return usage_error("--eval-every must be 0 or positive");

@@ -40,6 +40,10 @@ struct FlagRun {
 // are usage errors, or input data errors for unreadable option files.
 absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults = nlohmann::json::object());
 
+// What a run prints instead of an LPIPS value it did not compute: turned off, or the set-up's weights file
+// missing (and the command that makes it).
+std::string lpips_missing_note();
+
 // The scene folder may also come as the command's one argument (gaps train SCENE); given both ways, refused.
 absl::Status take_scene_argument(const cli::CommandLine& line);
 

@@ -363,13 +363,11 @@ absl::Status write_run_cameras(const std::filesystem::path& path, const std::vec
   return write_cameras_json(path, cameras);
 }
 
-// Nothing when no backbone is given (LPIPS is then reported as null).
-absl::StatusOr<std::optional<Lpips>> load_lpips(const RunOptions& o, const at::Device& device) {
-  if (o.lpips_backbone.empty()) return std::nullopt;
-  absl::StatusOr<Lpips> lpips = Lpips::load(o.lpips_weights.string(), o.lpips_backbone.string());
+// Nothing when the run measures without LPIPS (it is then reported as null).
+absl::StatusOr<std::optional<Lpips>> run_lpips(const RunOptions& o, const at::Device& device) {
+  absl::StatusOr<std::optional<Lpips>> lpips = load_lpips(o.lpips_weights, o.lpips_backbone, device);
   if (!lpips.ok()) return input_data_error(lpips.status());
-  lpips->to(device);
-  return std::optional<Lpips>(std::move(*lpips));
+  return lpips;
 }
 
 }  // namespace
@@ -779,7 +777,7 @@ absl::StatusOr<RunResult> run_pipeline(const RunOptions& o, const ProgressCallba
   GAPS_RETURN_IF_ERROR(check_device(o.config.device));
   GAPS_RETURN_IF_ERROR(check_scene(o));
   const at::Device device(o.config.device);
-  GAPS_ASSIGN_OR_RETURN(const std::optional<Lpips> lpips, load_lpips(o, device));
+  GAPS_ASSIGN_OR_RETURN(const std::optional<Lpips> lpips, run_lpips(o, device));
   const Lpips* lpips_model = lpips ? &*lpips : nullptr;
   GAPS_ASSIGN_OR_RETURN(LoadedScene loaded, load_scene_and_training_views(o, device, log));
   GAPS_ASSIGN_OR_RETURN(const std::vector<TrainingView> test, load_views(loaded.scene, loaded.split.test, device));

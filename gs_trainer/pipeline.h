@@ -49,9 +49,11 @@ struct RunOptions {
   FusionOptions fusion;
   // The sparse stage's settings; only max_image_side is the user's (it is read by "sparse" and "sweep" too).
   SparseOptions sparse;
-  // LPIPS is computed only when a VGG16 backbone file is given; otherwise it is reported as null.
+  // LPIPS-VGG weights: the safetensors file of scripts/lpips_weights.py (default_lpips_weights_path()), or,
+  // with lpips_backbone (a torchvision VGG16 pickle), lpips' v0.1 linear layers (vgg.pth). Empty: no LPIPS,
+  // reported as null.
+  std::filesystem::path lpips_weights;
   std::filesystem::path lpips_backbone;
-  std::filesystem::path lpips_weights;  // LPIPS v0.1 linear layers (vgg.pth)
   bool save_renders = true;
   TrainConfig config;
   // The paper's method: anything but vanilla needs a generator (not owned; see diffusion_worker/).

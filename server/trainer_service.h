@@ -42,6 +42,7 @@ struct TrainerServiceOptions {
   // A job found RUNNING at start-up whose trainer died (no clean stop) this many times is FAILED, not run
   // again: it may be what killed the trainer.
   int max_crashes = 2;
+  std::filesystem::path lpips_weights;  // the jobs' LPIPS-VGG weights (safetensors); empty: LPIPS is null
   WorkerPoolOptions workers;  // diffusion workers (addresses may be empty: vanilla jobs only)
   std::string token;          // required bearer token (empty: none)
   uint64_t max_upload_bytes = uint64_t{8} << 30;

@@ -14,6 +14,7 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -24,7 +25,10 @@
 #include "gs_trainer/eval/metrics.h"
 
 #include "common/io_util.h"
+#include "common/safetensors.h"
+#include "tests/lpips_real_weights.h"
 #include "tests/lpips_test_util.h"
+#include "tests/test_util.h"
 
 namespace gaps {
 namespace {
@@ -297,6 +301,69 @@ TEST_F(LpipsParity, BrokenBackbonesNameTheKey) {
   EXPECT_TRUE(contains(swapped.status().message(), "missing key lin0.model.1.weight")) << swapped.status();
   auto absent = Lpips::load(kLinWeights, path("no_such_backbone.pth"));
   EXPECT_EQ(absent.status().code(), absl::StatusCode::kNotFound) << absent.status();
+}
+
+// ---------------------------------------------------------------------------------------------
+// The set-up's real weights (scripts/lpips_weights.py) in one safetensors file.
+
+using LpipsRealWeights = test::TempDirTest;
+
+TEST_F(LpipsRealWeights, FernRunReportsLpipsAndMatchesPypiLpips) { test::check_fern_run_lpips(dir_, "cpu"); }
+
+TEST_F(LpipsRealWeights, TheSetUpFileLoadsWithEveryLayer) {
+  const std::string weights = default_lpips_weights_path().string();
+  absl::StatusOr<sdxl::TensorMap> tensors = sdxl::read_safetensors(weights);
+  ASSERT_TRUE(tensors.ok()) << tensors.status() << " (bash scripts/setup.sh makes the file)";
+  EXPECT_EQ(tensors->size(), 13u * 2 + 5);  // 13 convolutions (weight, bias) and 5 heads
+  EXPECT_EQ(tensors->at("features.28.weight").sizes(), at::IntArrayRef({512, 512, 3, 3}));
+  EXPECT_TRUE(Lpips::load_safetensors(weights).ok());
+}
+
+// A small stand-in of the set-up's file, with `edit` applied: every check of load_safetensors is reached.
+std::string write_weights(const std::filesystem::path& dir, const std::function<void(sdxl::TensorMap&)>& edit,
+                          const std::string& format = "gaps-lpips-vgg16-v0.1") {
+  sdxl::TensorMap tensors;
+  const int64_t channels[5] = {64, 128, 256, 512, 512};
+  const int convs[5] = {2, 2, 3, 3, 3};
+  int index = 0;
+  int64_t in = 3;
+  for (int block = 0; block < 5; ++block) {
+    if (block > 0) ++index;
+    for (int i = 0; i < convs[block]; ++i, index += 2) {
+      tensors["features." + std::to_string(index) + ".weight"] = at::zeros({channels[block], in, 3, 3});
+      tensors["features." + std::to_string(index) + ".bias"] = at::zeros({channels[block]});
+      in = channels[block];
+    }
+    tensors["lin" + std::to_string(block) + ".model.1.weight"] = at::zeros({1, channels[block], 1, 1});
+  }
+  edit(tensors);
+  const std::string path = (dir / "weights.safetensors").string();
+  EXPECT_TRUE(sdxl::write_safetensors(path, tensors, {{"format", format}}).ok());
+  return path;
+}
+
+TEST_F(LpipsRealWeights, BrokenFilesAreRefusedByName) {
+  const auto none = [](sdxl::TensorMap&) {};
+  EXPECT_TRUE(Lpips::load_safetensors(write_weights(dir_, none)).ok());
+
+  const absl::StatusOr<Lpips> absent = Lpips::load_safetensors((dir_ / "absent.safetensors").string());
+  EXPECT_EQ(absent.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(contains(absent.status().message(), "scripts/setup.sh")) << absent.status();
+
+  const absl::StatusOr<Lpips> other = Lpips::load_safetensors(write_weights(dir_, none, "sdxl-unet"));
+  EXPECT_TRUE(contains(other.status().message(), "not an LPIPS-VGG weights file")) << other.status();
+
+  const absl::StatusOr<Lpips> missing =
+      Lpips::load_safetensors(write_weights(dir_, [](sdxl::TensorMap& t) { t.erase("lin3.model.1.weight"); }));
+  EXPECT_TRUE(contains(missing.status().message(), "missing key lin3.model.1.weight")) << missing.status();
+
+  const absl::StatusOr<Lpips> shape = Lpips::load_safetensors(
+      write_weights(dir_, [](sdxl::TensorMap& t) { t["features.10.weight"] = at::zeros({256, 128, 1, 1}); }));
+  EXPECT_TRUE(contains(shape.status().message(), "features.10.weight has shape [256,128,1,1]")) << shape.status();
+
+  const absl::StatusOr<Lpips> extra =
+      Lpips::load_safetensors(write_weights(dir_, [](sdxl::TensorMap& t) { t["classifier.0.weight"] = at::zeros({1}); }));
+  EXPECT_TRUE(contains(extra.status().message(), "unexpected key classifier.0.weight")) << extra.status();
 }
 
 }  // namespace

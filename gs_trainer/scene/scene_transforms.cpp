@@ -19,8 +19,10 @@ namespace fs = std::filesystem;
 using nlohmann::json;
 using Params = std::map<std::string, double>;
 
-constexpr const char* kNumericKeys[] = {"fl_x",           "fl_y", "cx", "cy", "w",  "h", "camera_angle_x",
-                                        "camera_angle_y", "k1",   "k2", "k3", "p1", "p2"};
+// "near" and "far" (per frame or global) are gaps' own: the depth bounds of a scene that had them (LLFF's
+// poses_bounds.npy) survive a round trip through transforms.json, as a submitted scene takes.
+constexpr const char* kNumericKeys[] = {"fl_x", "fl_y", "cx", "cy", "w",  "h",  "camera_angle_x", "camera_angle_y",
+                                        "k1",   "k2",   "k3", "p1", "p2", "near", "far"};
 
 struct Frame {
   std::string file_path;
@@ -138,6 +140,8 @@ absl::Status set_intrinsics(const Params& p, const std::string& where, Camera* c
   camera->cy = get("cy", camera->height / 2.0);
   const std::vector<double> d = {get("k1", 0), get("k2", 0), get("p1", 0), get("p2", 0), get("k3", 0)};
   if (std::any_of(d.begin(), d.end(), [](double v) { return v != 0.0; })) camera->distortion = d;
+  camera->near = get("near", 0.0);
+  camera->far = get("far", 0.0);
   return absl::OkStatus();
 }
 

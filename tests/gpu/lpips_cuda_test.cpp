@@ -1,5 +1,5 @@
-// LPIPS-VGG on CUDA against PyPI's `lpips` (the fixtures of lpips_test.cpp, whose CPU parity tests
-// share them).
+// LPIPS-VGG on CUDA against PyPI's `lpips`: the random-backbone fixtures of lpips_test.cpp, and the
+// set-up's real weights on fern (tests/lpips_real_weights.h), as its CPU tests do.
 #include <ATen/ATen.h>
 #include <ATen/core/grad_mode.h>
 #include <gtest/gtest.h>
@@ -7,7 +7,9 @@
 
 #include "gs_trainer/eval/lpips.h"
 #include "tests/gpu/require_cuda.h"
+#include "tests/lpips_real_weights.h"
 #include "tests/lpips_test_util.h"
+#include "tests/test_util.h"
 
 namespace gaps {
 namespace {
@@ -40,6 +42,15 @@ TEST_F(LpipsParity, CudaAgreesWithPython) {
     EXPECT_NEAR(d.item<double>(), expected, 2e-5 * expected + 1e-9);
   }
   context.setAllowTF32CuDNN(tf32);
+}
+
+// The set-up's real weights: a short fern run on CUDA reports LPIPS, and our CUDA LPIPS of its renders and
+// of fern's photos matches PyPI lpips (the reference runs on the CPU).
+using LpipsRealWeightsCuda = test::TempDirTest;
+
+TEST_F(LpipsRealWeightsCuda, FernRunOnCudaMatchesPypiLpips) {
+  GAPS_REQUIRE_CUDA_KERNELS();
+  test::check_fern_run_lpips(dir_, "cuda");
 }
 
 }  // namespace

@@ -37,7 +37,16 @@ class Summarise(unittest.TestCase):
                  gtest_skip("Losses.CudaAgreesWithCpu", "no CUDA device"), skipped=True),
             case("gpu_tests.ShadeCuda.MatchesCpu", "notrun",
                  gtest_skip("ShadeCuda.MatchesCpu", "no CUDA device"), skipped=True)), GPU)
-        self.assertEqual(line, "ctest: 1 passed, 1 failed, 3 skipped (2 GPU tests, label gpu: no CUDA device)")
+        self.assertEqual(line, "ctest: 1 passed, 1 failed, 3 skipped "
+                               "(2 GPU tests, label gpu: no CUDA device; 1 other: 1 no data under /x)")
+
+    def test_other_skips_are_counted_by_reason(self):
+        line = ctest_summary.summarise(junit(
+            case("a_test.A.Fern", "notrun", gtest_skip("A.Fern", "benchmark data not found at /d"), skipped=True),
+            case("a_test.A.Bonsai", "notrun", gtest_skip("A.Bonsai", "benchmark data not found at /d"), skipped=True),
+            case("a_test.A.Py", "notrun", gtest_skip("A.Py", "no lpips module"), skipped=True)), GPU)
+        self.assertEqual(line, "ctest: 0 passed, 0 failed, 3 skipped "
+                               "(3 other: 2 benchmark data not found at /d, 1 no lpips module)")
 
     def test_gpu_skips_for_several_reasons_are_counted_by_reason(self):
         line = ctest_summary.summarise(junit(

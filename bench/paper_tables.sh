@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# The paper's tables (configs/paper_tables.json) and its ablation (configs/paper_ablation.json) in one go, with
+# PSNR, SSIM and LPIPS-VGG: the five initialisations first (one per scene and view count, into the init cache
+# that every cell then reads instead of computing its own at the same time), then every cell at once, spread
+# over the GPUs. The ablation's vanilla and full cells are the tables' (same flags): they are trained once and
+# their rows are copied into the ablation's results under its config name.
+#
+#   bench/paper_tables.sh DATA OUT [GPUS]     e.g. bench/paper_tables.sh ../shared/data runs/paper 0,1,2,3
+# Environment: GAPS (the gaps binary, default build/client/gaps), JOBS (cells at once, default 42: all),
+# LPIPS_WEIGHTS (default: the set-up's file). Resumable: finished cells are skipped on a second run.
+# Writes OUT/tables/results.jsonl and OUT/ablation/results.jsonl (bench/tables.py and bench/charts.py read them).
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+data=${1:?data root (e.g. ../shared/data)}
+out=${2:?output folder}
+gpus=${3:-0}
+gaps=${GAPS:-$here/../build/client/gaps}
+jobs=${JOBS:-42}
+flags=(--flag device=cuda)
+[ -n "${LPIPS_WEIGHTS:-}" ] && flags+=(--flag "lpips-weights=$LPIPS_WEIGHTS")
+mkdir -p "$out/init"
+
+echo "paper_tables: initialising the five settings"
+pids=()
+for setting in llff/fern:3 llff/fern:6 llff/fern:9 mipnerf360/bonsai:12 mipnerf360/bonsai:24; do
+  scene=${setting%%:*} views=${setting##*:}
+  name=$(basename "$scene")_$views
+  "$gaps" init --scene "$data/$scene" --views "$views" -r 8 --init auto --device cuda --overwrite \
+    --out "$out/init/$name" >"$out/init/$name.log" 2>&1 &
+  pids+=($!)
+done
+for pid in "${pids[@]}"; do wait "$pid"; done
+
+echo "paper_tables: training"
+python3 "$here/harness.py" --config "$here/configs/paper_tables.json" --data "$data" --out "$out/tables" \
+  --gaps "$gaps" --gpus "$gpus" --jobs "$((jobs * 30 / 42 > 0 ? jobs * 30 / 42 : 1))" "${flags[@]}" &
+tables=$!
+python3 "$here/harness.py" --config "$here/configs/paper_ablation.json" --data "$data" --out "$out/ablation" \
+  --gaps "$gaps" --gpus "$gpus" --jobs "$((jobs * 12 / 42 > 0 ? jobs * 12 / 42 : 1))" "${flags[@]}" \
+  --only '_(no-gaps|no-dropgaussian)_' &
+ablation=$!
+status=0
+wait "$tables" || status=$?
+wait "$ablation" || status=$?
+
+# The shared cells, under the ablation's name, beside its own rows.
+python3 - "$out" <<'EOF'
+import json, sys
+from pathlib import Path
+out = Path(sys.argv[1])
+shared = [json.loads(l) for l in (out / "tables" / "results.jsonl").read_text().splitlines() if l.strip()]
+own = [json.loads(l) for l in (out / "ablation" / "results.jsonl").read_text().splitlines() if l.strip()]
+settings = {("fern", 3), ("bonsai", 24)}
+copied = [dict(r, config="paper_ablation") for r in shared
+          if (r["scene"], r["views"]) in settings and r["variant"] in ("vanilla", "full")]
+with open(out / "ablation" / "results_with_shared.jsonl", "w") as f:
+    for r in own + copied:
+        f.write(json.dumps(r) + "\n")
+print(f"paper_tables: ablation rows: {len(own)} own + {len(copied)} shared")
+EOF
+exit "$status"
