@@ -7,7 +7,8 @@
 #
 #   bench/paper_tables.sh DATA OUT [GPUS]     e.g. bench/paper_tables.sh ../shared/data runs/paper 0,1,2,3
 # Environment: GAPS (the gaps binary, default build/client/gaps), JOBS (cells at once, default 42: all),
-# LPIPS_WEIGHTS (default: the set-up's file). Resumable: finished cells are skipped on a second run.
+# LPIPS_WEIGHTS (default: the set-up's file), ONLY (a regular expression on cell names, e.g. ^fern_: only those
+# cells and their scenes' initialisations). Resumable: finished cells are skipped on a second run.
 # Writes OUT/tables/results.jsonl and OUT/ablation/results.jsonl (bench/tables.py and bench/charts.py read them).
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
@@ -16,6 +17,7 @@ out=${2:?output folder}
 gpus=${3:-0}
 gaps=${GAPS:-$here/../build/client/gaps}
 jobs=${JOBS:-42}
+only=${ONLY:-}
 flags=(--flag device=cuda)
 [ -n "${LPIPS_WEIGHTS:-}" ] && flags+=(--flag "lpips-weights=$LPIPS_WEIGHTS")
 mkdir -p "$out/init"
@@ -25,6 +27,7 @@ pids=()
 for setting in llff/fern:3 llff/fern:6 llff/fern:9 mipnerf360/bonsai:12 mipnerf360/bonsai:24; do
   scene=${setting%%:*} views=${setting##*:}
   name=$(basename "$scene")_$views
+  [[ "$(basename "$scene")_v${views}_" =~ $only ]] || continue
   "$gaps" init --scene "$data/$scene" --views "$views" -r 8 --init auto --device cuda --overwrite \
     --out "$out/init/$name" >"$out/init/$name.log" 2>&1 &
   pids+=($!)
@@ -33,11 +36,11 @@ for pid in "${pids[@]}"; do wait "$pid"; done
 
 echo "paper_tables: training"
 python3 "$here/harness.py" --config "$here/configs/paper_tables.json" --data "$data" --out "$out/tables" \
-  --gaps "$gaps" --gpus "$gpus" --jobs "$((jobs * 30 / 42 > 0 ? jobs * 30 / 42 : 1))" "${flags[@]}" &
+  --gaps "$gaps" --gpus "$gpus" --jobs "$((jobs * 30 / 42 > 0 ? jobs * 30 / 42 : 1))" "${flags[@]}" --only "$only" &
 tables=$!
 python3 "$here/harness.py" --config "$here/configs/paper_ablation.json" --data "$data" --out "$out/ablation" \
   --gaps "$gaps" --gpus "$gpus" --jobs "$((jobs * 12 / 42 > 0 ? jobs * 12 / 42 : 1))" "${flags[@]}" \
-  --only '_(no-gaps|no-dropgaussian)_' &
+  --only "$only.*_(no-gaps|no-dropgaussian)_" &
 ablation=$!
 status=0
 wait "$tables" || status=$?

@@ -4,6 +4,7 @@
 // started from the saved PLY continues that model.
 #include <cmath>
 #include <fstream>
+#include <tuple>
 #include <regex>
 
 #include <unistd.h>
@@ -97,6 +98,30 @@ fs::path RenderEval::run_;
 bool RenderEval::trained_ = false;
 std::string RenderEval::log_;
 
+// LPIPS follows --lpips-weights: off on request, null and said so where the set-up's file is missing, an error
+// naming a file that is there but is not LPIPS weights.
+TEST_F(RenderEval, LpipsWeightsAreTheSetUpsUnlessTheFlagSaysOtherwise) {
+  auto [code, out] = test::run_command(kGaps + " eval " + run_.string() + " --device cpu --lpips-weights=none --out " +
+                                       dir_.string());
+  ASSERT_EQ(code, 0) << out;
+  EXPECT_TRUE(contains(out, "LPIPS off (--lpips-weights=none)")) << out;
+  EXPECT_TRUE(read_json(dir_ / "eval.json")["lpips"].is_null());
+
+  const fs::path empty_cache = dir_ / "empty_cache";
+  std::tie(code, out) = test::run_command("GAPS_CACHE=" + empty_cache.string() + " " + kGaps + " eval " +
+                                          run_.string() + " --device cpu --out " + dir_.string());
+  ASSERT_EQ(code, 0) << out;
+  EXPECT_TRUE(contains(out, "n/a (no LPIPS weights at " + (empty_cache / "lpips").string())) << out;
+  EXPECT_TRUE(contains(out, "bash scripts/setup.sh makes them")) << out;
+
+  const fs::path not_weights = dir_ / "not_weights.safetensors";
+  std::ofstream(not_weights) << "not a safetensors file";
+  std::tie(code, out) = test::run_command(kGaps + " eval " + run_.string() + " --device cpu --lpips-weights " +
+                                          not_weights.string() + " --out " + dir_.string());
+  EXPECT_NE(code, 0) << out;
+  EXPECT_TRUE(contains(out, not_weights.string())) << out;
+}
+
 TEST_F(RenderEval, EvalReproducesTheRunsOwnMetricsAndLeavesThemAlone) {
   const std::string before = read_text(run_ / "metrics.json");
   const auto [code, out] = test::run_command(kGaps + " eval " + run_.string() + " --device cpu");
@@ -111,8 +136,13 @@ TEST_F(RenderEval, EvalReproducesTheRunsOwnMetricsAndLeavesThemAlone) {
     EXPECT_EQ(e["image"], m["image"]);
     EXPECT_NEAR(e["psnr"].get<double>(), m["psnr"].get<double>(), 1e-4) << e["image"];
     EXPECT_NEAR(e["ssim"].get<double>(), m["ssim"].get<double>(), 1e-4) << e["image"];
-    EXPECT_TRUE(e["lpips"].is_null());
+    // Both with the set-up's LPIPS weights, which gaps train and gaps eval use by default.
+    ASSERT_TRUE(m["lpips"].is_number() && e["lpips"].is_number()) << m << "\n" << e;
+    EXPECT_NEAR(e["lpips"].get<double>(), m["lpips"].get<double>(), 1e-4) << e["image"];
   }
+  ASSERT_TRUE(eval["lpips"].is_number()) << eval;
+  EXPECT_NEAR(eval["lpips"].get<double>(), metrics["lpips"].get<double>(), 1e-4);
+  EXPECT_TRUE(contains(out, "LPIPS 0.")) << out;
   EXPECT_NEAR(eval["psnr"].get<double>(), metrics["psnr"].get<double>(), 1e-4);
   EXPECT_NEAR(eval["ssim"].get<double>(), metrics["ssim"].get<double>(), 1e-4);
   EXPECT_EQ(eval["num_gaussians"], metrics["num_gaussians"]);
