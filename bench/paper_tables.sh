@@ -7,7 +7,8 @@
 #
 #   bench/paper_tables.sh DATA OUT [GPUS]     e.g. bench/paper_tables.sh ../shared/data runs/paper 0,1,2,3
 # Environment: GAPS (the gaps binary, default build/client/gaps), JOBS (cells at once, default 42: all),
-# LPIPS_WEIGHTS (default: the set-up's file), ONLY (a regular expression on cell names, e.g. ^fern_: only those
+# GAPS_COMMIT (the commit the rows name, for a copy of the tree whose .git is not its own), LPIPS_WEIGHTS
+# (default: the set-up's file), ONLY (a regular expression on cell names, e.g. ^fern_: only those
 # cells and their scenes' initialisations). Resumable: finished cells are skipped on a second run.
 # Writes OUT/tables/results.jsonl and OUT/ablation/results.jsonl (bench/tables.py and bench/charts.py read them).
 set -euo pipefail
