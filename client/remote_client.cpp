@@ -7,6 +7,7 @@
 #include "common/error_kind.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
+#include "common/printable.h"
 #include "common/status_macros.h"
 #include "gs_trainer/scene/scene.h"
 #include "rpc/codec.h"
@@ -23,6 +24,13 @@ bool safe_relative(const std::string& path) {
   for (const auto& part : p)
     if (part == "..") return false;
   return true;
+}
+
+// An artifact's path as this machine names it: control characters in any component become '_'.
+fs::path sanitised(const std::string& path) {
+  fs::path out;
+  for (const auto& part : fs::path(path)) out /= safe_file_name(part.string());
+  return out;
 }
 
 }  // namespace
@@ -228,17 +236,18 @@ absl::StatusOr<std::vector<std::string>> TrainerClient::fetch(const std::string&
   while (status.ok() && reader->Read(&chunk)) {
     if (chunk.path() != current) {
       if (!safe_relative(chunk.path())) {
-        status = absl::DataLossError(absl::StrCat("server sent an unsafe artifact path '", chunk.path(), "'"));
+        status =
+            absl::DataLossError(absl::StrCat("server sent an unsafe artifact path '", printable(chunk.path()), "'"));
         break;
       }
       current = chunk.path();
-      const fs::path target = out_dir / current;
+      const fs::path target = out_dir / sanitised(current);
       std::error_code ec;
       fs::create_directories(target.parent_path(), ec);
       file = std::ofstream(target, std::ios::binary | std::ios::trunc);
       if (!file)
         status = usage_error(absl::StrCat(target.string(), ": cannot write (", ec ? ec.message() : "file", ")"));
-      paths.push_back(current);
+      paths.push_back(sanitised(current).string());
     }
     file.write(chunk.data().data(), chunk.data().size());
     if (chunk.last()) file.close();

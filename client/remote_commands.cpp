@@ -13,6 +13,7 @@
 #include "client/run_flags.h"
 #include "common/error_kind.h"
 #include "common/io_util.h"
+#include "common/printable.h"
 #include "common/status_macros.h"
 #include "rpc/config_codec.h"
 
@@ -81,25 +82,26 @@ void print_event(const v1::JobEvent& e, ProgressPrinter& progress) {
   if (e.has_phase_finished()) {
     const v1::PhaseEvent& p = e.phase_finished();
     if (p.skipped())
-      std::fprintf(stderr, "phase %d SKIPPED: %s\n", p.phase(), p.skip_reason().c_str());
+      std::fprintf(stderr, "phase %d SKIPPED: %s\n", p.phase(), printable(p.skip_reason()).c_str());
     else
       std::fprintf(stderr, "phase %d finished: %d selected, %d admitted\n", p.phase(), p.selected(), p.admitted());
   }
-  if (e.has_log()) std::fprintf(stderr, "%s\n", e.log().c_str());
+  if (e.has_log()) std::fprintf(stderr, "%s\n", printable(e.log(), /*keep_lines=*/true).c_str());
   if (e.has_state_changed()) std::fprintf(stderr, "state: %s\n", v1::JobState_Name(e.state_changed()).c_str());
   if (e.has_checkpoint_written()) std::fprintf(stderr, "checkpoint at iteration %d\n", e.checkpoint_written());
 }
 
 void print_status(const v1::JobStatus& s) {
   std::cout << absl::StrFormat("%s  %-9s  %-16s  %6d/%-6d  %8lld Gaussians", s.job_id(), v1::JobState_Name(s.state()),
-                               s.name(), s.iteration(), s.iterations(), static_cast<long long>(s.num_gaussians()));
+                               printable(s.name()), s.iteration(), s.iterations(),
+                               static_cast<long long>(s.num_gaussians()));
   if (s.state() == v1::SUCCEEDED) {
     std::cout << absl::StrFormat("  PSNR %.2f  SSIM %.4f", s.psnr(), s.ssim());
     std::cout << (s.has_lpips() ? absl::StrFormat("  LPIPS %.4f", s.lpips()) : std::string("  LPIPS n/a"));
   }
   if (s.degraded())
     std::cout << absl::StrFormat("  DEGRADED: %d of %d diffusion phases skipped", s.phases_skipped(), s.phases());
-  if (!s.error().empty()) std::cout << "  " << s.error();
+  if (!s.error().empty()) std::cout << "  " << printable(s.error());
   std::cout << "\n";
 }
 

@@ -322,7 +322,8 @@ absl::StatusOr<std::vector<TrainingView>> test_views(const RunOptions& o, const 
 }
 
 absl::StatusOr<std::optional<Lpips>> lpips_for(const RunOptions& o) {
-  absl::StatusOr<std::optional<Lpips>> lpips = load_lpips(o.lpips_weights, o.lpips_backbone, at::Device(o.config.device));
+  absl::StatusOr<std::optional<Lpips>> lpips =
+      load_lpips(o.lpips_weights, o.lpips_backbone, at::Device(o.config.device));
   if (!lpips.ok()) return input_data_error(lpips.status());
   return lpips;
 }

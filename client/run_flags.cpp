@@ -8,6 +8,7 @@
 #include "absl/flags/flag.h"
 #include "absl/strings/str_cat.h"
 #include "common/error_kind.h"
+#include "common/limits.h"
 #include "common/status_macros.h"
 #include "gs_trainer/eval/lpips.h"
 
@@ -165,7 +166,8 @@ absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults) {
   o.html_report = absl::GetFlag(FLAGS_report);
   if (o.eval_every < 0) return usage_error("--eval-every must be 0 or positive");
   if (o.resolution <= 0) return usage_error("--resolution must be positive");
-  if (o.random_points <= 0) return usage_error("--random-points must be positive");
+  if (absl::Status s = check_gaussian_count("--random-points", o.random_points); !s.ok())
+    return usage_error(s.message());
   const absl::StatusOr<Variant> variant = parse_variant(absl::GetFlag(FLAGS_variant));
   if (!variant.ok()) return usage_error(absl::StrCat("--variant: ", variant.status().message()));
   o.variant = *variant;

@@ -286,6 +286,27 @@ void generation_seeds(const fs::path& out) {
   put(out / "adapt", std::string(1, '\1') + adapt.SerializeAsString());
 }
 
+void render_request_seeds(const fs::path& out) {
+  v1::RenderViewRequest request;
+  request.set_job_id("job-0123456789ab");
+  rpc::encode_camera(seed_camera(1, 64, 48), request.mutable_camera());
+  put(out / "render_view", std::string(1, '\0') + request.SerializeAsString());
+  rpc::encode_camera(seed_camera(2, 8192, 8192), request.mutable_camera());  // over the render bound
+  put(out / "render_view_huge", std::string(1, '\0') + request.SerializeAsString());
+  v1::JobCameras cameras;
+  for (int i = 0; i < 3; ++i) rpc::encode_camera(seed_camera(i), cameras.add_train());
+  rpc::encode_camera(seed_camera(3), cameras.add_test());
+  cameras.set_near(0.5);
+  cameras.set_far(40);
+  put(out / "job_cameras", std::string(1, '\1') + cameras.SerializeAsString());
+}
+
+void options_json_seeds(const fs::path& out) {
+  put(out / "training", R"({"iterations": 300, "lambda_dssim": 0.3, "max_gaussians": 50000, "device": "cpu"})");
+  put(out / "gaps", R"({"warmup_iterations": 20, "phase_interval": 20, "n_active": 2, "tier_alpha_max": [1, 1.25]})");
+  put(out / "points", R"({"random_points": 100000000000, "gaussians_per_variation": 2.5})");
+}
+
 }  // namespace
 }  // namespace gaps::fuzz
 
@@ -298,7 +319,7 @@ int main(int argc, char** argv) {
   const fs::path out(argv[1]);
   using namespace gaps::fuzz;
   for (const char* target : {"npy", "ply", "colmap_bin", "colmap_text", "transforms_json", "llff", "safetensors",
-                             "image", "upload_stream", "generation_request"})
+                             "image", "upload_stream", "generation_request", "render_request", "options_json"})
     fs::create_directories(out / target);
   npy_seeds(out / "npy");
   ply_seeds(out / "ply");
@@ -309,6 +330,8 @@ int main(int argc, char** argv) {
   image_seeds(out / "image");
   upload_seeds(out / "upload_stream");
   generation_seeds(out / "generation_request");
+  render_request_seeds(out / "render_request");
+  options_json_seeds(out / "options_json");
   std::cout << "seeds written under " << out << "\n";
   return 0;
 }

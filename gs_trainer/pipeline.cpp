@@ -18,6 +18,7 @@
 #include "common/device.h"
 #include "common/error_kind.h"
 #include "common/image_io.h"
+#include "common/limits.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
 #include "gs_trainer/checkpoint.h"
@@ -202,8 +203,10 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   if (record) *record = init_record(o.init, o, o.init_resolution > 0 ? o.init_resolution : o.resolution);
   if (o.init == "ply" || o.init == "scene") note_unused_mvs_settings(o, o.init, log);
   if (o.init == "ply") {
-    if (o.init_ply.empty()) return absl::InvalidArgumentError("--init ply needs --init-ply FILE");
-    return read_point_cloud_ply(o.init_ply);
+    if (o.init_ply.empty()) return usage_error("--init ply needs --init-ply FILE");
+    absl::StatusOr<PointCloud> points = read_point_cloud_ply(o.init_ply);
+    if (!points.ok()) return input_data_error(points.status());  // a file a flag names: exit status 4
+    return points;
   }
   if (o.init == "scene") {
     if (!scene.points) return absl::FailedPreconditionError(absl::StrCat(scene.root.string(), " ships no points"));
@@ -248,9 +251,13 @@ absl::StatusOr<GaussianModel> initial_model_of(const RunOptions& o, const Scene&
                                                const std::vector<TrainingView>& train, const Log& log,
                                                InitRecord* record) {
   if (o.init == "ply" && !o.init_ply.empty()) {
-    GAPS_ASSIGN_OR_RETURN(const PlyVertices vertices, read_ply_vertices(o.init_ply));
-    if (holds_gaussians(vertices)) {
-      GAPS_ASSIGN_OR_RETURN(GaussianModel model, gaussians_from_ply_vertices(vertices, o.init_ply.string()));
+    // A file a flag names: its faults are input data (exit status 4).
+    absl::StatusOr<PlyVertices> vertices = read_ply_vertices(o.init_ply);
+    if (!vertices.ok()) return input_data_error(vertices.status());
+    if (holds_gaussians(*vertices)) {
+      absl::StatusOr<GaussianModel> read = gaussians_from_ply_vertices(*vertices, o.init_ply.string());
+      if (!read.ok()) return input_data_error(read.status());
+      GaussianModel model = *std::move(read);
       log(absl::StrCat("init: ", o.init_ply.string(), " is a full 3DGS model: ", model.size(), " Gaussians, SH degree ",
                        model.max_sh_degree, ", every property kept"));
       if (model.max_sh_degree != o.config.max_sh_degree)
@@ -383,6 +390,7 @@ absl::Status check_scene(const RunOptions& o) {
       return input_data_error(absl::NotFoundError(absl::StrCat(o.init_ply.string(), ": point cloud file not found")));
   }
   if (o.resolution <= 0) return usage_error(absl::StrCat("resolution must be positive, got ", o.resolution));
+  if (absl::Status s = check_gaussian_count("random_points", o.random_points); !s.ok()) return usage_error(s.message());
   if (o.init_resolution < 0)
     return usage_error(
         absl::StrCat("init resolution must be >= 0 (0: the training resolution), got ", o.init_resolution));

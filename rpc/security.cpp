@@ -13,6 +13,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/strip.h"
+#include "common/error_kind.h"
 #include "common/io_util.h"
 #include "common/status_macros.h"
 
@@ -84,10 +85,9 @@ bool equal_constant_time(const std::string& a, const std::string& b) {
 }  // namespace
 
 absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> server_credentials(const ServerSecurity& s) {
-  if (s.tls_cert.empty() != s.tls_key.empty())
-    return absl::InvalidArgumentError("TLS needs both a certificate and a private key");
+  if (s.tls_cert.empty() != s.tls_key.empty()) return usage_error("TLS needs both a certificate and a private key");
   if (s.tls_cert.empty() && !s.tls_client_ca.empty())
-    return absl::InvalidArgumentError("a client CA (mutual TLS) needs the server's own TLS certificate and key");
+    return usage_error("a client CA (mutual TLS) needs the server's own TLS certificate and key");
   if (s.tls_cert.empty()) return grpc::InsecureServerCredentials();
   grpc::SslServerCredentialsOptions options;
   if (!s.tls_client_ca.empty()) {
@@ -106,9 +106,9 @@ absl::StatusOr<std::shared_ptr<grpc::Channel>> make_channel(const std::string& a
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(16 << 20);
   if (s.tls_cert.empty() != s.tls_key.empty())
-    return absl::InvalidArgumentError("a client TLS certificate needs its private key, and the other way round");
+    return usage_error("a client TLS certificate needs its private key, and the other way round");
   if (s.tls_ca.empty() && !s.tls_cert.empty())
-    return absl::InvalidArgumentError("a client TLS certificate needs the server's CA certificate (TLS)");
+    return usage_error("a client TLS certificate needs the server's CA certificate (TLS)");
   if (s.tls_ca.empty()) return grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
   grpc::SslCredentialsOptions options;
   GAPS_ASSIGN_OR_RETURN(options.pem_root_certs, read_pem(s.tls_ca, "TLS CA certificate"));

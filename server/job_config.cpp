@@ -3,6 +3,7 @@
 #include <c10/core/Device.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "common/limits.h"
 #include "common/status_macros.h"
 #include "gs_trainer/init/initializer.h"
 #include "rpc/config_codec.h"
@@ -27,7 +28,10 @@ absl::StatusOr<RunOptions> run_options_from_proto(const v1::TrainConfig& c, bool
         absl::StrCat("config: unknown init '", init, "' (auto, mvs, sweep, sparse, random, points)"));
   }
   if (c.random_points() < 0) return absl::InvalidArgumentError("config: random_points must not be negative");
-  if (c.random_points() > 0) o.random_points = c.random_points();
+  if (c.random_points() > 0) {
+    GAPS_RETURN_IF_ERROR(check_gaussian_count("config: random_points", c.random_points()));
+    o.random_points = c.random_points();
+  }
   o.eval_every = c.has_eval_every() ? c.eval_every() : kDefaultEvalEvery;
   if (o.eval_every < 0) return absl::InvalidArgumentError("config: eval_every must be 0 or positive");
   GAPS_ASSIGN_OR_RETURN(o.variant, parse_variant(c.variant().empty() ? "full" : c.variant()));

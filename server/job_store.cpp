@@ -2,6 +2,7 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "common/error_kind.h"
 #include "common/status_macros.h"
 
 namespace gaps {
@@ -61,6 +62,10 @@ absl::Status lease_lost(const std::string& job_id, const std::string& owner) {
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<JobStore>> JobStore::open(const std::filesystem::path& file) {
+  // A folder where the database belongs is a mistake in the data folder, not an unreachable service.
+  if (std::error_code ec; std::filesystem::is_directory(file, ec))
+    return input_data_error(absl::FailedPreconditionError(
+        absl::StrCat("job store ", file.string(), " is a folder, not a job database (move it away)")));
   GAPS_ASSIGN_OR_RETURN(std::unique_ptr<SqlDriver> driver, open_sqlite(file.string()));
   return open_driver(std::move(driver), false);
 }
@@ -159,14 +164,14 @@ absl::StatusOr<v1::JobStatus> JobStore::get(const std::string& job_id) {
   std::lock_guard<std::mutex> lock(mutex_);
   GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT status FROM jobs WHERE id = $1", {SqlParam::Text(job_id)}));
   if (r.rows.empty()) return no_job(job_id);
-  return parse<v1::JobStatus>(r.rows[0][0], "job status");
+  return parse<v1::JobStatus>(r.rows[0][0], absl::StrCat("status record of job ", job_id, " in ", driver_->describe()));
 }
 
 absl::StatusOr<v1::JobSpec> JobStore::spec(const std::string& job_id) {
   std::lock_guard<std::mutex> lock(mutex_);
   GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT spec FROM jobs WHERE id = $1", {SqlParam::Text(job_id)}));
   if (r.rows.empty()) return no_job(job_id);
-  return parse<v1::JobSpec>(r.rows[0][0], "job spec");
+  return parse<v1::JobSpec>(r.rows[0][0], absl::StrCat("spec of job ", job_id, " in ", driver_->describe()));
 }
 
 absl::StatusOr<std::vector<v1::JobStatus>> JobStore::statuses(absl::string_view sql,
@@ -182,7 +187,25 @@ absl::StatusOr<std::vector<v1::JobStatus>> JobStore::statuses(absl::string_view 
 }
 
 absl::StatusOr<std::vector<v1::JobStatus>> JobStore::list() {
-  return statuses("SELECT status FROM jobs ORDER BY submitted_at, id", {});
+  std::lock_guard<std::mutex> lock(mutex_);
+  GAPS_ASSIGN_OR_RETURN(SqlResult r, driver_->run("SELECT status, id FROM jobs ORDER BY submitted_at, id", {}));
+  std::vector<v1::JobStatus> out;
+  for (const auto& row : r.rows) {
+    const std::string id = row[1].value_or("");
+    absl::StatusOr<v1::JobStatus> status =
+        parse<v1::JobStatus>(row[0], absl::StrCat("status record of job ", id, " in ", driver_->describe()));
+    if (status.ok()) {
+      out.push_back(*std::move(status));
+      continue;
+    }
+    // One unreadable row must not hide every other job: it is listed as failed, saying why and where.
+    v1::JobStatus unreadable;
+    unreadable.set_job_id(id);
+    unreadable.set_state(v1::FAILED);
+    unreadable.set_error(std::string(status.status().message()));
+    out.push_back(std::move(unreadable));
+  }
+  return out;
 }
 
 absl::StatusOr<std::vector<v1::JobStatus>> JobStore::in_state(v1::JobState state) {

@@ -12,6 +12,7 @@
 #include "common/image_io.h"
 #include "common/io_util.h"
 #include "common/ply.h"
+#include "common/printable.h"
 #include "common/status_macros.h"
 #include "gs_trainer/scene/cameras_json.h"
 #include "gs_trainer/scene/scene.h"
@@ -28,9 +29,12 @@ absl::Status invalid(const absl::Status& status) {
   return absl::InvalidArgumentError(status.message());
 }
 
+// The longest file name common file systems take.
+constexpr size_t kMaxFileNameBytes = 255;
+
 bool plain_file_name(const std::string& name) {
   return !name.empty() && name != "." && name != ".." && name.find('/') == std::string::npos &&
-         name.find('\\') == std::string::npos && name.find('\0') == std::string::npos;
+         name.find('\\') == std::string::npos && !has_control_characters(name);
 }
 
 nlohmann::json frame_json(const Camera& c, const std::string& file) {
@@ -209,6 +213,13 @@ absl::Status write_uploaded_scene(const SceneUpload& upload) {
   const v1::JobSpec& spec = upload.spec;
   const int cameras = spec.cameras_size(), images = upload.images;
   if (cameras == 0) return absl::InvalidArgumentError("the upload has no cameras");
+  // A job's name reaches other users' terminals (gaps list, watch): no control characters, a line's length.
+  if (spec.name().size() > kMaxFileNameBytes)
+    return absl::InvalidArgumentError(
+        absl::StrCat("job name of ", spec.name().size(), " bytes, over the limit of ", kMaxFileNameBytes));
+  if (has_control_characters(spec.name()))
+    return absl::InvalidArgumentError(
+        absl::StrCat("job name '", printable(spec.name()), "' has control characters (escapes, line breaks)"));
   if (cameras != images)
     return absl::InvalidArgumentError(
         absl::StrCat("camera count mismatch: ", cameras, " cameras for ", images, " images"));
@@ -220,10 +231,15 @@ absl::Status write_uploaded_scene(const SceneUpload& upload) {
   std::vector<Camera> decoded;
   std::set<std::string> names;
   for (int i = 0; i < cameras; ++i) {
-    const std::string what = absl::StrCat("camera ", i, " (", spec.cameras(i).name(), ")");
+    const std::string what = absl::StrCat("camera ", i, " (", printable(spec.cameras(i).name().substr(0, 80)), ")");
     GAPS_ASSIGN_OR_RETURN(Camera camera, rpc::decode_camera(spec.cameras(i), what));
+    if (camera.name.size() > kMaxFileNameBytes)
+      return absl::InvalidArgumentError(absl::StrCat("camera ", i, ": image name of ", camera.name.size(),
+                                                     " bytes, over the limit of ", kMaxFileNameBytes));
     if (!plain_file_name(camera.name))
-      return absl::InvalidArgumentError(absl::StrCat(what, ": image name must be a plain file name"));
+      return absl::InvalidArgumentError(absl::StrCat("camera ", i, " (", printable(camera.name),
+                                                     "): image name must be a plain file name (no "
+                                                     "folders, no control characters)"));
     if (!names.insert(camera.name).second)
       return absl::InvalidArgumentError(absl::StrCat(what, ": duplicate image name"));
     GAPS_RETURN_IF_ERROR(

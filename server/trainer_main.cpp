@@ -149,6 +149,15 @@ int serve() {
   options.workers.security = {*worker_token, absl::GetFlag(FLAGS_worker_tls_ca),
                               absl::GetFlag(FLAGS_worker_tls_server_name), absl::GetFlag(FLAGS_worker_tls_cert),
                               absl::GetFlag(FLAGS_worker_tls_key)};
+  // The workers' TLS files, checked now rather than by the first job that needs a worker (which would fail, as
+  // would every method job after it).
+  if (!options.workers.security.tls_ca.empty() || !options.workers.security.tls_cert.empty()) {
+    absl::StatusOr<std::shared_ptr<grpc::Channel>> probe =
+        gaps::rpc::make_channel("127.0.0.1:1", options.workers.security);
+    if (!probe.ok())
+      return fail_reading(
+          absl::Status(probe.status().code(), absl::StrCat("workers' TLS: ", probe.status().message())));
+  }
   options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));
   options.workers.max_rounds = absl::GetFlag(FLAGS_worker_rounds);
   auto service = gaps::TrainerService::create(options);
@@ -159,13 +168,12 @@ int serve() {
   if (!server.ok()) return fail(server.status());
   if (auto st = (*service)->start(); !st.ok()) return fail(st);
   // One write per line: the job threads started above log to the same file.
-  gaps::write_log_line(STDOUT_FILENO,
-                       absl::StrCat("gaps-trainer: serving on port ", server->port, " (device ", device, ", ",
-                                    options.workers.addresses.size(), " worker address(es))",
-                                    security->settings.tls_cert.empty() ? "" : " (TLS)",
-                                    security->settings.token.empty() ? "" : " (token required)", "; ", lpips_note,
-                                    "; trainer ",
-                                    (*service)->replica_id(), ", job store ", (*service)->store_description()));
+  gaps::write_log_line(STDOUT_FILENO, absl::StrCat("gaps-trainer: serving on port ", server->port, " (device ", device,
+                                                   ", ", options.workers.addresses.size(), " worker address(es))",
+                                                   security->settings.tls_cert.empty() ? "" : " (TLS)",
+                                                   security->settings.token.empty() ? "" : " (token required)", "; ",
+                                                   lpips_note, "; trainer ", (*service)->replica_id(), ", job store ",
+                                                   (*service)->store_description()));
   gaps::rpc::wait_for_stop_signal();
   gaps::write_log_line(
       STDOUT_FILENO,

@@ -17,6 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "common/io_util.h"
+#include "common/limits.h"
 #include "common/status_macros.h"
 #include "gs_trainer/model/gaussians.h"
 #include "gs_trainer/model/render.h"
@@ -29,6 +30,31 @@
 
 namespace gaps {
 namespace {
+
+// One request of a kind that the trainer serves a bounded number of at once (kMaxConcurrentRenders,
+// kMaxWatchStreams): taken() is false beyond the limit, and the slot is given back when it goes.
+class InFlightSlot {
+ public:
+  InFlightSlot(std::atomic<int>& count, int limit) : count_(count), taken_(count.fetch_add(1) < limit) {
+    if (!taken_) count_.fetch_sub(1);
+  }
+  ~InFlightSlot() {
+    if (taken_) count_.fetch_sub(1);
+  }
+  InFlightSlot(const InFlightSlot&) = delete;
+  InFlightSlot& operator=(const InFlightSlot&) = delete;
+  bool taken() const { return taken_; }
+
+ private:
+  std::atomic<int>& count_;
+  bool taken_;
+};
+
+grpc::Status busy(const std::string& what, int limit) {
+  return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED, absl::StrCat("the trainer serves ", limit, " ", what,
+                                                                         " at once and all are taken; retry in a "
+                                                                         "few seconds"));
+}
 
 namespace fs = std::filesystem;
 
@@ -521,6 +547,8 @@ grpc::Status TrainerService::WatchJob(grpc::ServerContext* context, const v1::Wa
                                       grpc::ServerWriter<v1::JobEvent>* writer) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   if (auto job = store_->get(request->job_id()); !job.ok()) return rpc::to_grpc(job.status());
+  const InFlightSlot slot(watch_streams_, kMaxWatchStreams);
+  if (!slot.taken()) return busy("WatchJob streams", kMaxWatchStreams);
   int64_t next = std::max<int64_t>(0, request->from_sequence());
   while (!context->IsCancelled()) {
     absl::StatusOr<std::vector<v1::JobEvent>> events = store_->events(request->job_id(), next);
@@ -648,8 +676,13 @@ absl::StatusOr<TrainerService::FinishedModel> TrainerService::finished_model(con
 grpc::Status TrainerService::RenderView(grpc::ServerContext* context, const v1::RenderViewRequest* request,
                                         v1::RenderViewResponse* response) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  // Before anything is decoded or allocated: a render's memory grows with its pixels.
+  if (auto st = check_render_size("camera", request->camera().width(), request->camera().height()); !st.ok())
+    return rpc::to_grpc(st);
   absl::StatusOr<Camera> camera = rpc::decode_camera(request->camera(), "camera");
   if (!camera.ok()) return rpc::to_grpc(camera.status());
+  const InFlightSlot slot(renders_in_flight_, kMaxConcurrentRenders);
+  if (!slot.taken()) return busy("renders", kMaxConcurrentRenders);
   absl::StatusOr<FinishedModel> finished = finished_model(request->job_id());
   if (!finished.ok()) return rpc::to_grpc(finished.status());
   at::AutoGradMode no_grad(false);

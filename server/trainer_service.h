@@ -43,8 +43,8 @@ struct TrainerServiceOptions {
   // again: it may be what killed the trainer.
   int max_crashes = 2;
   std::filesystem::path lpips_weights;  // the jobs' LPIPS-VGG weights (safetensors); empty: LPIPS is null
-  WorkerPoolOptions workers;  // diffusion workers (addresses may be empty: vanilla jobs only)
-  std::string token;          // required bearer token (empty: none)
+  WorkerPoolOptions workers;            // diffusion workers (addresses may be empty: vanilla jobs only)
+  std::string token;                    // required bearer token (empty: none)
   uint64_t max_upload_bytes = uint64_t{8} << 30;
   std::chrono::milliseconds store_retry_interval{10000};  // between attempts to record a refused job end
 };
@@ -135,6 +135,8 @@ class TrainerService final : public v1::Trainer::Service {
   std::map<std::string, UnrecordedEnd> unrecorded_ends_;
   bool stopping_ = false;
   std::atomic<bool> stop_training_{false};
+  std::atomic<int> renders_in_flight_{0};  // RenderView calls being served (at most kMaxConcurrentRenders)
+  std::atomic<int> watch_streams_{0};      // open WatchJob streams (at most kMaxWatchStreams)
   std::vector<std::thread> threads_;
   std::mutex model_mutex_;  // guards the two below
   std::string cached_job_;

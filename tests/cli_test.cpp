@@ -128,6 +128,22 @@ TEST_F(Cli, UnknownOrAbsentDevicesAreUsageErrorsInEveryProgram) {
                  2, "GPU memory cap must be a number of GiB >= 0");
 }
 
+// The exit status is the README's table: a broken file a flag names is input data (4), a mistake in the flags
+// is usage (2), a folder where the job database belongs is input data, not an unreachable service (5).
+TEST_F(Cli, ExitCodesFollowTheTable) {
+  std::ofstream(dir_ / "broken.ply") << "ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n";
+  expect_failure(test::run_command(kGaps + " train " + scene().string() + " --init-ply " +
+                                   (dir_ / "broken.ply").string() + " --iterations 5 --out " + (dir_ / "o").string()),
+                 4, "broken.ply");
+  fs::create_directories(dir_ / "data" / "jobs.db");
+  expect_failure(test::run_command(kTrainer + " --listen 127.0.0.1:0 --data-dir " + (dir_ / "data").string()), 4,
+                 "jobs.db is a folder, not a job database");
+  std::ofstream(dir_ / "cert.pem") << "x";
+  expect_failure(
+      test::run_command(kGaps + " list --trainer 127.0.0.1:1 --tls-client-cert " + (dir_ / "cert.pem").string()), 2,
+      "a client TLS certificate needs its private key");
+}
+
 // Ctrl-C mid-run saves the run; --resume finishes it where an uninterrupted run ends (vanilla restores the
 // view order and RNG, so the result matches to the bit here; seed noise would be the tolerance otherwise).
 TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
@@ -315,6 +331,22 @@ TEST_F(Cli, FlagSpellingsShortFormsSuggestionsAndStrayArguments) {
     expect_failure(test::run_command(kTrainer + " " + spelling + " " + (dir_ / "a_file").string()), 2,
                    "a file, not a folder");
   expect_failure(test::run_command(kWorker + " --max-batch 0"), 2, "--max-batch must be positive");
+  // The workers' TLS files are read at start, before the trainer serves anything.
+  const auto no_ca = test::run_command(kTrainer + " --data-dir " + (dir_ / "trainer_data").string() +
+                                       " --listen 127.0.0.1:0 --workers 127.0.0.1:1 --worker-tls-ca " +
+                                       (dir_ / "no_such_ca.pem").string());
+  EXPECT_NE(no_ca.first, 0) << no_ca.second;
+  EXPECT_TRUE(contains(no_ca.second, "workers' TLS")) << no_ca.second;
+  EXPECT_TRUE(contains(no_ca.second, "no_such_ca.pem")) << no_ca.second;
+  EXPECT_FALSE(contains(no_ca.second, "serving on")) << no_ca.second;
+  // Counts that drive allocations are bounded before anything is allocated: a usage error naming the limit.
+  expect_failure(test::run_command(kGaps + " train " + scene().string() +
+                                   " --init random --random-points "
+                                   "100000000000" +
+                                   out),
+                 2, "--random-points 100000000000 is over the limit of 67108864 (64 GiB of model");
+  expect_failure(test::run_command(kGaps + " train " + scene().string() + " --max-gaussians 100000000000" + out), 2,
+                 "max_gaussians");
   expect_failure(test::run_command(kGaps + " train --scene " + scene().string() + " --iteratons 5" + out), 2,
                  "unknown flag --iteratons; did you mean --iterations?");
   expect_failure(test::run_command(kTrainer + " --wokers 127.0.0.1:1"), 2, "did you mean --workers?");

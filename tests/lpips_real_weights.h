@@ -28,8 +28,8 @@ inline void check_fern_run_lpips(const std::filesystem::path& dir, const std::st
   const fs::path weights = default_lpips_weights_path();
   std::error_code ec;
   // Never a skip: the test suite's own set-up (scripts/setup.sh) makes this file.
-  ASSERT_TRUE(fs::is_regular_file(weights, ec)) << "LPIPS weights missing at " << weights
-                                                << ": bash scripts/setup.sh makes them";
+  ASSERT_TRUE(fs::is_regular_file(weights, ec))
+      << "LPIPS weights missing at " << weights << ": bash scripts/setup.sh makes them";
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern / "images_8", ec)) GTEST_SKIP() << "benchmark data not found at " << fern / "images_8";
 
@@ -44,7 +44,8 @@ inline void check_fern_run_lpips(const std::filesystem::path& dir, const std::st
   o.config.device = device;
   o.eval_every = 0;
   o.lpips_weights = weights;
-  absl::StatusOr<RunResult> result = run_pipeline(o, [](const TrainProgress&) {}, [](const std::string&) {});
+  absl::StatusOr<RunResult> result = run_pipeline(
+      o, [](const TrainProgress&) {}, [](const std::string&) {});
   ASSERT_TRUE(result.ok()) << result.status();
   ASSERT_TRUE(result->metrics.lpips.has_value());
   EXPECT_GT(*result->metrics.lpips, 0.0);

@@ -357,12 +357,13 @@ TEST_F(LpipsRealWeights, BrokenFilesAreRefusedByName) {
       Lpips::load_safetensors(write_weights(dir_, [](sdxl::TensorMap& t) { t.erase("lin3.model.1.weight"); }));
   EXPECT_TRUE(contains(missing.status().message(), "missing key lin3.model.1.weight")) << missing.status();
 
-  const absl::StatusOr<Lpips> shape = Lpips::load_safetensors(
-      write_weights(dir_, [](sdxl::TensorMap& t) { t["features.10.weight"] = at::zeros({256, 128, 1, 1}); }));
+  const absl::StatusOr<Lpips> shape = Lpips::load_safetensors(write_weights(dir_, [](sdxl::TensorMap& t) {
+    t["features.10.weight"] = at::zeros({256, 128, 1, 1});
+  }));
   EXPECT_TRUE(contains(shape.status().message(), "features.10.weight has shape [256,128,1,1]")) << shape.status();
 
-  const absl::StatusOr<Lpips> extra =
-      Lpips::load_safetensors(write_weights(dir_, [](sdxl::TensorMap& t) { t["classifier.0.weight"] = at::zeros({1}); }));
+  const absl::StatusOr<Lpips> extra = Lpips::load_safetensors(
+      write_weights(dir_, [](sdxl::TensorMap& t) { t["classifier.0.weight"] = at::zeros({1}); }));
   EXPECT_TRUE(contains(extra.status().message(), "unexpected key classifier.0.weight")) << extra.status();
 }
 

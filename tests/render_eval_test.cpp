@@ -4,8 +4,8 @@
 // started from the saved PLY continues that model.
 #include <cmath>
 #include <fstream>
-#include <tuple>
 #include <regex>
+#include <tuple>
 
 #include <unistd.h>
 
@@ -101,8 +101,8 @@ std::string RenderEval::log_;
 // LPIPS follows --lpips-weights: off on request, null and said so where the set-up's file is missing, an error
 // naming a file that is there but is not LPIPS weights.
 TEST_F(RenderEval, LpipsWeightsAreTheSetUpsUnlessTheFlagSaysOtherwise) {
-  auto [code, out] = test::run_command(kGaps + " eval " + run_.string() + " --device cpu --lpips-weights=none --out " +
-                                       dir_.string());
+  auto [code, out] =
+      test::run_command(kGaps + " eval " + run_.string() + " --device cpu --lpips-weights=none --out " + dir_.string());
   ASSERT_EQ(code, 0) << out;
   EXPECT_TRUE(contains(out, "LPIPS off (--lpips-weights=none)")) << out;
   EXPECT_TRUE(read_json(dir_ / "eval.json")["lpips"].is_null());

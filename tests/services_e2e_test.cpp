@@ -522,6 +522,15 @@ TEST_F(Services, CommandLineSubmitWatchListFetch) {
   v1::Camera bad = scene.cameras[0];
   bad.set_fx(-1);
   EXPECT_EQ(client.render(job, bad).status().code(), absl::StatusCode::kInvalidArgument);
+  // A camera whose render would not fit the trainer's memory is refused before anything is allocated.
+  for (const int side : {16384, 65536}) {
+    v1::Camera huge = scene.cameras[0];
+    huge.set_width(side);
+    huge.set_height(side);
+    const absl::Status refused = client.render(job, huge).status();
+    EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+    EXPECT_NE(refused.message().find("over the limit of 16777216 pixels per render"), std::string::npos) << refused;
+  }
   std::tie(code, out) = run_command(gaps + " list --trainer 127.0.0.1:" + std::to_string(trainer_port) +
                                     " --token-file " + (dir_ / "wrong_token").string());
   EXPECT_NE(code, 0);

@@ -273,6 +273,15 @@ TEST(ConfigCodec, JsonAndProtoAgreeAndUnsetFieldsKeepDefaults) {
   EXPECT_EQ(run_options_from_proto(config, false, "", "cpu")->init, "sparse");
   config.set_init("points");
   EXPECT_EQ(run_options_from_proto(config, false, "", "cpu").status().code(), absl::StatusCode::kInvalidArgument);
+  // A point count that would not fit any machine's memory is refused at submission, naming field and limit.
+  config.set_init("random");
+  config.set_random_points(100'000'000'000);
+  const auto too_many = run_options_from_proto(config, false, "", "cpu");
+  EXPECT_EQ(too_many.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(too_many.status().message().find("random_points 100000000000 is over the limit of 67108864"),
+            std::string_view::npos)
+      << too_many.status();
+  config.set_random_points(0);
   config.set_init("colmap");
   const auto unknown = run_options_from_proto(config, false, "", "cpu");
   EXPECT_EQ(unknown.status().code(), absl::StatusCode::kInvalidArgument);
@@ -735,6 +744,32 @@ TEST_F(JobStoreTest, AJobEndIsRecordedWholeOrNotAtAll) {
   EXPECT_TRUE((*events)[0].has_finished());
 }
 
+// One corrupt status row: the others still list; it lists as FAILED naming itself and the store's file.
+TEST_F(JobStoreTest, ACorruptStatusRowHidesNoOtherJob) {
+  auto store = JobStore::open(dir_ / "jobs.db");
+  ASSERT_TRUE(store.ok()) << store.status();
+  for (const char* id : {"job-a", "job-b", "job-c"}) {
+    v1::JobStatus status;
+    status.set_job_id(id);
+    status.set_state(v1::SUCCEEDED);
+    ASSERT_TRUE((*store)->insert(status, v1::JobSpec()).ok());
+  }
+  StoreSabotage(dir_ / "jobs.db").exec("UPDATE jobs SET status = x'ffffffff0a' WHERE id = 'job-b'");
+  const auto listed = (*store)->list();
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->size(), 3u);
+  EXPECT_EQ((*listed)[0].state(), v1::SUCCEEDED);
+  EXPECT_EQ((*listed)[2].state(), v1::SUCCEEDED);
+  const v1::JobStatus& broken = (*listed)[1];
+  EXPECT_EQ(broken.job_id(), "job-b");
+  EXPECT_EQ(broken.state(), v1::FAILED);
+  EXPECT_TRUE(absl::StrContains(broken.error(), "corrupt status record of job job-b")) << broken.error();
+  EXPECT_TRUE(absl::StrContains(broken.error(), (dir_ / "jobs.db").string())) << broken.error();
+  const auto got = (*store)->get("job-b");
+  EXPECT_EQ(got.status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_TRUE(absl::StrContains(got.status().message(), (dir_ / "jobs.db").string())) << got.status();
+}
+
 TEST_F(JobStoreTest, ADatabaseLockedByAnotherProcessIsUnavailable) {
   auto store = JobStore::open(dir_ / "jobs.db");
   ASSERT_TRUE(store.ok()) << store.status();
@@ -1122,6 +1157,35 @@ TEST_F(UploadTest, CorruptUploadsAreInvalidArgumentsNamingTheProblem) {
   upload = good;
   upload.spec.mutable_cameras(0)->set_fx(1e30);
   expect_invalid("focal lengths");
+  // Names reach other users' terminals and become file names: no control characters, no endless names.
+  upload = good;
+  upload.spec.set_name("job\x1b[2J\x1b[31mred");
+  expect_invalid("job name 'job\\x1b[2J\\x1b[31mred' has control characters");
+  upload = good;
+  upload.spec.set_name(std::string(300, 'n'));
+  expect_invalid("job name of 300 bytes, over the limit of 255");
+  upload = good;
+  upload.spec.mutable_cameras(5)->set_name("img\x1b]0;title\x07.png");
+  expect_invalid("camera 5 (img\\x1b]0;title\\x07.png): image name must be a plain file name");
+  upload = good;
+  upload.spec.mutable_cameras(6)->set_name(std::string(300, 'c') + ".png");
+  expect_invalid("camera 6: image name of 304 bytes, over the limit of 255");
+}
+
+// A scene's depth bounds (LLFF's poses_bounds.npy) survive the upload: random points are drawn between them,
+// so without them a submitted job would start elsewhere than gaps train on the same scene.
+TEST_F(UploadTest, DepthBoundsSurviveTheUpload) {
+  for (int i = 0; i < upload.spec.cameras_size(); ++i) {
+    upload.spec.mutable_cameras(i)->set_near(0.5 + i);
+    upload.spec.mutable_cameras(i)->set_far(40.0 + i);
+  }
+  ASSERT_TRUE(write().ok()) << write();
+  absl::StatusOr<Scene> uploaded = load_scene(dir_ / "scene");
+  ASSERT_TRUE(uploaded.ok()) << uploaded.status();
+  for (int i = 0; i < upload.spec.cameras_size(); ++i) {
+    EXPECT_DOUBLE_EQ(uploaded->cameras[i].near, 0.5 + i) << i;
+    EXPECT_DOUBLE_EQ(uploaded->cameras[i].far, 40.0 + i) << i;
+  }
 }
 
 // A PNG of random pixels, width x height.

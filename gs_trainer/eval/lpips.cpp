@@ -9,8 +9,8 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
-#include "common/status_macros.h"
 #include "common/safetensors.h"
+#include "common/status_macros.h"
 #include "common/torch_pickle.h"
 
 namespace gaps {

@@ -21,8 +21,9 @@ using Params = std::map<std::string, double>;
 
 // "near" and "far" (per frame or global) are gaps' own: the depth bounds of a scene that had them (LLFF's
 // poses_bounds.npy) survive a round trip through transforms.json, as a submitted scene takes.
-constexpr const char* kNumericKeys[] = {"fl_x", "fl_y", "cx", "cy", "w",  "h",  "camera_angle_x", "camera_angle_y",
-                                        "k1",   "k2",   "k3", "p1", "p2", "near", "far"};
+constexpr const char* kNumericKeys[] = {
+    "fl_x", "fl_y", "cx", "cy", "w",    "h",  "camera_angle_x", "camera_angle_y", "k1",
+    "k2",   "k3",   "p1", "p2", "near", "far"};
 
 struct Frame {
   std::string file_path;

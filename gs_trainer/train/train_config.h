@@ -7,6 +7,7 @@
 
 #include <absl/status/status.h>
 #include <nlohmann/json_fwd.hpp>
+#include "common/limits.h"
 #include "common/option_table.h"
 
 namespace gaps {
@@ -43,7 +44,7 @@ namespace gaps {
   X(double, percent_dense, 0.01, 0, 1, "scale, relative to the scene extent, separating clone from split")         \
   X(double, min_opacity, 0.005, 0, 1, "Gaussians below this opacity are pruned")                                   \
   X(int, max_screen_size, 20, 0, 1e6, "prune screen-space radii above this after the first opacity reset")        \
-  X(int64_t, max_gaussians, 0, 0, 1e9,                                                                             \
+  X(int64_t, max_gaussians, 0, 0, kMaxGaussians,                                                                   \
     "> 0: densification grows the model up to this many Gaussians, preferring the largest gradients; 0: the "      \
     "automatic budget (gaussians_per_variation) decides")                                                          \
   X(double, gaussians_per_variation, -1, -1, 1e6,                                                                  \
