@@ -3,6 +3,8 @@
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstring>
+#include <thread>
 
 #include <fstream>
 #include <iterator>
@@ -25,12 +27,34 @@ absl::StatusOr<std::string> read_file_bytes(const std::filesystem::path& path, a
   return bytes;
 }
 
-absl::Status write_file_bytes(const std::filesystem::path& path, absl::string_view bytes) {
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+absl::Status write_file_atomically(const std::filesystem::path& path, const std::function<void(std::ostream&)>& write) {
+  std::filesystem::path partial = path;
+  partial += absl::StrCat(".partial-", ::getpid(), "-", std::hash<std::thread::id>{}(std::this_thread::get_id()));
+  errno = 0;
+  std::ofstream out(partial, std::ios::binary | std::ios::trunc);
+  if (out) write(out);
+  if (out) out.flush();
   out.close();
-  if (!out) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be written"));
+  const int error = errno;
+  std::error_code ec;
+  if (!out) {
+    std::filesystem::remove(partial, ec);
+    const bool full = error == ENOSPC || error == EDQUOT;
+    const std::string why = full ? "the disk is full" : error != 0 ? std::strerror(error) : "write failed";
+    return full ? absl::ResourceExhaustedError(absl::StrCat(path.string(), ": cannot be written (", why, ")"))
+                : absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be written (", why, ")"));
+  }
+  std::filesystem::rename(partial, path, ec);
+  if (ec) {
+    std::filesystem::remove(partial, ec);
+    return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot be written (", ec.message(), ")"));
+  }
   return absl::OkStatus();
+}
+
+absl::Status write_file_bytes(const std::filesystem::path& path, absl::string_view bytes) {
+  return write_file_atomically(
+      path, [&](std::ostream& out) { out.write(bytes.data(), static_cast<std::streamsize>(bytes.size())); });
 }
 
 void remove_tree(const std::filesystem::path& dir) {

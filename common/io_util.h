@@ -4,6 +4,8 @@
 #include <cstddef>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
+#include <ostream>
 #include <string>
 
 #include "absl/status/status.h"
@@ -14,7 +16,11 @@ namespace gaps {
 
 // NotFound when the file is missing; `what` describes it in that message ("image file", "poses file", ...).
 absl::StatusOr<std::string> read_file_bytes(const std::filesystem::path& path, absl::string_view what = "file");
+// Both write a temporary file beside `path` and rename it into place only once everything was written, so that a
+// reader (a fetch, a listing of artifacts) never sees a partial file and a failure leaves none behind. The error
+// names the file and why (a full disk says so).
 absl::Status write_file_bytes(const std::filesystem::path& path, absl::string_view bytes);
+absl::Status write_file_atomically(const std::filesystem::path& path, const std::function<void(std::ostream&)>& write);
 
 // Removes a folder and everything below it, one entry at a time, ignoring what cannot be removed:
 // std::filesystem::remove_all must not be called where libtorch.so (which exports its own copy) is

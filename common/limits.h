@@ -43,7 +43,8 @@ inline absl::Status check_gaussian_count(const std::string& what, int64_t value)
 inline absl::Status check_render_size(const std::string& what, int64_t width, int64_t height) {
   if (width >= 1 && height >= 1 && width <= kMaxRenderPixels / height) return absl::OkStatus();
   return absl::InvalidArgumentError(absl::StrCat(what, " ", width, "x", height, " is over the limit of ",
-                                                 kMaxRenderPixels, " pixels per render (4096x4096; 512 MiB at 32 "
+                                                 kMaxRenderPixels,
+                                                 " pixels per render (4096x4096; 512 MiB at 32 "
                                                  "bytes per pixel)"));
 }
 

@@ -7,6 +7,7 @@
 #include <ATen/ATen.h>
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "common/io_util.h"
 #include "common/spherical_harmonics.h"
 #include "common/status_macros.h"
 
@@ -154,15 +155,13 @@ absl::Status write_ply_vertices(const std::filesystem::path& path, const std::ve
                                 const at::Tensor& columns) {
   TORCH_CHECK(columns.dim() == 2 && columns.size(1) == static_cast<int64_t>(names.size()), "PLY columns must be N x ",
               names.size());
-  std::ofstream out(path, std::ios::binary);
-  if (!out) return absl::PermissionDeniedError(absl::StrCat(path.string(), ": cannot write PLY file"));
   const auto data = columns.to(at::kCPU, at::kFloat).contiguous();
-  out << "ply\nformat binary_little_endian 1.0\nelement vertex " << data.size(0) << "\n";
-  for (const auto& n : names) out << "property float " << n << "\n";
-  out << "end_header\n";
-  out.write(reinterpret_cast<const char*>(data.data_ptr<float>()), data.numel() * sizeof(float));
-  if (!out) return absl::DataLossError(absl::StrCat(path.string(), ": write failed"));
-  return absl::OkStatus();
+  return write_file_atomically(path, [&](std::ostream& out) {
+    out << "ply\nformat binary_little_endian 1.0\nelement vertex " << data.size(0) << "\n";
+    for (const auto& n : names) out << "property float " << n << "\n";
+    out << "end_header\n";
+    out.write(reinterpret_cast<const char*>(data.data_ptr<float>()), data.numel() * sizeof(float));
+  });
 }
 
 absl::StatusOr<PointCloud> read_point_cloud_ply(const std::filesystem::path& path) {

@@ -18,6 +18,7 @@
 #include "common/device.h"
 #include "common/error_kind.h"
 #include "common/image_io.h"
+#include "common/io_util.h"
 #include "common/limits.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
@@ -287,10 +288,7 @@ absl::StatusOr<GaussianModel> initial_model(const RunOptions& o, const Scene& sc
 }
 
 absl::Status write_json(const std::filesystem::path& path, const nlohmann::json& j) {
-  std::ofstream f(path);
-  f << j.dump(2) << "\n";
-  if (!f) return absl::DataLossError(absl::StrCat(path.string(), ": write failed"));
-  return absl::OkStatus();
+  return write_file_bytes(path, j.dump(2) + "\n");
 }
 
 // `failure` empty: a finished run; otherwise the run's status ("diverged") and error, without final metrics.

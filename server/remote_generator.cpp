@@ -7,6 +7,8 @@
 #include <chrono>
 #include <set>
 
+#include <condition_variable>
+#include <mutex>
 #include <thread>
 
 #include "absl/strings/match.h"
@@ -34,6 +36,48 @@ struct RemoteGenerator::Worker {
 };
 
 namespace {
+
+// An answer a worker should not have sent (truncated, the wrong count or shape, non-finite pixels): the
+// worker is at fault, not the request, so another worker is asked. generate() names the worker.
+absl::Status malformed(const absl::Status& why) {
+  return absl::DataLossError(absl::StrCat("malformed answer: ", why.message()));
+}
+
+// Cancels `context` once `should_stop` says so, checking every 50 ms from a thread of its own, for as long as
+// it lives (the span of one call).
+class CancelWhenStopping {
+ public:
+  CancelWhenStopping(grpc::ClientContext& context, const std::function<bool()>& should_stop) {
+    if (!should_stop) return;
+    watcher_ = std::thread([this, &context, should_stop] {
+      std::unique_lock<std::mutex> lock(mutex_);
+      while (!done_) {
+        if (should_stop()) {
+          context.TryCancel();
+          return;
+        }
+        changed_.wait_for(lock, std::chrono::milliseconds(50));
+      }
+    });
+  }
+  ~CancelWhenStopping() {
+    if (!watcher_.joinable()) return;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      done_ = true;
+    }
+    changed_.notify_all();
+    watcher_.join();
+  }
+  CancelWhenStopping(const CancelWhenStopping&) = delete;
+  CancelWhenStopping& operator=(const CancelWhenStopping&) = delete;
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  bool done_ = false;
+  std::thread watcher_;
+};
 
 bool retryable(absl::StatusCode code) {
   return code == absl::StatusCode::kUnavailable || code == absl::StatusCode::kDeadlineExceeded ||
@@ -168,6 +212,7 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
+  const CancelWhenStopping cancel(context, options_.should_stop);
   const auto start = std::chrono::steady_clock::now();
   auto stream = w.stub->AdaptScene(&context);
   rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
@@ -193,6 +238,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
+  const CancelWhenStopping cancel(context, options_.should_stop);
   const auto start = std::chrono::steady_clock::now();
   auto stream = w.stub->Generate(&context);
   v1::GenerateBatch with_handle;
@@ -208,17 +254,16 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, 
   const absl::Status read =
       rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " Generate"));
-  GAPS_RETURN_IF_ERROR(read);
+  if (!read.ok()) return malformed(read);
   if (static_cast<size_t>(result.images_size()) != count)
-    return absl::InternalError(
-        absl::StrCat(w.address, " returned ", result.images_size(), " images for ", count, " poses"));
+    return malformed(absl::InvalidArgumentError(absl::StrCat(result.images_size(), " images for ", count, " poses")));
   std::vector<at::Tensor> images;
   for (int k = 0; k < result.images_size(); ++k) {
     const auto& pose = batch.poses(k).camera();
-    GAPS_ASSIGN_OR_RETURN(at::Tensor image,
-                          rpc::decode_tensor_shaped(result.images(k), {pose.height(), pose.width(), 3},
-                                                    absl::StrCat(w.address, " image ", k)));
-    images.push_back(std::move(image));
+    absl::StatusOr<at::Tensor> image =
+        rpc::decode_tensor_shaped(result.images(k), {pose.height(), pose.width(), 3}, absl::StrCat("image ", k));
+    if (!image.ok()) return malformed(image.status());  // the decoder refuses NaN and infinite pixels too
+    images.push_back(*std::move(image));
   }
   add_worker_notes(w.address, result.notes(), notes);
   for (const auto& [stage, seconds] : result.stage_seconds()) attempt_stages_[stage] += seconds;
@@ -249,8 +294,11 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
   v1::GenerateBatch batch;
   rpc::encode_generation_batch(requests, &batch);
   auto backoff = options_.backoff_initial;
+  const auto stopping = [&] { return options_.should_stop && options_.should_stop(); };
+  const absl::Status stopped = absl::UnavailableError("the job is stopping: the generation call was cancelled");
   for (int round = 0; round < options_.max_rounds; ++round) {
     for (size_t k = 0; k < workers_.size(); ++k) {
+      if (stopping()) return stopped;
       Worker& w = *workers_[(next_ + k) % workers_.size()];
       if (!usable(w)) continue;
       std::vector<std::string> notes;  // of this worker only: a failed one's are not this call's
@@ -263,11 +311,14 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
         return images;
       }
       const absl::Status st = images.status();
-      if (!retryable(st.code())) return st;  // the request itself is at fault: another worker won't help
+      if (stopping()) return stopped;
+      // The request itself is at fault unless the worker failed or answered malformed: then another may help.
+      if (!retryable(st.code()) && !absl::IsDataLoss(st)) return st;
       w.last_error = std::string(st.message());
       mark_failed(w);
     }
     if (round + 1 < options_.max_rounds) {
+      if (stopping()) return stopped;
       std::this_thread::sleep_for(backoff);
       backoff = std::min(backoff * 2, options_.backoff_max);
       // After a full failed pass, give every worker another chance at the next probe.

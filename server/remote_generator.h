@@ -1,4 +1,5 @@
 #pragma once
+#include <functional>
 // A gaps::Generator that asks diffusion workers (gaps-worker) over gRPC. It spreads calls over a pool of
 // worker addresses, skips workers that failed recently until a health check passes again, retries with
 // exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
@@ -31,6 +32,10 @@ struct WorkerPoolOptions {
   // A worker that failed is not called again before this long, unless a health check says it is back.
   std::chrono::milliseconds failure_cooldown{10000};
   std::string scene_id;  // passed to AdaptScene (e.g. the job id)
+  // Polled while a call is in flight: once it is true the call is cancelled (a cancelled job or a stopping
+  // trainer does not wait out generate_timeout on a worker that never answers) and generate() returns
+  // UNAVAILABLE, so that the phase is skipped and recorded as such.
+  std::function<bool()> should_stop;
 };
 
 // The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per

@@ -16,6 +16,7 @@
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_replace.h"
 #include "common/io_util.h"
 #include "common/limits.h"
 #include "common/status_macros.h"
@@ -408,7 +409,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
   const fs::path dir = job_dir(job_id);
   const auto fail = [&](const absl::Status& error) {
     status.set_state(v1::FAILED);
-    status.set_error(std::string(error.message()));
+    // Where the trainer keeps its data is its own business: the client learns what failed and why.
+    status.set_error(absl::StrReplaceAll(error.message(), {{options_.data_dir.string() + "/", ""}}));
     return status;
   };
   absl::StatusOr<v1::JobSpec> spec = store_->spec(job_id);
@@ -431,6 +433,8 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
     WorkerPoolOptions pool = options_.workers;
     pool.addresses = resolve_worker_addresses(pool.addresses);  // per job: workers come and go
     pool.scene_id = job_id;
+    // A cancel or a shutdown does not wait for a worker that never answers: the call is cancelled.
+    pool.should_stop = [&] { return flags.cancelled.load() || flags.lease_lost.load() || stop_training_.load(); };
     absl::StatusOr<std::unique_ptr<RemoteGenerator>> made = RemoteGenerator::create(pool);
     if (!made.ok()) return fail(made.status());
     generator = std::move(*made);

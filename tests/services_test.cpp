@@ -394,6 +394,79 @@ TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   EXPECT_EQ((*remote)->name(), "remote " + (*local)->name());
 }
 
+// Answers every request with NaN pixels: a worker with a broken backend.
+class NanGenerator : public Generator {
+ public:
+  std::string name() const override { return "nan (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::OkStatus();
+  }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back(at::full_like(r.render_rgb, std::nan("")));
+    return out;
+  }
+};
+
+// A malformed answer is the worker's fault, not the request's: the next worker is asked, and when none answers
+// well the error names each worker and what was wrong with its answer.
+TEST(WorkerPool, AMalformedAnswerMovesOnToTheNextWorker) {
+  WorkerServiceOptions options;
+  options.backend = "nan";
+  RunningWorker broken(std::make_unique<NanGenerator>(), options);
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  options.backend = "reproject";
+  RunningWorker healthy(std::move(*hosted), options);
+  const auto requests = test_requests();
+
+  auto both = pool({broken.address(), healthy.address()});
+  ASSERT_TRUE(both.ok()) << both.status();
+  ASSERT_TRUE((*both)->adapt(requests[0].references, std::nullopt).ok());
+  const auto images = (*both)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  for (const at::Tensor& image : *images) EXPECT_TRUE(at::isfinite(image).all().item<bool>());
+
+  auto alone = pool({broken.address()});
+  ASSERT_TRUE(alone.ok()) << alone.status();
+  ASSERT_TRUE((*alone)->adapt(requests[0].references, std::nullopt).ok());
+  const absl::Status refused = (*alone)->generate(requests).status();
+  EXPECT_EQ(refused.code(), absl::StatusCode::kUnavailable) << refused;
+  EXPECT_TRUE(absl::StrContains(refused.message(),
+                                broken.address() + ": malformed answer: image 0: contains NaN or infinite values"))
+      << refused;
+}
+
+// A cancelled job or a stopping trainer does not wait for a worker that never answers: the call is cancelled
+// and generate() says why (the phase is then skipped), long before the call's deadline would have ended it.
+TEST(WorkerPool, AStopRequestCancelsACallToAWorkerThatNeverAnswers) {
+  auto gated = std::make_unique<GatedGenerator>();
+  GatedGenerator* gate = gated.get();
+  WorkerServiceOptions options;
+  options.backend = "gated";
+  RunningWorker worker(std::move(gated), options);
+  WorkerPoolOptions o;
+  o.addresses = {worker.address()};
+  o.probe_timeout = std::chrono::milliseconds(500);
+  o.generate_timeout = std::chrono::hours(1);
+  o.max_rounds = 3;
+  std::atomic<bool> stop{false};
+  o.should_stop = [&] { return stop.load(); };
+  auto remote = RemoteGenerator::create(o);
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = test_requests();
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  std::thread stopper([&] {
+    gate->wait_entered(1);  // the call is in the worker's backend, which never answers on its own
+    stop = true;
+  });
+  const absl::Status stopped = (*remote)->generate(requests).status();
+  stopper.join();
+  gate->release();
+  EXPECT_EQ(stopped.code(), absl::StatusCode::kUnavailable) << stopped;
+  EXPECT_TRUE(absl::StrContains(stopped.message(), "the job is stopping")) << stopped;
+}
+
 // A dns:/// name stands for every address it resolves to (one worker each); a name that resolves to nothing
 // stays in the pool as itself, to be reported unreachable like any worker that is down.
 TEST(WorkerPool, DnsNamesResolveToOneWorkerPerAddress) {
