@@ -506,9 +506,14 @@ TEST_F(Services, CommandLineSubmitWatchListFetch) {
   std::tie(code, out) = run_command(gaps + " list" + common);
   EXPECT_EQ(code, 0) << out;
   EXPECT_NE(out.find(job), std::string::npos) << out;
+  // The trainer measures LPIPS with the set-up's weights, as gaps train does.
+  EXPECT_NE(out.find("LPIPS 0."), std::string::npos) << out;
   std::tie(code, out) = run_command(gaps + " fetch " + job + " -o " + (dir_ / "cli_out").string() + common);
   EXPECT_EQ(code, 0) << out;
   EXPECT_TRUE(fs::exists(dir_ / "cli_out" / "metrics.json")) << out;
+  const nlohmann::json fetched = read_json(dir_ / "cli_out" / "metrics.json");
+  EXPECT_TRUE(fetched["lpips"].is_number()) << fetched["lpips"];
+  for (const nlohmann::json& view : fetched["per_view"]) EXPECT_TRUE(view["lpips"].is_number()) << view;
   EXPECT_TRUE(fs::exists(dir_ / "cli_out" / "point_cloud.ply")) << out;
   // RenderView at a test pose reproduces the job's own render of that view (renders/ of the artifacts).
   client::TrainerClient client = connect();
