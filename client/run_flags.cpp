@@ -7,6 +7,7 @@
 #include <ATen/Context.h>
 #include "absl/flags/flag.h"
 #include "absl/strings/str_cat.h"
+#include "common/cache_dir.h"
 #include "common/error_kind.h"
 #include "common/limits.h"
 #include "common/status_macros.h"
@@ -81,9 +82,8 @@ namespace gaps::client {
 namespace {
 
 std::filesystem::path default_init_cache() {
-  if (const char* cache = std::getenv("GAPS_CACHE")) return std::filesystem::path(cache) / "init";
-  if (const char* home = std::getenv("HOME")) return std::filesystem::path(home) / ".cache" / "gaps" / "init";
-  return {};
+  const std::filesystem::path cache = gaps_cache_dir();
+  return cache.empty() ? cache : cache / "init";
 }
 
 // --lpips-weights empty: the set-up's file if it is there (a file that is there but broken is an error when

@@ -425,6 +425,9 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
   o.out_dir = dir / "out";
   o.init_cache_dir = options_.data_dir / "init_cache";
   o.lpips_weights = options_.lpips_weights;
+  const std::function<bool()> should_stop = [&] {
+    return flags.cancelled.load() || flags.lease_lost.load() || stop_training_.load();
+  };
   std::unique_ptr<RemoteGenerator> generator;
   if (o.variant != Variant::kVanilla) {
     if (options_.workers.addresses.empty())
@@ -434,7 +437,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
     pool.addresses = resolve_worker_addresses(pool.addresses);  // per job: workers come and go
     pool.scene_id = job_id;
     // A cancel or a shutdown does not wait for a worker that never answers: the call is cancelled.
-    pool.should_stop = [&] { return flags.cancelled.load() || flags.lease_lost.load() || stop_training_.load(); };
+    pool.should_stop = should_stop;
     absl::StatusOr<std::unique_ptr<RemoteGenerator>> made = RemoteGenerator::create(pool);
     if (!made.ok()) return fail(made.status());
     generator = std::move(*made);
@@ -447,7 +450,7 @@ v1::JobStatus TrainerService::train(v1::JobStatus status, const RunFlags& flags)
     e.set_checkpoint_written(iteration);
     publish(e);
   };
-  o.should_stop = [&] { return flags.cancelled.load() || flags.lease_lost.load() || stop_training_.load(); };
+  o.should_stop = should_stop;
   o.on_phase = [&](const std::string& what, const nlohmann::json& entry) {
     v1::JobEvent e = event_for(job_id);
     if (what == "started")

@@ -9,6 +9,7 @@
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "common/cache_dir.h"
 #include "common/safetensors.h"
 #include "common/status_macros.h"
 #include "common/torch_pickle.h"
@@ -111,15 +112,8 @@ at::Tensor unit_normalise(const at::Tensor& features) {
 }  // namespace
 
 std::filesystem::path default_lpips_weights_path() {
-  std::filesystem::path cache;
-  if (const char* dir = std::getenv("GAPS_CACHE"); dir != nullptr && *dir != '\0') {
-    cache = dir;
-  } else if (const char* home = std::getenv("HOME"); home != nullptr && *home != '\0') {
-    cache = std::filesystem::path(home) / ".cache" / "gaps";
-  } else {
-    return {};
-  }
-  return cache / "lpips" / "vgg16_lpips_v0.1.safetensors";
+  const std::filesystem::path cache = gaps_cache_dir();
+  return cache.empty() ? cache : cache / "lpips" / "vgg16_lpips_v0.1.safetensors";
 }
 
 Lpips Lpips::from_tensors(std::vector<at::Tensor> lins, const std::vector<at::Tensor>& backbone) {
