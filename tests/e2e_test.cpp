@@ -74,15 +74,7 @@ TEST_F(EndToEnd, SyntheticSceneFromThreeViews) {
 TEST_F(EndToEnd, FernThreeViewsLossFallsAndPsnrClearsAFloor) {
   const std::filesystem::path fern = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!std::filesystem::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
-  const auto dir = dir_;
-  RunOptions o;
-  o.scene_dir = fern;
-  o.out_dir = dir / "out";
-  o.views = 3;
-  o.resolution = 8;
-  o.init = "random";
-  o.random_points = 4000;
-  o.config.iterations = 300;
+  const RunOptions o = test::fern_short_run(dir_ / "out");
   const auto r = run(o);
   ASSERT_GE(r.progress.size(), 2u);
   for (const auto& p : r.progress) EXPECT_TRUE(std::isfinite(p.loss)) << "iteration " << p.iteration;

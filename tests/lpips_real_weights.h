@@ -18,6 +18,7 @@
 #include "gs_trainer/eval/lpips.h"
 #include "gs_trainer/pipeline.h"
 #include "tests/lpips_test_util.h"
+#include "tests/synthetic_run.h"
 
 namespace gaps::test {
 
@@ -33,14 +34,7 @@ inline void check_fern_run_lpips(const std::filesystem::path& dir, const std::st
   const fs::path fern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
   if (!fs::exists(fern / "images_8", ec)) GTEST_SKIP() << "benchmark data not found at " << fern / "images_8";
 
-  RunOptions o;
-  o.scene_dir = fern;
-  o.out_dir = dir / "out";
-  o.views = 3;
-  o.resolution = 8;
-  o.init = "random";
-  o.random_points = 4000;
-  o.config.iterations = 300;
+  RunOptions o = fern_short_run(dir / "out");
   o.config.device = device;
   o.eval_every = 0;
   o.lpips_weights = weights;

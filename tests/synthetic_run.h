@@ -18,6 +18,20 @@ inline void write_small_scene(const std::filesystem::path& dir, int width = 64, 
   ASSERT_TRUE(written.ok()) << written;
 }
 
+// The real fern scene (GAPS_DATA_DIR) at its sparse-view protocol, 3 views at -r 8, 300 vanilla iterations from
+// 4,000 random points into `out`: a short end-to-end run on benchmark data.
+inline RunOptions fern_short_run(const std::filesystem::path& out) {
+  RunOptions o;
+  o.scene_dir = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
+  o.out_dir = out;
+  o.views = 3;
+  o.resolution = 8;
+  o.init = "random";
+  o.random_points = 4000;
+  o.config.iterations = 300;
+  return o;
+}
+
 // 90 iterations from 2,000 random points of dir/scene into dir/out; with a generator, the method's phases
 // every 30 iterations after a 30-iteration warmup, 4 pseudo-views each.
 inline RunOptions short_run(const std::filesystem::path& dir, Variant variant = Variant::kVanilla,
