@@ -1,5 +1,7 @@
 #include "client/remote_commands.h"
 
+#include <unistd.h>
+
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -13,8 +15,10 @@
 #include "client/run_flags.h"
 #include "common/error_kind.h"
 #include "common/io_util.h"
+#include "common/ply.h"
 #include "common/printable.h"
 #include "common/status_macros.h"
+#include "gs_trainer/scene/scene.h"
 #include "rpc/config_codec.h"
 
 ABSL_FLAG(std::string, trainer, "127.0.0.1:50051", "address of the gaps-trainer service");
@@ -50,15 +54,14 @@ absl::StatusOr<v1::JobSpec> spec_from_flags(RunOptions* options) {
   const RunOptions& o = run.options;
   *options = o;
   if (o.scene_dir.empty()) return usage_error("the scene folder is missing (gaps submit SCENE or --scene DIR)");
-  if (o.init == "scene")
-    return usage_error("--init scene is not available to gaps submit (only the images and cameras are uploaded)");
   GAPS_RETURN_IF_ERROR(check_scene(o));
   v1::JobSpec spec;
   const std::string name = absl::GetFlag(FLAGS_name);
   spec.set_name(!name.empty() ? name : o.scene_dir.lexically_normal().filename().string());
   v1::TrainConfig* c = spec.mutable_config();
   c->set_views(o.views);
-  c->set_init(o.init == "ply" ? "points" : o.init);
+  // A PLY file and the scene's own points both travel as the upload's points (see scene_points_ply).
+  c->set_init(o.init == "ply" || o.init == "scene" ? "points" : o.init);
   c->set_random_points(o.random_points);
   c->set_variant(variant_name(o.variant));
   c->set_eval_every(o.eval_every);
@@ -67,6 +70,21 @@ absl::StatusOr<v1::JobSpec> spec_from_flags(RunOptions* options) {
   // Only the initialisation settings that differ from the defaults (the trainer has the defaults).
   GAPS_RETURN_IF_ERROR(rpc::set_fields(changed_mvs_settings(o), c->mutable_init_settings()));
   return spec;
+}
+
+// --init scene: the points the scene ships (COLMAP points3D), as a PLY file's bytes. The upload carries images
+// and cameras only, so they go as the job's initial points: the job starts from the cloud gaps train starts from.
+absl::StatusOr<std::string> scene_points_ply(const RunOptions& o) {
+  GAPS_ASSIGN_OR_RETURN(const Scene scene, load_scene(o.scene_dir, SceneLoadOptions{o.resolution, ""}));
+  if (!scene.points)
+    return absl::FailedPreconditionError(o.scene_dir.string() + ": --init scene needs the scene's own points");
+  const std::filesystem::path file =
+      std::filesystem::temp_directory_path() / absl::StrCat("gaps-scene-points-", getpid(), ".ply");
+  absl::Status written = write_point_cloud_ply(*scene.points, file);
+  absl::StatusOr<std::string> bytes = written.ok() ? read_file_bytes(file, "scene points") : written;
+  std::error_code ignored;
+  std::filesystem::remove(file, ignored);
+  return bytes;
 }
 
 void print_event(const v1::JobEvent& e, ProgressPrinter& progress) {
@@ -131,6 +149,10 @@ absl::StatusOr<int> submit() {
     return input_data_error(larger);
   if (const std::string ply = absl::GetFlag(FLAGS_init_ply); !ply.empty()) {
     absl::StatusOr<std::string> points = read_file_bytes(ply, "point cloud");
+    if (!points.ok()) return input_data_error(points.status());
+    scene->points_ply = std::move(*points);
+  } else if (o.init == "scene") {
+    absl::StatusOr<std::string> points = scene_points_ply(o);
     if (!points.ok()) return input_data_error(points.status());
     scene->points_ply = std::move(*points);
   }

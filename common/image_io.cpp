@@ -70,6 +70,26 @@ struct ImageHeader {
   int width = 0, height = 0, channels = 0;
 };
 
+// A PNG's size from its IHDR chunk (always first, at a fixed offset), read before stb sees the file: stb
+// refuses a header whose pixels would pass 1 GiB with a generic "unknown image type", which hides the
+// real reason (the size) from the user.
+bool png_header_size(const std::string& bytes, int* width, int* height) {
+  static constexpr char kSignature[] = "\x89PNG\r\n\x1a\n";
+  if (bytes.size() < 24 || bytes.compare(0, 8, kSignature, 8) != 0 || bytes.compare(12, 4, "IHDR") != 0) return false;
+  const auto be32 = [&](size_t at) {
+    uint32_t v = 0;
+    for (size_t i = 0; i < 4; ++i) v = (v << 8) | static_cast<uint8_t>(bytes[at + i]);
+    return v;
+  };
+  const uint32_t w = be32(16), h = be32(20);
+  if (w > static_cast<uint32_t>(std::numeric_limits<int>::max()) ||
+      h > static_cast<uint32_t>(std::numeric_limits<int>::max()))
+    return false;
+  *width = static_cast<int>(w);
+  *height = static_cast<int>(h);
+  return true;
+}
+
 bool is_jpeg(const std::string& bytes) {
   return bytes.size() >= 2 && static_cast<uint8_t>(bytes[0]) == 0xFF && static_cast<uint8_t>(bytes[1]) == 0xD8;
 }
@@ -130,6 +150,8 @@ absl::StatusOr<ImageHeader> read_header(const fs::path& path, const std::string&
     return absl::InvalidArgumentError(
         absl::StrCat(path.string(), ": ", bytes.size(), " bytes is too large an image file"));
   ImageHeader h;
+  if (png_header_size(bytes, &h.width, &h.height))
+    GAPS_RETURN_IF_ERROR(check_image_size(path.string(), h.width, h.height));
   if (is_jpeg(bytes)) {
     char message[JMSG_LENGTH_MAX] = {0};
     if (!jpeg_read(bytes, &h, nullptr, message))

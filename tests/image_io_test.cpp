@@ -199,17 +199,31 @@ TEST_F(ImageIoTest, ReadsRealPngAndJpeg) {
 
 // A PNG header announcing 16000 x 16000 pixels (a decompression bomb: the pixels would follow as a few
 // hundred kilobytes of zlib) is refused from the header, before anything is allocated for the pixels.
-TEST(ImageIo, AHugeImageIsRefusedFromItsHeader) {
+std::string png_header(uint32_t width, uint32_t height) {
   const auto be32 = [](uint32_t v) {
     return std::string{static_cast<char>(v >> 24), static_cast<char>(v >> 16), static_cast<char>(v >> 8),
                        static_cast<char>(v)};
   };
-  const std::string png = std::string("\x89PNG\r\n\x1a\n", 8) + be32(13) + "IHDR" + be32(16000) + be32(16000) +
-                          std::string("\x08\x02\x00\x00\x00", 5) + be32(0);
-  const auto decoded = decode_image(png, "upload.png");
+  return std::string("\x89PNG\r\n\x1a\n", 8) + be32(13) + "IHDR" + be32(width) + be32(height) +
+         std::string("\x08\x02\x00\x00\x00", 5) + be32(0);
+}
+
+TEST(ImageIo, AHugeImageIsRefusedFromItsHeader) {
+  const auto decoded = decode_image(png_header(16000, 16000), "upload.png");
   ASSERT_FALSE(decoded.ok());
   EXPECT_EQ(decoded.status().code(), absl::StatusCode::kInvalidArgument) << decoded.status();
   EXPECT_NE(decoded.status().message().find("16000x16000 pixels (256 megapixels) is over the limit of 100"),
+            std::string_view::npos)
+      << decoded.status();
+}
+
+// 400 megapixels of RGB pass stb's own 1 GiB header limit, which answered "unknown image type": the size
+// is the reason, and the message says so.
+TEST(ImageIo, AnImageOverStbsOwnLimitIsRefusedForItsSize) {
+  const auto decoded = decode_image(png_header(20000, 20000), "big.png");
+  ASSERT_FALSE(decoded.ok());
+  EXPECT_EQ(decoded.status().code(), absl::StatusCode::kInvalidArgument) << decoded.status();
+  EXPECT_NE(decoded.status().message().find("20000x20000 pixels (400 megapixels) is over the limit of 100"),
             std::string_view::npos)
       << decoded.status();
 }

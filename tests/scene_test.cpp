@@ -196,6 +196,12 @@ TEST(RealSceneTest, FernOtherResolutions) {
   ASSERT_FALSE(half.ok());
   EXPECT_TRUE(contains(half.status(), "images_4")) << half.status();
   EXPECT_TRUE(contains(half.status(), "2016x1512")) << half.status();
+  // A factor that leaves no pixels is named as the factor it is, with the largest one that works.
+  absl::StatusOr<Scene> nothing = load_scene(root, SceneLoadOptions{100000, ""});
+  ASSERT_FALSE(nothing.ok());
+  EXPECT_EQ(nothing.status().code(), absl::StatusCode::kInvalidArgument) << nothing.status();
+  EXPECT_TRUE(contains(nothing.status(), "resolution 100000 would make the 4032x3024 images")) << nothing.status();
+  EXPECT_TRUE(contains(nothing.status(), "the factor can be at most 3024")) << nothing.status();
 }
 
 TEST(RealSceneTest, FernResizedFromAnExplicitFolder) {

@@ -1085,6 +1085,71 @@ TEST_F(TrainerWithWorker, BackendNotesReachThePhaseEntryAndTheJobLog) {
   EXPECT_EQ(nlohmann::json::parse(phases_file)[0]["generator_notes"], phases[0]["generator_notes"]);
 }
 
+// ... with a worker whose backend never answers until released, and an hour's deadline on each call.
+struct TrainerWithHungWorker : TrainerInProcess {
+  void SetUp() override {
+    TrainerInProcess::SetUp();
+    auto gated = std::make_unique<GatedGenerator>();
+    gate = gated.get();
+    WorkerServiceOptions w;
+    w.backend = "gated";
+    worker = std::make_unique<RunningWorker>(std::move(gated), w);
+    TrainerServiceOptions options;
+    options.workers.addresses = {worker->address()};
+    options.workers.generate_timeout = std::chrono::hours(1);
+    ASSERT_NO_FATAL_FAILURE(start(options));
+  }
+  void TearDown() override {
+    gate->release();
+    TrainerInProcess::TearDown();
+    worker.reset();
+  }
+  // A full job whose first phase (iteration 20) calls the worker; returns once the call is in its backend.
+  std::string submit_and_wait_for_the_call() {
+    v1::JobSpec s = spec(1000);
+    s.mutable_config()->set_variant("full");
+    EXPECT_TRUE(rpc::set_fields({{"warmup_iterations", 20}, {"phase_interval", 100}, {"n_active", 2}},
+                                s.mutable_config()->mutable_gaps())
+                    .ok());
+    const auto job = trainer->submit(s, scene);
+    EXPECT_TRUE(job.ok()) << job.status();
+    gate->wait_entered(1);
+    return job.ok() ? *job : "";
+  }
+  GatedGenerator* gate = nullptr;
+  std::unique_ptr<RunningWorker> worker;
+};
+
+// gaps cancel ends a job whose generation call hangs: the call is cancelled rather than waited for (an hour).
+TEST_F(TrainerWithHungWorker, CancelEndsAJobWaitingForAWorkerThatNeverAnswers) {
+  const std::string job = submit_and_wait_for_the_call();
+  ASSERT_FALSE(job.empty());
+  ASSERT_TRUE(trainer->cancel(job).ok());
+  const auto ended = get_until(job, [](const v1::JobStatus& s) { return s.state() == v1::CANCELLED; });
+  ASSERT_TRUE(ended.ok()) << ended.status();
+  EXPECT_EQ(ended->state(), v1::CANCELLED) << ended->error();
+  EXPECT_EQ(gate->entered, 1) << "the worker was still holding the call: the job did not wait for it";
+}
+
+// A shutdown (SIGTERM) does not wait for a worker that never answers either: it returns, and the job is left
+// to resume on the next start rather than failed.
+TEST_F(TrainerWithHungWorker, ShutdownDoesNotWaitForAWorkerThatNeverAnswers) {
+  const std::string job = submit_and_wait_for_the_call();
+  ASSERT_FALSE(job.empty());
+  service->shutdown();
+  EXPECT_EQ(gate->entered, 1);
+  {
+    std::lock_guard<std::mutex> lock(gate->mutex);
+    EXPECT_FALSE(gate->open) << "shutdown returned only because the worker answered";
+  }
+  service.reset();
+  auto store = JobStore::open(dir_ / "data" / "jobs.db");
+  ASSERT_TRUE(store.ok()) << store.status();
+  const auto status = (*store)->get(job);
+  ASSERT_TRUE(status.ok()) << status.status();
+  EXPECT_NE(status->state(), v1::FAILED) << status->error();
+}
+
 // What a client sends through SubmitJob, before it is cut into messages.
 struct UploadParts {
   v1::JobSpec spec;

@@ -114,7 +114,11 @@ absl::StatusOr<at::Tensor> load_camera_image(const Camera& camera) {
   const int width = static_cast<int>(image.size(1)), height = static_cast<int>(image.size(0));
   // Undistorting before resizing keeps the lens model at the resolution it describes.
   if (!camera.distortion.empty()) image = undistort(image, camera.resized(width, height));
-  if (width != camera.width || height != camera.height) image = resize_image(image, camera.width, camera.height);
+  const bool resized = width != camera.width || height != camera.height;
+  if (resized) image = resize_image(image, camera.width, camera.height);
+  // An image changed here is kept as any stored image is, at 8 bits per channel: a service job receives it
+  // as an 8-bit PNG, and the same flags must give the same views (and so the same initial cloud) either way.
+  if (resized || !camera.distortion.empty()) image = image.clamp(0.0, 1.0).mul(255.0f).round().mul(1.0f / 255.0f);
   return image;
 }
 

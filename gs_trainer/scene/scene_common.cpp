@@ -98,6 +98,14 @@ absl::StatusOr<Camera> fit_to_image(const Camera& full, bool native, int resolut
   if (native) return full.resized(width, height);
   const int target_w = round_half_even(static_cast<double>(full.width) / resolution);
   const int target_h = round_half_even(static_cast<double>(full.height) / resolution);
+  if (std::min(target_w, target_h) < 1) {
+    // Said here, in the flag's words: the camera that would follow has a focal length of zero, and its
+    // check would blame the focal length.
+    return absl::InvalidArgumentError(absl::StrCat("resolution ", resolution, " would make the ", full.width, "x",
+                                                   full.height, " images of ", full.image_path.parent_path().string(),
+                                                   " ", target_w, "x", target_h, " pixels; the factor can be at most ",
+                                                   std::min(full.width, full.height)));
+  }
   if (width >= target_w && height >= target_h) return full.resized(target_w, target_h);
   // For R = 1 "full resolution" means the largest images the scene ships (bonsai has only 800x533).
   if (resolution == 1) return full.resized(width, height);
