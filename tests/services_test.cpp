@@ -31,6 +31,7 @@
 #include "client/remote_client.h"
 #include "common/image_io.h"
 #include "common/io_util.h"
+#include "common/limits.h"
 #include "common/ply.h"
 #include "common/status_macros.h"
 #include "diffusion_worker/backend_registry.h"
@@ -1018,6 +1019,51 @@ TEST_F(TrainerStoreErrors, ARefusedCancellationKeepsTheJobQueued) {
   const auto watched = trainer->watch(*queued, [](const v1::JobEvent&) {});
   ASSERT_TRUE(watched.ok()) << watched.status();
   EXPECT_EQ(watched->state(), v1::CANCELLED);
+}
+
+// A vanilla trainer with no worker.
+struct TrainerAlone : TrainerInProcess {
+  void SetUp() override {
+    TrainerInProcess::SetUp();
+    ASSERT_NO_FATAL_FAILURE(start(TrainerServiceOptions{}));
+  }
+};
+
+// Each WatchJob stream holds a thread of the trainer for as long as its job runs: past kMaxWatchStreams the
+// next one is refused at once with RESOURCE_EXHAUSTED and a retry hint, and a slot given back serves again.
+TEST_F(TrainerAlone, WatchStreamsBeyondTheLimitAreRefusedWithARetryHint) {
+  const auto job = trainer->submit(spec(1000000), scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  auto stub = v1::Trainer::NewStub(
+      grpc::CreateChannel("127.0.0.1:" + std::to_string(port), grpc::InsecureChannelCredentials()));
+  std::vector<std::unique_ptr<grpc::ClientContext>> contexts;
+  std::vector<std::unique_ptr<grpc::ClientReader<v1::JobEvent>>> streams;
+  v1::WatchJobRequest request;
+  request.set_job_id(*job);
+  for (int i = 0; i < kMaxWatchStreams; ++i) {
+    contexts.push_back(std::make_unique<grpc::ClientContext>());
+    streams.push_back(stub->WatchJob(contexts.back().get(), request));
+    v1::JobEvent first;
+    ASSERT_TRUE(streams.back()->Read(&first)) << "stream " << i << " was refused";  // it holds its slot now
+  }
+  const auto refused = trainer->watch(*job, [](const v1::JobEvent&) {});
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted) << refused.status();
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "retry")) << refused.status();
+  contexts[0]->TryCancel();
+  (void)streams[0]->Finish();
+  ASSERT_TRUE(trainer->cancel(*job).ok());
+  // The handler notices the cancelled stream at its next look at the store, then gives its slot back.
+  auto served = trainer->watch(*job, [](const v1::JobEvent&) {});
+  for (int i = 0; i < 100 && absl::IsResourceExhausted(served.status()); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    served = trainer->watch(*job, [](const v1::JobEvent&) {});
+  }
+  EXPECT_TRUE(served.ok()) << served.status();
+  for (size_t i = 1; i < streams.size(); ++i) {
+    contexts[i]->TryCancel();
+    (void)streams[i]->Finish();
+  }
 }
 
 // ... with a reproject worker in this process (it has neither LoRA nor an IP-Adapter).
