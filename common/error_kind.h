@@ -1,7 +1,7 @@
 #pragma once
 // What kind of mistake an error is, carried by its absl::Status from where that is known (the scene loader
 // knows a file is unreadable, the command line that a flag is wrong) to the program's exit status. The exit
-// codes are the table in README.md ("Exit codes") and in every program's --help.
+// codes are the table in docs/usage.md ("Conventions and exit statuses") and in every program's --help.
 #include "absl/status/status.h"
 
 namespace gaps {

@@ -1,7 +1,8 @@
 // The command lines as a user meets them: the real gaps, gaps-trainer and gaps-worker binaries, run on
 // mistakes (each must end in one line naming the problem, with its documented exit code, before any
 // expensive work and never in an abort), on the conventions they share (flag spellings, short forms,
-// suggestions, per-command help), on a run stopped by SIGINT and resumed, and against what README.md says.
+// suggestions, per-command help), on a run stopped by SIGINT and resumed, and against what README.md and the
+// documentation pages with command lines say.
 #include <signal.h>
 
 #include <fstream>
@@ -37,7 +38,15 @@ const std::string kGaps = GAPS_CLI_BIN;
 const std::string kTrainer = GAPS_TRAINER_BIN;
 const std::string kWorker = GAPS_WORKER_BIN;
 const fs::path kFern = fs::path(GAPS_DATA_DIR) / "llff" / "fern";
-const fs::path kReadme = fs::path(GAPS_TEST_SCRIPTS_DIR) / ".." / "README.md";
+const fs::path kSourceDir = fs::path(GAPS_TEST_SCRIPTS_DIR) / "..";
+// The exit-status table lives in docs/usage.md; these pages name flags and show command lines.
+const std::string kUsageDoc = "docs/usage.md";
+const std::vector<std::string> kDocsWithFlags = {
+    "README.md",       "docs/usage.md",  "docs/services.md",   "docs/initialisation.md",
+    "docs/results.md", "docs/status.md", "docs/development.md"};
+// Those whose code blocks must hold at least one gaps, gaps-trainer or gaps-worker command line.
+const std::set<std::string> kDocsWithCommandLines = {"README.md", "docs/usage.md", "docs/services.md",
+                                                     "docs/initialisation.md"};
 const std::vector<std::string> kCommands = {"train", "init",    "demo", "submit", "watch",  "list", "cancel",
                                             "fetch", "options", "view", "export", "render", "eval"};
 
@@ -128,7 +137,7 @@ TEST_F(Cli, UnknownOrAbsentDevicesAreUsageErrorsInEveryProgram) {
                  2, "GPU memory cap must be a number of GiB >= 0");
 }
 
-// The exit status is the README's table: a broken file a flag names is input data (4), a mistake in the flags
+// The exit status is docs/usage.md's table: a broken file a flag names is input data (4), a mistake in the flags
 // is usage (2), a folder where the job database belongs is input data, not an unreachable service (5).
 TEST_F(Cli, ExitCodesFollowTheTable) {
   std::ofstream(dir_ / "broken.ply") << "ply\nformat ascii 1.0\nelement vertex 3\nend_header\n1 2\n";
@@ -430,8 +439,9 @@ TEST_F(Cli, ABudgetBelowTheInitialPointsIsSaidAndTheDemoStartsBelowItsBudget) {
   EXPECT_FALSE(contains(log, "already fill the budget")) << log;
 }
 
-TEST_F(Cli, TheExitCodesOfTheHelpAreReadmesTable) {
-  const std::string readme = read_text(kReadme);
+TEST_F(Cli, TheExitCodesOfTheHelpAreTheUsageDocsTable) {
+  const std::string usage = read_text(kSourceDir / kUsageDoc);
+  ASSERT_FALSE(usage.empty()) << kUsageDoc << " is missing";
   const std::string overview = help(kGaps);
   const std::regex row("^  ([0-9]+) +(.+)$");
   int rows = 0;
@@ -440,15 +450,15 @@ TEST_F(Cli, TheExitCodesOfTheHelpAreReadmesTable) {
     std::smatch m;
     if (!std::regex_match(s, m, row)) continue;
     ++rows;
-    EXPECT_TRUE(contains(readme, "| " + std::string(m[1]) + " | " + std::string(m[2]) + " |"))
-        << "README.md lacks the row of exit status " << m[1] << ": " << m[2];
+    EXPECT_TRUE(contains(usage, "| " + std::string(m[1]) + " | " + std::string(m[2]) + " |"))
+        << kUsageDoc << " lacks the row of exit status " << m[1] << ": " << m[2];
   }
   EXPECT_GE(rows, 6);
 }
 
-// Every flag README.md names is one a program takes, and every command line it shows uses only flags its
-// command takes.
-TEST_F(Cli, EveryFlagTheReadmeNamesIsAcceptedByItsProgram) {
+// Every flag README.md and the documentation pages name is one a program takes, and every command line they show
+// uses only flags its command takes.
+TEST_F(Cli, EveryFlagTheDocsNameIsAcceptedByItsProgram) {
   std::map<std::string, HelpFlags> programs;
   for (const std::string& c : kCommands) programs["gaps " + c] = flags_in_help(help(kGaps + " " + c));
   programs["gaps-trainer"] = flags_in_help(help(kTrainer));
@@ -456,51 +466,57 @@ TEST_F(Cli, EveryFlagTheReadmeNamesIsAcceptedByItsProgram) {
   std::set<std::string> any = {"help", "version"};  // every program's
   for (const auto& [name, flags] : programs) any.insert(flags.names.begin(), flags.names.end());
 
-  const std::string readme = read_text(kReadme);
   const std::regex flag("(^|[^a-z0-9_-])--([a-z][a-z0-9_-]*)");
-  for (std::sregex_iterator it(readme.begin(), readme.end(), flag), end; it != end; ++it) {
-    std::string name = (*it)[2];
-    std::replace(name.begin(), name.end(), '-', '_');
-    const bool negated = absl::StartsWith(name, "no_") && any.count(name.substr(3));  // --no-report
-    EXPECT_TRUE(any.count(name) || negated) << "README.md names --" << (*it)[2] << ", which no program takes";
-  }
   // Command lines in code blocks (continued lines joined): each flag against its own command.
   const std::regex invocation(
       "(gaps-trainer|gaps-worker|gaps (?:train|init|demo|submit|watch|list|cancel|fetch|view|export|render|eval))"
       "((?: +[^ ;|&)#]+)*)");
   const std::regex argument("^(--?)([a-z][a-z0-9_-]*)");
-  bool in_code = false;
-  std::string logical;
-  int checked = 0;
-  for (absl::string_view l : absl::StrSplit(readme, '\n')) {
-    if (absl::StartsWith(l, "```")) {
-      in_code = !in_code;
-      continue;
+  int total = 0;
+  for (const std::string& doc : kDocsWithFlags) {
+    const std::string text = read_text(kSourceDir / doc);
+    ASSERT_FALSE(text.empty()) << doc << " is missing";
+    for (std::sregex_iterator it(text.begin(), text.end(), flag), end; it != end; ++it) {
+      std::string name = (*it)[2];
+      std::replace(name.begin(), name.end(), '-', '_');
+      const bool negated = absl::StartsWith(name, "no_") && any.count(name.substr(3));  // --no-report
+      EXPECT_TRUE(any.count(name) || negated) << doc << " names --" << (*it)[2] << ", which no program takes";
     }
-    if (!in_code) continue;
-    logical += std::string(l);
-    if (!logical.empty() && logical.back() == '\\') {
-      logical.pop_back();
-      continue;
-    }
-    for (std::sregex_iterator it(logical.begin(), logical.end(), invocation), end; it != end; ++it) {
-      const std::string program = (*it)[1];
-      const std::string rest = (*it)[2];
-      ++checked;
-      for (absl::string_view word : absl::StrSplit(rest, ' ', absl::SkipEmpty())) {
-        const std::string w(word.substr(0, word.find('=')));
-        std::smatch m;
-        if (!std::regex_search(w, m, argument)) continue;
-        std::string name = m[2];
-        std::replace(name.begin(), name.end(), '-', '_');
-        const HelpFlags& takes = programs[program];
-        EXPECT_TRUE(m[1] == "--" ? takes.names.count(name) > 0 : takes.short_names.count(name) > 0)
-            << "README.md: " << program << " does not take " << w << " (in: " << logical << ")";
+    bool in_code = false;
+    std::string logical;
+    int checked = 0;
+    for (absl::string_view l : absl::StrSplit(text, '\n')) {
+      if (absl::StartsWith(l, "```")) {
+        in_code = !in_code;
+        continue;
       }
+      if (!in_code) continue;
+      logical += std::string(l);
+      if (!logical.empty() && logical.back() == '\\') {
+        logical.pop_back();
+        continue;
+      }
+      for (std::sregex_iterator it(logical.begin(), logical.end(), invocation), end; it != end; ++it) {
+        const std::string program = (*it)[1];
+        const std::string rest = (*it)[2];
+        ++checked;
+        for (absl::string_view word : absl::StrSplit(rest, ' ', absl::SkipEmpty())) {
+          const std::string w(word.substr(0, word.find('=')));
+          std::smatch m;
+          if (!std::regex_search(w, m, argument)) continue;
+          std::string name = m[2];
+          std::replace(name.begin(), name.end(), '-', '_');
+          const HelpFlags& takes = programs[program];
+          EXPECT_TRUE(m[1] == "--" ? takes.names.count(name) > 0 : takes.short_names.count(name) > 0)
+              << doc << ": " << program << " does not take " << w << " (in: " << logical << ")";
+        }
+      }
+      logical.clear();
     }
-    logical.clear();
+    if (kDocsWithCommandLines.count(doc)) EXPECT_GE(checked, 1) << doc << " shows no command line";
+    total += checked;
   }
-  EXPECT_GE(checked, 5);
+  EXPECT_GE(total, 15);
 }
 
 TEST(CommandLine, ALastLineOfDefenceTurnsExceptionsIntoOneLineAndExitStatusOne) {

@@ -57,7 +57,7 @@ std::optional<int> parse_program_command_line(int argc, char** argv, const Comma
 std::string help_text(const CommandSpec& spec);
 // --version: "PROGRAM VERSION (commit HASH)", the commit as of the build's configuration.
 std::string version_text(const std::string& program);
-// The exit codes every program uses (README.md, "Exit codes").
+// The exit codes every program uses (the table in docs/usage.md, "Conventions and exit statuses").
 std::string exit_code_table();
 // A flag as users type it: "init_ply" -> "--init-ply".
 std::string display_name(const std::string& flag);
