@@ -541,6 +541,36 @@ TEST(Initializer, AStopEndsItCancelledWithoutFallbackOrCache) {
   remove_tree(dir);
 }
 
+// The long stages say how far they have come, in order: the sparse points, every PatchMatch sweep (counted
+// up to the total announced first), fusion; the plane sweep as one stage. A cached result says nothing.
+TEST(Initializer, TheStagesReportTheirProgressInOrder) {
+  const TexturedPlane plane;
+  const std::vector<Camera> cams = three_cameras(320, 240, 300);
+  const std::vector<at::Tensor> images = render_all(plane, cams);
+  const fs::path dir = fs::temp_directory_path() / ("gaps_init_progress_test_" + std::to_string(::getpid()));
+  InitOptions o = small_patchmatch();
+  o.cache_dir = dir;
+  std::vector<std::string> heard;
+  o.on_progress = [&](const std::string& stage, int done, int total) {
+    heard.push_back(stage + " " + std::to_string(done) + "/" + std::to_string(total));
+  };
+  ASSERT_TRUE(run_initialization("mvs", cams, images, o).ok());
+  const int sweeps =
+      3 * (o.patchmatch.iterations + (o.patchmatch.geometric_consistency ? o.patchmatch.geometric_iterations : 0));
+  std::vector<std::string> expected = {"sparse 0/1", "sparse 1/1"};
+  for (int k = 0; k <= sweeps; ++k)
+    expected.push_back("patchmatch " + std::to_string(k) + "/" + std::to_string(sweeps));
+  expected.insert(expected.end(), {"fusion 0/1", "fusion 1/1"});
+  EXPECT_EQ(heard, expected);
+  heard.clear();
+  const auto cached = run_initialization("mvs", cams, images, o);
+  ASSERT_TRUE(cached.ok() && cached->from_cache);
+  EXPECT_TRUE(heard.empty()) << heard.size();
+  ASSERT_TRUE(run_initialization("sweep", cams, images, o).ok());
+  EXPECT_EQ(heard, (std::vector<std::string>{"sparse 0/1", "sparse 1/1", "sweep 0/1", "sweep 1/1"}));
+  remove_tree(dir);
+}
+
 TEST(Initializer, MvsAddsTheSparsePointsUnderTheCap) {
   const TexturedPlane plane;
   const std::vector<Camera> cams = three_cameras(320, 240, 300);

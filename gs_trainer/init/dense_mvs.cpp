@@ -35,16 +35,18 @@ absl::StatusOr<PatchMatchInput> patchmatch_input(const std::vector<Camera>& came
 absl::StatusOr<MvsResult> patchmatch_reconstruct(const std::vector<Camera>& cameras,
                                                  const std::vector<at::Tensor>& images, const SparseResult& sparse,
                                                  const PatchMatchOptions& patchmatch, const FusionOptions& fusion,
-                                                 const DenseOptions& range, const std::function<bool()>& should_stop) {
+                                                 const DenseOptions& range, const StageControl& control) {
   if (cameras.size() < 2) return absl::FailedPreconditionError("multi-view stereo needs at least two views");
   GAPS_RETURN_IF_ERROR(check_view_images(cameras, images));
   GAPS_ASSIGN_OR_RETURN(const PatchMatchInput input, patchmatch_input(cameras, images, sparse, patchmatch, range));
   MvsResult result;
   for (const std::vector<int>& s : input.sources) result.stats.views_with_sources += s.empty() ? 0 : 1;
   const auto start = std::chrono::steady_clock::now();
-  GAPS_ASSIGN_OR_RETURN(result.maps, patchmatch_stereo(input, patchmatch, should_stop));
+  GAPS_ASSIGN_OR_RETURN(result.maps, patchmatch_stereo(input, patchmatch, control));
   result.stats.patchmatch_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  control.progress("fusion", 0, 1);
   GAPS_ASSIGN_OR_RETURN(result.fused, fuse_patchmatch_maps(result.maps, fusion));
+  control.progress("fusion", 1, 1);
   result.stats.fusion = result.fused.stats;
   return result;
 }

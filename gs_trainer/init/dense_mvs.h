@@ -11,6 +11,7 @@
 #include "gs_trainer/init/patchmatch.h"
 #include "gs_trainer/init/plane_sweep.h"
 #include "gs_trainer/init/sparse.h"
+#include "gs_trainer/init/stage_control.h"
 #include "gs_trainer/scene/camera.h"
 
 namespace gaps {
@@ -30,11 +31,11 @@ struct MvsResult {
 // `images` at their cameras' sizes, on the device that picks PatchMatch's path (CUDA tensors: the kernels).
 // Depth ranges: view_depth_range with `range` (its depth_margin and min_points_for_range); sources:
 // select_neighbors, up to patchmatch.max_source_views. Fails on invalid input, when no view has both a depth
-// range and a source, or when PatchMatch fails (CANCELLED when `should_stop` stopped it).
+// range and a source, or when PatchMatch fails (CANCELLED when `control` stopped it). `control` hears
+// PatchMatch's sweeps and then ("fusion", 0 or 1, 1).
 absl::StatusOr<MvsResult> patchmatch_reconstruct(const std::vector<Camera>& cameras,
                                                  const std::vector<at::Tensor>& images, const SparseResult& sparse,
                                                  const PatchMatchOptions& patchmatch, const FusionOptions& fusion,
-                                                 const DenseOptions& range,
-                                                 const std::function<bool()>& should_stop = {});
+                                                 const DenseOptions& range, const StageControl& control = {});
 
 }  // namespace gaps

@@ -167,8 +167,11 @@ std::string too_little_depth(const std::vector<ViewDepthNormal>& maps, const Fus
 absl::StatusOr<std::string> dense_stage(const std::string& method, const std::vector<Camera>& cameras,
                                         const std::vector<at::Tensor>& images, const SparseResult& sparse,
                                         const InitOptions& opts, InitResult* r) {
+  const StageControl control{opts.should_stop, opts.on_progress};
   if (method == "sweep") {
+    control.progress("sweep", 0, 1);
     auto dense = dense_reconstruct(cameras, images, sparse, opts.dense);
+    control.progress("sweep", 1, 1);
     if (!dense.ok()) return std::string(dense.status().message());
     r->dense = dense->stats;
     r->notes.push_back(dense_note(dense->stats));
@@ -179,8 +182,7 @@ absl::StatusOr<std::string> dense_stage(const std::string& method, const std::ve
     }
     return why;
   }
-  auto mvs =
-      patchmatch_reconstruct(cameras, images, sparse, opts.patchmatch, opts.fusion, opts.dense, opts.should_stop);
+  auto mvs = patchmatch_reconstruct(cameras, images, sparse, opts.patchmatch, opts.fusion, opts.dense, control);
   if (absl::IsCancelled(mvs.status())) return mvs.status();  // stopped, not failed: no fallback
   if (!mvs.ok()) return std::string(mvs.status().message());
   r->mvs = mvs->stats;
@@ -224,7 +226,9 @@ absl::StatusOr<InitResult> compute(const std::string& method, const std::vector<
         absl::StrCat(method, ": degenerate baseline, all ", cameras.size(), " training cameras share one centre"));
 
   GAPS_RETURN_IF_ERROR(stop_requested(opts, "before the sparse points"));
+  if (opts.on_progress) opts.on_progress("sparse", 0, 1);
   GAPS_ASSIGN_OR_RETURN(SparseResult sparse, sparse_reconstruct(cameras, images, opts.sparse));
+  if (opts.on_progress) opts.on_progress("sparse", 1, 1);
   GAPS_RETURN_IF_ERROR(stop_requested(opts, "after the sparse points"));
   r.sparse = sparse.stats;
   r.notes.push_back(sparse_note(sparse.stats));

@@ -49,6 +49,9 @@ struct InitOptions {
   // Asked between the stages and between PatchMatch's sweeps: true ends the initialisation with CANCELLED,
   // caching nothing (a cancelled job, a stopping service: on a CPU PatchMatch alone takes minutes).
   std::function<bool()> should_stop;
+  // Told how far the long stages have come: ("sparse", 0 or 1, 1), ("patchmatch", sweeps done, in all),
+  // ("fusion", 0 or 1, 1), ("sweep", 0 or 1, 1). Not called for a cached result or random points.
+  std::function<void(const std::string& stage, int done, int total)> on_progress;
 };
 
 struct InitResult {

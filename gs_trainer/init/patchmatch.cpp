@@ -146,8 +146,8 @@ void sweep(const pm::Backend& backend, const pm::Problem& p, int iteration) {
   backend.update(p, 1, iteration);
 }
 
-absl::Status stop_check(const std::function<bool()>& should_stop, size_t view) {
-  if (should_stop && should_stop()) return absl::CancelledError(absl::StrCat("PatchMatch stopped at view ", view));
+absl::Status stop_check(const StageControl& control, size_t view) {
+  if (control.stop_requested()) return absl::CancelledError(absl::StrCat("PatchMatch stopped at view ", view));
   return absl::OkStatus();
 }
 
@@ -155,7 +155,7 @@ absl::Status stop_check(const std::function<bool()>& should_stop, size_t view) {
 
 absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchInput& input,
                                                                const PatchMatchOptions& options,
-                                                               const std::function<bool()>& should_stop) {
+                                                               const StageControl& control) {
   if (absl::Status s = validate_patchmatch_options(options); !s.ok()) return s;
   if (absl::Status s = validate(input); !s.ok()) return s;
   const size_t n = input.cameras.size();
@@ -185,11 +185,16 @@ absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchI
   }
 
   // Photometric sweeps of every view, then (COLMAP's order) geometric ones against those photometric maps.
+  const int sweeps_per_view = options.iterations + (options.geometric_consistency ? options.geometric_iterations : 0);
+  const int sweeps = static_cast<int>(active.size()) * sweeps_per_view;
+  int swept = 0;
+  control.progress("patchmatch", 0, sweeps);
   for (size_t i : active) {
     (*backend)->init(problems[i]);
     for (int it = 0; it < options.iterations; ++it) {
-      GAPS_RETURN_IF_ERROR(stop_check(should_stop, i));
+      GAPS_RETURN_IF_ERROR(stop_check(control, i));
       sweep(**backend, problems[i], it);
+      control.progress("patchmatch", ++swept, sweeps);
     }
   }
   if (options.geometric_consistency) {
@@ -201,8 +206,9 @@ absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchI
       for (int k = 0; k < p.num_sources; ++k) p.sources[k].depth = photometric[input.sources[i][k]].data_ptr<float>();
       (*backend)->rescore(p);
       for (int g = 0; g < options.geometric_iterations; ++g) {
-        GAPS_RETURN_IF_ERROR(stop_check(should_stop, i));
+        GAPS_RETURN_IF_ERROR(stop_check(control, i));
         sweep(**backend, p, options.iterations + g);
+        control.progress("patchmatch", ++swept, sweeps);
       }
     }
   }

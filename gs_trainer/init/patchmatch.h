@@ -12,6 +12,7 @@
 
 #include <ATen/Tensor.h>
 #include "absl/status/statusor.h"
+#include "gs_trainer/init/stage_control.h"
 #include "gs_trainer/scene/camera.h"
 
 namespace gaps {
@@ -67,9 +68,10 @@ struct ViewDepthNormal {
 // Depth and normal maps for every view (views without sources or range come back with depth all 0).
 // Errors name the problem: mismatched sizes, an image not HxWx3, an empty or inverted depth range, a source
 // index out of range, images on different devices, CUDA asked for in a build without the kernels.
-// `should_stop`, when given, is asked before every sweep: true ends it with CANCELLED.
+// `control.should_stop` is asked before every sweep (true ends it with CANCELLED); `control.on_progress` hears
+// ("patchmatch", sweeps done, sweeps in all) after each.
 absl::StatusOr<std::vector<ViewDepthNormal>> patchmatch_stereo(const PatchMatchInput& input,
                                                                const PatchMatchOptions& options = {},
-                                                               const std::function<bool()>& should_stop = {});
+                                                               const StageControl& control = {});
 
 }  // namespace gaps
