@@ -1,6 +1,6 @@
 // What a new user meets first with the real gaps and gaps-trainer binaries: a fetch that finds nothing, a
 // method run too short for its first phase, the render path of a forward-facing capture, a flag from another
-// tool, a run without --out, --quiet, the option table and the help pages.
+// tool, a run without --out, --quiet, the option table, the help pages and the TLS set-ups that go wrong.
 #include <cstdlib>
 #include <fstream>
 #include <memory>
@@ -198,6 +198,51 @@ TEST_F(Frictions, CommandHelpPointsToTheExitCodeTableInsteadOfRepeatingIt) {
   EXPECT_TRUE(contains(test::run_command(kGaps + " --help").second, "  130  ")) << "the overview keeps it";
   EXPECT_TRUE(contains(test::run_command(kGaps + " help fetch").second, "usage: gaps fetch JOB"));
   expect_failure(test::run_command(kGaps + " help nothing"), 2, "gaps help takes one topic");
+}
+
+// 9: every TLS mistake gets its own message, against trainers in each set-up.
+TEST_F(Frictions, EachTlsMistakeIsNamed) {
+  if (std::system("openssl version > /dev/null 2>&1") != 0) GTEST_SKIP() << "openssl not found: no test certificates";
+  const std::string d = dir_.string() + "/";
+  const auto run = [&](const std::string& command) {
+    return std::system((command + " > /dev/null 2>&1").c_str()) == 0;
+  };
+  const auto sign = [&](const std::string& name, const std::string& ext) {
+    return run("openssl req -newkey rsa:2048 -nodes -subj /CN=" + name + " -keyout " + d + name + ".key -out " + d +
+               name + ".csr") &&
+           run("printf '" + ext + "' > " + d + name + ".ext") &&
+           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d +
+               "ca.key -CAcreateserial -days 1 -out " + d + name + ".pem -extfile " + d + name + ".ext");
+  };
+  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d +
+                  "ca.key -out " + d + "ca.pem"));
+  ASSERT_TRUE(sign("localhost", "subjectAltName=DNS:localhost\\nextendedKeyUsage=serverAuth"));
+  ASSERT_TRUE(sign("client", "extendedKeyUsage=clientAuth"));
+  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " +
+                  d + "rogue.pem"));
+  const std::vector<std::string> tls = {"--tls-cert", d + "localhost.pem", "--tls-key", d + "localhost.key"};
+  std::string plain_at, tls_at, mutual_at;
+  auto plain = trainer("plain", {}, &plain_at);
+  auto with_tls = trainer("tls", tls, &tls_at);
+  std::vector<std::string> mutual_flags = tls;
+  mutual_flags.insert(mutual_flags.end(), {"--tls-client-ca", d + "ca.pem"});
+  auto mutual = trainer("mutual", mutual_flags, &mutual_at);
+  const auto list = [&](const std::string& at, const std::string& flags) {
+    return test::run_command(kGaps + " list --trainer " + at + " " + flags);
+  };
+  const std::string ca = "--tls-ca " + d + "ca.pem --tls-server-name localhost";
+  EXPECT_EQ(list(tls_at, ca).first, 0);
+  expect_failure(list(tls_at, "--tls-ca " + d + "rogue.pem --tls-server-name localhost"), 5,
+                 "the trainer's certificate is not trusted by --tls-ca " + d + "rogue.pem");
+  expect_failure(list(tls_at, "--tls-ca " + d + "ca.pem"), 5,
+                 "the trainer's certificate is for localhost, not for 127.0.0.1: give --tls-server-name localhost");
+  expect_failure(list(tls_at, ""), 5, "the trainer requires TLS and this client spoke plaintext: give --tls-ca");
+  expect_failure(list(plain_at, ca), 5, "the trainer speaks plaintext, not TLS: leave out --tls-ca");
+  expect_failure(list(mutual_at, ca), 5, "the trainer requires a client certificate (mutual TLS)");
+  expect_failure(list(mutual_at, ca + " --tls-client-cert " + d + "rogue.pem --tls-client-key " + d + "rogue.key"), 5,
+                 "the trainer refused the client certificate " + d + "rogue.pem");
+  EXPECT_EQ(list(mutual_at, ca + " --tls-client-cert " + d + "client.pem --tls-client-key " + d + "client.key").first,
+            0);
 }
 
 }  // namespace
