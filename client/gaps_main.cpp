@@ -21,10 +21,25 @@ int usage(const std::string& message) {
   return static_cast<int>(gaps::ErrorKind::kUsage);
 }
 
+// `gaps help exit-codes` (the table every command's --help points to) or `gaps help COMMAND`.
+int help_topic(const std::vector<std::string>& args) {
+  if (args.size() == 2 && args[1] == "exit-codes") {
+    std::cout << gaps::cli::exit_code_table();
+    return 0;
+  }
+  for (const auto& spec : gaps::client::gaps_commands())
+    if (args.size() == 2 && spec.name == "gaps " + args[1]) {
+      std::cout << gaps::cli::help_text(spec);
+      return 0;
+    }
+  return usage("gaps help takes one topic: exit-codes or a command (gaps --help lists them)");
+}
+
 int run(int argc, char** argv) {
   namespace client = gaps::client;
   const std::vector<std::string> args(argv + 1, argv + argc);
   const std::string first = args.empty() ? "" : args[0];
+  if (first == "help" && args.size() > 1) return help_topic(args);
   if (first == "--help" || first == "-h" || first == "help") {
     std::cout << client::gaps_overview();
     return 0;

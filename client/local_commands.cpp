@@ -51,16 +51,22 @@ int fail(const std::string& command, const absl::Status& status) {
   return exit_code(status);
 }
 
+// The result; with --quiet in one line (a degraded run's warning aside).
 int report(const std::string& command, const absl::StatusOr<RunResult>& result, const RunOptions& o) {
   if (!result.ok()) return fail(command, result.status());
   const auto& m = result->metrics;
-  std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training\n", m.psnr,
+  const bool quiet = absl::GetFlag(FLAGS_quiet);
+  if (result->degraded())
+    std::cerr << "warning: DEGRADED: " << result->phases_skipped << " of " << result->phases
+              << " diffusion phases were skipped (no generator answered)\n";
+  std::cout << absl::StrFormat("test PSNR %.2f dB  SSIM %.4f  LPIPS %s  |  %d Gaussians  |  %.1f s training", m.psnr,
                                m.ssim, m.lpips ? absl::StrFormat("%.4f", *m.lpips) : lpips_missing_note(),
                                result->num_gaussians, result->train_seconds);
-  if (result->degraded())
-    std::cout << "DEGRADED: " << result->phases_skipped << " of " << result->phases
-              << " diffusion phases were skipped (no generator answered)\n";
-  std::cout << "outputs in " << o.out_dir.string() << " (point_cloud.ply, renders/, metrics.json"
+  if (quiet) {
+    std::cout << "  |  outputs in " << o.out_dir.string() << "\n";
+    return 0;
+  }
+  std::cout << "\noutputs in " << o.out_dir.string() << " (point_cloud.ply, renders/, metrics.json"
             << (o.html_report ? ", report.html)\n" : ")\n");
   return 0;
 }
@@ -78,7 +84,9 @@ absl::StatusOr<RunResult> run_with_generator(RunOptions& o, const std::string& b
   const auto on_progress = [&](const TrainProgress& p) {
     progress.print({p.iteration, p.iterations, p.loss, p.num_gaussians, p.iterations_per_second});
   };
+  const bool quiet = absl::GetFlag(FLAGS_quiet);
   const auto log = [&](const std::string& line) {
+    if (quiet && !is_warning(line)) return;
     progress.end_line();
     std::cerr << line << "\n";
   };
@@ -115,9 +123,13 @@ absl::StatusOr<RunRecord> new_run(const cli::CommandLine& line) {
   GAPS_RETURN_IF_ERROR(take_scene_argument(line));
   GAPS_ASSIGN_OR_RETURN(const FlagRun run, run_from_flags());
   RunRecord record{run.options, absl::GetFlag(FLAGS_backend), absl::GetFlag(FLAGS_backend_options)};
-  record.options.out_dir = absl::GetFlag(FLAGS_out);
-  if (record.options.scene_dir.empty() || record.options.out_dir.empty())
-    return usage_error("--scene and --out are required (gaps train --help)");
+  RunOptions& o = record.options;
+  if (o.scene_dir.empty()) return usage_error("the scene folder is missing: gaps train SCENE or --scene DIR");
+  o.out_dir = absl::GetFlag(FLAGS_out);
+  if (o.out_dir.empty()) {
+    o.out_dir = default_run_folder(o.scene_dir);
+    if (!absl::GetFlag(FLAGS_quiet)) std::cerr << "no --out given: the run goes to " << o.out_dir.string() << "\n";
+  }
   return record;
 }
 
@@ -141,13 +153,13 @@ int run_train(const cli::CommandLine& line) {
     if (absl::Status st = prepare_output_folder(o.out_dir, use); !st.ok()) return fail("train", st);
     if (absl::Status st = write_run_record(o.out_dir, *record); !st.ok()) return fail("train", st);
   } else if (!has_checkpoint(o.out_dir)) {
-    std::cerr << "no checkpoint in " << o.out_dir.string() << " yet: the run starts over with its settings\n";
+    std::cerr << "warning: no checkpoint in " << o.out_dir.string() << " yet: the run starts over with its settings\n";
   }
   o.checkpoint_dir = o.out_dir / "checkpoint";
   int saved_at = -1;
   o.on_checkpoint = [&](int iteration) {
     saved_at = iteration;
-    std::cerr << "checkpoint at iteration " << iteration << "\n";
+    if (!absl::GetFlag(FLAGS_quiet)) std::cerr << "checkpoint at iteration " << iteration << "\n";
   };
   o.should_stop = [] { return g_stop_signal.load() != 0; };
   o.on_training_started = [] { g_training = true; };
@@ -203,10 +215,11 @@ int run_demo(const cli::CommandLine& line) {
   if (!line.has("random_points")) o.random_points = 2000;
   const FolderUse use = absl::GetFlag(FLAGS_overwrite) ? FolderUse::kOverwrite : FolderUse::kFresh;
   if (absl::Status st = prepare_output_folder(o.out_dir, use); !st.ok()) return fail("demo", st);
-  std::cerr << "demo: rendering a synthetic scene (16 views, 160x120) into " << o.scene_dir << "\n";
+  const bool quiet = absl::GetFlag(FLAGS_quiet);
+  if (!quiet) std::cerr << "demo: rendering a synthetic scene (16 views, 160x120) into " << o.scene_dir << "\n";
   if (absl::Status st = write_synthetic_scene(o.scene_dir, {}); !st.ok()) return fail("demo", st);
   if (absl::Status st = check_run(o, absl::GetFlag(FLAGS_backend)); !st.ok()) return fail("demo", st);
-  std::cerr << "demo: reconstructing from 3 views, evaluating on the held-out test views\n";
+  if (!quiet) std::cerr << "demo: reconstructing from 3 views, evaluating on the held-out test views\n";
   return report("demo", run_with_generator(o, absl::GetFlag(FLAGS_backend), absl::GetFlag(FLAGS_backend_options)), o);
 }
 
@@ -215,11 +228,10 @@ int print_options() {
   std::cout << "| section | option | type | default | range | meaning |\n|---|---|---|---|---|---|\n";
   for (const auto& table : {train_config_options(), gaps_config_options()}) {
     for (const OptionInfo& o : table) {
-      const bool ranged = std::isfinite(o.min) && std::isfinite(o.max) && o.type != "bool" && o.type != "std::string";
       std::string help = o.help;
       for (size_t at = help.find('|'); at != std::string::npos; at = help.find('|', at + 2)) help.replace(at, 1, "\\|");
-      std::cout << "| " << o.section << " | `" << o.name << "` | " << o.type << " | `" << o.default_value.dump()
-                << "` | " << (ranged ? absl::StrCat("[", o.min, ", ", o.max, "]") : "") << " | " << help << " |\n";
+      std::cout << "| " << o.section << " | `" << o.name << "` | " << option_type_words(o.type) << " | `"
+                << o.default_value.dump() << "` | " << option_range_words(o) << " | " << help << " |\n";
     }
   }
   return 0;

@@ -1,7 +1,12 @@
 #include "client/option_flags.h"
 
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
 #include "absl/flags/flag.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "common/cli/command_line.h"
 #include "common/error_kind.h"
 #include "common/io_util.h"
@@ -110,6 +115,53 @@ absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& tra
   GAPS_RETURN_IF_ERROR(
       apply_flags(std::begin(kGapsFlags), std::end(kGapsFlags), GapsConfig{}, gaps_file, given.gaps, given.notes));
   return given;
+}
+
+namespace {
+
+bool is_integer_type(const std::string& cpp_type) {
+  return cpp_type == "int" || cpp_type == "int64_t" || cpp_type == "uint64_t";
+}
+
+// The largest value of an option's C++ type (int's for int, and so on); infinity for the others.
+double type_max(const std::string& cpp_type) {
+  if (cpp_type == "int") return std::numeric_limits<int>::max();
+  if (cpp_type == "int64_t") return static_cast<double>(std::numeric_limits<int64_t>::max());
+  if (cpp_type == "uint64_t") return static_cast<double>(std::numeric_limits<uint64_t>::max());
+  return std::numeric_limits<double>::infinity();
+}
+
+// The tables write "no limit" as the type's limit or as a round 1e9 and more; neither is a limit users meet.
+constexpr double kStandInForNoLimit = 1e9;
+
+bool bounds(double value, const std::string& cpp_type) {
+  return std::isfinite(value) && std::abs(value) < kStandInForNoLimit && std::abs(value) < type_max(cpp_type);
+}
+
+// Whole values as integers (1000000, not 1e+06), whatever the type.
+std::string number_words(double value, const std::string& cpp_type) {
+  if (is_integer_type(cpp_type) || value == std::floor(value)) return absl::StrFormat("%.0f", value);
+  return absl::StrFormat("%g", value);
+}
+
+}  // namespace
+
+std::string option_type_words(const std::string& cpp_type) {
+  if (is_integer_type(cpp_type)) return "integer";
+  if (cpp_type == "double") return "number";
+  if (cpp_type == "bool") return "true/false";
+  if (cpp_type == "std::string") return "text";
+  if (cpp_type == "std::vector<double>") return "list of numbers";
+  return cpp_type;
+}
+
+std::string option_range_words(const OptionInfo& o) {
+  if (o.type == "bool" || o.type == "std::string") return "";
+  const bool has_min = bounds(o.min, o.type), has_max = bounds(o.max, o.type);
+  if (has_min && has_max) return absl::StrCat("[", number_words(o.min, o.type), ", ", number_words(o.max, o.type), "]");
+  if (has_min) return absl::StrCat(">= ", number_words(o.min, o.type));
+  if (has_max) return absl::StrCat("<= ", number_words(o.max, o.type));
+  return "";
 }
 
 }  // namespace gaps::client

@@ -7,6 +7,7 @@
 
 #include <nlohmann/json.hpp>
 #include "absl/status/statusor.h"
+#include "common/option_table.h"
 
 namespace gaps::client {
 
@@ -32,5 +33,11 @@ absl::StatusOr<GivenOptions> options_from_files_and_flags(const std::string& tra
 // The flags' names, in table order: the training options and the GAPS options.
 std::vector<std::string> training_option_flag_names();
 std::vector<std::string> gaps_option_flag_names();
+
+// How `gaps options` names an option's type and range to users: "integer", "number", "true/false", "text",
+// "list of numbers"; "[1, 1000000]", ">= 0" (a bound at the type's limit, or a stand-in as large as 1e9, is no
+// bound a user meets), integers written as integers; "" for no range.
+std::string option_type_words(const std::string& cpp_type);
+std::string option_range_words(const OptionInfo& option);
 
 }  // namespace gaps::client

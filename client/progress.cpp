@@ -7,6 +7,8 @@
 
 namespace gaps::client {
 
+bool is_warning(const std::string& log_line) { return log_line.rfind("warning:", 0) == 0; }
+
 ProgressPrinter::ProgressPrinter(bool quiet) : ProgressPrinter(quiet, isatty(fileno(stderr)) != 0) {}
 
 void ProgressPrinter::print(const ProgressLine& p) {

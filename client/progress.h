@@ -2,8 +2,12 @@
 // Training progress on stderr, for `gaps train`, `demo` and `watch`: on a terminal a bar redrawn in place;
 // otherwise (a log file, a pipe) one plain line at every tenth of the run, so logs stay readable.
 #include <cstdint>
+#include <string>
 
 namespace gaps::client {
+
+// What --quiet keeps of a run's log lines: the warnings (the pipeline's and the client's start "warning:").
+bool is_warning(const std::string& log_line);
 
 struct ProgressLine {
   int iteration = 0;

@@ -11,6 +11,7 @@
 #include "common/status_macros.h"
 #include "gs_trainer/scene/scene.h"
 #include "rpc/codec.h"
+#include "rpc/transport_check.h"
 
 namespace gaps::client {
 namespace {
@@ -85,15 +86,43 @@ absl::Status add_larger_training_views(const RunOptions& o, PreparedScene* scene
   return absl::OkStatus();
 }
 
-TrainerClient::TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, std::string token)
+TrainerClient::TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, rpc::ClientSecurity security)
     : address_(std::move(address)),
       channel_(std::move(channel)),
       stub_(v1::Trainer::NewStub(channel_)),
-      token_(std::move(token)) {}
+      security_(std::move(security)) {}
 
 absl::StatusOr<TrainerClient> TrainerClient::connect(const std::string& address, const rpc::ClientSecurity& security) {
   GAPS_ASSIGN_OR_RETURN(std::shared_ptr<grpc::Channel> channel, rpc::make_channel(address, security));
-  return TrainerClient(address, std::move(channel), security.token);
+  return TrainerClient(address, std::move(channel), security);
+}
+
+namespace {
+// The probe of a channel that failed: one TCP connection and handshake.
+constexpr std::chrono::seconds kProbeTimeout{5};
+}  // namespace
+
+absl::Status TrainerClient::unreachable(const std::string& detail) const {
+  const std::string tls = rpc::diagnose_transport(address_, security_, kProbeTimeout);
+  if (!tls.empty())
+    return with_error_kind(
+        absl::UnavailableError(absl::StrCat("cannot connect to the gaps-trainer at ", address_, ": ", tls)),
+        ErrorKind::kUnreachable);
+  return with_error_kind(
+      absl::UnavailableError(absl::StrCat("cannot reach a gaps-trainer at ", address_, ": ", detail)),
+      ErrorKind::kUnreachable);
+}
+
+absl::Status TrainerClient::checked(const grpc::Status& status, const std::string& call) const {
+  absl::Status st = rpc::from_grpc(status, call);
+  if (!absl::IsUnavailable(st)) return st;
+  // TLS 1.3 lets the client finish its handshake before the server judges the client certificate, so a
+  // refused certificate first shows as a call that fails, not as a channel that never connects.
+  const std::string tls = rpc::diagnose_transport(address_, security_, kProbeTimeout);
+  if (tls.empty()) return st;
+  return with_error_kind(
+      absl::UnavailableError(absl::StrCat("cannot connect to the gaps-trainer at ", address_, ": ", tls)),
+      ErrorKind::kUnreachable);
 }
 
 absl::Status TrainerClient::check_reachable(std::chrono::milliseconds timeout) const {
@@ -102,13 +131,8 @@ absl::Status TrainerClient::check_reachable(std::chrono::milliseconds timeout) c
   while (state != GRPC_CHANNEL_READY) {
     if (state == GRPC_CHANNEL_TRANSIENT_FAILURE || state == GRPC_CHANNEL_SHUTDOWN ||
         !channel_->WaitForStateChange(state, deadline))
-      return with_error_kind(
-          absl::UnavailableError(absl::StrCat(
-              "cannot reach a gaps-trainer at ", address_,
-              ": none is listening there, or it speaks TLS and --tls-ca is missing or wrong (start one with "
-              "gaps-trainer --listen ",
-              address_, ", or point --trainer at it)")),
-          ErrorKind::kUnreachable);
+      return unreachable(absl::StrCat("none is listening there (start one with gaps-trainer --listen ", address_,
+                                      ", or point --trainer at it)"));
     state = channel_->GetState(/*try_to_connect=*/true);
   }
   return absl::OkStatus();
@@ -120,7 +144,7 @@ constexpr std::chrono::seconds kUnaryDeadline{30};
 }  // namespace
 
 void TrainerClient::prepare(grpc::ClientContext& context, std::optional<std::chrono::milliseconds> deadline) const {
-  rpc::attach_token(context, token_);
+  rpc::attach_token(context, security_.token);
   if (deadline) context.set_deadline(std::chrono::system_clock::now() + *deadline);
 }
 
@@ -144,7 +168,7 @@ absl::StatusOr<std::string> TrainerClient::submit(v1::JobSpec spec, const Prepar
   if (open && !scene.points_ply.empty())
     open = rpc::write_file_chunks(v1::FileChunk::POINTS, 0, scene.points_ply, write);
   if (open) writer->WritesDone();
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(writer->Finish(), "SubmitJob"));
+  GAPS_RETURN_IF_ERROR(checked(writer->Finish(), "SubmitJob"));
   return response.job_id();
 }
 
@@ -165,7 +189,7 @@ absl::StatusOr<v1::JobStatus> TrainerClient::watch(const std::string& job_id,
     if (event.has_failed()) final_status = event.failed();
     if (event.has_cancelled()) final_status = event.cancelled();
   }
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(reader->Finish(), "WatchJob"));
+  GAPS_RETURN_IF_ERROR(checked(reader->Finish(), "WatchJob"));
   if (!final_status)
     return absl::UnavailableError(absl::StrCat("event stream of ", job_id, " ended before the job did"));
   return *final_status;
@@ -177,7 +201,7 @@ absl::StatusOr<v1::JobStatus> TrainerClient::get(const std::string& job_id) {
   v1::GetJobRequest request;
   request.set_job_id(job_id);
   v1::JobStatus status;
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->GetJob(&context, request, &status), "GetJob"));
+  GAPS_RETURN_IF_ERROR(checked(stub_->GetJob(&context, request, &status), "GetJob"));
   return status;
 }
 
@@ -185,7 +209,7 @@ absl::StatusOr<std::vector<v1::JobStatus>> TrainerClient::list() {
   grpc::ClientContext context;
   prepare(context, kUnaryDeadline);
   v1::ListJobsResponse response;
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->ListJobs(&context, v1::ListJobsRequest(), &response), "ListJobs"));
+  GAPS_RETURN_IF_ERROR(checked(stub_->ListJobs(&context, v1::ListJobsRequest(), &response), "ListJobs"));
   return std::vector<v1::JobStatus>(response.jobs().begin(), response.jobs().end());
 }
 
@@ -195,7 +219,7 @@ absl::StatusOr<v1::JobStatus> TrainerClient::cancel(const std::string& job_id) {
   v1::CancelJobRequest request;
   request.set_job_id(job_id);
   v1::JobStatus status;
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->CancelJob(&context, request, &status), "CancelJob"));
+  GAPS_RETURN_IF_ERROR(checked(stub_->CancelJob(&context, request, &status), "CancelJob"));
   return status;
 }
 
@@ -207,7 +231,7 @@ absl::StatusOr<at::Tensor> TrainerClient::render(const std::string& job_id, cons
   request.set_job_id(job_id);
   *request.mutable_camera() = camera;
   v1::RenderViewResponse response;
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->RenderView(&context, request, &response), "RenderView"));
+  GAPS_RETURN_IF_ERROR(checked(stub_->RenderView(&context, request, &response), "RenderView"));
   return rpc::decode_tensor_shaped(response.image(), {camera.height(), camera.width(), 3}, "rendered view");
 }
 
@@ -218,7 +242,7 @@ absl::StatusOr<v1::JobCameras> TrainerClient::job_cameras(const std::string& job
   v1::GetJobCamerasRequest request;
   request.set_job_id(job_id);
   v1::JobCameras response;
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(stub_->GetJobCameras(&context, request, &response), "GetJobCameras"));
+  GAPS_RETURN_IF_ERROR(checked(stub_->GetJobCameras(&context, request, &response), "GetJobCameras"));
   return response;
 }
 
@@ -257,7 +281,7 @@ absl::StatusOr<std::vector<std::string>> TrainerClient::fetch(const std::string&
     reader->Finish();
     return status;
   }
-  GAPS_RETURN_IF_ERROR(rpc::from_grpc(reader->Finish(), "FetchArtifacts"));
+  GAPS_RETURN_IF_ERROR(checked(reader->Finish(), "FetchArtifacts"));
   return paths;
 }
 

@@ -66,7 +66,12 @@ class TrainerClient {
   absl::StatusOr<std::vector<std::string>> fetch(const std::string& job_id, const std::filesystem::path& out_dir);
 
  private:
-  TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, std::string token);
+  TrainerClient(std::string address, std::shared_ptr<grpc::Channel> channel, rpc::ClientSecurity security);
+  // A call's status; an UNAVAILABLE one says what stops the connection when the TLS settings do (gRPC itself
+  // reports every TLS failure alike), tagged unreachable.
+  absl::Status checked(const grpc::Status& status, const std::string& call) const;
+  // Why the channel cannot connect: the TLS settings' problem, or that no trainer listens.
+  absl::Status unreachable(const std::string& detail) const;
   // The token; a deadline for the calls that answer at once (GetJob, ListJobs, CancelJob, RenderView,
   // GetJobCameras). The streams have none: WatchJob follows a job for as long as it runs, and SubmitJob and
   // FetchArtifacts move scenes and results whose size sets their time.
@@ -75,7 +80,7 @@ class TrainerClient {
   std::string address_;
   std::shared_ptr<grpc::Channel> channel_;
   std::shared_ptr<v1::Trainer::Stub> stub_;
-  std::string token_;
+  rpc::ClientSecurity security_;
 };
 
 }  // namespace gaps::client

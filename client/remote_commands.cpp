@@ -87,12 +87,18 @@ absl::StatusOr<std::string> scene_points_ply(const RunOptions& o) {
   return bytes;
 }
 
+// With --quiet only the warnings: a skipped phase and the job's own warning lines.
+bool quiet_keeps(const v1::JobEvent& e) {
+  return (e.has_phase_finished() && e.phase_finished().skipped()) || (e.has_log() && is_warning(e.log()));
+}
+
 void print_event(const v1::JobEvent& e, ProgressPrinter& progress) {
   if (e.has_progress()) {
     const v1::Progress& p = e.progress();
     progress.print({p.iteration(), p.iterations(), p.loss(), p.num_gaussians(), p.iterations_per_second()});
     return;
   }
+  if (absl::GetFlag(FLAGS_quiet) && !quiet_keeps(e)) return;
   progress.end_line();
   if (e.has_phase_started())
     std::fprintf(stderr, "phase %d started at iteration %d\n", e.phase_started().phase(),
@@ -134,19 +140,50 @@ absl::StatusOr<int> watch(TrainerClient& client, const std::string& job_id) {
   return job_exit_code(final_status);
 }
 
+// Why a job that ended has nothing to fetch, and what to do about it.
+absl::Status no_artifacts_error(const v1::JobStatus& s) {
+  const std::string job = absl::StrCat("job ", s.job_id());
+  if (s.state() == v1::CANCELLED && s.started_at() == 0)
+    return absl::FailedPreconditionError(absl::StrCat(
+        job, " has no artifacts: it was cancelled before it ran (gaps submit the scene again to train it)"));
+  if (s.state() == v1::CANCELLED)
+    return absl::FailedPreconditionError(absl::StrCat(job, " has no artifacts: it was cancelled at iteration ",
+                                                      s.iteration(), " of ", s.iterations(), ", before writing any"));
+  if (s.state() == v1::FAILED)
+    return absl::FailedPreconditionError(
+        absl::StrCat(job, " has no artifacts: it failed before writing any (", printable(s.error()), ")"));
+  return absl::FailedPreconditionError(
+      absl::StrCat(job, " has no artifacts (state ", v1::JobState_Name(s.state()), ")"));
+}
+
+// Into -o DIR, or a folder named after the job; a job that left nothing is an error saying why.
+absl::StatusOr<int> fetch(TrainerClient& client, const std::string& job_id) {
+  std::string out = absl::GetFlag(FLAGS_out);
+  if (out.empty()) out = job_id;
+  GAPS_ASSIGN_OR_RETURN(const std::vector<std::string> files, client.fetch(job_id, out));
+  if (files.empty()) {
+    GAPS_ASSIGN_OR_RETURN(const v1::JobStatus status, client.get(job_id));
+    return no_artifacts_error(status);
+  }
+  for (const auto& f : files) std::cout << (std::filesystem::path(out) / f).string() << "\n";
+  return 0;
+}
+
 absl::StatusOr<int> submit() {
   RunOptions o;
   GAPS_ASSIGN_OR_RETURN(const v1::JobSpec spec, spec_from_flags(&o));
   GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect_trainer());
   absl::StatusOr<PreparedScene> scene = prepare_scene(o.scene_dir, o.resolution);
   if (!scene.ok()) return input_data_error(scene.status());
-  if (absl::Status larger = add_larger_training_views(o, &*scene); absl::IsNotFound(larger))
-    std::fprintf(stderr,
-                 "init: auto: no views at twice the training size for PatchMatch (%s): the trainer reads the "
-                 "training views\n",
-                 std::string(larger.message()).c_str());
-  else if (!larger.ok())
+  if (absl::Status larger = add_larger_training_views(o, &*scene); absl::IsNotFound(larger)) {
+    if (!absl::GetFlag(FLAGS_quiet))
+      std::fprintf(stderr,
+                   "init: auto: no views at twice the training size for PatchMatch (%s): the trainer reads the "
+                   "training views\n",
+                   std::string(larger.message()).c_str());
+  } else if (!larger.ok()) {
     return input_data_error(larger);
+  }
   if (const std::string ply = absl::GetFlag(FLAGS_init_ply); !ply.empty()) {
     absl::StatusOr<std::string> points = read_file_bytes(ply, "point cloud");
     if (!points.ok()) return input_data_error(points.status());
@@ -172,9 +209,7 @@ absl::StatusOr<int> run(const std::string& command, const cli::CommandLine& line
     return absl::OkStatus();
   };
   const std::vector<std::string>& args = line.positional;
-  if (command != "list")
-    GAPS_RETURN_IF_ERROR(need_argument(command == "fetch" ? "the job id (and -o DIR)" : "the job id"));
-  if (command == "fetch" && absl::GetFlag(FLAGS_out).empty()) return usage_error("gaps fetch needs -o DIR");
+  if (command != "list") GAPS_RETURN_IF_ERROR(need_argument("the job id"));
   GAPS_ASSIGN_OR_RETURN(TrainerClient client, connect_trainer());
   if (command == "watch") return watch(client, args[0]);
   if (command == "list") {
@@ -187,12 +222,7 @@ absl::StatusOr<int> run(const std::string& command, const cli::CommandLine& line
     print_status(status);
     return 0;
   }
-  if (command == "fetch") {
-    const std::string out = absl::GetFlag(FLAGS_out);
-    GAPS_ASSIGN_OR_RETURN(std::vector<std::string> files, client.fetch(args[0], out));
-    for (const auto& f : files) std::cout << (std::filesystem::path(out) / f).string() << "\n";
-    return 0;
-  }
+  if (command == "fetch") return fetch(client, args[0]);
   return usage_error(absl::StrCat("unknown command ", command));
 }
 

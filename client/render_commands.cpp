@@ -25,13 +25,15 @@
 #include "common/io_util.h"
 #include "common/status_macros.h"
 #include "gs_trainer/eval/lpips.h"
+#include "gs_trainer/init/initializer.h"
 #include "gs_trainer/model/render.h"
 #include "gs_trainer/scene/camera_path.h"
 #include "gs_trainer/scene/cameras_json.h"
 #include "rpc/codec.h"
 
-ABSL_FLAG(std::string, path, "orbit",
-          "camera path: orbit, spiral, interp, test (the test cameras) or a cameras.json file (FILE.json)");
+ABSL_FLAG(std::string, path, "auto",
+          "camera path: auto (spiral for a capture facing one way, orbit for views around the scene), orbit, spiral, "
+          "interp, test (the test cameras) or a cameras.json file (FILE.json)");
 ABSL_FLAG(int, frames, 120, "frames of a generated path (orbit, spiral, interp)");
 ABSL_FLAG(int, fps, 30, "frame rate of the video");
 ABSL_FLAG(std::string, model, "",
@@ -162,15 +164,28 @@ absl::StatusOr<PathScene> run_cameras(const SavedRun& run) {
   return out;
 }
 
-// The cameras of --path over `scene`, whose depth bounds are set first (from `points` when the cameras give
+// --path, with "auto" following the capture: an orbit around a forward-facing capture looks at the back of
+// what was never photographed, so such scenes get the spiral; views around the scene get the orbit.
+std::string chosen_path(const PathScene& scene) {
+  const std::string path = absl::GetFlag(FLAGS_path);
+  if (path != "auto") return path;
+  std::vector<Camera> capture = scene.train;
+  capture.insert(capture.end(), scene.test.begin(), scene.test.end());
+  const bool around = views_surround_scene(capture);
+  if (!absl::GetFlag(FLAGS_quiet))
+    std::cerr << "path: " << (around ? "orbit (the views surround the scene)" : "spiral (the views face one way)")
+              << "; --path orbit|spiral|interp|test chooses another\n";
+  return around ? "orbit" : "spiral";
+}
+
+// The cameras of `path` over `scene`, whose depth bounds are set first (from `points` when the cameras give
 // none).
-absl::StatusOr<std::vector<Camera>> path_cameras(PathScene& scene, const at::Tensor& points) {
+absl::StatusOr<std::vector<Camera>> path_cameras(const std::string& path, PathScene& scene, const at::Tensor& points) {
   if (scene.near <= 0 || scene.far <= scene.near) {
     absl::StatusOr<std::pair<double, double>> bounds = path_depth_bounds(scene.train, points);
     if (!bounds.ok()) return input_data_error(bounds.status());
     std::tie(scene.near, scene.far) = *bounds;
   }
-  const std::string path = absl::GetFlag(FLAGS_path);
   if (absl::GetFlag(FLAGS_frames) < 1) return usage_error("--frames must be at least 1");
   absl::StatusOr<std::vector<Camera>> cameras = camera_path(path, scene, absl::GetFlag(FLAGS_frames));
   if (absl::IsInvalidArgument(cameras.status()))
@@ -267,8 +282,9 @@ absl::Status render_local(const cli::CommandLine& line) {
   GAPS_ASSIGN_OR_RETURN(const SavedRun run, saved_run(line));
   GAPS_ASSIGN_OR_RETURN(const GaussianModel model, load_model(run));
   GAPS_ASSIGN_OR_RETURN(PathScene scene, run_cameras(run));
-  GAPS_ASSIGN_OR_RETURN(const std::vector<Camera> cameras, path_cameras(scene, model.means));
-  const std::string name = camera_path_name(absl::GetFlag(FLAGS_path));
+  const std::string path = chosen_path(scene);
+  GAPS_ASSIGN_OR_RETURN(const std::vector<Camera> cameras, path_cameras(path, scene, model.means));
+  const std::string name = camera_path_name(path);
   RenderOptions options;
   options.background = at::full({3}, run.options.config.background, model.means.options());
   const auto render_frame = [&](const Camera& camera) -> absl::StatusOr<at::Tensor> {
@@ -298,8 +314,9 @@ absl::Status render_remote() {
   GAPS_ASSIGN_OR_RETURN(scene.test, decoded(listed.test(), "test camera"));
   scene.near = listed.near();
   scene.far = listed.far();
-  GAPS_ASSIGN_OR_RETURN(const std::vector<Camera> cameras, path_cameras(scene, at::Tensor()));
-  const std::string name = camera_path_name(absl::GetFlag(FLAGS_path));
+  const std::string path = chosen_path(scene);
+  GAPS_ASSIGN_OR_RETURN(const std::vector<Camera> cameras, path_cameras(path, scene, at::Tensor()));
+  const std::string name = camera_path_name(path);
   const auto render_frame = [&](const Camera& camera) {
     v1::Camera wire;
     rpc::encode_camera(camera, &wire);

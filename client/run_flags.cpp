@@ -12,6 +12,7 @@
 #include "common/limits.h"
 #include "common/status_macros.h"
 #include "gs_trainer/eval/lpips.h"
+#include "gs_trainer/gaps/config.h"
 
 ABSL_FLAG(
     std::string, scene, "",
@@ -107,6 +108,16 @@ absl::Status lpips_from_flags(RunOptions& o) {
   return absl::OkStatus();
 }
 
+// A method run too short for its first diffusion phase trains as vanilla 3DGS would, which nothing else
+// would say until one reads phases.json.
+void warn_if_no_diffusion_phase(const RunOptions& o) {
+  if (o.variant == Variant::kVanilla || num_diffusion_phases(o.config.iterations, o.gaps) > 0) return;
+  std::cerr << "warning: --variant " << variant_name(o.variant) << " with " << o.config.iterations
+            << " iterations runs no diffusion phase (the first comes after warmup_iterations = "
+            << o.gaps.warmup_iterations << "): give --iterations " << iterations_for_first_phase(o.gaps)
+            << " or more, or a lower --warmup-iterations\n";
+}
+
 }  // namespace
 
 std::string lpips_missing_note() {
@@ -185,6 +196,7 @@ absl::StatusOr<FlagRun> run_from_flags(const nlohmann::json& command_defaults) {
   } catch (const std::exception& e) {
     return usage_error(json_error_message(e));
   }
+  warn_if_no_diffusion_phase(o);
   return run;
 }
 

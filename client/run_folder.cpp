@@ -70,6 +70,14 @@ std::string absolute_path(const fs::path& p) {
 
 }  // namespace
 
+fs::path default_run_folder(const fs::path& scene_dir) {
+  std::error_code ec;
+  fs::path scene = fs::absolute(scene_dir, ec).lexically_normal();
+  if (ec) scene = scene_dir.lexically_normal();
+  if (!scene.has_filename()) scene = scene.parent_path();  // "fern/" names fern
+  return fs::path("runs") / scene.filename();
+}
+
 bool has_checkpoint(const fs::path& out) {
   std::error_code ec;
   return fs::exists(out / "checkpoint" / "state.json", ec) || fs::exists(out / "checkpoint.old" / "state.json", ec);

@@ -18,6 +18,10 @@ enum class FolderUse { kFresh, kOverwrite, kResume };
 // the folder of an unfinished run. Usage errors.
 absl::Status prepare_output_folder(const std::filesystem::path& out, FolderUse use);
 
+// Where `gaps train SCENE` writes without --out: runs/<the scene folder's name>, below the current folder, so
+// that runs of several scenes sit side by side and none lands inside its scene. The usual rules apply to it.
+std::filesystem::path default_run_folder(const std::filesystem::path& scene_dir);
+
 // Whether `out` holds the training state of a stopped run.
 bool has_checkpoint(const std::filesystem::path& out);
 // A finished run needs its checkpoint no more.

@@ -210,7 +210,7 @@ TEST_F(Cli, SigintSavesTheRunAndResumeFinishesItAsAnUninterruptedRunWould) {
   // Only what does not change the run may come with --resume.
   expect_failure(test::run_command(kGaps + " train --resume " + (dir_ / "stopped").string() + " --views 6"), 2,
                  "--views cannot change them");
-  std::tie(code, log) = test::run_command(kGaps + " train --resume " + (dir_ / "stopped").string() + " --quiet");
+  std::tie(code, log) = test::run_command(kGaps + " train --resume " + (dir_ / "stopped").string());
   ASSERT_EQ(code, 0) << log;
   EXPECT_TRUE(contains(log, "resumed from the checkpoint at iteration")) << log;
   EXPECT_FALSE(fs::exists(dir_ / "stopped" / "checkpoint"));  // a finished run keeps its results only

@@ -141,6 +141,8 @@ TEST(GapsSchedule, PhasesEveryIntervalAfterWarmup) {
   EXPECT_EQ(num_diffusion_phases(10000, c), 18);
   EXPECT_EQ(num_diffusion_phases(1000, c), 0);
   EXPECT_EQ(num_diffusion_phases(1001, c), 1);
+  EXPECT_EQ(num_diffusion_phases(iterations_for_first_phase(c) - 1, c), 0);
+  EXPECT_EQ(num_diffusion_phases(iterations_for_first_phase(c), c), 1);
 }
 
 // ---------------------------------------------------------------- pose distance (eq:pose_dist)

@@ -245,7 +245,7 @@ TEST_F(RenderEval, TheTestPathRendersWhatTheRunRenderedAndInterpPassesTheTrainin
 // ends where the saved model was; the same points as a plain point cloud start over from new Gaussians.
 TEST_F(RenderEval, InitPlyWithAFullModelContinuesIt) {
   const std::string tiny_steps =
-      " --quiet --iterations 1 --position-lr-init 1e-12 --position-lr-final 1e-12 --feature-lr 1e-12 --opacity-lr "
+      " --iterations 1 --position-lr-init 1e-12 --position-lr-final 1e-12 --feature-lr 1e-12 --opacity-lr "
       "1e-12 "
       "--scaling-lr 1e-12 --rotation-lr 1e-12 --eval-every 0 --report=false --save-every 0";
   auto [code, log] =

@@ -750,7 +750,7 @@ TEST_F(Services, TrainAndSubmitStartAutoFromTheSameLargerViews) {
   if (!fs::exists(fern)) GTEST_SKIP() << "benchmark data not found at " << fern;
   const std::string gaps_cli = GAPS_CLI_BIN;
   const std::string run_flags =
-      " --views 3 --resolution 16 --variant vanilla --iterations 20 --device cpu --eval-every 0 --quiet"
+      " --views 3 --resolution 16 --variant vanilla --iterations 20 --device cpu --eval-every 0"
       " --patchmatch-iterations 3 --patchmatch-geometric-consistency=false";
   auto [code, out] = run_command(gaps_cli + " train --scene " + fern.string() + " --out " + (dir_ / "local").string() +
                                  " --init-cache " + (dir_ / "cache").string() + run_flags);

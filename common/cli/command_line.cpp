@@ -68,6 +68,9 @@ absl::Status unknown_flag(const std::string& typed, const std::string& name, con
   if (!takers.empty())
     return usage_error(absl::StrCat(typed, " is not a flag of ", spec.name, "; ", absl::StrJoin(takers, ", "),
                                     takers.size() == 1 ? " takes it" : " take it"));
+  // A near name would send the user after a flag that does something else; the note says what happens anyway.
+  if (const auto unneeded = spec.unneeded_flags.find(name); unneeded != spec.unneeded_flags.end())
+    return usage_error(absl::StrCat(typed, " is not a flag of ", spec.name, " and none is needed: ", unneeded->second));
   const std::string suggestion = closest_match(name, accepted_names(spec));
   return usage_error(absl::StrCat(
       "unknown flag ", typed, suggestion.empty() ? "" : absl::StrCat("; did you mean ", display_name(suggestion), "?"),

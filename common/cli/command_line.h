@@ -32,7 +32,10 @@ struct CommandSpec {
   // Positional arguments: at most this many, described as `positional_name` in messages.
   int max_positional = 0;
   std::string positional_name;
-  std::string epilogue;  // printed after the flags (e.g. exit_code_table())
+  std::string epilogue;  // printed after the flags (e.g. a pointer to exit_code_table())
+  // Flags users try that the command has no need for, with why ("eval" -> "every 8th image is a test view"):
+  // added to the refusal, so that the user learns what to do instead of guessing at a near name.
+  std::map<std::string, std::string> unneeded_flags;
 };
 
 struct CommandLine {

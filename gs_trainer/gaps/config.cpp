@@ -60,6 +60,10 @@ int num_diffusion_phases(int total_iterations, const GapsConfig& c) {
   return (total_iterations - 1 - c.warmup_iterations) / c.phase_interval + 1;
 }
 
+// The first phase runs before iteration warmup_iterations (0-based; diffusion_phase_at), so the run needs one
+// more than that.
+int iterations_for_first_phase(const GapsConfig& c) { return c.warmup_iterations + 1; }
+
 void to_json(nlohmann::json& j, const GapsConfig& c) { GAPS_GAPS_CONFIG_OPTIONS(GAPS_WRITE_OPTION) }
 
 void from_json(const nlohmann::json& j, GapsConfig& c) {

@@ -123,6 +123,8 @@ int n_active_for(const GapsConfig& c, bool views_surround_scene);
 // -1 when none does. With the defaults and T = 10,000: iterations 1000, 1500, ..., 9500, 18 phases.
 int diffusion_phase_at(int iteration, int total_iterations, const GapsConfig& c);
 int num_diffusion_phases(int total_iterations, const GapsConfig& c);
+// The fewest total iterations with which a run has a diffusion phase at all (num_diffusion_phases >= 1).
+int iterations_for_first_phase(const GapsConfig& c);
 
 // Unknown keys and invalid values (validate_gaps_config) throw nlohmann::json::other_error.
 void to_json(nlohmann::json& j, const GapsConfig& c);

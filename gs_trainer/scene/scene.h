@@ -54,11 +54,13 @@ absl::StatusOr<at::Tensor> load_camera_image(const Camera& camera);
 
 // The sparse-view benchmark split: test = every `hold`-th image (index % hold == 0); training = num_train
 // views at round(linspace(0, M-1, num_train)) over the M remaining images. num_train <= 0 means all of them.
+// Every run holds out every kTestViewHold-th image (LLFF's protocol), so evaluation needs no flag.
+inline constexpr int kTestViewHold = 8;
 struct Split {
   std::vector<int> train;
   std::vector<int> test;
 };
-absl::StatusOr<Split> benchmark_split(int num_images, int num_train, int hold = 8);
+absl::StatusOr<Split> benchmark_split(int num_images, int num_train, int hold = kTestViewHold);
 
 // Multi-line human-readable summary (format, counts, resolution, intrinsics, split, bounds).
 std::string describe(const Scene& scene, const Split& split);
