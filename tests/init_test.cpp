@@ -20,6 +20,7 @@
 #include <Eigen/Dense>
 #include <nlohmann/json.hpp>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "common/image_io.h"
@@ -569,6 +570,24 @@ TEST(Initializer, TheStagesReportTheirProgressInOrder) {
   ASSERT_TRUE(run_initialization("sweep", cams, images, o).ok());
   EXPECT_EQ(heard, (std::vector<std::string>{"sparse 0/1", "sparse 1/1", "sweep 0/1", "sweep 1/1"}));
   remove_tree(dir);
+}
+
+// The lines a run prints from that progress: each stage's start and end, PatchMatch at every tenth.
+TEST(Initializer, StageProgressLinesSayEachStageAndEveryTenthOfPatchMatch) {
+  std::vector<std::string> lines;
+  const auto progress = stage_progress_lines([&](const std::string& line) { lines.push_back(line); });
+  progress("sparse", 0, 1);
+  progress("sparse", 1, 1);
+  for (int k = 0; k <= 40; ++k) progress("patchmatch", k, 40);
+  progress("fusion", 0, 1);
+  progress("fusion", 1, 1);
+  ASSERT_EQ(lines.size(), 2u + 11u + 2u) << absl::StrJoin(lines, "\n");
+  EXPECT_EQ(lines[0], "init: sparse points (SIFT, matching, triangulation)...");
+  EXPECT_TRUE(absl::StartsWith(lines[1], "init: sparse points (SIFT, matching, triangulation): done in ")) << lines[1];
+  EXPECT_EQ(lines[2], "init: PatchMatch: 0/40 sweeps");
+  EXPECT_TRUE(absl::StartsWith(lines[3], "init: PatchMatch: 4/40 sweeps (10%, ")) << lines[3];
+  EXPECT_TRUE(absl::StartsWith(lines[12], "init: PatchMatch: 40/40 sweeps, done in ")) << lines[12];
+  EXPECT_EQ(lines[13], "init: fusion of the depth maps...");
 }
 
 TEST(Initializer, MvsAddsTheSparsePointsUnderTheCap) {

@@ -18,4 +18,10 @@ struct StageControl {
   }
 };
 
+// A StageControl::on_progress that says where the initialisation is in `log` lines: each stage as it starts and
+// ends (with its seconds), and PatchMatch at every tenth of its sweeps. Enough to see a CPU initialisation move
+// (minutes) without flooding a log.
+std::function<void(const std::string& stage, int done, int total)> stage_progress_lines(
+    std::function<void(const std::string&)> log);
+
 }  // namespace gaps
