@@ -91,7 +91,7 @@ std::vector<int> parse_counts(const std::string& text) {
 }
 
 // The Gaussian budget a `gaps train` run would have on these views at the default density
-// (kDefaultGaussiansPerVariation; pipeline.cpp caps the fused points at it). `--init auto` on forward-facing
+// (kDefaultGaussiansPerVariation; run/initial_model.cpp caps the fused points at it). `--init auto` on forward-facing
 // views uses kAutoLargerViewsGaussiansPerVariation instead (with_auto_budget); this bench runs one method at a time.
 int64_t default_run_budget(const std::vector<gaps::Camera>& cams, const std::vector<at::Tensor>& images) {
   std::vector<gaps::TrainingView> views;

@@ -26,8 +26,11 @@ LAYERS = {
                         "gs_trainer/scene", "common"],
     # The web viewer: the page, its model formats, what it shows of a run.
     "gs_trainer/viewer": ["gs_trainer/model", "gs_trainer/scene", "common"],
-    # The top level of gs_trainer is one run (pipeline, checkpoint, report): it uses every room.
-    "gs_trainer": ["gs_trainer/viewer", "gs_trainer/gaps", "gs_trainer/train", "gs_trainer/init", "gs_trainer/eval",
+    # The parts of one run: options, inputs, initial model, training, checkpoints, statistics, outputs.
+    "gs_trainer/run": ["gs_trainer/gaps", "gs_trainer/train", "gs_trainer/init", "gs_trainer/eval", "gs_trainer/model",
+                       "gs_trainer/scene", "common"],
+    # The top level of gs_trainer puts a run together (pipeline, report, the demo scene): it uses every room.
+    "gs_trainer": ["gs_trainer/run", "gs_trainer/viewer", "gs_trainer/gaps", "gs_trainer/train", "gs_trainer/init", "gs_trainer/eval",
                    "gs_trainer/model", "gs_trainer/raster", "gs_trainer/scene", "common"],
     "diffusion_worker/sdxl": ["common"],
     "diffusion_worker/depth": ["diffusion_worker/sdxl", "common"],

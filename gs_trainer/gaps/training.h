@@ -55,7 +55,7 @@ class GapsTraining {
   void set_phase_observer(PhaseObserver observer) { phase_observer_ = std::move(observer); }
 
  private:
-  friend struct CheckpointAccess;  // gs_trainer/checkpoint.cpp saves and restores this state
+  friend struct CheckpointAccess;  // gs_trainer/run/checkpoint.cpp saves and restores this state
   absl::Status run_phase(int phase);
   absl::Status run_phase_generation(int phase, nlohmann::json& entry);
   absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);

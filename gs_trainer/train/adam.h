@@ -27,7 +27,7 @@ class GaussianAdam {
   void reset_state(size_t index);
 
  private:
-  friend struct CheckpointAccess;  // gs_trainer/checkpoint.cpp saves and restores this state
+  friend struct CheckpointAccess;  // gs_trainer/run/checkpoint.cpp saves and restores this state
   struct Group {
     at::Tensor* param;
     double lr;

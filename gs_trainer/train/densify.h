@@ -26,7 +26,7 @@ class DensityControl {
   static void reset_opacity(GaussianModel& model, GaussianAdam& adam);
 
  private:
-  friend struct CheckpointAccess;  // gs_trainer/checkpoint.cpp saves and restores the statistics
+  friend struct CheckpointAccess;  // gs_trainer/run/checkpoint.cpp saves and restores the statistics
   void ensure_size(int64_t n, const at::TensorOptions& opts);
   const TrainConfig& config_;
   double extent_;

@@ -59,7 +59,7 @@ class Trainer {
                    const StepFunction& next_step = nullptr);
 
  private:
-  friend struct CheckpointAccess;  // gs_trainer/checkpoint.cpp saves and restores this state
+  friend struct CheckpointAccess;  // gs_trainer/run/checkpoint.cpp saves and restores this state
   void update_schedules();
   const TrainingView& next_view();
   void maintain_density(const RenderOutput* gt_render, const RenderOptions& options, const Camera* camera);

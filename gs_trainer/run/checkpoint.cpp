@@ -1,4 +1,4 @@
-#include "gs_trainer/checkpoint.h"
+#include "gs_trainer/run/checkpoint.h"
 
 #include <sstream>
 #include <vector>

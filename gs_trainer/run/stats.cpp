@@ -1,4 +1,4 @@
-#include "gs_trainer/run_stats.h"
+#include "gs_trainer/run/stats.h"
 
 #include <sys/resource.h>
 
