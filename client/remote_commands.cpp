@@ -116,9 +116,11 @@ void print_event(const v1::JobEvent& e, ProgressPrinter& progress) {
 }
 
 void print_status(const v1::JobStatus& s) {
-  std::cout << absl::StrFormat("%s  %-9s  %-16s  %6d/%-6d  %8lld Gaussians", s.job_id(), v1::JobState_Name(s.state()),
-                               printable(s.name()), s.iteration(), s.iterations(),
-                               static_cast<long long>(s.num_gaussians()));
+  // A running job that has not trained yet is still making its initial points (minutes on a CPU).
+  const bool initialising = s.state() == v1::RUNNING && s.stage() == "initialising";
+  std::cout << absl::StrFormat("%s  %-12s  %-16s  %6d/%-6d  %8lld Gaussians", s.job_id(),
+                               initialising ? "INITIALISING" : v1::JobState_Name(s.state()), printable(s.name()),
+                               s.iteration(), s.iterations(), static_cast<long long>(s.num_gaussians()));
   if (s.state() == v1::SUCCEEDED) {
     std::cout << absl::StrFormat("  PSNR %.2f  SSIM %.4f", s.psnr(), s.ssim());
     std::cout << (s.has_lpips() ? absl::StrFormat("  LPIPS %.4f", s.lpips()) : std::string("  LPIPS n/a"));

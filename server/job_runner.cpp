@@ -92,6 +92,10 @@ void JobRunner::shutdown() {
 }
 
 void JobRunner::publish(v1::JobEvent event) {
+  // The trainer's own log says when a job arrives and starts; its end is logged by end_job.
+  if (event.has_state_changed())
+    write_log_line(STDERR_FILENO,
+                   absl::StrCat("gaps-trainer: job ", event.job_id(), ": ", v1::JobState_Name(event.state_changed())));
   if (const absl::StatusOr<int64_t> seq = store_.append_event(event); !seq.ok())
     log_store_error(event.job_id(), absl::StrCat("its ", event_name(event), " event"), seq.status());
   events_changed_.notify_all();
@@ -179,6 +183,7 @@ void JobRunner::run_job(v1::JobStatus status) {
     running_.erase(job_id);
   };
   status.set_state(v1::RUNNING);
+  status.set_stage("initialising");
   status.set_started_at(now_seconds());
   status.set_runner(options_.replica_id);
   // The job runs anyway: a store that recovers records its end, and one that does not lets the lease lapse,
@@ -309,6 +314,7 @@ void JobRunner::on_progress(const TrainProgress& p, v1::JobStatus& status) {
   status.set_iteration(p.iteration);
   status.set_iterations(p.iterations);
   status.set_num_gaussians(p.num_gaussians);
+  status.set_stage("training");
   if (absl::Status st = store_.update(status, options_.replica_id); !st.ok() && st.code() != absl::StatusCode::kAborted)
     log_store_error(status.job_id(), absl::StrCat("its progress at iteration ", p.iteration), st);
 }
@@ -335,6 +341,9 @@ void JobRunner::heartbeat_loop() {
 
 void JobRunner::end_job(UnrecordedEnd end) {
   const std::string job_id = end.status.job_id();
+  end.status.clear_stage();
+  write_log_line(STDERR_FILENO, absl::StrCat("gaps-trainer: job ", job_id, ": ", v1::JobState_Name(end.status.state()),
+                                             end.status.error().empty() ? "" : ": ", end.status.error()));
   const absl::Status st = record_end(end);
   if (!st.ok()) {
     log_store_error(job_id,

@@ -19,6 +19,7 @@ std::string stage_title(const std::string& stage) {
 }  // namespace
 
 std::function<void(const std::string&, int, int)> stage_progress_lines(std::function<void(const std::string&)> log) {
+  if (!log) return {};
   struct State {
     std::chrono::steady_clock::time_point started;
     int tenths = 0;

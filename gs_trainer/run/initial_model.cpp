@@ -179,6 +179,7 @@ absl::StatusOr<PointCloud> initial_points(const RunOptions& o, const Scene& scen
   InitOptions init;
   init.cache_dir = used.init_cache_dir;
   init.should_stop = o.should_stop;
+  init.on_progress = stage_progress_lines(log);
   init.random_points = used.random_points;
   init.seed = used.config.seed;
   init.dense_workspace = dense_workspace;
