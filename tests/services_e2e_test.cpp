@@ -476,14 +476,25 @@ TEST_F(Services, CancelStopsAJobStillInitialising) {
                   .ok());
   auto job = client.submit(job_spec, scene);
   ASSERT_TRUE(job.ok()) << job.status();
+  // Cancelled once PatchMatch says it has begun: the stages are visible as job events, and the job shows as
+  // INITIALISING meanwhile.
   bool cancel_sent = false;
+  std::string listed;
   auto final_status = client.watch(*job, [&](const v1::JobEvent& e) {
-    if (!cancel_sent && e.has_state_changed() && e.state_changed() == v1::RUNNING) {
+    if (!cancel_sent && e.has_log() && absl::StartsWith(e.log(), "init: PatchMatch: 0/")) {
       cancel_sent = true;
+      listed = run_command(std::string(GAPS_CLI_BIN) + " list" + trainer_flags()).second;
       EXPECT_TRUE(client.cancel(*job).ok());
     }
   });
   ASSERT_TRUE(final_status.ok()) << final_status.status();
+  EXPECT_TRUE(cancel_sent) << "no PatchMatch progress event";
+  EXPECT_NE(listed.find(*job + "  INITIALISING"), std::string::npos) << listed;
+  // The trainer's own log follows the job: its arrival, start and end.
+  for (const std::string state : {"QUEUED", "RUNNING", "CANCELLED: cancelled: "})
+    EXPECT_NE(trainer->log_text().find("gaps-trainer: job " + *job + ": " + state), std::string::npos)
+        << state << "\n"
+        << trainer->log_text();
   EXPECT_EQ(final_status->state(), v1::CANCELLED) << final_status->error();
   EXPECT_TRUE(std::regex_match(final_status->error(),
                                std::regex("cancelled: (PatchMatch stopped at view [0-9]+|initialisation stopped "
@@ -768,6 +779,11 @@ TEST_F(Services, TrainAndSubmitStartAutoFromTheSameLargerViews) {
   ASSERT_NO_FATAL_FAILURE(submit_watch_fetch(fern, run_flags, dir_ / "remote", &out)) << trainer->log_text();
   EXPECT_NE(out.find(larger), std::string::npos) << out;
   ASSERT_TRUE(std::regex_search(out, remote_points, std::regex("initial points: ([0-9]+)"))) << out;
+  // Its stages are said as they go, by gaps train and through the job's events alike.
+  for (const std::string& said : {local_out, out})
+    for (const std::string stage : {"init: sparse points (SIFT, matching, triangulation): done in ",
+                                    "init: PatchMatch: 0/", "init: fusion of the depth maps: done in "})
+      EXPECT_NE(said.find(stage), std::string::npos) << stage << "\n" << said;
   EXPECT_EQ(local_points[1], remote_points[1]) << "the same views and settings make the same cloud\n"
                                                << local_out << "\n"
                                                << out;
