@@ -266,7 +266,7 @@ absl::StatusOr<RunOptions> JobRunner::run_options(const std::string& job_id) {
   if (std::error_code ec; fs::is_directory(o->scene_dir / kLargerViewsFolder, ec))
     o->larger_views_dir = o->scene_dir / kLargerViewsFolder;
   o->out_dir = dir / "out";
-  o->init_cache_dir = options_.data_dir / "init_cache";
+  o->init_cache_dir = options_.init_cache_dir.empty() ? options_.data_dir / "init_cache" : options_.init_cache_dir;
   o->lpips_weights = options_.lpips_weights;
   o->checkpoint_dir = dir / "checkpoint";
   o->checkpoint_every_seconds = options_.checkpoint_seconds;

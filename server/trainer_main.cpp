@@ -53,6 +53,10 @@ ABSL_FLAG(std::string, lpips_weights, "",
           "LPIPS-VGG weights of the jobs' metrics (default: ~/.cache/gaps/lpips/vgg16_lpips_v0.1.safetensors, as "
           "scripts/setup.sh makes it, when present; none: no LPIPS)");
 
+ABSL_FLAG(std::string, init_cache, "",
+          "folder of the initial point clouds the jobs reuse (default: DATA_DIR/init_cache); gaps train's own "
+          "(~/.cache/gaps/init) shares one cache between the two on a machine");
+
 namespace {
 
 gaps::cli::CommandSpec command() {
@@ -68,7 +72,7 @@ gaps::cli::CommandSpec command() {
   spec.groups = {
       {"service",
        {"listen", "data_dir", "device", "gpu_memory_gib", "concurrency", "max_crashes", "max_upload_mb",
-        "checkpoint_seconds", "lpips_weights"}},
+        "checkpoint_seconds", "lpips_weights", "init_cache"}},
       {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
       {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
@@ -144,6 +148,7 @@ int serve() {
   absl::StatusOr<std::filesystem::path> lpips = lpips_weights(&lpips_note);
   if (!lpips.ok()) return fail(lpips.status());
   options.lpips_weights = *lpips;
+  options.init_cache_dir = absl::GetFlag(FLAGS_init_cache);
   for (absl::string_view a : absl::StrSplit(absl::GetFlag(FLAGS_workers), ',', absl::SkipEmpty()))
     options.workers.addresses.emplace_back(a);
   options.workers.security = {*worker_token, absl::GetFlag(FLAGS_worker_tls_ca),

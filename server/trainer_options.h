@@ -25,9 +25,10 @@ struct TrainerServiceOptions {
   // A job found RUNNING at start-up whose trainer died (no clean stop) this many times is FAILED, not run
   // again: it may be what killed the trainer.
   int max_crashes = 2;
-  std::filesystem::path lpips_weights;  // the jobs' LPIPS-VGG weights (safetensors); empty: LPIPS is null
-  WorkerPoolOptions workers;            // diffusion workers (addresses may be empty: vanilla jobs only)
-  std::string token;                    // required bearer token (empty: none)
+  std::filesystem::path init_cache_dir;  // the jobs' initial-point cache; empty: data_dir/init_cache
+  std::filesystem::path lpips_weights;   // the jobs' LPIPS-VGG weights (safetensors); empty: LPIPS is null
+  WorkerPoolOptions workers;             // diffusion workers (addresses may be empty: vanilla jobs only)
+  std::string token;                     // required bearer token (empty: none)
   uint64_t max_upload_bytes = uint64_t{8} << 30;
   std::chrono::milliseconds store_retry_interval{10000};  // between attempts to record a refused job end
 };

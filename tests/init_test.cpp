@@ -567,6 +567,17 @@ TEST(Initializer, TheStagesReportTheirProgressInOrder) {
   const auto cached = run_initialization("mvs", cams, images, o);
   ASSERT_TRUE(cached.ok() && cached->from_cache);
   EXPECT_TRUE(heard.empty()) << heard.size();
+  // A reused result says so before the statistics it was computed with.
+  std::string report;
+  ASSERT_TRUE(initialize_points("mvs", cams, images, o, &report).ok());
+  EXPECT_TRUE(absl::StartsWith(report, "init: reusing ")) << report;
+  // The same views under another scene folder's name (a service job's upload is "scene") reuse it too.
+  std::vector<Camera> renamed = cams;
+  for (Camera& c : renamed) c.image_path = fs::path("/elsewhere/job-1/scene") / (c.name + ".png");
+  ASSERT_NE(init_cache_key("mvs", renamed, images, o), init_cache_key("mvs", cams, images, o));
+  const auto reused = run_initialization("mvs", renamed, images, o);
+  ASSERT_TRUE(reused.ok()) << reused.status();
+  EXPECT_TRUE(reused->from_cache);
   ASSERT_TRUE(run_initialization("sweep", cams, images, o).ok());
   EXPECT_EQ(heard, (std::vector<std::string>{"sparse 0/1", "sparse 1/1", "sweep 0/1", "sweep 1/1"}));
   remove_tree(dir);

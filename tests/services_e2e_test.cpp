@@ -731,7 +731,9 @@ TEST_F(Services, TrainAndSubmitStartFromTheSameCloudForEveryInit) {
   at::manual_seed(0);
   const fs::path ply = dir_ / "points.ply";
   ASSERT_TRUE(write_point_cloud_ply({at::rand({200, 3}) * 2 - 1, at::rand({200, 3})}, ply).ok());
-  auto trainer = start_trainer();
+  // The trainer shares gaps train's cache (--init-cache): what the local run computed, the job reuses, which
+  // it can only when the same cameras, images and settings reached it (the cache key covers all three).
+  auto trainer = start_trainer({"--init-cache", (dir_ / "cache").string()});
   ASSERT_GT(trainer_port, 0) << trainer->log_text();
   for (const std::string init : {"mvs", "sweep", "sparse", "ply"}) {
     SCOPED_TRACE(init);
@@ -750,6 +752,7 @@ TEST_F(Services, TrainAndSubmitStartFromTheSameCloudForEveryInit) {
     EXPECT_GT(local["init_points"].get<int64_t>(), 0) << local;
     EXPECT_EQ(local["init_points"], remote["init_points"]) << "local " << local << "\nremote " << remote;
     EXPECT_EQ(local["init_method"], remote["init_method"]);
+    if (init != "ply") EXPECT_EQ(remote["init_from_cache"], true) << init;
   }
 }
 
@@ -779,6 +782,10 @@ TEST_F(Services, TrainAndSubmitStartAutoFromTheSameLargerViews) {
   ASSERT_NO_FATAL_FAILURE(submit_watch_fetch(fern, run_flags, dir_ / "remote", &out)) << trainer->log_text();
   EXPECT_NE(out.find(larger), std::string::npos) << out;
   ASSERT_TRUE(std::regex_search(out, remote_points, std::regex("initial points: ([0-9]+)"))) << out;
+  // On the CPU gaps train names the flag that keeps the training views; the job, which gaps submit made and
+  // which cannot take that flag, does not.
+  EXPECT_NE(local_out.find("(--init-resolution 16 keeps the training views)"), std::string::npos) << local_out;
+  EXPECT_EQ(out.find("--init-resolution"), std::string::npos) << out;
   // Its stages are said as they go, by gaps train and through the job's events alike.
   for (const std::string& said : {local_out, out})
     for (const std::string stage : {"init: sparse points (SIFT, matching, triangulation): done in ",

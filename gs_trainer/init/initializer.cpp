@@ -264,6 +264,23 @@ std::string init_cache_key(const std::string& method, const std::vector<Camera>&
   return absl::StrFormat("%s_%dv_%dx%d_%s_%016x", scene_name(cameras), cameras.size(), w, h, method, fnv1a(text));
 }
 
+namespace {
+
+// A cache file of `key` under another scene name: the name is only the folder the images came from (a
+// service job's is "scene"), while the rest of the key covers cameras, pixels and settings. This is how
+// gaps train and a trainer sharing one cache folder reuse each other's clouds.
+std::optional<fs::path> same_key_other_name(const fs::path& dir, const std::string& key, const std::string& name) {
+  const std::string rest = key.substr(name.size()) + ".ply";
+  std::error_code ec;
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string file = it->path().filename().string();
+    if (file.size() > rest.size() && file.compare(file.size() - rest.size(), rest.size(), rest) == 0) return it->path();
+  }
+  return std::nullopt;
+}
+
+}  // namespace
+
 bool is_init_method(const std::string& name) {
   return std::find(std::begin(kInitMethods), std::end(kInitMethods), name) != std::end(kInitMethods);
 }
@@ -287,10 +304,14 @@ absl::StatusOr<InitResult> cached_or_computed(const std::string& method, const s
   fs::path cache;
   // Random points cost nothing to draw again; caching them would only hide changes.
   if (!opts.cache_dir.empty() && method != "random") {
-    cache = opts.cache_dir / (init_cache_key(method, train_cameras, train_images, opts) + ".ply");
+    const std::string key = init_cache_key(method, train_cameras, train_images, opts);
+    cache = opts.cache_dir / (key + ".ply");
     const bool needs_maps = method == "mvs" && !opts.dense_workspace.empty();
     if (std::optional<InitResult> cached = needs_maps ? std::nullopt : read_init_cache(cache))
       return std::move(*cached);
+    if (const auto other =
+            needs_maps ? std::nullopt : same_key_other_name(opts.cache_dir, key, scene_name(train_cameras)))
+      if (std::optional<InitResult> cached = read_init_cache(*other)) return std::move(*cached);
   }
   GAPS_ASSIGN_OR_RETURN(InitResult r, compute(method, train_cameras, train_images, opts));
   r.points.xyz = r.points.xyz.to(at::kCPU, at::kFloat).contiguous();
