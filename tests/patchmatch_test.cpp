@@ -284,13 +284,15 @@ TEST(PatchMatchStereo, AStopRequestEndsItBeforeTheNextSweep) {
   o.iterations = 2;
   o.geometric_iterations = 1;
   int asked = 0;
-  const auto stopped = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o, [&] { return ++asked == 3; });
+  const auto stopped =
+      patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o, StageControl{[&] { return ++asked == 3; }, {}});
   EXPECT_EQ(stopped.status().code(), absl::StatusCode::kCancelled) << stopped.status();
   EXPECT_EQ(asked, 3);
   EXPECT_EQ(stopped.status().message(), "PatchMatch stopped at view 1");  // view 0's two sweeps ran
 
   asked = 0;
-  const auto whole = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o, [&] { return ++asked < 0; });
+  const auto whole =
+      patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o, StageControl{[&] { return ++asked < 0; }, {}});
   const auto plain = patchmatch_stereo(ss::stereo_input(views, ss::kDepthRange), o);
   ASSERT_TRUE(whole.ok() && plain.ok());
   EXPECT_EQ(asked, static_cast<int>(views.size()) * (o.iterations + o.geometric_iterations));
