@@ -40,7 +40,8 @@ class Process {
   // The port the service printed ("... port N"), or -1 when it exited or did not say within the timeout.
   int wait_for_port(std::chrono::seconds timeout = std::chrono::seconds(60)) {
     const auto end = std::chrono::steady_clock::now() + timeout;
-    const std::regex pattern("on port ([0-9]+)");  // "serving ... on port N", not an error naming a port
+    // "serving ... on port N" (the services) or "(port N)" (gaps view), not an error that names a port.
+    const std::regex pattern("(?:on port|\\(port) ([0-9]+)");
     while (std::chrono::steady_clock::now() < end && running()) {
       std::smatch m;
       const std::string text = log_text();
