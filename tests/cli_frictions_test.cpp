@@ -204,22 +204,7 @@ TEST_F(Frictions, CommandHelpPointsToTheExitCodeTableInsteadOfRepeatingIt) {
 TEST_F(Frictions, EachTlsMistakeIsNamed) {
   if (std::system("openssl version > /dev/null 2>&1") != 0) GTEST_SKIP() << "openssl not found: no test certificates";
   const std::string d = dir_.string() + "/";
-  const auto run = [&](const std::string& command) {
-    return std::system((command + " > /dev/null 2>&1").c_str()) == 0;
-  };
-  const auto sign = [&](const std::string& name, const std::string& ext) {
-    return run("openssl req -newkey rsa:2048 -nodes -subj /CN=" + name + " -keyout " + d + name + ".key -out " + d +
-               name + ".csr") &&
-           run("printf '" + ext + "' > " + d + name + ".ext") &&
-           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d +
-               "ca.key -CAcreateserial -days 1 -out " + d + name + ".pem -extfile " + d + name + ".ext");
-  };
-  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d +
-                  "ca.key -out " + d + "ca.pem"));
-  ASSERT_TRUE(sign("localhost", "subjectAltName=DNS:localhost\\nextendedKeyUsage=serverAuth"));
-  ASSERT_TRUE(sign("client", "extendedKeyUsage=clientAuth"));
-  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " +
-                  d + "rogue.pem"));
+  ASSERT_TRUE(test::make_test_certificates(dir_));
   const std::vector<std::string> tls = {"--tls-cert", d + "localhost.pem", "--tls-key", d + "localhost.key"};
   std::string plain_at, tls_at, mutual_at;
   auto plain = trainer("plain", {}, &plain_at);

@@ -589,21 +589,7 @@ using MutualTls = test::TempDirTest;
 TEST_F(MutualTls, OnlyClientsWithACertificateSignedByTheClientCaGetIn) {
   if (std::system("openssl version > /dev/null 2>&1") != 0) GTEST_SKIP() << "openssl not found: no test certificates";
   const std::string d = dir_.string() + "/";
-  const std::string quiet = " > /dev/null 2>&1";
-  auto run = [&](const std::string& command) { return std::system((command + quiet).c_str()) == 0; };
-  auto sign = [&](const std::string& name, const std::string& ext) {
-    return run("openssl req -newkey rsa:2048 -nodes -subj /CN=" + name + " -keyout " + d + name + ".key -out " + d +
-               name + ".csr") &&
-           run("printf '" + ext + "' > " + d + name + ".ext") &&
-           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d +
-               "ca.key -CAcreateserial -days 1 -out " + d + name + ".pem -extfile " + d + name + ".ext");
-  };
-  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d +
-                  "ca.key -out " + d + "ca.pem"));
-  ASSERT_TRUE(sign("localhost", "subjectAltName=DNS:localhost\\nextendedKeyUsage=serverAuth"));
-  ASSERT_TRUE(sign("client", "extendedKeyUsage=clientAuth"));
-  ASSERT_TRUE(run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " +
-                  d + "rogue.pem"));
+  ASSERT_TRUE(test::make_test_certificates(dir_));
 
   auto credentials = rpc::server_credentials({"", d + "localhost.pem", d + "localhost.key", d + "ca.pem"});
   ASSERT_TRUE(credentials.ok()) << credentials.status();

@@ -66,4 +66,24 @@ class TempDirTest : public ::testing::Test {
   std::filesystem::path dir_;
 };
 
+// A test CA (ca.pem), a server certificate for localhost, a client certificate it signed and a self-signed
+// "rogue" one, each with its key, in `dir`. False when openssl fails (callers skip first without openssl).
+inline bool make_test_certificates(const std::filesystem::path& dir) {
+  const std::string d = dir.string() + "/";
+  const auto run = [](const std::string& command) { return std::system((command + " > /dev/null 2>&1").c_str()) == 0; };
+  const auto sign = [&](const std::string& name, const std::string& ext) {
+    return run("openssl req -newkey rsa:2048 -nodes -subj /CN=" + name + " -keyout " + d + name + ".key -out " + d +
+               name + ".csr") &&
+           run("printf '" + ext + "' > " + d + name + ".ext") &&
+           run("openssl x509 -req -in " + d + name + ".csr -CA " + d + "ca.pem -CAkey " + d +
+               "ca.key -CAcreateserial -days 1 -out " + d + name + ".pem -extfile " + d + name + ".ext");
+  };
+  return run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=gaps-test-ca -keyout " + d + "ca.key -out " +
+             d + "ca.pem") &&
+         sign("localhost", "subjectAltName=DNS:localhost\\nextendedKeyUsage=serverAuth") &&
+         sign("client", "extendedKeyUsage=clientAuth") &&
+         run("openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=rogue -keyout " + d + "rogue.key -out " + d +
+             "rogue.pem");
+}
+
 }  // namespace gaps::test
