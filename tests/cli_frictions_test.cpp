@@ -11,6 +11,7 @@
 #include "absl/strings/str_split.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/process_util.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -29,14 +30,8 @@ const fs::path kBonsai = fs::path(GAPS_DATA_DIR) / "mipnerf360" / "bonsai";
 struct Frictions : test::TempDirTest {
   // A small synthetic forward-facing scene (9 images, 64x48).
   fs::path scene() {
-    const fs::path dir = dir_ / "scene";
-    if (fs::exists(dir)) return dir;
-    SyntheticSceneOptions s;
-    s.images = 9;
-    s.width = 64;
-    s.height = 48;
-    EXPECT_TRUE(write_synthetic_scene(dir, s).ok());
-    return dir;
+    if (!fs::exists(dir_ / "scene")) test::write_small_scene(dir_, 64, 48, 9);
+    return dir_ / "scene";
   }
   static std::string submit_flags() { return " -r 1 --init random --random-points 300 --eval-every 0"; }
   static std::string quick_flags() { return submit_flags() + " --iterations 20 --device cpu --report=false"; }

@@ -22,6 +22,7 @@
 #include "gs_trainer/init/patchmatch.h"
 #include "gs_trainer/synthetic.h"
 #include "tests/process_util.h"
+#include "tests/synthetic_run.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -77,14 +78,8 @@ HelpFlags flags_in_help(const std::string& help) {
 struct Cli : test::TempDirTest {
   // A small synthetic scene (9 images, 64x48): enough for quick runs without the benchmark data.
   fs::path scene() {
-    const fs::path dir = dir_ / "scene";
-    if (fs::exists(dir)) return dir;
-    SyntheticSceneOptions s;
-    s.images = 9;
-    s.width = 64;
-    s.height = 48;
-    EXPECT_TRUE(write_synthetic_scene(dir, s).ok());
-    return dir;
+    if (!fs::exists(dir_ / "scene")) test::write_small_scene(dir_, 64, 48, 9);
+    return dir_ / "scene";
   }
   // `gaps train` on the synthetic scene for a few iterations, with `extra` flags.
   std::pair<int, std::string> quick_train(const std::string& out, const std::string& extra = "") {

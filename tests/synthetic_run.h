@@ -10,8 +10,9 @@
 namespace gaps::test {
 
 // The synthetic scene, written to dir/scene at width x height.
-inline void write_small_scene(const std::filesystem::path& dir, int width = 64, int height = 48) {
+inline void write_small_scene(const std::filesystem::path& dir, int width = 64, int height = 48, int images = 16) {
   SyntheticSceneOptions s;
+  s.images = images;
   s.width = width;
   s.height = height;
   const absl::Status written = write_synthetic_scene(dir / "scene", s);
