@@ -21,19 +21,9 @@ jobs=${JOBS:-42}
 only=${ONLY:-}
 flags=(--flag device=cuda)
 [ -n "${LPIPS_WEIGHTS:-}" ] && flags+=(--flag "lpips-weights=$LPIPS_WEIGHTS")
-mkdir -p "$out/init"
 
 echo "paper_tables: initialising the five settings"
-pids=()
-for setting in llff/fern:3 llff/fern:6 llff/fern:9 mipnerf360/bonsai:12 mipnerf360/bonsai:24; do
-  scene=${setting%%:*} views=${setting##*:}
-  name=$(basename "$scene")_$views
-  [[ "$(basename "$scene")_v${views}_" =~ $only ]] || continue
-  "$gaps" init --scene "$data/$scene" --views "$views" -r 8 --init auto --device cuda --overwrite \
-    --out "$out/init/$name" >"$out/init/$name.log" 2>&1 &
-  pids+=($!)
-done
-for pid in "${pids[@]}"; do wait "$pid"; done
+bash "$here/init_settings.sh" "$gaps" "$data" "$out" "$only"
 
 echo "paper_tables: training"
 python3 "$here/harness.py" --config "$here/configs/paper_tables.json" --data "$data" --out "$out/tables" \

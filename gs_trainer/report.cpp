@@ -3,6 +3,9 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <map>
+#include <set>
+#include <string>
 #include <vector>
 
 #include <ATen/ATen.h>
@@ -174,6 +177,46 @@ absl::StatusOr<std::string> renders_section(const fs::path& out_dir, const std::
   return html + "</table>\n";
 }
 
+// The phase's selection diagnostic: every candidate scored (I_recon, C_gen, score, best first), which were
+// picked and admitted, and how the active set changed.
+std::string selection_diagnostic(const json& phase) {
+  std::map<int, bool> picked;  // id -> admitted
+  for (const auto& s : phase.value("selection", json::array())) picked[s.value("id", -1)] = s.value("admitted", false);
+  std::set<int> refreshed;
+  for (const auto& id : phase.value("refreshed", json::array())) refreshed.insert(id.get<int>());
+  const json scored = phase.value("candidates", json::array());
+  std::vector<json> candidates(scored.begin(), scored.end());
+  std::stable_sort(candidates.begin(), candidates.end(),
+                   [](const json& a, const json& b) { return a.value("score", 0.0) > b.value("score", 0.0); });
+  const json pool = phase.value("pool", json::object());
+  std::string html = absl::StrCat("<details><summary>Selection: ", candidates.size(), " candidates scored (",
+                                  pool.value("never_generated", 0), " never generated before), ", picked.size(),
+                                  " picked; active set ", phase.value("active", json::array()).size(), " views (",
+                                  phase.value("entered", json::array()).size(), " entered, ",
+                                  phase.value("retired", json::array()).size(), " retired)</summary>\n");
+  html +=
+      "<table><tr><th>candidate</th><th>pair</th><th>&alpha;</th><th>I_recon</th><th>C_gen</th><th>score</th>"
+      "<th>decision</th></tr>\n";
+  for (const json& c : candidates) {
+    const int id = c.value("id", -1);
+    const auto p = picked.find(id);
+    const std::string decision =
+        p == picked.end() ? ""
+                          : absl::StrCat(p->second ? "admitted" : "rejected", refreshed.count(id) ? ", refreshed" : "");
+    const json pair = c.value("pair", json::array());
+    absl::StrAppend(&html, "<tr><td>", id, "</td><td>", pair.dump(), "</td><td>",
+                    json_number(c.value("alpha", json()), 3), "</td><td>", json_number(c.value("i_recon", json()), 4),
+                    "</td><td>", json_number(c.value("c_gen", json()), 4), "</td><td>",
+                    json_number(c.value("score", json()), 4), "</td><td>", p == picked.end() ? "" : "<b>picked</b>, ",
+                    decision, "</td></tr>\n");
+  }
+  html += "</table>\n";
+  for (const auto& r : phase.value("retired", json::array()))
+    absl::StrAppend(&html, "<div>retired candidate ", r.value("id", -1), ": ", escape(r.value("reason", "")),
+                    "</div>\n");
+  return html + "</details>\n";
+}
+
 absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
   const fs::path phases_path = out_dir / "phases.json";
   if (!fs::exists(phases_path)) return std::string("<p>No pseudo-view phases (vanilla training).</p>\n");
@@ -201,6 +244,7 @@ absl::StatusOr<std::string> phases_section(const fs::path& out_dir) {
                       "</b>: ", escape(s.value("reason", "")), "</figcaption></figure>\n");
     }
     html += "</div>\n";
+    if (phase.contains("candidates") || phase.contains("active")) html += selection_diagnostic(phase);
   }
   return html.empty() ? std::string("<p>No phase was run.</p>\n") : html;
 }

@@ -9,6 +9,7 @@
 
 #include "gs_trainer/gaps/admission.h"
 #include "gs_trainer/gaps/config.h"
+#include "tests/sdxl_test_util.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -23,8 +24,16 @@ at::Tensor flat(int64_t h, int64_t w, double value) { return at::full({h, w, 3},
 
 // ---------------------------------------------------------------- admission (sec. 3.6)
 
+// The paper's two criteria as it writes them: I_hall itself, every pixel, no structure criterion.
+GapsConfig paper_gate() {
+  GapsConfig c;
+  c.admit_on_proposal = false;
+  c.admit_min_structure = 0;
+  return c;
+}
+
 TEST(Admission, AcceptsCoveredConsistentViews) {
-  const GapsConfig c;
+  const GapsConfig c = paper_gate();
   // Residual 0.125 everywhere, mean alpha 0.5.
   const AdmissionDecision d = admit_pseudo_view(flat(2, 2, 0.25), flat(2, 2, 0.125), at::full({2, 2}, 0.5, kDouble), c);
   EXPECT_TRUE(d.admitted) << d.reason;
@@ -34,7 +43,7 @@ TEST(Admission, AcceptsCoveredConsistentViews) {
 }
 
 TEST(Admission, RejectsLowCoverage) {
-  const GapsConfig c;
+  const GapsConfig c = paper_gate();
   const AdmissionDecision d =
       admit_pseudo_view(flat(2, 2, 0.25), flat(2, 2, 0.125), at::full({2, 2}, 0.125, kDouble), c);
   EXPECT_FALSE(d.admitted);
@@ -46,7 +55,7 @@ TEST(Admission, RejectsLowCoverage) {
 }
 
 TEST(Admission, RejectsInconsistentGenerations) {
-  const GapsConfig c;
+  const GapsConfig c = paper_gate();
   const AdmissionDecision d = admit_pseudo_view(flat(2, 2, 1.0), flat(2, 2, 0.25), at::ones({2, 2}, kDouble), c);
   EXPECT_FALSE(d.admitted);
   EXPECT_DOUBLE_EQ(d.mean_residual, 0.75);
@@ -130,6 +139,21 @@ TEST(DropGaussian, RatioRampsWithTimeAndDensity) {
   EXPECT_DOUBLE_EQ(drop_ratio(10000, 10000, 400000, c), 0.2);
   EXPECT_DOUBLE_EQ(drop_ratio(10000, 10000, 50000, c), 0.05);
   EXPECT_DOUBLE_EQ(drop_ratio(10000, 10000, 0, c), 0.0);
+}
+
+// With a Gaussian budget below N_thr the threshold is the budget (times drop_budget_fraction), so a capped
+// model reaches r_max; 0 keeps the paper's N_thr.
+TEST(DropGaussian, TheThresholdFollowsABudgetBelowIt) {
+  GapsConfig c;
+  EXPECT_DOUBLE_EQ(drop_threshold(c, 0), 200000);       // no budget
+  EXPECT_DOUBLE_EQ(drop_threshold(c, 55000), 55000);    // fern 3 views' automatic budget
+  EXPECT_DOUBLE_EQ(drop_threshold(c, 500000), 200000);  // a budget above N_thr changes nothing
+  EXPECT_DOUBLE_EQ(drop_ratio(10000, 10000, 55000, c, 55000), 0.2);
+  EXPECT_DOUBLE_EQ(drop_ratio(5000, 10000, 27500, c, 55000), 0.2 * 0.5 * 0.5);
+  c.drop_budget_fraction = 0.5;
+  EXPECT_DOUBLE_EQ(drop_threshold(c, 55000), 27500);
+  c.drop_budget_fraction = 0;
+  EXPECT_DOUBLE_EQ(drop_ratio(10000, 10000, 55000, c, 55000), 0.2 * 55000 / 200000);
 }
 
 TEST(DropGaussian, ScaleIsZeroOrCompensated) {
@@ -216,6 +240,62 @@ TEST(StructureGuard, RejectsNoiseThatTheResidualCriterionAdmits) {
   const AdmissionDecision paper_only = admit_pseudo_view(noise, render, alpha, off);
   EXPECT_TRUE(paper_only.admitted) << paper_only.reason;
   EXPECT_FALSE(paper_only.structure.has_value());
+}
+
+// ---------------------------------------------------------------- the generator's proposal (not in the paper)
+
+TEST(Proposal, UndoesTheAnchoringOfAnImg2ImgBlend) {
+  at::manual_seed(4);
+  const at::Tensor render = at::rand({6, 5, 3}, kDouble) * 0.5 + 0.25;
+  const at::Tensor warp = at::rand({6, 5, 3}, kDouble) * 0.5 + 0.25;
+  const at::Tensor blend = 0.7 * render + 0.3 * warp;  // strength 0.3
+  test::expect_close(generator_proposal(blend, render, 0.3), warp, 1e-12, "proposal of a blend");
+  // Clamped to [0, 1]; strengths below 0.05 count as 0.05.
+  const at::Tensor far = generator_proposal(flat(2, 2, 1.0), flat(2, 2, 0.5), 0.1);
+  EXPECT_DOUBLE_EQ(far.min().item<double>(), 1.0);
+  test::expect_close(generator_proposal(flat(2, 2, 0.51), flat(2, 2, 0.5), 0.0), flat(2, 2, 0.7), 1e-12, "floor");
+}
+
+// Noise mixed into the render at strength 0.3, as a blending generator would return it: the paper's literal
+// criteria see a residual of about 0.1 and admit it; judged on the proposal (the noise itself) it fails.
+TEST(Proposal, ABlendOfNoiseIsRejectedThoughItsOwnResidualIsSmall) {
+  constexpr int64_t kSize = 96;
+  const at::Tensor ramp = at::linspace(0.1, 0.9, kSize, kDouble);
+  const at::Tensor render = (0.5 + 0.4 * at::sin(ramp.view({kSize, 1}) * 20) * at::cos(ramp.view({1, kSize}) * 15))
+                                .unsqueeze(2)
+                                .expand({kSize, kSize, 3})
+                                .contiguous();
+  const at::Tensor alpha = at::ones({kSize, kSize}, kDouble);
+  at::manual_seed(6);
+  const at::Tensor blend = 0.7 * render + 0.3 * at::rand({kSize, kSize, 3}, kDouble);
+  const AdmissionDecision literal = admit_pseudo_view(blend, render, alpha, paper_gate(), 0.3);
+  EXPECT_TRUE(literal.admitted) << literal.reason;
+  EXPECT_LT(literal.mean_residual, 0.15);
+  const GapsConfig c;
+  const AdmissionDecision judged = admit_pseudo_view(blend, render, alpha, c, 0.3);
+  EXPECT_FALSE(judged.admitted) << judged.reason;
+  EXPECT_GT(judged.mean_residual, 0.25);
+  EXPECT_TRUE(contains(judged.reason, "structure")) << judged.reason;
+  // The uncertainty map is the proposal's residual: the noise's distance from the render, not 0.3 of it.
+  test::expect_close(judged.uncertainty, (generator_proposal(blend, render, 0.3) - render).abs().mean(2), 1e-12,
+                     "uncertainty of the proposal");
+  // A blend towards a slightly brighter render keeps its structure and passes.
+  const AdmissionDecision kept = admit_pseudo_view(0.7 * render + 0.3 * (render * 0.9 + 0.08), render, alpha, c, 0.3);
+  EXPECT_TRUE(kept.admitted) << kept.reason;
+}
+
+// Only covered pixels (alpha >= coverage_alpha_threshold) are judged: a hole the generator filled with
+// anything does not count against the view.
+TEST(Proposal, UncoveredPixelsAreNotJudged) {
+  GapsConfig c;
+  c.admit_min_structure = 0;
+  at::Tensor alpha = at::ones({4, 4}, kDouble);
+  alpha.slice(1, 0, 2).fill_(0.1);  // the left half uncovered
+  at::Tensor image = flat(4, 4, 0.5);
+  image.slice(1, 0, 2).fill_(1.0);  // residual 0.5 there, 0 elsewhere
+  const AdmissionDecision d = admit_pseudo_view(image, flat(4, 4, 0.5), alpha, c, 1.0);
+  EXPECT_DOUBLE_EQ(d.mean_residual, 0.0);
+  EXPECT_DOUBLE_EQ(admit_pseudo_view(image, flat(4, 4, 0.5), alpha, paper_gate(), 1.0).mean_residual, 0.25);
 }
 
 }  // namespace

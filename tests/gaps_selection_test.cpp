@@ -62,7 +62,11 @@ TEST(GapsConfig, DefaultsAreThePapers) {
   EXPECT_EQ(c.n_active, 0);  // the paper's 16 or 24, from the training views' layout (n_active_for)
   EXPECT_EQ(kNActiveLlff, 16);
   EXPECT_EQ(kNActiveMip360, 24);
-  EXPECT_EQ(c.admit_min_structure, 0.0);  // the paper's two admission criteria only
+  EXPECT_DOUBLE_EQ(c.admit_min_alpha, 0.25);    // tau_cov
+  EXPECT_DOUBLE_EQ(c.admit_max_residual, 0.7);  // tau_res
+  // Departures (docs/fidelity.md): the gate judges the generator's proposal and its structure.
+  EXPECT_TRUE(c.admit_on_proposal);
+  EXPECT_GT(c.admit_min_structure, 0.0);
   EXPECT_EQ(c.lora_rank, 4);
   EXPECT_EQ(c.lora_steps, 50);
   EXPECT_DOUBLE_EQ(c.ip_adapter_scale, 0.5);

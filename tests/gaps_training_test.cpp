@@ -121,6 +121,54 @@ TEST_F(GapsTrainingTest, FullVariantRunsPhasesAdmitsAndStaysFinite) {
   EXPECT_EQ(read_json(dir_ / "out" / "metrics.json")["variant"], "full");
 }
 
+// The active set after every phase: this phase's admitted views, and older ones only while they are younger
+// than active_max_age and within active_size; what left is listed with why, the pool with what is new in it.
+TEST_F(GapsTrainingTest, TheActiveSetIsRefreshedEveryPhase) {
+  EchoGenerator gen(0.05);
+  RunOptions run = options(Variant::kFull, &gen);
+  run.config.iterations = 120;  // phases at 30, 60 and 90
+  run.gaps.active_max_age = 1;  // a view trains for one phase interval only
+  auto r = run_pipeline(run, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 3u);
+  std::set<int> before;
+  for (const auto& p : phases) {
+    std::set<int> admitted, active, entered, retired;
+    for (const auto& s : p["selection"])
+      if (s["admitted"].get<bool>()) admitted.insert(s["id"].get<int>());
+    for (const auto& id : p["active"]) active.insert(id.get<int>());
+    for (const auto& id : p["entered"]) entered.insert(id.get<int>());
+    for (const auto& v : p["retired"]) {
+      retired.insert(v["id"].get<int>());
+      EXPECT_FALSE(v["reason"].get<std::string>().empty());
+    }
+    EXPECT_FALSE(admitted.empty());
+    EXPECT_EQ(entered, admitted);
+    EXPECT_EQ(active, admitted) << "older views age out after one phase";
+    for (int id : before) EXPECT_TRUE(retired.count(id)) << "view " << id << " of the last phase left";
+    EXPECT_EQ(p["pool"]["size"].get<size_t>(), p["candidates"].size());
+    EXPECT_LE(p["pool"]["never_generated"].get<int>(), p["pool"]["size"].get<int>());
+    before = active;
+  }
+  EXPECT_EQ(phases[0]["pool"]["never_generated"].get<size_t>(), phases[0]["candidates"].size());
+  EXPECT_LT(phases[1]["pool"]["never_generated"].get<size_t>(), phases[1]["candidates"].size());
+
+  // Without the refresh every admitted view stays.
+  RunOptions grow = options(Variant::kFull, &gen);
+  grow.config.iterations = 120;
+  grow.gaps.refresh_active_set = false;
+  grow.out_dir = dir_ / "grow";
+  ASSERT_TRUE(run_pipeline(grow, nullptr, [](const std::string&) {}).ok());
+  const auto grown = read_json(dir_ / "grow" / "phases.json");
+  std::set<int> ever;
+  for (const auto& p : grown) {
+    for (const auto& s : p["selection"])
+      if (s["admitted"].get<bool>()) ever.insert(s["id"].get<int>());
+    EXPECT_EQ(p["active"].size(), ever.size());
+  }
+}
+
 // The pseudo-views kept for inspection are written in the background: every one is on disk when the run ends, and
 // one that cannot be written fails the run, with phases.json kept.
 TEST_F(GapsTrainingTest, InspectionImagesAreAllWrittenAndAFailedWriteFailsTheRun) {

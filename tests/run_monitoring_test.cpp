@@ -174,6 +174,10 @@ TEST_F(RunMonitoring, ReportShowsAdmittedAndRejectedPseudoViewsAndGeneratorTime)
   EXPECT_EQ(count(html, "<figure class=\"admitted\"><img"), admitted);
   EXPECT_EQ(count(html, "<figure class=\"rejected\"><img"), rejected);
   EXPECT_EQ(count(html, "<h3>Phase "), static_cast<int>(phases.size()));
+  // The selection diagnostic: per phase every scored candidate, the picked ones marked with their decision.
+  EXPECT_EQ(count(html, "<details><summary>Selection: "), static_cast<int>(phases.size()));
+  EXPECT_EQ(count(html, "<b>picked</b>, admitted"), admitted);
+  EXPECT_EQ(count(html, "<b>picked</b>, rejected"), rejected);
   EXPECT_EQ(count(html, "DEGRADED"), 0);
   EXPECT_EQ(count(html, "<tr><th>diffusion phases</th><td>2 run, 0 skipped</td></tr>"), 1);
 }

@@ -7,7 +7,7 @@
 
 #include <absl/strings/str_format.h>
 
-#include "gs_trainer/eval/metrics.h"
+#include "gs_trainer/raster/losses.h"
 
 namespace gaps {
 
@@ -58,16 +58,42 @@ AdmissionDecision decide_admission(double mean_alpha, double mean_residual, cons
   return d;
 }
 
+at::Tensor generator_proposal(const at::Tensor& hallucinated, const at::Tensor& rendered, double strength) {
+  check_image(hallucinated, "hallucinated");
+  check_image(rendered, "rendered");
+  return (rendered + (hallucinated - rendered) / std::max(strength, 0.05)).clamp(0, 1);
+}
+
+namespace {
+
+// Mean of an H×W map over the pixels of `mask` (H×W, 0/1), or over all pixels when the mask is empty.
+double masked_mean(const at::Tensor& map, const at::Tensor& mask) {
+  const double count = mask.sum().item<double>();
+  if (count < 1) return map.to(at::kDouble).mean().item<double>();
+  return (map.to(at::kDouble) * mask).sum().item<double>() / count;
+}
+
+std::string structure_reason(double structure, const GapsConfig& c) {
+  const bool ok = structure >= c.admit_min_structure;
+  return absl::StrFormat("SSIM to the render %.4f %s %.4g", structure, ok ? ">=" : "<", c.admit_min_structure);
+}
+
+}  // namespace
+
 AdmissionDecision admit_pseudo_view(const at::Tensor& hallucinated, const at::Tensor& rendered, const at::Tensor& alpha,
-                                    const GapsConfig& c) {
-  const double mean_residual = uncertainty_map(hallucinated, rendered).to(at::kDouble).mean().item<double>();
+                                    const GapsConfig& c, double strength) {
+  const at::Tensor judged = c.admit_on_proposal ? generator_proposal(hallucinated, rendered, strength) : hallucinated;
+  const at::Tensor u = uncertainty_map(judged, rendered);
+  const at::Tensor mask = c.admit_on_proposal ? (alpha >= c.coverage_alpha_threshold).to(at::kDouble)
+                                              : at::ones_like(alpha, alpha.options().dtype(at::kDouble));
   const double mean_alpha = alpha.to(at::kDouble).mean().item<double>();
-  AdmissionDecision d = decide_admission(mean_alpha, mean_residual, c);
+  AdmissionDecision d = decide_admission(mean_alpha, masked_mean(u, mask), c);
+  d.uncertainty = u;
   if (c.admit_min_structure <= 0) return d;
-  d.structure = ssim_metric(hallucinated.to(at::kFloat), rendered.to(at::kFloat));
+  const at::Tensor ssim = ssim_map(judged.to(at::kFloat).contiguous(), rendered.to(at::kFloat).contiguous()).mean(2);
+  d.structure = masked_mean(ssim, mask);
   const bool structured = *d.structure >= c.admit_min_structure;
-  const std::string reason =
-      absl::StrFormat("SSIM to the render %.4f %s %.4g", *d.structure, structured ? ">=" : "<", c.admit_min_structure);
+  const std::string reason = structure_reason(*d.structure, c);
   if (structured) {
     d.reason += d.admitted ? ", " + reason : "";
   } else {
@@ -91,10 +117,16 @@ at::Tensor pseudo_pixel_weight(const at::Tensor& alpha, const at::Tensor& uncert
   return (c.pseudo_loss_weight * extrapolation_decay(d_extrap, c)) * confidence_weight(alpha, uncertainty, c);
 }
 
-double drop_ratio(int iteration, int total_iterations, int64_t num_gaussians, const GapsConfig& c) {
+double drop_threshold(const GapsConfig& c, int64_t gaussian_budget) {
+  if (gaussian_budget <= 0 || c.drop_budget_fraction <= 0) return c.drop_n_ref;
+  return std::min(c.drop_n_ref, c.drop_budget_fraction * static_cast<double>(gaussian_budget));
+}
+
+double drop_ratio(int iteration, int total_iterations, int64_t num_gaussians, const GapsConfig& c,
+                  int64_t gaussian_budget) {
   const double progress =
       total_iterations > 0 ? std::clamp(static_cast<double>(iteration) / total_iterations, 0.0, 1.0) : 1.0;
-  const double density = std::min(static_cast<double>(num_gaussians) / c.drop_n_ref, 1.0);
+  const double density = std::min(static_cast<double>(num_gaussians) / drop_threshold(c, gaussian_budget), 1.0);
   return c.drop_max * progress * density;
 }
 

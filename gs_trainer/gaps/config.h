@@ -39,9 +39,10 @@ inline constexpr int kNActiveMip360 = 24;
   X(double, max_extrap, 0.5, 0, 10, "hard cap on d_extrap = max(0, -alpha) + max(0, alpha - 1)")                    \
   X(bool, interpolate_intrinsics, true, 0, 0,                                                                        \
     "pseudo cameras lerp the pair's intrinsics (false: copy the first camera's)")                                    \
-  X(double, tier_upgrade_variance, 0.05, 0, 1,                                                                       \
-    "(open) upgrade the tier when the views admitted in a phase have a mean uncertainty variance below this "      \
-    "(0.05: RMS residual 0.22, C_hist about 0.83); rejected views lower their own C_hist instead")                  \
+  X(double, tier_upgrade_variance, 0.01, 0, 1,                                                                       \
+    "(open) upgrade the tier when the views admitted in a phase have a mean uncertainty variance below this: "    \
+    "fern's first-phase reproject views measure 0.011-0.012 and views of a wrong pose 0.06-0.07, so the range "     \
+    "widens once the views agree better with the model than at the start (docs/fidelity.md)")                     \
   X(int, tier_min_admitted, 1, 0, 1e6, "admitted views needed before a tier upgrade")                               \
   X(double, pose_rotation_weight, 0.5, 0, 1e6,                                                                       \
     "pose distance (eq. pose_dist) = ||c1 - c2|| + this times the geodesic angle in radians")                       \
@@ -67,12 +68,26 @@ inline constexpr int kNActiveMip360 = 24;
   X(double, diversity_radius, 0.15, 0, 1e6, "d_div: selected views lie at least this far apart (pose distance)")    \
   X(int, exploration_period, 3, 1, 1e6, "k_new: every k_new-th diffusion phase explores")                           \
   X(double, exploration_fraction, 0.25, 0, 1, "rho_new: this fraction of the selection goes to never-admitted views") \
+  /* The active set (sec. 3.2 Stage II-III): the admitted views trained on. */                                         \
+  X(bool, refresh_active_set, true, 0, 0,                                                                            \
+    "(open) refresh the trained pseudo-views every phase: the phase's admitted views replace older ones, a view "   \
+    "whose regeneration is rejected leaves, and so do views older than active_max_age phases or beyond "            \
+    "active_size (false: every admitted view trains until the end)")                                                 \
+  X(int, active_size, 0, 0, 1e4, "(open) most pseudo-views trained on at once; 0 = n_active")                        \
+  X(int, active_max_age, 3, 0, 1e6,                                                                                  \
+    "(open) a pseudo-view generated this many phases ago leaves the active set (0 = never by age); 3 = k_new, so "  \
+    "no view outlives an exploration round")                                                                         \
   /* Admission and pseudo loss (sec. 3.6). */                                                                        \
   X(double, admit_min_alpha, 0.25, 0, 1, "tau_cov: admit when the render's mean alpha is at least this")            \
   X(double, admit_max_residual, 0.7, 0, 1, "tau_res: admit when mean |I_hall - I_GS| is below this")                \
-  X(double, admit_min_structure, 0.0, -1, 1,                                                                         \
-    "not in the paper: also require SSIM(I_hall, I_GS) >= this (0 = off); rejects images without the render's "    \
-    "structure, such as noise, which tau_res alone admits")                                                          \
+  X(bool, admit_on_proposal, true, 0, 0,                                                                              \
+    "not in the paper: judge what the generator proposes, I_GS + (I_hall - I_GS) / strength, on the covered "      \
+    "pixels (false: I_hall itself on every pixel, the paper's literal reading, under which a generation anchored "   \
+    "on the render passes whatever it added)")                                                                       \
+  X(double, admit_min_structure, 0.4, -1, 1,                                                                         \
+    "not in the paper: also require the mean SSIM of the judged image to the render >= this (0 = off); rejects "    \
+    "noise, other scenes and wrong poses, which tau_res = 0.7 admits; 0.4 lies between fern's reproject views "   \
+    "(0.54-0.56 at the first phase) and views of a pose half a baseline off (0.24-0.30; docs/fidelity.md)")                           \
   X(double, uncertainty_lambda, 0.7, 0, 1e6, "lambda_u (eq. confidence_weight)")                                     \
   X(double, uncertainty_eps, 1e-6, 1e-12, 1, "epsilon (eq. confidence_weight)")                                      \
   X(double, extrap_kappa, 2.0, 0, 1e6, "kappa (eq. extrap_decay)")                                                   \
@@ -80,6 +95,9 @@ inline constexpr int kNActiveMip360 = 24;
   /* Density-adaptive DropGaussian (eq. drop_ratio, dropgaussian). */                                                \
   X(double, drop_max, 0.2, 0, 0.99, "r_max: the largest drop ratio")                                                 \
   X(double, drop_n_ref, 200000, 1, 1e12, "N_thr: Gaussian count at which the drop ratio reaches r_max")             \
+  X(double, drop_budget_fraction, 1.0, 0, 1e6,                                                                       \
+    "not in the paper: with a Gaussian budget B, N_thr is min(N_thr, this * B), so that a model capped below "     \
+    "N_thr still reaches r_max (0 = the paper's N_thr whatever the budget)")                                         \
   /* Generation controls (sec. 3.3), sent to the generator. */                                                       \
   X(double, strength_max, 0.85, 0, 1, "sigma_max (eq. adaptive_strength)")                                           \
   X(double, strength_min, 0.3, 0, 1, "sigma_min (eq. adaptive_strength)")                                            \

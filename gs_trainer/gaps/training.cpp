@@ -10,6 +10,7 @@
 #include "absl/strings/str_format.h"
 #include "common/image_io.h"
 #include "common/status_macros.h"
+#include "gs_trainer/gaps/active_set.h"
 #include "gs_trainer/gaps/admission.h"
 #include "gs_trainer/gaps/candidate_renders.h"
 #include "gs_trainer/gaps/scores.h"
@@ -42,6 +43,23 @@ std::string variant_name(Variant v) {
   return "?";
 }
 
+GenerationRequest generation_request(const Camera& pose, const RenderOutput& render,
+                                     std::vector<ReferenceView> references, const GapsConfig& c, uint64_t seed) {
+  GenerationRequest q;
+  q.camera = pose;
+  q.render_rgb = render.rgb.clamp(0, 1).cpu();
+  q.render_depth = render.depth.cpu();
+  q.render_alpha = render.alpha.cpu();
+  q.coverage = coverage_fraction(render.alpha, c.coverage_alpha_threshold);
+  q.strength = adaptive_strength(q.coverage, c);
+  q.control_scale = adaptive_control_scale(q.coverage, c);
+  q.references = std::move(references);
+  q.seed = seed;
+  q.inpaint = inpaint_settings(c);
+  q.ip_adapter_scale = c.ip_adapter_scale;
+  return q;
+}
+
 GapsTraining::GapsTraining(Trainer& trainer, Generator* generator, std::vector<TrainingView> gt_views,
                            GapsConfig config, Variant variant, uint64_t seed)
     : trainer_(trainer),
@@ -59,7 +77,8 @@ GapsTraining::GapsTraining(Trainer& trainer, Generator* generator, std::vector<T
 at::Tensor GapsTraining::drop_scale() {
   if (variant_ == Variant::kVanilla || variant_ == Variant::kNoDropGaussian) return {};
   const auto& model = trainer_.model();
-  const double r = drop_ratio(trainer_.iteration() + 1, trainer_.config().iterations, model.size(), config_);
+  const double r = drop_ratio(trainer_.iteration() + 1, trainer_.config().iterations, model.size(), config_,
+                              trainer_.config().max_gaussians);
   if (r <= 0) return {};
   if (!drop_rng_.defined() || drop_rng_.device() != model.means.device()) {
     drop_rng_ = at::globalContext().defaultGenerator(model.means.device()).clone();
@@ -76,9 +95,9 @@ absl::StatusOr<at::Tensor> GapsTraining::step() {
   }
   const at::Tensor scale = drop_scale();
   std::uniform_real_distribution<double> u(0.0, 1.0);
-  if (!admitted_.empty() && next > config_.warmup_iterations && u(rng_) < config_.pseudo_probability) {
-    std::uniform_int_distribution<size_t> pick(0, admitted_.size() - 1);
-    auto it = admitted_.begin();
+  if (!active_.empty() && next > config_.warmup_iterations && u(rng_) < config_.pseudo_probability) {
+    std::uniform_int_distribution<size_t> pick(0, active_.size() - 1);
+    auto it = active_.begin();
     std::advance(it, pick(rng_));
     return trainer_.step_pseudo(it->second, scale);
   }
@@ -87,7 +106,7 @@ absl::StatusOr<at::Tensor> GapsTraining::step() {
 
 std::vector<Camera> GapsTraining::supervised_cameras() const {
   std::vector<Camera> cams = gt_cameras_;
-  for (const auto& [id, v] : admitted_) cams.push_back(v.camera);
+  for (const auto& [id, v] : active_) cams.push_back(v.camera);
   return cams;
 }
 
@@ -109,7 +128,8 @@ absl::Status GapsTraining::run_phase(int phase) {
                           {"iteration", t},
                           {"tier", tier_},
                           {"gaussians", model.size()},
-                          {"drop_ratio", drop_ratio(t, T, model.size(), config_)},
+                          {"drop_ratio", drop_ratio(t, T, model.size(), config_, trainer_.config().max_gaussians)},
+                          {"drop_threshold", drop_threshold(config_, trainer_.config().max_gaussians)},
                           {"beta", annealed_beta(t, T, config_)}};
   if (variant_ == Variant::kNoGaps && phase > 0) return absl::OkStatus();  // generated once, never refreshed
   if (phase_observer_) phase_observer_("started", entry);
@@ -172,9 +192,12 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
     const at::Tensor statistics = candidate_statistics(model, cameras, config_);
     const double* rows = statistics.data_ptr<double>();
     std::vector<double> scores;
+    int never_generated = 0, never_admitted = 0;
     for (size_t k = 0; k < pool.size(); ++k) {
       Candidate& c = pool[k];
-      c.admitted_before = admitted_.count(c.id) > 0;
+      c.admitted_before = ever_admitted_.count(c.id) > 0;
+      never_generated += uncertainty_history_.count(c.id) == 0;
+      never_admitted += !c.admitted_before;
       const auto m = measurements_from(rows + 4 * k, min_pose_distance(c.camera, supervised),
                                        min_pose_distance(c.camera, gt_cameras_),
                                        mean_uncertainty_variance(uncertainty_history_, c.id));
@@ -188,6 +211,7 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
                                      {"c_gen", s.c_gen},
                                      {"score", s.score}});
     }
+    entry["pool"] = {{"size", pool.size()}, {"never_generated", never_generated}, {"never_admitted", never_admitted}};
     for (int k : select_for_phase(pool, scores, phase, config_)) chosen.push_back(pool[k]);
     lap(entry, "scoring", &clock);
   }
@@ -208,23 +232,9 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   std::vector<Camera> poses;
   for (const auto& c : chosen) poses.push_back(c.camera);
   const std::vector<RenderOutput> renders = render_views(model, poses);  // one stacked pass per image size
-  for (size_t k = 0; k < chosen.size(); ++k) {
-    const Candidate& c = chosen[k];
-    const RenderOutput& r = renders[k];
-    GenerationRequest q;
-    q.camera = c.camera;
-    q.render_rgb = r.rgb.clamp(0, 1).cpu();
-    q.render_depth = r.depth.cpu();
-    q.render_alpha = r.alpha.cpu();
-    q.coverage = coverage_fraction(r.alpha, config_.coverage_alpha_threshold);
-    q.strength = adaptive_strength(q.coverage, config_);
-    q.control_scale = adaptive_control_scale(q.coverage, config_);
-    q.references = references_for(c.camera);
-    q.seed = rng_();
-    q.inpaint = inpaint_settings(config_);
-    q.ip_adapter_scale = config_.ip_adapter_scale;
-    requests.push_back(std::move(q));
-  }
+  for (size_t k = 0; k < chosen.size(); ++k)
+    requests.push_back(
+        generation_request(chosen[k].camera, renders[k], references_for(chosen[k].camera), config_, rng_()));
   lap(entry, "renders", &clock);
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
   lap(entry, "generation", &clock);
@@ -235,32 +245,41 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
                                             " images for ", requests.size(), " requests"));
   std::vector<double> admitted_variances;
   std::vector<std::pair<std::filesystem::path, at::Tensor>> for_inspection;
+  std::map<int, PseudoView> admitted;
+  std::vector<int> admitted_order, rejected;
   const auto device = model.means.device();
   for (size_t k = 0; k < chosen.size(); ++k) {
     const at::Tensor image = images[k].to(device);
     const at::Tensor rendered = renders[k].rgb.clamp(0, 1), alpha = renders[k].alpha;
-    const AdmissionDecision d = admit_pseudo_view(image, rendered, alpha, config_);
+    const AdmissionDecision d = admit_pseudo_view(image, rendered, alpha, config_, requests[k].strength);
     const bool admit = !gate || d.admitted;
-    const at::Tensor u = uncertainty_map(image, rendered);
-    const double variance = uncertainty_variance(u);
+    const double variance = uncertainty_variance(d.uncertainty);
     uncertainty_history_[chosen[k].id].push_back(variance);
-    entry["selection"].push_back({{"id", chosen[k].id},
-                                  {"pair", {chosen[k].i, chosen[k].j}},
-                                  {"alpha", chosen[k].alpha},
-                                  {"coverage", requests[k].coverage},
-                                  {"strength", requests[k].strength},
-                                  {"uncertainty_variance", variance},
-                                  {"admitted", admit},
-                                  {"reason", gate ? d.reason : "no admission gate (no-gaps)"},
-                                  {"camera", camera_json(chosen[k].camera, chosen[k].id, "pseudo")}});
+    nlohmann::json row = {{"id", chosen[k].id},
+                          {"pair", {chosen[k].i, chosen[k].j}},
+                          {"alpha", chosen[k].alpha},
+                          {"coverage", requests[k].coverage},
+                          {"strength", requests[k].strength},
+                          {"residual", d.mean_residual},
+                          {"uncertainty_variance", variance},
+                          {"admitted", admit},
+                          {"reason", gate ? d.reason : "no admission gate (no-gaps)"},
+                          {"camera", camera_json(chosen[k].camera, chosen[k].id, "pseudo")}};
+    if (d.structure) row["structure"] = *d.structure;
+    entry["selection"].push_back(std::move(row));
     const auto path = inspection_path(entry["phase"].get<int>(), chosen[k].id, admit);
     if (!path.empty()) for_inspection.push_back({path, images[k]});
-    if (!admit) continue;
+    if (!admit) {
+      rejected.push_back(chosen[k].id);
+      continue;
+    }
     admitted_variances.push_back(variance);
+    admitted_order.push_back(chosen[k].id);
     // no-gaps drops the gate, not the uncertainty weighting: the paper keeps the rest of the method.
-    admitted_[chosen[k].id] = {chosen[k].camera, image, pseudo_pixel_weight(alpha, u, chosen[k].d_extrap, config_),
-                               chosen[k].id};
+    admitted[chosen[k].id] = {chosen[k].camera, image,
+                              pseudo_pixel_weight(alpha, d.uncertainty, chosen[k].d_extrap, config_), chosen[k].id};
   }
+  update_active_set(std::move(admitted), admitted_order, rejected, gate, entry);
   entry["admitted"] = admitted_variances.size();
   entry["mean_uncertainty_variance"] =
       admitted_variances.empty()
@@ -277,6 +296,28 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
     lap(entry, "inspection", &clock);
   }
   return absl::OkStatus();
+}
+
+void GapsTraining::update_active_set(std::map<int, PseudoView> admitted, const std::vector<int>& admitted_order,
+                                     const std::vector<int>& rejected, bool gate, nlohmann::json& entry) {
+  GapsConfig rules = config_;
+  rules.refresh_active_set = gate && config_.refresh_active_set;  // no-gaps: generated once, never refreshed
+  const ActiveSetChange change =
+      refresh_active_set(active_phase_, admitted_order, rejected, entry["phase"].get<int>(), rules);
+  entry["retired"] = nlohmann::json::array();
+  for (const RetiredView& r : change.retired) {
+    if (change.active.count(r.id) == 0) active_.erase(r.id);
+    entry["retired"].push_back({{"id", r.id}, {"generated_in_phase", r.generated_in_phase}, {"reason", r.reason}});
+  }
+  for (int id : change.entered) {
+    active_[id] = std::move(admitted.at(id));
+    ever_admitted_.insert(id);
+  }
+  active_phase_ = change.active;
+  entry["entered"] = change.entered;
+  entry["refreshed"] = change.refreshed;
+  entry["active"] = nlohmann::json::array();
+  for (const auto& [id, born] : active_phase_) entry["active"].push_back(id);
 }
 
 absl::Status GapsTraining::finish_inspection() {

@@ -12,6 +12,7 @@
 #include <future>
 #include <map>
 #include <random>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -23,6 +24,7 @@
 #include "gs_trainer/gaps/generator.h"
 #include "gs_trainer/gaps/pose.h"
 #include "gs_trainer/gaps/scores.h"
+#include "gs_trainer/model/render.h"
 #include "gs_trainer/train/trainer.h"
 
 namespace gaps {
@@ -30,6 +32,12 @@ namespace gaps {
 enum class Variant { kVanilla, kFull, kNoGaps, kNoDropGaussian };
 absl::StatusOr<Variant> parse_variant(const std::string& name);
 std::string variant_name(Variant v);
+
+// The generation request of one selected pose: the full-fidelity render there (moved to the CPU), its coverage
+// and the coverage-adaptive controls (eq. adaptive_strength, adaptive_cn), the references nearest first, the
+// seed, the two-stage settings and λ_ip.
+GenerationRequest generation_request(const Camera& pose, const RenderOutput& render,
+                                     std::vector<ReferenceView> references, const GapsConfig& c, uint64_t seed);
 
 class GapsTraining {
  public:
@@ -42,7 +50,8 @@ class GapsTraining {
   // Per phase: candidates and scores, the selection, admissions with reasons, tier, beta, drop ratio, and
   // "generator_notes" when the generator could not honour all of the job's controls (Generator::notes()).
   const nlohmann::json& phase_log() const { return log_; }
-  const std::map<int, PseudoView>& admitted() const { return admitted_; }
+  // The active set: the admitted pseudo-views trained on now, by candidate id (active_set.h).
+  const std::map<int, PseudoView>& active() const { return active_; }
   // When set, every phase's generated images are written there as phase_PP/cand_III_{admitted,rejected}.png, in
   // the background while training goes on (a phase first waits for the previous phase's).
   void set_inspection_dir(const std::filesystem::path& dir) { inspection_dir_ = dir; }
@@ -59,6 +68,9 @@ class GapsTraining {
   absl::Status run_phase(int phase);
   absl::Status run_phase_generation(int phase, nlohmann::json& entry);
   absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);
+  // Applies this phase's admissions to the active set and records the change in the phase's entry.
+  void update_active_set(std::map<int, PseudoView> admitted, const std::vector<int>& admitted_order,
+                         const std::vector<int>& rejected, bool gate, nlohmann::json& entry);
   std::vector<ReferenceView> references_for(const Camera& pose) const;
   // Where a generated view is saved for inspection (its phase's folder made); empty without an inspection dir.
   std::filesystem::path inspection_path(int phase, int id, bool admitted) const;
@@ -78,7 +90,9 @@ class GapsTraining {
   at::Generator drop_rng_;
   int tier_ = 0;
   bool adapted_ = false;
-  std::map<int, PseudoView> admitted_;      // candidate id -> latest admitted view
+  std::map<int, PseudoView> active_;        // candidate id -> its admitted view trained on now
+  std::map<int, int> active_phase_;         // candidate id -> the phase its active view was generated in
+  std::set<int> ever_admitted_;             // every candidate admitted at least once (forced exploration)
   UncertaintyHistory uncertainty_history_;  // every generation's variance, admitted or not (C_hist)
   std::filesystem::path inspection_dir_;
   std::future<absl::Status> inspection_written_;  // the last phase's images; its destructor waits for them

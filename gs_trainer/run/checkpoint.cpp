@@ -111,8 +111,12 @@ struct CheckpointAccess {
     for (const auto& [id, per_phase] : method->uncertainty_history_)
       m["uncertainty_history"].push_back({id, per_phase});
     m["admitted"] = json::array();
-    for (const auto& [id, view] : method->admitted_) {
-      m["admitted"].push_back({{"id", id}, {"candidate_id", view.candidate_id}, {"camera", camera_json(view.camera)}});
+    m["ever_admitted"] = method->ever_admitted_;
+    for (const auto& [id, view] : method->active_) {
+      m["admitted"].push_back({{"id", id},
+                               {"candidate_id", view.candidate_id},
+                               {"generated_in_phase", method->active_phase_.at(id)},
+                               {"camera", camera_json(view.camera)}});
       GAPS_RETURN_IF_ERROR(files.put(absl::StrCat("admitted_", id, "_image"), view.image));
       GAPS_RETURN_IF_ERROR(files.put(absl::StrCat("admitted_", id, "_weight"), view.weight));
     }
@@ -162,16 +166,22 @@ struct CheckpointAccess {
       method->uncertainty_history_[e.at(0).get<int>()] =
           v.is_number() ? std::vector<double>{v.get<double>()} : v.get<std::vector<double>>();
     }
-    method->admitted_.clear();
+    method->active_.clear();
+    method->active_phase_.clear();
+    method->ever_admitted_.clear();
     for (const auto& a : m.at("admitted")) {
       const int id = a.at("id");
+      // Checkpoints from before the active set: the views' phases unknown, read as generated in phase 0.
+      method->active_phase_[id] = a.value("generated_in_phase", 0);
+      method->ever_admitted_.insert(id);
       PseudoView view;
       view.camera = camera_from_json(a.at("camera"));
       view.candidate_id = a.at("candidate_id");
       GAPS_ASSIGN_OR_RETURN(view.image, files.get(absl::StrCat("admitted_", id, "_image"), device));
       GAPS_ASSIGN_OR_RETURN(view.weight, files.get(absl::StrCat("admitted_", id, "_weight"), device));
-      method->admitted_[id] = std::move(view);
+      method->active_[id] = std::move(view);
     }
+    for (int id : m.value("ever_admitted", std::vector<int>{})) method->ever_admitted_.insert(id);
     return t.iteration_;
   }
 };
