@@ -40,8 +40,9 @@ DEBIAN_PACKAGES=(
 CHECK_PACKAGES=(docker-compose python3-grpcio chromium ffmpeg)
 # Not needed to compile (--build-only leaves them out).
 NOT_FOR_BUILD=(clang-format clang libclang-rt-14-dev)
+# ncnn: the runtime the Real-ESRGAN weights ship for, the reference of their parity test.
 PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib
-                 kubernetes-validate==1.37.0)
+                 kubernetes-validate==1.37.0 ncnn==1.0.20261020)
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
@@ -83,7 +84,7 @@ print(next(r.split(';')[0].split('==')[1].strip() for r in m.requires('torch') i
   echo "setup: ready to build (Torch_DIR=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/torch/share/cmake/Torch)"
   exit 0
 fi
-if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib, kubernetes_validate; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
+if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib, kubernetes_validate, ncnn; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
   echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI) into $VENV"
   mkdir -p "$GAPS_CACHE"
   [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
