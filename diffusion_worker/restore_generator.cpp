@@ -95,7 +95,13 @@ absl::StatusOr<std::unique_ptr<RestoreGenerator>> RestoreGenerator::create(const
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "float16 needs CUDA (the CPU runs float32)");
   const std::filesystem::path path =
       options.weights.empty() ? restore::default_realesrgan_weights_path() : std::filesystem::path(options.weights);
-  absl::StatusOr<restore::RrdbNet> net = restore::load_rrdbnet(path, restore::RrdbNetConfig{}, dtype, device);
+  absl::StatusOr<restore::RrdbNet> net = absl::UnknownError("not loaded");
+  try {
+    net = restore::load_rrdbnet(path, restore::RrdbNetConfig{}, dtype, device);
+  } catch (const std::exception& e) {
+    // The copy onto the device is where an absent CUDA index or a full card shows up.
+    return option_error("device", absl::StrCat("the weights could not be moved to ", device.str(), ": ", e.what()));
+  }
   if (!net.ok()) return absl::Status(net.status().code(), absl::StrCat("restore backend: ", net.status().message()));
   return std::unique_ptr<RestoreGenerator>(new RestoreGenerator(options, path, *std::move(net), device, dtype));
 }
@@ -110,7 +116,7 @@ absl::Status RestoreGenerator::adapt(const std::vector<ReferenceView>& views,
                                      const std::optional<SceneAdaptation>& adaptation) {
   notes_.clear();
   if (options_.compose == "reproject") {
-    // reproject's own checks of the views; its note names it, this backend's says the same for itself.
+    // reproject's own checks of the views; the adaptation is left out, so the note below is this backend's alone.
     GAPS_RETURN_IF_ERROR(reproject_.adapt(views, std::nullopt));
   } else if (views.empty()) {
     return absl::InvalidArgumentError("restore adapt: no ground-truth views");

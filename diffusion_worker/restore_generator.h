@@ -6,7 +6,7 @@
 // diffusion model's. On crops of fern at -r 8 blurred by a Gaussian, the default 4x shrink helps heavily
 // blurred renders (sigma 2.5 px: LPIPS to the photograph 0.551 -> 0.510, tests/restore_generator_test.cpp)
 // but costs mildly blurred ones the detail they still have (sigma 1 px: 0.315 -> 0.473); downscale 1 restores
-// those too (sigma 1 px: 0.315 -> 0.183, sigma 1.5 px: 0.472 -> 0.380) at 16x the compute.
+// those too (sigma 1 px: 0.315 -> 0.183, sigma 1.5 px: 0.470 -> 0.378) at 16x the compute.
 //
 // With compose = "reproject" the restored render is composed with the reproject backend's warp of the
 // nearest ground-truth views (reproject_generator.h, run with its default options) where that warp is

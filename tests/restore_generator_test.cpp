@@ -161,7 +161,7 @@ TEST(RestoreGeneratorTest, RestoresAHeavilyBlurredFernRenderTowardsThePhotograph
 TEST(RestoreGeneratorTest, WithoutTheShrinkRestoresAMildlyBlurredFernRender) {
   if (auto reason = test::real_weights_skip_reason()) GTEST_SKIP() << *reason;
   FernRestoration r;
-  ASSERT_NO_FATAL_FAILURE(restore_fern(120, 180, 96, 128, 1.5, R"({"downscale": 1})", &r));
+  ASSERT_NO_FATAL_FAILURE(restore_fern(130, 200, 72, 96, 1.5, R"({"downscale": 1})", &r));
   EXPECT_LT(r.lpips_restored, r.lpips_blurred - 0.05);
   EXPECT_GT(detail(r.image), detail(r.render) * 1.2);
 }
