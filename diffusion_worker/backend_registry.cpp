@@ -6,13 +6,14 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "diffusion_worker/reproject_generator.h"
+#include "diffusion_worker/restore_generator.h"
 #include "diffusion_worker/sdxl_generator.h"
 
 namespace gaps {
 
-std::vector<std::string> known_generator_backends() { return {"reproject", "sdxl"}; }
+std::vector<std::string> known_generator_backends() { return {"reproject", "restore", "sdxl"}; }
 
-bool generator_backend_uses_device(const std::string& backend) { return backend == "sdxl"; }
+bool generator_backend_uses_device(const std::string& backend) { return backend == "sdxl" || backend == "restore"; }
 
 absl::StatusOr<std::unique_ptr<Generator>> make_generator(const std::string& backend,
                                                           const std::string& options_json_or_empty) {
@@ -20,6 +21,13 @@ absl::StatusOr<std::unique_ptr<Generator>> make_generator(const std::string& bac
     absl::StatusOr<ReprojectOptions> options = parse_reproject_options(options_json_or_empty);
     if (!options.ok()) return options.status();
     return std::unique_ptr<Generator>(std::make_unique<ReprojectGenerator>(*std::move(options)));
+  }
+  if (backend == "restore") {
+    absl::StatusOr<RestoreOptions> options = parse_restore_options(options_json_or_empty);
+    if (!options.ok()) return options.status();
+    absl::StatusOr<std::unique_ptr<RestoreGenerator>> generator = RestoreGenerator::create(*options);
+    if (!generator.ok()) return generator.status();
+    return std::unique_ptr<Generator>(*std::move(generator));
   }
   if (backend == "sdxl") {
     absl::StatusOr<SdxlOptions> options = parse_sdxl_options(options_json_or_empty);

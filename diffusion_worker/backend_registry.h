@@ -10,10 +10,10 @@
 
 namespace gaps {
 
-// Backend names make_generator accepts: {"reproject", "sdxl"}.
+// Backend names make_generator accepts: {"reproject", "restore", "sdxl"}.
 std::vector<std::string> known_generator_backends();
 
-// Whether the backend computes on a device it is given (its "device" option): sdxl does; reproject is a CPU
+// Whether the backend computes on a device it is given (its "device" option): sdxl and restore do; reproject is a CPU
 // algorithm (OpenCV warping and inpainting) and runs on the CPU whatever the worker's device.
 bool generator_backend_uses_device(const std::string& backend);
 

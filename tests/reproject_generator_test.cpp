@@ -443,7 +443,7 @@ TEST(ReprojectGeneratorTest, RegistryBuildsBackendsByName) {
   g = make_generator("flux", "");
   ASSERT_FALSE(g.ok());
   EXPECT_TRUE(contains(g.status(), "'flux'")) << g.status();
-  EXPECT_TRUE(contains(g.status(), "known: reproject, sdxl")) << g.status();
+  EXPECT_TRUE(contains(g.status(), "known: reproject, restore, sdxl")) << g.status();
 
   EXPECT_TRUE(
       contains(make_generator("reproject", R"({"footprint": 2})").status(), "unknown reproject option 'footprint'"));

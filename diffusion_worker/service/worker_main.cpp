@@ -60,7 +60,7 @@ absl::Status check_backend(const std::string& backend, const std::string& device
   return gaps::generator_backend_uses_device(backend) ? gaps::check_device(device) : gaps::check_device_name(device);
 }
 
-// --device reaches a backend that computes on a device (sdxl) as its "device" option. A CPU backend
+// --device reaches a backend that computes on a device (sdxl, restore) as its "device" option. A CPU backend
 // (reproject) gets nothing: the worker says at start-up that it computes on the CPU and reports "cpu".
 std::string options_with_device(const std::string& backend, const std::string& options_json, const std::string& device,
                                 std::string* error) {
@@ -87,7 +87,7 @@ int serve() {
   if (!uses_device && requested_device != "cpu")
     gaps::write_log_line(STDERR_FILENO,
                          absl::StrCat("gaps-worker: the ", backend, " backend computes on the CPU; --device ",
-                                      requested_device, " applies to device backends (sdxl) only"));
+                                      requested_device, " applies to device backends (sdxl, restore) only"));
   const std::string device = uses_device ? requested_device : "cpu";
   std::string error;
   const std::string backend_options =

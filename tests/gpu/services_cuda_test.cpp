@@ -16,6 +16,7 @@
 #include "rpc/config_codec.h"
 #include "tests/gpu/require_cuda.h"
 #include "tests/process_util.h"
+#include "tests/restore_test_util.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -140,6 +141,24 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
       EXPECT_GT(rendered->std().item<float>(), 0.01f) << camera.name();
     }
   }
+}
+
+// The restore backend (Real-ESRGAN x4plus, float16 on the worker's GPU, composed with reproject's warp) serving a
+// job of the method through the services.
+TEST_F(ServicesOnCuda, ARestoreWorkerOnCudaServesAFullJob) {
+  GAPS_REQUIRE_CUDA();
+  if (auto reason = test::real_weights_skip_reason()) GTEST_SKIP() << *reason;
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(
+      run_full_job({"--backend", "restore", "--device", "cuda", "--backend-options", R"({"compose": "reproject"})"}, {},
+                   nlohmann::json::object(), &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  EXPECT_EQ(job.phases, 2);
+  EXPECT_EQ(job.skipped, 0) << worker_->log_text();
+  EXPECT_GE(job.admitted, 1);
+  const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
+  EXPECT_TRUE(test::contains(metrics["generator"].get<std::string>(), "restore 1 compose:reproject"))
+      << metrics["generator"];
 }
 
 // The sdxl backend as users run it on a card shared with the trainer: both processes with --gpu-memory-gib
