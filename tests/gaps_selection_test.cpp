@@ -621,16 +621,16 @@ TEST(GapsSelection, ExplorationEveryThirdPhase) {
 }
 
 TEST(GapsTiers, UpgradeWhenAdmittedViewsAreCertain) {
-  const GapsConfig c;                           // threshold 0.05, three tiers
-  EXPECT_EQ(next_tier(0, {0.01, 0.03}, c), 1);  // mean 0.02 < 0.05
-  EXPECT_EQ(next_tier(1, {0.04}, c), 2);
-  EXPECT_EQ(next_tier(0, {0.04, 0.08}, c), 0);  // mean 0.06
-  EXPECT_EQ(next_tier(0, {}, c), 0);            // nothing admitted: no evidence
-  EXPECT_EQ(next_tier(2, {0.0}, c), 2);         // already the widest
+  const GapsConfig c;                             // threshold 0.01, three tiers
+  EXPECT_EQ(next_tier(0, {0.002, 0.006}, c), 1);  // mean 0.004 < 0.01
+  EXPECT_EQ(next_tier(1, {0.008}, c), 2);
+  EXPECT_EQ(next_tier(0, {0.008, 0.016}, c), 0);  // mean 0.012
+  EXPECT_EQ(next_tier(0, {}, c), 0);              // nothing admitted: no evidence
+  EXPECT_EQ(next_tier(2, {0.0}, c), 2);           // already the widest
   GapsConfig strict = c;
   strict.tier_min_admitted = 3;
-  EXPECT_EQ(next_tier(0, {0.01, 0.01}, strict), 0);
-  EXPECT_EQ(next_tier(0, {0.01, 0.01, 0.01}, strict), 1);
+  EXPECT_EQ(next_tier(0, {0.001, 0.001}, strict), 0);
+  EXPECT_EQ(next_tier(0, {0.001, 0.001, 0.001}, strict), 1);
 }
 
 }  // namespace
