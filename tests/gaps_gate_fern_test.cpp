@@ -56,7 +56,8 @@ class FernGate : public ::testing::Test {
     o.init = "sparse";
     o.config.iterations = 1000;
     o.variant = Variant::kVanilla;
-    auto run = run_pipeline(o, [](const TrainProgress&) {}, [](const std::string&) {});
+    auto run = run_pipeline(
+        o, [](const TrainProgress&) {}, [](const std::string&) {});
     ASSERT_TRUE(run.ok()) << run.status();
     auto model = load_gaussians_ply(*out_ / "point_cloud.ply");
     ASSERT_TRUE(model.ok()) << model.status();
@@ -123,8 +124,8 @@ class FernGate : public ::testing::Test {
     for (size_t k = 0; k < std::min(images.size(), ps.size()); ++k) {
       const AdmissionDecision d = admit_pseudo_view(images[k].to(at::kFloat), ps[k].render.rgb.clamp(0, 1),
                                                     ps[k].render.alpha, c, ps[k].request.strength);
-      std::printf("%-14s candidate %3d alpha %.3f strength %.3f: residual %.4f SSIM %.4f u2 %.5f -> %s\n",
-                  what.c_str(), ps[k].candidate.id, ps[k].candidate.alpha, ps[k].request.strength, d.mean_residual,
+      std::printf("%-14s candidate %3d alpha %.3f strength %.3f: residual %.4f SSIM %.4f u2 %.5f -> %s\n", what.c_str(),
+                  ps[k].candidate.id, ps[k].candidate.alpha, ps[k].request.strength, d.mean_residual,
                   d.structure.value_or(-9), uncertainty_variance(d.uncertainty), d.admitted ? "admitted" : "rejected");
       count += d.admitted;
     }
@@ -139,7 +140,6 @@ class FernGate : public ::testing::Test {
 fs::path* FernGate::out_ = nullptr;
 GaussianModel* FernGate::model_ = nullptr;
 std::vector<TrainingView>* FernGate::train_ = nullptr;
-
 
 // One test, so that the model is trained once (ctest runs every test of a suite in a process of its own).
 TEST_F(FernGate, ReprojectViewsAreAdmittedAndNoiseOtherScenesWrongPosesAndRandomSdxlRejected) {

@@ -35,8 +35,8 @@ ActiveSetChange refresh_active_set(const std::map<int, int>& active, const std::
     for (const auto& [id, born] : change.active)
       if (phase - born >= c.active_max_age) aged.push_back(id);
     for (int id : aged)
-      retire(id, absl::StrCat("generated in phase ", change.active.at(id), ", ", c.active_max_age,
-                              " or more phases ago"));
+      retire(id,
+             absl::StrCat("generated in phase ", change.active.at(id), ", ", c.active_max_age, " or more phases ago"));
   }
   const int capacity = active_capacity(c);
   if (capacity > 0 && static_cast<int>(change.active.size()) > capacity) {

@@ -22,10 +22,10 @@ struct RetiredView {
 };
 
 struct ActiveSetChange {
-  std::vector<int> entered;           // admitted this phase, in the order given
-  std::vector<int> refreshed;         // of `entered`, those that replaced an older generation of themselves
-  std::vector<RetiredView> retired;   // left the set, with why
-  std::map<int, int> active;          // after the phase: candidate id -> phase it was generated in
+  std::vector<int> entered;          // admitted this phase, in the order given
+  std::vector<int> refreshed;        // of `entered`, those that replaced an older generation of themselves
+  std::vector<RetiredView> retired;  // left the set, with why
+  std::map<int, int> active;         // after the phase: candidate id -> phase it was generated in
 };
 
 // The capacity of the active set: c.active_size, or n_active when that is 0.

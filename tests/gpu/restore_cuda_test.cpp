@@ -63,7 +63,9 @@ TEST(RealEsrganCuda, TheBackendOnCudaGivesTheCpusImage) {
   q.camera.fx = q.camera.fy = 400;
   q.render_rgb = render;
   std::vector<at::Tensor> images;
-  for (const char* options : {R"({"device": "cpu"})", R"({"device": "cuda"})", R"({"device": "cuda", "tile": 32})"}) {
+  // Tiles change the image (the network sees less context at their borders), so tiled CUDA is held to tiled CPU.
+  for (const char* options : {R"({"device": "cpu"})", R"({"device": "cuda"})", R"({"device": "cpu", "tile": 32})",
+                              R"({"device": "cuda", "tile": 32})"}) {
     absl::StatusOr<std::unique_ptr<Generator>> generator = make_generator("restore", options);
     ASSERT_TRUE(generator.ok()) << generator.status();
     absl::StatusOr<std::vector<at::Tensor>> out = (*generator)->generate({q});
@@ -72,11 +74,11 @@ TEST(RealEsrganCuda, TheBackendOnCudaGivesTheCpusImage) {
     EXPECT_TRUE(out->front().device().is_cpu());
     images.push_back(out->front());
   }
-  const Difference whole = difference(images[1], images[0]), tiled = difference(images[2], images[0]);
+  const Difference whole = difference(images[1], images[0]), tiled = difference(images[3], images[2]);
   std::cout << "restore backend on fern 504x378, CUDA (float16) vs CPU: max " << whole.max << " mean " << whole.mean
-            << "; in tiles of 32: max " << tiled.max << " mean " << tiled.mean << "\n";
+            << "; in tiles of 32, CUDA vs CPU: max " << tiled.max << " mean " << tiled.mean << "\n";
   EXPECT_LE(whole.mean, 1e-3);
-  EXPECT_LE(tiled.mean, 3e-3);
+  EXPECT_LE(tiled.mean, 1e-3);
 }
 
 }  // namespace
