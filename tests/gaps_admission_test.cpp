@@ -19,6 +19,15 @@ using test::contains;
 
 const at::TensorOptions kDouble = at::TensorOptions().dtype(at::kDouble);
 
+// A smooth grey texture of size×size×3 in [0.1, 0.9], standing in for a render with structure.
+at::Tensor textured_render(int64_t size) {
+  const at::Tensor ramp = at::linspace(0.1, 0.9, size, kDouble);
+  return (0.5 + 0.4 * at::sin(ramp.view({size, 1}) * 20) * at::cos(ramp.view({1, size}) * 15))
+      .unsqueeze(2)
+      .expand({size, size, 3})
+      .contiguous();
+}
+
 // H×W×3 image with every channel of every pixel `value`.
 at::Tensor flat(int64_t h, int64_t w, double value) { return at::full({h, w, 3}, value, kDouble); }
 
@@ -215,11 +224,7 @@ TEST(StructureGuard, RejectsNoiseThatTheResidualCriterionAdmits) {
   GapsConfig c;
   c.admit_min_structure = 0.1;  // off by default (the paper's two criteria); a guard against garbage generators
   constexpr int64_t kSize = 128;
-  const at::Tensor ramp = at::linspace(0.1, 0.9, kSize, kDouble);
-  const at::Tensor render = (0.5 + 0.4 * at::sin(ramp.view({kSize, 1}) * 20) * at::cos(ramp.view({1, kSize}) * 15))
-                                .unsqueeze(2)
-                                .expand({kSize, kSize, 3})
-                                .contiguous();
+  const at::Tensor render = textured_render(kSize);
   const at::Tensor alpha = at::ones({kSize, kSize}, kDouble);
   at::manual_seed(3);
   const at::Tensor noise = at::rand({kSize, kSize, 3}, kDouble);
@@ -260,11 +265,7 @@ TEST(Proposal, UndoesTheAnchoringOfAnImg2ImgBlend) {
 // criteria see a residual of about 0.1 and admit it; judged on the proposal (the noise itself) it fails.
 TEST(Proposal, ABlendOfNoiseIsRejectedThoughItsOwnResidualIsSmall) {
   constexpr int64_t kSize = 96;
-  const at::Tensor ramp = at::linspace(0.1, 0.9, kSize, kDouble);
-  const at::Tensor render = (0.5 + 0.4 * at::sin(ramp.view({kSize, 1}) * 20) * at::cos(ramp.view({1, kSize}) * 15))
-                                .unsqueeze(2)
-                                .expand({kSize, kSize, 3})
-                                .contiguous();
+  const at::Tensor render = textured_render(kSize);
   const at::Tensor alpha = at::ones({kSize, kSize}, kDouble);
   at::manual_seed(6);
   const at::Tensor blend = 0.7 * render + 0.3 * at::rand({kSize, kSize, 3}, kDouble);
