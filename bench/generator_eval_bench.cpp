@@ -332,7 +332,7 @@ absl::Status run() {
     if (arm.generator)
       GAPS_RETURN_IF_ERROR(arm.generator->adapt(gt_refs, SceneAdaptation{c.lora_rank, absl::GetFlag(FLAGS_lora_steps)}));
   const std::vector<double> distances = relative_pose_distances(cameras_of(s.test), cameras_of(s.loaded.train));
-  Trainer trainer(std::move(initial), s.loaded.train, s.options.config);
+  Trainer trainer(initial.to(at::Device(s.options.config.device)), s.loaded.train, s.options.config);
   for (int stop : stops) {
     while (trainer.iteration() < stop) trainer.step();
     const Probes p = probes_at(trainer.model(), s.loaded.train, s.test, c, s.options.config.seed);
