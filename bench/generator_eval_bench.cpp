@@ -51,7 +51,8 @@ ABSL_FLAG(std::string, scene, GAPS_DATA_DIR "/llff/fern", "scene folder");
 ABSL_FLAG(int, views, 3, "training views");
 ABSL_FLAG(int, resolution, 8, "downscale factor");
 ABSL_FLAG(std::string, init, "auto", "initialisation method, as gaps train --init");
-ABSL_FLAG(std::string, init_cache, "", "initial point cloud cache (empty: gaps train's, $GAPS_CACHE/init; none: no cache)");
+ABSL_FLAG(std::string, init_cache, "",
+          "initial point cloud cache (empty: gaps train's, $GAPS_CACHE/init; none: no cache)");
 ABSL_FLAG(std::string, iterations, "1000,5000,9500", "iterations at which the backends are asked (ascending)");
 ABSL_FLAG(int, total_iterations, 10000, "the run's length (its schedules: learning rates, densification)");
 ABSL_FLAG(std::string, device, "cpu", "device of training, rendering, LPIPS and the backends that use one");
@@ -220,7 +221,8 @@ absl::StatusOr<ArmResult> evaluate_arm(Arm& arm, const Probes& p, const std::vec
     v["strength"] = p.requests[k].strength;
     if (arm.generator) {
       const RenderOutput& render = p.renders[k];
-      const AdmissionDecision d = admit_pseudo_view(image, render.rgb.clamp(0, 1), render.alpha, c, p.requests[k].strength);
+      const AdmissionDecision d =
+          admit_pseudo_view(image, render.rgb.clamp(0, 1), render.alpha, c, p.requests[k].strength);
       admitted += d.admitted;
       v["admitted"] = d.admitted;
       v["residual"] = d.mean_residual;
@@ -278,7 +280,8 @@ RunOptions run_options() {
   o.config.device = absl::GetFlag(FLAGS_device);
   o.config.seed = absl::GetFlag(FLAGS_seed);
   const std::string lpips = absl::GetFlag(FLAGS_lpips_weights);
-  o.lpips_weights = lpips.empty() ? default_lpips_weights_path() : std::filesystem::path(lpips == kLpipsOff ? "" : lpips);
+  o.lpips_weights =
+      lpips.empty() ? default_lpips_weights_path() : std::filesystem::path(lpips == kLpipsOff ? "" : lpips);
   return o;
 }
 
@@ -295,14 +298,10 @@ absl::StatusOr<Setting> load_setting(const RunLog& log) {
   if (cap > 0 && static_cast<int>(test_indices.size()) > cap) test_indices.resize(cap);
   GAPS_ASSIGN_OR_RETURN(s.test, load_views(s.loaded.scene, test_indices, device));
   s.options = budgeted_options(s.options, s.loaded.train, log);
-  s.header = {{"bench", "generator_eval"},
-              {"scene", s.options.scene_dir.filename().string()},
-              {"views", s.options.views},
-              {"resolution", s.options.resolution},
-              {"seed", s.options.config.seed},
-              {"device", s.options.config.device},
-              {"test_views", s.test.size()},
-              {"total_iterations", s.options.config.iterations}};
+  s.header = {{"bench", "generator_eval"},     {"scene", s.options.scene_dir.filename().string()},
+              {"views", s.options.views},      {"resolution", s.options.resolution},
+              {"seed", s.options.config.seed}, {"device", s.options.config.device},
+              {"test_views", s.test.size()},   {"total_iterations", s.options.config.iterations}};
   return s;
 }
 
@@ -330,7 +329,8 @@ absl::Status run() {
   const std::vector<ReferenceView> gt_refs = references_of(initial, s.loaded.train);
   for (Arm& arm : arms)
     if (arm.generator)
-      GAPS_RETURN_IF_ERROR(arm.generator->adapt(gt_refs, SceneAdaptation{c.lora_rank, absl::GetFlag(FLAGS_lora_steps)}));
+      GAPS_RETURN_IF_ERROR(
+          arm.generator->adapt(gt_refs, SceneAdaptation{c.lora_rank, absl::GetFlag(FLAGS_lora_steps)}));
   const std::vector<double> distances = relative_pose_distances(cameras_of(s.test), cameras_of(s.loaded.train));
   Trainer trainer(initial.to(at::Device(s.options.config.device)), s.loaded.train, s.options.config);
   for (int stop : stops) {
