@@ -6,7 +6,8 @@
 #   bench/generator_eval.sh DATA OUT.jsonl [IMAGES_DIR]
 # Environment: BENCH (the benchmark binary, default build/bench/generator_eval_bench), DEVICE (default cuda),
 # GAPS_CACHE (the set-up's cache: Real-ESRGAN and LPIPS weights, the init cache), EXTRA (more flags for every
-# setting, e.g. "--arms render,reproject").
+# setting, e.g. "--arms render,reproject"), SETTINGS (the settings to run, "SCENE:VIEWS[:ITERATIONS]" separated by
+# spaces, default all five at 1000,5000,9500; e.g. "llff/fern:6:9500" completes a setting measured in part).
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 data=${1:?data root (e.g. ../shared/data)}
@@ -15,10 +16,11 @@ images=${3:-}
 bench=${BENCH:-$here/../build/bench/generator_eval_bench}
 work=$(mktemp -d)
 pids=()
-for setting in llff/fern:3 llff/fern:6 llff/fern:9 mipnerf360/bonsai:12 mipnerf360/bonsai:24; do
-  scene=${setting%%:*} views=${setting##*:}
+for setting in ${SETTINGS:-llff/fern:3 llff/fern:6 llff/fern:9 mipnerf360/bonsai:12 mipnerf360/bonsai:24}; do
+  IFS=: read -r scene views iterations <<<"$setting"
   name=$(basename "$scene")_$views
   args=(--scene "$data/$scene" --views "$views" --device "${DEVICE:-cuda}" --out "$work/$name.jsonl")
+  [ -n "$iterations" ] && args+=(--iterations "$iterations")
   [ -n "$images" ] && args+=(--images "$images/$name")
   # shellcheck disable=SC2086
   "$bench" "${args[@]}" ${EXTRA:-} >"$work/$name.log" 2>&1 &

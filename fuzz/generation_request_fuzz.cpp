@@ -1,5 +1,5 @@
 // What a diffusion worker decodes from the trainer: the first byte picks GenerateBatch or AdaptSceneBatch,
-// the rest is the message. What decodes must encode and decode again to the same requests.
+// the rest is the message. What decodes must encode and decode again to the same requests, in both encodings.
 #include "fuzz/fuzz_support.h"
 #include "rpc/generation_codec.h"
 
@@ -10,10 +10,13 @@ void generate_batch(const uint8_t* data, size_t size) {
   if (!batch.ParseFromArray(data, static_cast<int>(size))) return;
   const auto requests = gaps::rpc::decode_generation_batch(batch);
   if (!requests.ok()) return;
-  gaps::v1::GenerateBatch again;
-  gaps::rpc::encode_generation_batch(*requests, &again);
-  const auto back = gaps::rpc::decode_generation_batch(again);
-  if (!back.ok() || back->size() != requests->size()) __builtin_trap();
+  for (const auto encoding : {gaps::rpc::TensorEncoding::kFloat32, gaps::rpc::TensorEncoding::kUint8}) {
+    gaps::v1::GenerateBatch again;
+    // Decoded tensors are finite, so neither encoding may refuse them.
+    if (!gaps::rpc::encode_generation_batch(*requests, &again, {encoding, nullptr}).ok()) __builtin_trap();
+    const auto back = gaps::rpc::decode_generation_batch(again);
+    if (!back.ok() || back->size() != requests->size()) __builtin_trap();
+  }
 }
 
 void adapt_batch(const uint8_t* data, size_t size) {

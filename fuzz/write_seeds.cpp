@@ -279,8 +279,11 @@ void generation_seeds(const fs::path& out) {
   q.seed = 3;
   q.ip_adapter_scale = 0.5;
   v1::GenerateBatch batch;
-  rpc::encode_generation_batch({q}, &batch);
+  if (!rpc::encode_generation_batch({q}, &batch).ok()) std::abort();
   put(out / "generate", std::string(1, '\0') + batch.SerializeAsString());
+  v1::GenerateBatch compact;
+  if (!rpc::encode_generation_batch({q}, &compact, {rpc::TensorEncoding::kUint8, nullptr}).ok()) std::abort();
+  put(out / "generate_compact", std::string(1, '\0') + compact.SerializeAsString());
   v1::AdaptSceneBatch adapt;
   rpc::encode_adapt_batch("scene", {seed_reference(0), seed_reference(1)}, SceneAdaptation{4, 50}, &adapt);
   put(out / "adapt", std::string(1, '\1') + adapt.SerializeAsString());

@@ -10,15 +10,13 @@
 #include "common/status_macros.h"
 #include "common/tensor_shape.h"
 #include "gs_trainer/scene/scene.h"
+#include "rpc/shared_memory.h"
 
 namespace gaps::rpc {
 
 void encode_raw(const at::Tensor& tensor, v1::Tensor* out) {
-  const at::Tensor t = tensor.detach().to(at::kCPU, at::kFloat).contiguous();
-  out->set_encoding(v1::Tensor::RAW_F32);
-  out->clear_shape();
-  for (int64_t d : t.sizes()) out->add_shape(d);
-  out->set_data(t.data_ptr(), t.numel() * sizeof(float));
+  // Float32 into the message fails on nothing.
+  encode_tensor(tensor, TensorEncoding::kFloat32, nullptr, "tensor", out).IgnoreError();
 }
 
 absl::Status encode_png(const at::Tensor& image, v1::Tensor* out) {
@@ -32,23 +30,101 @@ absl::Status encode_png(const at::Tensor& image, v1::Tensor* out) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::string& what) {
+uint64_t encoded_bytes(const at::Tensor& tensor, TensorEncoding encoding) {
+  return static_cast<uint64_t>(tensor.numel()) * (encoding == TensorEncoding::kUint8 ? 1 : sizeof(float));
+}
+
+absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
+                           const std::string& what, v1::Tensor* out) {
+  at::Tensor t = tensor.detach();
+  if (encoding == TensorEncoding::kUint8) {
+    if (!at::isfinite(t).all().item<bool>())
+      return absl::InvalidArgumentError(absl::StrCat(what, ": contains NaN or infinite values"));
+    // Converted where the tensor lives: a GPU tensor crosses to the host at a quarter of the size.
+    t = t.clamp(0.0, 1.0).mul(255.0).round().to(at::kByte);
+  } else {
+    t = t.to(at::kFloat);
+  }
+  out->set_encoding(to_proto(encoding));
+  out->clear_shape();
+  for (int64_t d : t.sizes()) out->add_shape(d);
+  const uint64_t bytes = encoded_bytes(t, encoding);
+  if (arena == nullptr) {
+    t = t.to(at::kCPU).contiguous();
+    out->set_data(t.data_ptr(), bytes);
+    return absl::OkStatus();
+  }
+  GAPS_ASSIGN_OR_RETURN(const uint64_t offset, arena->allocate(bytes));
+  if (bytes > 0) at::from_blob(arena->region().data() + offset, t.sizes(), t.options().device(at::kCPU)).copy_(t);
+  out->mutable_shared()->set_offset(offset);
+  out->mutable_shared()->set_length(bytes);
+  return absl::OkStatus();
+}
+
+absl::StatusOr<TensorEncoding> tensor_encoding(v1::Tensor::Encoding encoding, const std::string& what) {
+  switch (encoding) {
+    case v1::Tensor::ENCODING_UNSPECIFIED:
+    case v1::Tensor::RAW_F32:
+      return TensorEncoding::kFloat32;
+    case v1::Tensor::RAW_U8:
+      return TensorEncoding::kUint8;
+    default:
+      return absl::InvalidArgumentError(
+          absl::StrCat(what, ": encoding ", v1::Tensor::Encoding_Name(encoding), " is not RAW_F32 or RAW_U8"));
+  }
+}
+
+v1::Tensor::Encoding to_proto(TensorEncoding encoding) {
+  return encoding == TensorEncoding::kUint8 ? v1::Tensor::RAW_U8 : v1::Tensor::RAW_F32;
+}
+
+namespace {
+
+// The tensor's bytes: its `data`, or its slice of the shared region.
+absl::StatusOr<std::string_view> payload(const v1::Tensor& tensor, const std::string& what,
+                                         const SharedRegion* region) {
+  if (!tensor.has_shared()) return std::string_view(tensor.data());
+  if (region == nullptr)
+    return absl::InvalidArgumentError(absl::StrCat(what, ": refers to shared memory, but the call has no region"));
+  if (!tensor.data().empty())
+    return absl::InvalidArgumentError(absl::StrCat(what, ": has both inline data and a shared slice"));
+  const v1::SharedSlice& slice = tensor.shared();
+  GAPS_RETURN_IF_ERROR(region->check_slice(slice.offset(), slice.length(), what));
+  return std::string_view(reinterpret_cast<const char*>(region->data() + slice.offset()), slice.length());
+}
+
+absl::StatusOr<at::Tensor> decode_raw(std::string_view bytes, const std::vector<int64_t>& shape, int64_t count,
+                                      size_t element_size, const std::string& what) {
+  if (static_cast<uint64_t>(count) * element_size != bytes.size())
+    return absl::InvalidArgumentError(absl::StrCat(what, ": shape [", absl::StrJoin(shape, ", "), "] needs ",
+                                                   count * element_size, " bytes, got ", bytes.size()));
+  if (element_size == sizeof(float)) {
+    at::Tensor out = at::empty(shape, at::kFloat);
+    // An empty tensor has no storage to copy into (its data pointer may be null).
+    if (count > 0) std::memcpy(out.data_ptr(), bytes.data(), bytes.size());
+    return out;
+  }
+  if (count == 0) return at::empty(shape, at::kFloat);
+  // from_blob only views the bytes; the conversion makes the tensor its own copy.
+  void* data = const_cast<char*>(bytes.data());
+  return at::from_blob(data, shape, at::kByte).to(at::kFloat).div_(255.0);
+}
+
+}  // namespace
+
+absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::string& what,
+                                         const SharedRegion* region) {
   std::vector<int64_t> shape(tensor.shape().begin(), tensor.shape().end());
   const absl::StatusOr<int64_t> checked = checked_element_count(shape, int64_t{1} << 40);
   if (!checked.ok()) return absl::InvalidArgumentError(absl::StrCat(what, ": ", checked.status().message()));
+  GAPS_ASSIGN_OR_RETURN(const std::string_view bytes, payload(tensor, what, region));
   switch (tensor.encoding()) {
-    case v1::Tensor::RAW_F32: {
-      const int64_t count = *checked;
-      if (static_cast<uint64_t>(count) * sizeof(float) != tensor.data().size())
-        return absl::InvalidArgumentError(absl::StrCat(what, ": shape [", absl::StrJoin(shape, ", "), "] needs ",
-                                                       count * sizeof(float), " bytes, got ", tensor.data().size()));
-      at::Tensor out = at::empty(shape, at::kFloat);
-      // An empty tensor has no storage to copy into (its data pointer may be null).
-      if (count > 0) std::memcpy(out.data_ptr(), tensor.data().data(), tensor.data().size());
-      return out;
-    }
+    case v1::Tensor::RAW_F32:
+      return decode_raw(bytes, shape, *checked, sizeof(float), what);
+    case v1::Tensor::RAW_U8:
+      return decode_raw(bytes, shape, *checked, 1, what);
     case v1::Tensor::PNG: {
-      GAPS_ASSIGN_OR_RETURN(at::Tensor image, decode_image(tensor.data(), what));
+      GAPS_ASSIGN_OR_RETURN(at::Tensor image, decode_image(std::string(bytes), what));
       if (shape.size() >= 2 && (shape[0] != image.size(0) || shape[1] != image.size(1)))
         return absl::InvalidArgumentError(absl::StrCat(what, ": PNG is ", image.size(1), "x", image.size(0),
                                                        " but its shape says ", shape[1], "x", shape[0]));
@@ -60,14 +136,15 @@ absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::st
 }
 
 absl::StatusOr<at::Tensor> decode_tensor_shaped(const v1::Tensor& tensor, const std::vector<int64_t>& shape,
-                                                const std::string& what) {
-  GAPS_ASSIGN_OR_RETURN(at::Tensor t, decode_tensor(tensor, what));
+                                                const std::string& what, const SharedRegion* region) {
+  GAPS_ASSIGN_OR_RETURN(at::Tensor t, decode_tensor(tensor, what, region));
   bool ok = t.dim() == static_cast<int64_t>(shape.size());
   for (size_t i = 0; ok && i < shape.size(); ++i) ok = shape[i] < 0 || shape[i] == t.size(i);
   if (!ok)
     return absl::InvalidArgumentError(absl::StrCat(what, ": expected shape [", absl::StrJoin(shape, ", "),
                                                    "] (-1: any), got [", absl::StrJoin(t.sizes().vec(), ", "), "]"));
-  if (!at::isfinite(t).all().item<bool>())
+  // Bytes decode to finite values by construction.
+  if (tensor.encoding() != v1::Tensor::RAW_U8 && !at::isfinite(t).all().item<bool>())
     return absl::InvalidArgumentError(absl::StrCat(what, ": contains NaN or infinite values"));
   return t;
 }

@@ -15,18 +15,37 @@
 
 namespace gaps::rpc {
 
+class SharedArena;
+class SharedRegion;
+
 // Bytes per Chunk / file chunk message: well under gRPC's default 4 MiB message cap.
 inline constexpr size_t kChunkBytes = 1 << 20;
 
-// Float tensor -> RAW_F32 (any shape).
+// How a float tensor travels: RAW_F32, or RAW_U8 for images and alpha maps in [0, 1].
+enum class TensorEncoding { kFloat32, kUint8 };
+
+// Float tensor (any shape, any device) -> RAW_F32 (any shape).
 void encode_raw(const at::Tensor& tensor, v1::Tensor* out);
+// Float tensor (any shape, any device) -> `encoding`, its payload in the message or, given an arena, in the
+// arena's shared region (RESOURCE_EXHAUSTED when it is full). kUint8 refuses NaN and infinite values
+// (INVALID_ARGUMENT naming `what`: they have no byte) and clamps the rest to [0, 1].
+absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
+                           const std::string& what, v1::Tensor* out);
+// The payload size of `tensor` in `encoding`.
+uint64_t encoded_bytes(const at::Tensor& tensor, TensorEncoding encoding);
+// RAW_F32 / unspecified -> kFloat32, RAW_U8 -> kUint8; any other is INVALID_ARGUMENT naming `what`.
+absl::StatusOr<TensorEncoding> tensor_encoding(v1::Tensor::Encoding encoding, const std::string& what);
+v1::Tensor::Encoding to_proto(TensorEncoding encoding);
 // H x W x 3 (or x 1) image in [0, 1] -> 8-bit PNG.
 absl::Status encode_png(const at::Tensor& image, v1::Tensor* out);
-// Either encoding -> float32 CPU tensor. `what` names the tensor in errors. PNG images decode to H x W x 3.
-absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::string& what);
-// As decode_tensor, also requiring the given shape (-1: any size in that dimension).
+// Any encoding -> float32 CPU tensor. `what` names the tensor in errors. PNG images decode to H x W x 3. A
+// payload in shared memory is read from `region` (INVALID_ARGUMENT when there is none or the slice lies
+// outside it).
+absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::string& what,
+                                         const SharedRegion* region = nullptr);
+// As decode_tensor, also requiring the given shape (-1: any size in that dimension) and finite values.
 absl::StatusOr<at::Tensor> decode_tensor_shaped(const v1::Tensor& tensor, const std::vector<int64_t>& shape,
-                                                const std::string& what);
+                                                const std::string& what, const SharedRegion* region = nullptr);
 
 void encode_camera(const Camera& camera, v1::Camera* out);
 // Checks sizes, finiteness and that the rotation is orthonormal with determinant +1.

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <map>
 #include <optional>
+#include <set>
 
 #include "absl/strings/str_cat.h"
 #include "common/status_macros.h"
@@ -10,23 +11,46 @@
 
 namespace gaps::rpc {
 
-void encode_reference(const ReferenceView& view, v1::ReferenceView* out) {
+namespace {
+
+absl::Status encode_reference_as(const ReferenceView& view, const TensorTransfer& transfer, const std::string& what,
+                                 v1::ReferenceView* out) {
   encode_camera(view.camera, out->mutable_camera());
-  encode_raw(view.image, out->mutable_image());
-  encode_raw(view.render_depth, out->mutable_render_depth());
-  encode_raw(view.render_alpha, out->mutable_render_alpha());
+  GAPS_RETURN_IF_ERROR(
+      encode_tensor(view.image, transfer.images, transfer.arena, absl::StrCat(what, " image"), out->mutable_image()));
+  GAPS_RETURN_IF_ERROR(encode_tensor(view.render_depth, TensorEncoding::kFloat32, transfer.arena,
+                                     absl::StrCat(what, " render_depth"), out->mutable_render_depth()));
+  return encode_tensor(view.render_alpha, transfer.images, transfer.arena, absl::StrCat(what, " render_alpha"),
+                       out->mutable_render_alpha());
 }
 
-absl::StatusOr<ReferenceView> decode_reference(const v1::ReferenceView& in, const std::string& what) {
+absl::StatusOr<ReferenceView> decode_reference_in(const v1::ReferenceView& in, const std::string& what,
+                                                  const SharedRegion* region) {
   ReferenceView view;
   GAPS_ASSIGN_OR_RETURN(view.camera, decode_camera(in.camera(), absl::StrCat(what, " camera")));
   const int64_t h = view.camera.height, w = view.camera.width;
-  GAPS_ASSIGN_OR_RETURN(view.image, decode_tensor_shaped(in.image(), {h, w, 3}, absl::StrCat(what, " image")));
+  GAPS_ASSIGN_OR_RETURN(view.image, decode_tensor_shaped(in.image(), {h, w, 3}, absl::StrCat(what, " image"), region));
   GAPS_ASSIGN_OR_RETURN(view.render_depth,
-                        decode_tensor_shaped(in.render_depth(), {h, w}, absl::StrCat(what, " render_depth")));
+                        decode_tensor_shaped(in.render_depth(), {h, w}, absl::StrCat(what, " render_depth"), region));
   GAPS_ASSIGN_OR_RETURN(view.render_alpha,
-                        decode_tensor_shaped(in.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha")));
+                        decode_tensor_shaped(in.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha"), region));
   return view;
+}
+
+uint64_t view_bytes(const at::Tensor& rgb, const at::Tensor& depth, const at::Tensor& alpha, TensorEncoding images) {
+  return arena_bytes(encoded_bytes(rgb, images)) + arena_bytes(encoded_bytes(depth, TensorEncoding::kFloat32)) +
+         arena_bytes(encoded_bytes(alpha, images));
+}
+
+}  // namespace
+
+void encode_reference(const ReferenceView& view, v1::ReferenceView* out) {
+  // Float32 into the message fails on nothing.
+  encode_reference_as(view, {}, "reference", out).IgnoreError();
+}
+
+absl::StatusOr<ReferenceView> decode_reference(const v1::ReferenceView& in, const std::string& what) {
+  return decode_reference_in(in, what, nullptr);
 }
 
 namespace {
@@ -79,14 +103,34 @@ absl::StatusOr<AdaptRequest> decode_adapt_batch(const v1::AdaptSceneBatch& batch
   return out;
 }
 
-void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out) {
-  std::map<std::string, int> index;  // camera name -> position in out->references
+SharedLayout shared_layout(const std::vector<GenerationRequest>& requests, TensorEncoding images) {
+  SharedLayout layout;
+  std::set<std::string> references;
   for (const auto& q : requests) {
+    layout.request_bytes += view_bytes(q.render_rgb, q.render_depth, q.render_alpha, images);
+    layout.answer_bytes += arena_bytes(encoded_bytes(q.render_rgb, images));
+    for (const auto& r : q.references)
+      if (references.insert(r.camera.name).second)
+        layout.request_bytes += view_bytes(r.image, r.render_depth, r.render_alpha, images);
+  }
+  return layout;
+}
+
+absl::Status encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out,
+                                     const TensorTransfer& transfer) {
+  out->set_answer_encoding(to_proto(transfer.images));
+  std::map<std::string, int> index;  // camera name -> position in out->references
+  for (size_t k = 0; k < requests.size(); ++k) {
+    const GenerationRequest& q = requests[k];
+    const std::string what = absl::StrCat("pose ", k);
     v1::PoseConstraints* pose = out->add_poses();
     encode_camera(q.camera, pose->mutable_camera());
-    encode_raw(q.render_rgb, pose->mutable_render_rgb());
-    encode_raw(q.render_depth, pose->mutable_render_depth());
-    encode_raw(q.render_alpha, pose->mutable_render_alpha());
+    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_rgb, transfer.images, transfer.arena, absl::StrCat(what, " render_rgb"),
+                                       pose->mutable_render_rgb()));
+    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_depth, TensorEncoding::kFloat32, transfer.arena,
+                                       absl::StrCat(what, " render_depth"), pose->mutable_render_depth()));
+    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_alpha, transfer.images, transfer.arena,
+                                       absl::StrCat(what, " render_alpha"), pose->mutable_render_alpha()));
     pose->set_coverage(q.coverage);
     pose->set_strength(q.strength);
     pose->set_control_scale(q.control_scale);
@@ -100,16 +144,35 @@ void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1:
     }
     for (const auto& r : q.references) {
       auto [it, inserted] = index.emplace(r.camera.name, out->references_size());
-      if (inserted) encode_reference(r, out->add_references());
+      if (inserted)
+        GAPS_RETURN_IF_ERROR(
+            encode_reference_as(r, transfer, absl::StrCat("reference ", r.camera.name), out->add_references()));
       pose->add_reference_order(it->second);
     }
   }
+  return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1::GenerateBatch& batch) {
+absl::Status encode_answer(const std::vector<at::Tensor>& images, const TensorTransfer& transfer,
+                           v1::GenerateResult* out) {
+  SharedArena* arena = transfer.arena;
+  if (arena != nullptr) {
+    uint64_t need = 0;
+    for (const at::Tensor& image : images) need += arena_bytes(encoded_bytes(image, transfer.images));
+    if (need > arena->region().size() - std::min(arena->used_end(), arena->region().size())) arena = nullptr;
+  }
+  for (size_t k = 0; k < images.size(); ++k)
+    GAPS_RETURN_IF_ERROR(
+        encode_tensor(images[k], transfer.images, arena, absl::StrCat("image ", k), out->add_images()));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1::GenerateBatch& batch,
+                                                                       const SharedRegion* region) {
   std::vector<ReferenceView> references;
   for (int i = 0; i < batch.references_size(); ++i) {
-    GAPS_ASSIGN_OR_RETURN(ReferenceView r, decode_reference(batch.references(i), absl::StrCat("reference ", i)));
+    GAPS_ASSIGN_OR_RETURN(ReferenceView r,
+                          decode_reference_in(batch.references(i), absl::StrCat("reference ", i), region));
     references.push_back(std::move(r));
   }
   std::vector<GenerationRequest> requests;
@@ -120,11 +183,11 @@ absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1:
     GAPS_ASSIGN_OR_RETURN(q.camera, decode_camera(p.camera(), absl::StrCat(what, " camera")));
     const int64_t h = q.camera.height, w = q.camera.width;
     GAPS_ASSIGN_OR_RETURN(q.render_rgb,
-                          decode_tensor_shaped(p.render_rgb(), {h, w, 3}, absl::StrCat(what, " render_rgb")));
+                          decode_tensor_shaped(p.render_rgb(), {h, w, 3}, absl::StrCat(what, " render_rgb"), region));
     GAPS_ASSIGN_OR_RETURN(q.render_depth,
-                          decode_tensor_shaped(p.render_depth(), {h, w}, absl::StrCat(what, " render_depth")));
+                          decode_tensor_shaped(p.render_depth(), {h, w}, absl::StrCat(what, " render_depth"), region));
     GAPS_ASSIGN_OR_RETURN(q.render_alpha,
-                          decode_tensor_shaped(p.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha")));
+                          decode_tensor_shaped(p.render_alpha(), {h, w}, absl::StrCat(what, " render_alpha"), region));
     for (double v : {p.coverage(), p.strength(), p.control_scale()})
       if (!std::isfinite(v)) return absl::InvalidArgumentError(absl::StrCat(what, ": non-finite control value"));
     // The Generator seam does not carry it yet; refusing beats silently ignoring what the caller asked for.

@@ -1,8 +1,10 @@
 #pragma once
 // GenerationRequest / ReferenceView / SceneAdaptation <-> gaps.v1 generation messages. Reference views
 // shared by the poses of a batch travel once (matched by camera name), each pose keeping its own
-// nearest-first order. Tensors travel as raw float32, so a remote backend sees exactly what an in-process
-// one would. Decoding checks the controls' ranges: INVALID_ARGUMENT naming the field.
+// nearest-first order. Tensors travel as raw float32, so that a remote backend sees exactly what an
+// in-process one would, or compact (`TensorTransfer`): colour and alpha as bytes, depth as float32; either
+// in the message or in a shared-memory region. Decoding checks the controls' ranges: INVALID_ARGUMENT naming
+// the field.
 #include <optional>
 #include <string>
 #include <vector>
@@ -10,6 +12,8 @@
 #include "absl/status/statusor.h"
 #include "gaps/v1/diffusion_worker.pb.h"
 #include "gs_trainer/gaps/generator.h"
+#include "rpc/codec.h"
+#include "rpc/shared_memory.h"
 
 namespace gaps::rpc {
 
@@ -26,7 +30,30 @@ void encode_adapt_batch(const std::string& scene_id, const std::vector<Reference
                         const std::optional<SceneAdaptation>& adaptation, v1::AdaptSceneBatch* out);
 absl::StatusOr<AdaptRequest> decode_adapt_batch(const v1::AdaptSceneBatch& batch);
 
-void encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out);
-absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1::GenerateBatch& batch);
+// How a batch's tensors travel: `images` is the encoding of colour and alpha (renders, reference photos, the
+// answer's images; depth is always float32); with an arena their payloads go into its shared region.
+struct TensorTransfer {
+  TensorEncoding images = TensorEncoding::kFloat32;
+  SharedArena* arena = nullptr;
+};
+
+// Shared-region bytes a batch needs in `images` encoding: its tensors (references once) and its answer.
+struct SharedLayout {
+  uint64_t request_bytes = 0;
+  uint64_t answer_bytes = 0;
+};
+SharedLayout shared_layout(const std::vector<GenerationRequest>& requests, TensorEncoding images);
+
+// Sets answer_encoding too. Fails only when the arena is full or kUint8 meets a non-finite value.
+absl::Status encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out,
+                                     const TensorTransfer& transfer = {});
+// Payloads in shared memory are read from `region` (the batch's shared_region, opened by the caller).
+absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1::GenerateBatch& batch,
+                                                                       const SharedRegion* region = nullptr);
+
+// The answer's images in `transfer`'s encoding, into its arena when they all fit there, else into the
+// message. kUint8 refuses non-finite pixels (INVALID_ARGUMENT naming the image).
+absl::Status encode_answer(const std::vector<at::Tensor>& images, const TensorTransfer& transfer,
+                           v1::GenerateResult* out);
 
 }  // namespace gaps::rpc

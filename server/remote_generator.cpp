@@ -19,6 +19,7 @@
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
+#include "rpc/shared_memory.h"
 
 namespace gaps {
 
@@ -32,7 +33,9 @@ struct RemoteGenerator::Worker {
   std::chrono::steady_clock::time_point failed_at;
   std::string last_error;
   std::string scene_handle;
-  uint64_t adapted_version = 0;  // views_version_ the handle belongs to
+  uint64_t adapted_version = 0;               // views_version_ the handle belongs to
+  bool shares_memory = false;                 // its probe was read here (set by probe())
+  std::unique_ptr<rpc::SharedRegion> region;  // reused by its calls while large enough
 };
 
 namespace {
@@ -168,6 +171,8 @@ absl::Status RemoteGenerator::probe(Worker& w) {
   v1::WorkerInfo info;
   GAPS_RETURN_IF_ERROR(
       rpc::from_grpc(w.stub->GetInfo(&info_context, v1::GetInfoRequest(), &info), w.address + " GetInfo"));
+  w.shares_memory = options_.shared_memory && !info.shared_memory_probe().empty() &&
+                    rpc::shares_memory_with(info.shared_memory_probe(), info.shared_memory_token());
   std::lock_guard<std::mutex> lock(name_mutex_);
   backend_version_ = info.backend_version();
   return absl::OkStatus();
@@ -233,54 +238,104 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
   return absl::OkStatus();
 }
 
-absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w, const v1::GenerateBatch& batch,
-                                                                     size_t count, std::vector<std::string>* notes) {
+namespace {
+
+double lap(std::chrono::steady_clock::time_point* since) {
+  const auto now = std::chrono::steady_clock::now();
+  const double seconds = std::chrono::duration<double>(now - *since).count();
+  *since = now;
+  return seconds;
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w,
+                                                                       const std::vector<GenerationRequest>& requests,
+                                                                       bool shared) {
+  const auto start = std::chrono::steady_clock::now();
+  auto clock = start;
+  v1::GenerateBatch batch;
+  std::optional<rpc::SharedArena> arena;
+  if (shared) {
+    const rpc::SharedLayout layout = rpc::shared_layout(requests, options_.encoding);
+    if (!w.region || w.region->size() < layout.request_bytes + layout.answer_bytes) {
+      w.region.reset();
+      GAPS_ASSIGN_OR_RETURN(w.region, rpc::SharedRegion::create(layout.request_bytes + layout.answer_bytes));
+    }
+    arena.emplace(*w.region);
+    v1::SharedRegion* region = batch.mutable_shared_region();
+    region->set_name(w.region->name());
+    region->set_size(w.region->size());
+    region->set_answer_offset(layout.request_bytes);
+  }
+  GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, {options_.encoding, arena ? &*arena : nullptr}));
+  if (!w.scene_handle.empty()) batch.set_scene_handle(w.scene_handle);
+  attempt_stages_["client_encode"] += lap(&clock);
+  attempt_counters_["request_bytes"] += static_cast<double>(batch.ByteSizeLong());
+  attempt_counters_["shared_memory"] = shared ? 1.0 : 0.0;
+
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
   const CancelWhenStopping cancel(context, options_.should_stop);
-  const auto start = std::chrono::steady_clock::now();
   auto stream = w.stub->Generate(&context);
-  v1::GenerateBatch with_handle;
-  const v1::GenerateBatch* to_send = &batch;
-  if (!w.scene_handle.empty()) {
-    with_handle = batch;
-    with_handle.set_scene_handle(w.scene_handle);
-    to_send = &with_handle;
-  }
-  rpc::write_chunked(*to_send, [&](const v1::Chunk& c) { return stream->Write(c); });
+  rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
   stream->WritesDone();
+  attempt_stages_["client_send"] += lap(&clock);
   v1::GenerateResult result;
   const absl::Status read =
       rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " Generate"));
+  attempt_stages_["client_receive"] += lap(&clock);
   if (!read.ok()) return malformed(read);
-  if (static_cast<size_t>(result.images_size()) != count)
-    return malformed(absl::InvalidArgumentError(absl::StrCat(result.images_size(), " images for ", count, " poses")));
+  if (static_cast<size_t>(result.images_size()) != requests.size())
+    return malformed(
+        absl::InvalidArgumentError(absl::StrCat(result.images_size(), " images for ", requests.size(), " poses")));
   std::vector<at::Tensor> images;
   for (int k = 0; k < result.images_size(); ++k) {
-    const auto& pose = batch.poses(k).camera();
-    absl::StatusOr<at::Tensor> image =
-        rpc::decode_tensor_shaped(result.images(k), {pose.height(), pose.width(), 3}, absl::StrCat("image ", k));
+    const Camera& pose = requests[k].camera;
+    absl::StatusOr<at::Tensor> image = rpc::decode_tensor_shaped(
+        result.images(k), {pose.height, pose.width, 3}, absl::StrCat("image ", k), shared ? w.region.get() : nullptr);
     if (!image.ok()) return malformed(image.status());  // the decoder refuses NaN and infinite pixels too
     images.push_back(*std::move(image));
   }
-  add_worker_notes(w.address, result.notes(), notes);
+  attempt_stages_["client_decode"] += lap(&clock);
+  attempt_counters_["answer_bytes"] += static_cast<double>(result.ByteSizeLong());
+  if (arena) attempt_counters_["shared_memory_bytes"] += static_cast<double>(w.region->size());
   for (const auto& [stage, seconds] : result.stage_seconds()) attempt_stages_[stage] += seconds;
+  for (const auto& [stage, seconds] : result.transfer_seconds()) attempt_stages_[stage] += seconds;
   attempt_stages_["worker_generate"] += result.backend_seconds();
   attempt_stages_["transfer"] +=
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() - result.backend_seconds();
+  add_worker_notes(w.address, result.notes(), &pending_notes_);
   return images;
 }
 
-absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::adapt_and_generate_on(Worker& w,
-                                                                               const v1::GenerateBatch& batch,
-                                                                               size_t count,
-                                                                               std::vector<std::string>* notes) {
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w,
+                                                                     const std::vector<GenerationRequest>& requests,
+                                                                     std::vector<std::string>* notes) {
+  pending_notes_.clear();
+  auto images = call_generate(w, requests, w.shares_memory);
+  if (w.shares_memory && !images.ok() &&
+      (absl::IsFailedPrecondition(images.status()) || absl::IsResourceExhausted(images.status()))) {
+    // The probe said the memory is shared, but the region could not be made or opened: the socket still works.
+    notes->push_back(absl::StrCat(w.address, ": shared memory unusable (", images.status().message(),
+                                  "); payloads travel in the messages"));
+    w.shares_memory = false;
+    w.region.reset();
+    pending_notes_.clear();
+    images = call_generate(w, requests, false);
+  }
+  notes->insert(notes->end(), pending_notes_.begin(), pending_notes_.end());
+  return images;
+}
+
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::adapt_and_generate_on(
+    Worker& w, const std::vector<GenerationRequest>& requests, std::vector<std::string>* notes) {
   for (int attempt = 0;; ++attempt) {
     GAPS_RETURN_IF_ERROR(adapt_on(w, notes));
     const bool had_handle = !w.scene_handle.empty();
-    auto images = generate_on(w, batch, count, notes);
+    auto images = generate_on(w, requests, notes);
     if (images.ok() || attempt > 0 || !had_handle || !absl::IsNotFound(images.status())) return images;
     w.scene_handle.clear();
     w.adapted_version = 0;
@@ -290,9 +345,8 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::adapt_and_generate_on(W
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vector<GenerationRequest>& requests) {
   notes_.clear();
   stage_seconds_.clear();
+  counters_.clear();
   if (requests.empty()) return std::vector<at::Tensor>{};
-  v1::GenerateBatch batch;
-  rpc::encode_generation_batch(requests, &batch);
   auto backoff = options_.backoff_initial;
   const auto stopping = [&] { return options_.should_stop && options_.should_stop(); };
   const absl::Status stopped = absl::UnavailableError("the job is stopping: the generation call was cancelled");
@@ -303,11 +357,13 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
       if (!usable(w)) continue;
       std::vector<std::string> notes;  // of this worker only: a failed one's are not this call's
       attempt_stages_.clear();
-      auto images = adapt_and_generate_on(w, batch, requests.size(), &notes);
+      attempt_counters_.clear();
+      auto images = adapt_and_generate_on(w, requests, &notes);
       if (images.ok()) {
         next_ = (next_ + k + 1) % workers_.size();
         notes_ = std::move(notes);
         stage_seconds_ = attempt_stages_;
+        counters_ = attempt_counters_;
         return images;
       }
       const absl::Status st = images.status();

@@ -15,6 +15,7 @@
 #include "gaps/v1/diffusion_worker.grpc.pb.h"
 #include "gaps/v1/diffusion_worker.pb.h"
 #include "gs_trainer/gaps/generator.h"
+#include "rpc/codec.h"
 #include "rpc/security.h"
 
 namespace gaps {
@@ -36,6 +37,13 @@ struct WorkerPoolOptions {
   // trainer does not wait out generate_timeout on a worker that never answers) and generate() returns
   // UNAVAILABLE, so that the phase is skipped and recorded as such.
   std::function<bool()> should_stop;
+  // How renders, reference photos and the answer's images travel (depth is always float32): kUint8 (a
+  // quarter of the bytes; 8-bit photographs lose nothing) or kFloat32 (what an in-process backend sees, bit
+  // for bit).
+  rpc::TensorEncoding encoding = rpc::TensorEncoding::kUint8;
+  // Pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker by
+  // its probe, rpc/shared_memory.h); the others, and all when false, get them in the messages.
+  bool shared_memory = true;
 };
 
 // The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per
@@ -60,9 +68,15 @@ class RemoteGenerator final : public Generator {
   // call adapted it) first.
   std::vector<std::string> notes() const override { return notes_; }
   // After generate(): "adapt_scene" (the AdaptScene call, LoRA training included, when this call adapted the
-  // worker), "worker_generate" (the backend's own seconds), "transfer" (the rest of the Generate call) and the
-  // backend's stages (GenerateResult.stage_seconds) of the answering worker.
+  // worker), "worker_generate" (the backend's own seconds), "transfer" (the rest of the Generate call), its
+  // parts on this side ("client_encode": tensors into the message or shared memory, "client_send",
+  // "client_receive": from the last chunk sent to the answer parsed, the worker's work included,
+  // "client_decode") and on the worker's (GenerateResult.transfer_seconds), and the backend's stages
+  // (GenerateResult.stage_seconds) of the answering worker.
   std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
+  // After generate(): "request_bytes" and "answer_bytes" (serialized messages), "shared_memory_bytes" (payload
+  // passed through shared memory) and "shared_memory" (1 when it was used) of the answering worker's call.
+  std::map<std::string, double> counters() const override { return counters_; }
 
  private:
   struct Worker;
@@ -72,12 +86,17 @@ class RemoteGenerator final : public Generator {
   absl::Status probe(Worker& worker);
   // Adapts the worker unless it is adapted to the current views; appends the worker's notes to *notes.
   absl::Status adapt_on(Worker& worker, std::vector<std::string>* notes);
-  absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const v1::GenerateBatch& batch, size_t count,
+  // One Generate call; through shared memory when the worker shares it, falling back to the messages (with
+  // a note) when the worker cannot open the region after all.
+  absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const std::vector<GenerationRequest>& requests,
                                                       std::vector<std::string>* notes);
+  absl::StatusOr<std::vector<at::Tensor>> call_generate(Worker& worker, const std::vector<GenerationRequest>& requests,
+                                                        bool shared);
   // adapt_on, then generate_on; a worker that no longer knows its scene handle (restarted between two calls,
   // so no call failed to tell us) is adapted again and asked once more.
-  absl::StatusOr<std::vector<at::Tensor>> adapt_and_generate_on(Worker& worker, const v1::GenerateBatch& batch,
-                                                                size_t count, std::vector<std::string>* notes);
+  absl::StatusOr<std::vector<at::Tensor>> adapt_and_generate_on(Worker& worker,
+                                                                const std::vector<GenerationRequest>& requests,
+                                                                std::vector<std::string>* notes);
   void mark_failed(Worker& worker);
 
   WorkerPoolOptions options_;
@@ -89,6 +108,9 @@ class RemoteGenerator final : public Generator {
   std::vector<std::string> notes_;
   std::map<std::string, double> stage_seconds_;
   std::map<std::string, double> attempt_stages_;  // of the worker being tried (generate() is not reentrant)
+  std::map<std::string, double> counters_;
+  std::vector<std::string> pending_notes_;  // the answering call's worker notes
+  std::map<std::string, double> attempt_counters_;
   mutable std::mutex name_mutex_;
   std::string backend_version_;
 };

@@ -20,6 +20,7 @@
 #include "gs_trainer/eval/lpips.h"
 #include "rpc/security.h"
 #include "rpc/service_main.h"
+#include "rpc/shared_memory.h"
 #include "server/trainer_service.h"
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:50051", "address to serve on (a bare port binds 127.0.0.1)");
@@ -48,6 +49,12 @@ ABSL_FLAG(std::string, worker_tls_cert, "", "this trainer's client certificate, 
 ABSL_FLAG(std::string, worker_tls_key, "", "private key of --worker-tls-cert");
 ABSL_FLAG(int, worker_timeout_s, 300, "deadline of each generation call");
 ABSL_FLAG(int, worker_rounds, 3, "passes over the worker pool (with backoff) before a phase is skipped");
+ABSL_FLAG(std::string, worker_encoding, "compact",
+          "how renders and images travel to and from the workers: compact (colour and alpha as bytes, depth as "
+          "float32) or float32 (what an in-process backend sees, bit for bit)");
+ABSL_FLAG(bool, worker_shared_memory, true,
+          "pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker; "
+          "the others get them in the messages)");
 ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
 ABSL_FLAG(std::string, lpips_weights, "",
           "LPIPS-VGG weights of the jobs' metrics (default: ~/.cache/gaps/lpips/vgg16_lpips_v0.1.safetensors, as "
@@ -77,7 +84,7 @@ gaps::cli::CommandSpec command() {
       {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
        {"workers", "worker_token_file", "worker_tls_ca", "worker_tls_server_name", "worker_tls_cert", "worker_tls_key",
-        "worker_timeout_s", "worker_rounds"}},
+        "worker_timeout_s", "worker_rounds", "worker_encoding", "worker_shared_memory"}},
   };
   spec.epilogue = gaps::cli::exit_code_table();
   return spec;
@@ -165,6 +172,14 @@ int serve() {
   }
   options.workers.generate_timeout = std::chrono::seconds(absl::GetFlag(FLAGS_worker_timeout_s));
   options.workers.max_rounds = absl::GetFlag(FLAGS_worker_rounds);
+  const std::string encoding = absl::GetFlag(FLAGS_worker_encoding);
+  if (encoding != "compact" && encoding != "float32")
+    return usage("--worker-encoding " + encoding + ": one of compact, float32");
+  options.workers.encoding =
+      encoding == "compact" ? gaps::rpc::TensorEncoding::kUint8 : gaps::rpc::TensorEncoding::kFloat32;
+  options.workers.shared_memory = absl::GetFlag(FLAGS_worker_shared_memory);
+  // Regions a killed trainer on this host left behind in /dev/shm.
+  gaps::rpc::remove_stale_regions();
   auto service = gaps::TrainerService::create(options);
   if (!service.ok()) return fail(service.status());
 

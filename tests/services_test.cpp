@@ -1,15 +1,18 @@
 // The client-server building blocks in one process: message codecs and chunking (with the generation
 // controls), the worker service (remote generation equals in-process generation, the backend's notes,
-// bounded queue, deadlines, tokens), the worker pool's give-up path, the SQLite job store across reopening
-// and when it refuses writes, the trainer service's answers to a job store that refuses writes, a job whose
-// worker cannot honour its controls, and upload validation.
+// bounded queue, deadlines, tokens, float32 / compact hand-over through the socket or shared memory), the worker pool's
+// give-up path, the SQLite job store across reopening and when it refuses writes, the trainer service's answers to a
+// job store that refuses writes, a job whose worker cannot honour its controls, and upload validation.
 #include <fcntl.h>
 #include <sqlite3.h>
+#include <sys/mman.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <condition_variable>
 #include <fstream>
 #include <functional>
@@ -41,6 +44,7 @@
 #include "rpc/config_codec.h"
 #include "rpc/generation_codec.h"
 #include "rpc/security.h"
+#include "rpc/shared_memory.h"
 #include "server/job_config.h"
 #include "server/job_store.h"
 #include "server/remote_generator.h"
@@ -162,9 +166,85 @@ TEST(Codec, TensorsAndCamerasRoundTrip) {
   EXPECT_NE(nan.status().message().find("not finite"), std::string_view::npos);
 }
 
+// Bytes for images and alpha: an 8-bit photograph round-trips exactly, values outside [0, 1] are clamped,
+// non-finite values are refused naming the tensor, and a payload of the wrong size is refused.
+TEST(Codec, CompactTensorsAreBytes) {
+  const at::Tensor photo = at::randint(0, 256, {5, 4, 3}).to(at::kFloat).div(255);
+  v1::Tensor compact;
+  ASSERT_TRUE(rpc::encode_tensor(photo, rpc::TensorEncoding::kUint8, nullptr, "photo", &compact).ok());
+  EXPECT_EQ(compact.encoding(), v1::Tensor::RAW_U8);
+  EXPECT_EQ(compact.data().size(), 60u);
+  auto back = rpc::decode_tensor_shaped(compact, {5, 4, 3}, "photo");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(at::equal(*back, photo));
+  ASSERT_TRUE(
+      rpc::encode_tensor(at::tensor({-0.5f, 0.25f, 1.5f}), rpc::TensorEncoding::kUint8, nullptr, "t", &compact).ok());
+  back = rpc::decode_tensor(compact, "t");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_TRUE(at::allclose(*back, at::tensor({0.0f, 64.0f / 255, 1.0f})));
+  const absl::Status nan =
+      rpc::encode_tensor(at::tensor({0.5f, NAN}), rpc::TensorEncoding::kUint8, nullptr, "pose 2 render_rgb", &compact);
+  EXPECT_EQ(nan.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(nan.message(), "pose 2 render_rgb: contains NaN or infinite values");
+  compact.mutable_data()->pop_back();
+  const auto short_payload = rpc::decode_tensor(compact, "t");
+  EXPECT_EQ(short_payload.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(short_payload.status().message(), "needs 3 bytes, got 2")) << short_payload.status();
+  compact.set_encoding(v1::Tensor::PNG);
+  EXPECT_EQ(rpc::tensor_encoding(compact.encoding(), "answer_encoding").status().code(),
+            absl::StatusCode::kInvalidArgument);
+}
+
+// Shared-memory regions: opened only by the names the module creates and at their size, slices checked, gone
+// once their owner is; a probe is recognised by its token only; regions of dead processes are removed.
+TEST(SharedMemory, RegionsProbesAndStaleRegions) {
+  auto region = rpc::SharedRegion::create(1000);
+  ASSERT_TRUE(region.ok()) << region.status();
+  (*region)->data()[999] = 42;
+  auto seen = rpc::SharedRegion::open((*region)->name(), 1000);
+  ASSERT_TRUE(seen.ok()) << seen.status();
+  EXPECT_EQ((*seen)->data()[999], 42);
+  EXPECT_EQ(rpc::SharedRegion::open((*region)->name(), 999).status().code(), absl::StatusCode::kInvalidArgument);
+  for (const char* name : {"/etc", "/gaps-region-1", "/gaps-region-1-2/../x", "gaps-region-1-2", "/gaps-region-a-2"})
+    EXPECT_EQ(rpc::SharedRegion::open(name, 1000).status().code(), absl::StatusCode::kInvalidArgument) << name;
+  EXPECT_TRUE((*region)->check_slice(900, 100, "t").ok());
+  EXPECT_EQ((*region)->check_slice(901, 100, "t").code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ((*region)->check_slice(~uint64_t{0}, 2, "t").code(), absl::StatusCode::kInvalidArgument);
+  rpc::SharedArena arena(**region);
+  EXPECT_EQ(*arena.allocate(10), 0u);
+  EXPECT_EQ(*arena.allocate(10), 64u);  // aligned
+  EXPECT_EQ(arena.allocate(900).status().code(), absl::StatusCode::kResourceExhausted);
+  const std::string name = (*region)->name();
+  region->reset();
+  EXPECT_EQ(rpc::SharedRegion::open(name, 1000).status().code(), absl::StatusCode::kFailedPrecondition);
+
+  auto probe = rpc::SharedMemoryProbe::create();
+  ASSERT_TRUE(probe.ok()) << probe.status();
+  EXPECT_TRUE(rpc::shares_memory_with((*probe)->name(), (*probe)->token()));
+  EXPECT_FALSE(rpc::shares_memory_with((*probe)->name(), (*probe)->token() + "0"));
+  EXPECT_FALSE(rpc::shares_memory_with("/gaps-region-1-1", (*probe)->token()));
+  const std::string probe_name = (*probe)->name(), token = (*probe)->token();
+  probe->reset();
+  EXPECT_FALSE(rpc::shares_memory_with(probe_name, token));
+
+  const pid_t child = fork();
+  if (child == 0) _exit(0);
+  ASSERT_GT(child, 0);
+  waitpid(child, nullptr, 0);
+  const std::string stale = "/gaps-region-" + std::to_string(child) + "-0";
+  const int fd = shm_open(stale.c_str(), O_CREAT | O_RDWR, 0600);
+  ASSERT_GE(fd, 0);
+  close(fd);
+  auto mine = rpc::SharedRegion::create(64);
+  ASSERT_TRUE(mine.ok());
+  EXPECT_GE(rpc::remove_stale_regions(), 1);
+  EXPECT_LT(shm_open(stale.c_str(), O_RDONLY, 0), 0) << "the dead process's region is gone";
+  EXPECT_TRUE(rpc::SharedRegion::open((*mine)->name(), 64).ok()) << "a live process's region stays";
+}
+
 TEST(Codec, ChunkedMessagesReassembleAndRespectTheLimit) {
   v1::GenerateBatch batch;
-  rpc::encode_generation_batch(test_requests(), &batch);
+  ASSERT_TRUE(rpc::encode_generation_batch(test_requests(), &batch).ok());
   EXPECT_EQ(batch.references_size(), 2);  // shared by both poses, sent once
   std::vector<v1::Chunk> chunks;
   ASSERT_TRUE(rpc::write_chunked(batch, [&](const v1::Chunk& c) {
@@ -193,7 +273,7 @@ TEST(Codec, InpaintSettingsTravelWithThePose) {
   std::vector<GenerationRequest> requests = test_requests();
   requests[0].inpaint = InpaintSettings{0.25, 0.1, 7};
   v1::GenerateBatch batch;
-  rpc::encode_generation_batch(requests, &batch);
+  ASSERT_TRUE(rpc::encode_generation_batch(requests, &batch).ok());
   auto back = rpc::decode_generation_batch(batch);
   ASSERT_TRUE(back.ok()) << back.status();
   ASSERT_TRUE((*back)[0].inpaint.has_value());
@@ -215,7 +295,7 @@ TEST(Codec, GenerationControlsTravelAndAreChecked) {
   std::vector<GenerationRequest> requests = test_requests();
   requests[0].ip_adapter_scale = 0.35;
   v1::GenerateBatch batch;
-  rpc::encode_generation_batch(requests, &batch);
+  ASSERT_TRUE(rpc::encode_generation_batch(requests, &batch).ok());
   auto back = rpc::decode_generation_batch(batch);
   ASSERT_TRUE(back.ok()) << back.status();
   EXPECT_EQ((*back)[0].ip_adapter_scale, std::optional<double>(0.35));
@@ -362,11 +442,19 @@ struct RunningWorker {
   std::unique_ptr<grpc::Server> server;
 };
 
+// How a pool hands tensors over (the defaults: compact, shared memory when the worker shares it).
+struct Transfer {
+  rpc::TensorEncoding encoding = rpc::TensorEncoding::kUint8;
+  bool shared_memory = true;
+};
+
 absl::StatusOr<std::unique_ptr<RemoteGenerator>> pool(const std::vector<std::string>& addresses,
-                                                      const std::string& token = "") {
+                                                      const std::string& token = "", Transfer transfer = {}) {
   WorkerPoolOptions o;
   o.addresses = addresses;
   o.security.token = token;
+  o.encoding = transfer.encoding;
+  o.shared_memory = transfer.shared_memory;
   o.probe_timeout = std::chrono::milliseconds(500);
   o.generate_timeout = std::chrono::milliseconds(20000);
   o.max_rounds = 2;
@@ -374,6 +462,7 @@ absl::StatusOr<std::unique_ptr<RemoteGenerator>> pool(const std::vector<std::str
   return RemoteGenerator::create(o);
 }
 
+// Float32 hands over exactly what an in-process backend sees, through the socket and through shared memory.
 TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   auto local = make_generator("reproject", "");
   auto hosted = make_generator("reproject", "");
@@ -382,17 +471,143 @@ TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   options.backend = "reproject";
   RunningWorker worker(std::move(*hosted), options);
   ASSERT_GT(worker.port, 0);
+  const auto requests = test_requests();
+  auto want = (*local)->generate(requests);
+  ASSERT_TRUE(want.ok()) << want.status();
+  for (const bool shared : {false, true}) {
+    auto remote = pool({worker.address()}, "", {rpc::TensorEncoding::kFloat32, shared});
+    ASSERT_TRUE(remote.ok()) << remote.status();
+    ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+    auto got = (*remote)->generate(requests);
+    ASSERT_TRUE(got.ok()) << got.status();
+    ASSERT_EQ(got->size(), want->size());
+    for (size_t k = 0; k < got->size(); ++k)
+      EXPECT_TRUE(at::equal((*got)[k], (*want)[k])) << "pose " << k << ", shared memory " << shared;
+    EXPECT_EQ((*remote)->counters().at("shared_memory"), shared ? 1.0 : 0.0);
+    EXPECT_EQ((*remote)->name(), "remote " + (*local)->name());
+  }
+}
+
+// Renders with 8-bit values (as the photographs are) travel compact without loss, in a quarter of the bytes
+// for colour and alpha; the answer is the in-process one rounded to bytes. Shared memory leaves the message
+// with the cameras and controls only.
+TEST(WorkerService, CompactTransferIsTheInProcessAnswerInBytes) {
+  auto local = make_generator("reproject", "");
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(local.ok() && hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  RunningWorker worker(std::move(*hosted), options);
+  auto requests = test_requests();
+  const auto bytes = [](const at::Tensor& t) { return t.mul(255).round().div(255); };
+  for (auto& q : requests) {
+    q.render_rgb = bytes(q.render_rgb);
+    q.render_alpha = bytes(q.render_alpha);
+    for (auto& r : q.references) r.image = bytes(r.image);
+  }
+  auto want = (*local)->generate(requests);
+  ASSERT_TRUE(want.ok()) << want.status();
+  double request_bytes[2][2] = {};  // [compact][shared]: bytes in the message
+  for (const bool compact : {false, true})
+    for (const bool shared : {false, true}) {
+      auto remote =
+          pool({worker.address()}, "", {compact ? rpc::TensorEncoding::kUint8 : rpc::TensorEncoding::kFloat32, shared});
+      ASSERT_TRUE(remote.ok()) << remote.status();
+      ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+      auto got = (*remote)->generate(requests);
+      ASSERT_TRUE(got.ok()) << got.status();
+      for (size_t k = 0; k < got->size(); ++k) {
+        const at::Tensor expected = compact ? bytes((*want)[k].clamp(0, 1)) : (*want)[k];
+        EXPECT_TRUE(at::allclose((*got)[k], expected, 0, 1e-6)) << "pose " << k << " compact " << compact;
+      }
+      const std::map<std::string, double> counters = (*remote)->counters();
+      request_bytes[compact][shared] = counters.at("request_bytes");
+      EXPECT_EQ(counters.at("shared_memory"), shared ? 1.0 : 0.0);
+      EXPECT_EQ(counters.count("shared_memory_bytes"), shared ? 1u : 0u);
+      const std::map<std::string, double> stages = (*remote)->stage_seconds();
+      for (const char* stage : {"client_encode", "client_send", "client_receive", "client_decode", "worker_receive",
+                                "worker_decode", "worker_queue", "worker_encode"})
+        EXPECT_EQ(stages.count(stage), 1u) << stage;
+    }
+  // Per pixel: float32 colour 12 + depth 4 + alpha 4 bytes, compact 3 + 4 + 1; through shared memory the message
+  // keeps the cameras and controls (most of it at this tiny image size).
+  EXPECT_LT(request_bytes[1][0], 0.5 * request_bytes[0][0]);
+  EXPECT_LT(request_bytes[1][1], 0.1 * request_bytes[1][0]);
+  EXPECT_LT(request_bytes[0][1], 0.1 * request_bytes[1][0]);
+}
+
+// A worker started without shared memory offers none, and its callers use the socket.
+TEST(WorkerService, AWorkerWithoutSharedMemoryGetsPayloadsInTheMessages) {
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  options.shared_memory = false;
+  RunningWorker worker(std::move(*hosted), options);
   auto remote = pool({worker.address()});
   ASSERT_TRUE(remote.ok()) << remote.status();
   const auto requests = test_requests();
   ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
-  auto got = (*remote)->generate(requests);
-  ASSERT_TRUE(got.ok()) << got.status();
-  auto want = (*local)->generate(requests);
-  ASSERT_TRUE(want.ok()) << want.status();
-  ASSERT_EQ(got->size(), want->size());
-  for (size_t k = 0; k < got->size(); ++k) EXPECT_TRUE(at::equal((*got)[k], (*want)[k])) << "pose " << k;
-  EXPECT_EQ((*remote)->name(), "remote " + (*local)->name());
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+  EXPECT_EQ((*remote)->counters().at("shared_memory"), 0.0);
+}
+
+// What a worker does with shared-memory regions it is handed: only names a trainer creates, only slices inside
+// the region, only when it offers shared memory; each refusal names the problem.
+TEST(WorkerService, SharedRegionsAreCheckedBeforeUse) {
+  auto hosted = make_generator("reproject", "");
+  ASSERT_TRUE(hosted.ok());
+  WorkerServiceOptions options;
+  options.backend = "reproject";
+  RunningWorker worker(std::move(*hosted), options);
+  auto closed = make_generator("reproject", "");
+  ASSERT_TRUE(closed.ok());
+  options.shared_memory = false;
+  RunningWorker without(std::move(*closed), options);
+  const auto call = [](const RunningWorker& w, const v1::GenerateBatch& batch) {
+    auto stub = v1::DiffusionWorker::NewStub(grpc::CreateChannel(w.address(), grpc::InsecureChannelCredentials()));
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(20));
+    auto stream = stub->Generate(&context);
+    rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
+    stream->WritesDone();
+    v1::GenerateResult result;
+    (void)rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, 1 << 30, &result);
+    return stream->Finish();
+  };
+  const auto requests = test_requests();
+  const rpc::SharedLayout layout = rpc::shared_layout(requests, rpc::TensorEncoding::kUint8);
+  auto region = rpc::SharedRegion::create(layout.request_bytes + layout.answer_bytes);
+  ASSERT_TRUE(region.ok()) << region.status();
+  rpc::SharedArena arena(**region);
+  v1::GenerateBatch good;
+  ASSERT_TRUE(rpc::encode_generation_batch(requests, &good, {rpc::TensorEncoding::kUint8, &arena}).ok());
+  good.mutable_shared_region()->set_name((*region)->name());
+  good.mutable_shared_region()->set_size((*region)->size());
+  good.mutable_shared_region()->set_answer_offset(layout.request_bytes);
+  EXPECT_TRUE(call(worker, good).ok());
+
+  const auto refused = [&](const RunningWorker& w, const v1::GenerateBatch& batch, grpc::StatusCode code,
+                           const std::string& words) {
+    const grpc::Status st = call(w, batch);
+    EXPECT_EQ(st.error_code(), code) << st.error_message();
+    EXPECT_TRUE(absl::StrContains(st.error_message(), words)) << st.error_message();
+  };
+  refused(without, good, grpc::StatusCode::FAILED_PRECONDITION, "takes no shared memory");
+  v1::GenerateBatch bad = good;
+  bad.mutable_shared_region()->set_name("/etc-passwd");
+  refused(worker, bad, grpc::StatusCode::INVALID_ARGUMENT, "is not one a gaps trainer creates");
+  bad.mutable_shared_region()->set_name("/gaps-region-1-999999999");
+  refused(worker, bad, grpc::StatusCode::FAILED_PRECONDITION, "/gaps-region-1-999999999");
+  bad = good;
+  bad.mutable_shared_region()->set_size((*region)->size() + 64);
+  refused(worker, bad, grpc::StatusCode::INVALID_ARGUMENT, "the request says");
+  bad = good;
+  bad.mutable_poses(1)->mutable_render_rgb()->mutable_shared()->set_offset((*region)->size() - 8);
+  refused(worker, bad, grpc::StatusCode::INVALID_ARGUMENT, "pose 1 render_rgb: bytes");
+  bad = good;
+  bad.clear_shared_region();
+  refused(worker, bad, grpc::StatusCode::INVALID_ARGUMENT, "refers to shared memory, but the call has no region");
 }
 
 // Answers every request with NaN pixels: a worker with a broken backend.
@@ -421,21 +636,24 @@ TEST(WorkerPool, AMalformedAnswerMovesOnToTheNextWorker) {
   RunningWorker healthy(std::move(*hosted), options);
   const auto requests = test_requests();
 
-  auto both = pool({broken.address(), healthy.address()});
-  ASSERT_TRUE(both.ok()) << both.status();
-  ASSERT_TRUE((*both)->adapt(requests[0].references, std::nullopt).ok());
-  const auto images = (*both)->generate(requests);
-  ASSERT_TRUE(images.ok()) << images.status();
-  for (const at::Tensor& image : *images) EXPECT_TRUE(at::isfinite(image).all().item<bool>());
+  // Float32 answers carry the NaN to the trainer, which refuses them; bytes cannot, so the worker refuses.
+  for (const auto encoding : {rpc::TensorEncoding::kFloat32, rpc::TensorEncoding::kUint8}) {
+    auto both = pool({broken.address(), healthy.address()}, "", {encoding, false});
+    ASSERT_TRUE(both.ok()) << both.status();
+    ASSERT_TRUE((*both)->adapt(requests[0].references, std::nullopt).ok());
+    const auto images = (*both)->generate(requests);
+    ASSERT_TRUE(images.ok()) << images.status();
+    for (const at::Tensor& image : *images) EXPECT_TRUE(at::isfinite(image).all().item<bool>());
 
-  auto alone = pool({broken.address()});
-  ASSERT_TRUE(alone.ok()) << alone.status();
-  ASSERT_TRUE((*alone)->adapt(requests[0].references, std::nullopt).ok());
-  const absl::Status refused = (*alone)->generate(requests).status();
-  EXPECT_EQ(refused.code(), absl::StatusCode::kUnavailable) << refused;
-  EXPECT_TRUE(absl::StrContains(refused.message(),
-                                broken.address() + ": malformed answer: image 0: contains NaN or infinite values"))
-      << refused;
+    auto alone = pool({broken.address()}, "", {encoding, false});
+    ASSERT_TRUE(alone.ok()) << alone.status();
+    ASSERT_TRUE((*alone)->adapt(requests[0].references, std::nullopt).ok());
+    const absl::Status refused = (*alone)->generate(requests).status();
+    EXPECT_EQ(refused.code(), absl::StatusCode::kUnavailable) << refused;
+    EXPECT_TRUE(absl::StrContains(refused.message(), broken.address() + ": ")) << refused;
+    EXPECT_TRUE(absl::StrContains(refused.message(), "malformed answer: image 0: contains NaN or infinite values"))
+        << refused;
+  }
 }
 
 // A cancelled job or a stopping trainer does not wait for a worker that never answers: the call is cancelled
@@ -529,7 +747,7 @@ TEST(WorkerService, FullQueueIsResourceExhaustedAndQueuedCallsHonourDeadlines) {
   auto channel = grpc::CreateChannel(worker.address(), grpc::InsecureChannelCredentials());
   auto stub = v1::DiffusionWorker::NewStub(channel);
   v1::GenerateBatch batch;
-  rpc::encode_generation_batch(test_requests(), &batch);
+  ASSERT_TRUE(rpc::encode_generation_batch(test_requests(), &batch).ok());
   const auto call = [&](std::chrono::milliseconds timeout) {
     grpc::ClientContext context;
     context.set_deadline(std::chrono::system_clock::now() + timeout);

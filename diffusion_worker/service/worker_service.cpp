@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <optional>
 
 #include <ATen/Context.h>
 #include "absl/strings/str_cat.h"
@@ -65,7 +66,11 @@ class WorkerService::BackendTurn {
 };
 
 WorkerService::WorkerService(std::unique_ptr<Generator> generator, WorkerServiceOptions options)
-    : generator_(std::move(generator)), options_(std::move(options)) {}
+    : generator_(std::move(generator)), options_(std::move(options)) {
+  if (!options_.shared_memory) return;
+  // Without a probe (no writable /dev/shm) trainers simply use the socket.
+  if (auto probe = rpc::SharedMemoryProbe::create(); probe.ok()) probe_ = *std::move(probe);
+}
 
 grpc::Status WorkerService::wait_for_backend(grpc::ServerContext* context, std::unique_ptr<BackendTurn>* turn) {
   std::unique_lock<std::mutex> lock(mutex_);
@@ -120,6 +125,10 @@ grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetI
   info->set_device_memory_total(memory.total);
   info->set_device_memory_free(memory.free);
   info->set_weights_identity(generator_->weights_identity());
+  if (probe_) {
+    info->set_shared_memory_probe(probe_->name());
+    info->set_shared_memory_token(probe_->token());
+  }
   for (const char* c : {"render_rgb", "render_depth", "render_alpha", "references", "strength", "control_scale",
                         "ip_adapter_scale", "prompt", "seed"})
     info->add_supported_constraints(c);
@@ -160,23 +169,57 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
+namespace {
+
+double seconds_since(std::chrono::steady_clock::time_point* since) {
+  const auto now = std::chrono::steady_clock::now();
+  const double seconds = std::chrono::duration<double>(now - *since).count();
+  *since = now;
+  return seconds;
+}
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> WorkerService::open_region(const v1::GenerateBatch& batch) {
+  if (!batch.has_shared_region()) return nullptr;
+  if (!probe_)
+    return absl::FailedPreconditionError(
+        "this worker takes no shared memory (--shared_memory=false); send payloads "
+        "in the message");
+  const v1::SharedRegion& r = batch.shared_region();
+  if (r.answer_offset() > r.size())
+    return absl::InvalidArgumentError(absl::StrCat("shared region ", r.name(), ": answer_offset ", r.answer_offset(),
+                                                   " lies beyond its ", r.size(), " bytes"));
+  return rpc::SharedRegion::open(r.name(), r.size());
+}
+
 grpc::Status WorkerService::Generate(grpc::ServerContext* context,
                                      grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  auto clock = std::chrono::steady_clock::now();
+  v1::GenerateResult result;
+  auto& transfer = *result.mutable_transfer_seconds();
   v1::GenerateBatch batch;
   if (auto st = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, options_.max_request_bytes, &batch);
       !st.ok())
     return rpc::to_grpc(st);
+  transfer["worker_receive"] = seconds_since(&clock);
   if (batch.poses_size() == 0)
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "Generate needs at least one pose");
   if (batch.poses_size() > options_.max_batch)
     return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
         absl::StrCat(batch.poses_size(), " poses exceed this worker's max batch of ", options_.max_batch));
-  auto requests = rpc::decode_generation_batch(batch);
+  auto answer_encoding = rpc::tensor_encoding(batch.answer_encoding(), "answer_encoding");
+  if (!answer_encoding.ok()) return rpc::to_grpc(answer_encoding.status());
+  auto region = open_region(batch);
+  if (!region.ok()) return rpc::to_grpc(region.status());
+  auto requests = rpc::decode_generation_batch(batch, region->get());
   if (!requests.ok()) return rpc::to_grpc(requests.status());
+  transfer["worker_decode"] = seconds_since(&clock);
   std::unique_ptr<BackendTurn> turn;
   if (auto st = wait_for_backend(context, &turn); !st.ok()) return st;
+  transfer["worker_queue"] = seconds_since(&clock);
   if (auto st = ensure_adapted(batch.scene_handle()); !st.ok()) return rpc::to_grpc(st);
   const auto start = std::chrono::steady_clock::now();
   auto images = generator_->generate(*requests);
@@ -186,9 +229,14 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   const std::map<std::string, double> stages = generator_->stage_seconds();
   turn.reset();
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "caller gave up during generation");
-  v1::GenerateResult result;
   result.set_backend_seconds(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
-  for (const auto& image : *images) rpc::encode_raw(image, result.add_images());
+  clock = std::chrono::steady_clock::now();
+  std::optional<rpc::SharedArena> arena;
+  if (*region) arena.emplace(**region, batch.shared_region().answer_offset());
+  if (auto st = rpc::encode_answer(*images, {*answer_encoding, arena ? &*arena : nullptr}, &result); !st.ok())
+    // The backend, not the request, produced what cannot be sent: the caller asks another worker.
+    return rpc::to_grpc(absl::DataLossError(absl::StrCat("malformed answer: ", st.message())));
+  transfer["worker_encode"] = seconds_since(&clock);
   for (const std::string& note : notes) result.add_notes(note);
   result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
   if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))

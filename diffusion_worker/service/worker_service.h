@@ -14,6 +14,7 @@
 #include "gaps/v1/diffusion_worker.grpc.pb.h"
 #include "gs_trainer/gaps/generator.h"
 #include "rpc/generation_codec.h"
+#include "rpc/shared_memory.h"
 
 namespace gaps {
 
@@ -24,6 +25,8 @@ struct WorkerServiceOptions {
   uint64_t max_request_bytes = 1ull << 30;  // serialized request size limit
   int queue_capacity = 4;                   // calls that may wait behind the running one
   std::string token;                        // required bearer token (empty: none)
+  // Accept payloads in shared memory from trainers that share this host's /dev/shm (rpc/shared_memory.h).
+  bool shared_memory = true;
 };
 
 class WorkerService final : public v1::DiffusionWorker::Service {
@@ -45,9 +48,13 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   grpc::Status wait_for_backend(grpc::ServerContext* context, std::unique_ptr<BackendTurn>* turn);
   // Makes the backend adapted to `handle` (re-adapting when another scene was adapted since); needs the turn.
   absl::Status ensure_adapted(const std::string& handle);
+  // The batch's shared region mapped (null when it has none); FAILED_PRECONDITION when this worker offers no
+  // shared memory, the mapping's error when the caller's region cannot be opened here.
+  absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> open_region(const v1::GenerateBatch& batch);
 
   std::unique_ptr<Generator> generator_;
   WorkerServiceOptions options_;
+  std::unique_ptr<rpc::SharedMemoryProbe> probe_;  // null: no shared memory offered
   std::mutex mutex_;
   std::condition_variable backend_free_;
   bool backend_busy_ = false;

@@ -102,6 +102,9 @@ class Generator {
   // Wall-clock seconds by stage of the last generate() call (for a remote backend, the scene adaptation it
   // ran first too), for the phases' time breakdown; empty for a backend without stages.
   virtual std::map<std::string, double> stage_seconds() const { return {}; }
+  // Counts of the last generate() call other than time (a remote backend's bytes sent and received), for the
+  // phases' record; empty for a backend without any.
+  virtual std::map<std::string, double> counters() const { return {}; }
 };
 
 // The note of a backend without an IP-Adapter (`reason`, e.g. "reproject has no IP-Adapter") for the

@@ -240,6 +240,7 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   lap(entry, "generation", &clock);
   record_generator_notes(*generator_, entry);
   for (const auto& [stage, seconds] : generator_->stage_seconds()) entry["generator_stages"][stage] = seconds;
+  for (const auto& [name, count] : generator_->counters()) entry["generator_counters"][name] = count;
   if (images.size() != requests.size())
     return absl::InternalError(absl::StrCat("generator ", generator_->name(), " returned ", images.size(),
                                             " images for ", requests.size(), " requests"));

@@ -129,6 +129,14 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
   const nlohmann::json metrics = test::read_json(dir_ / "fetched" / "metrics.json");
   EXPECT_EQ(metrics["device"].get<std::string>().rfind("cuda", 0), 0u) << metrics["device"];
   EXPECT_EQ(metrics["peak_memory"]["kind"], "cuda_allocator");
+  // On one host the payloads (compact: bytes for colour and alpha) went through shared memory.
+  const nlohmann::json phases = test::read_json(dir_ / "fetched" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  for (const nlohmann::json& phase : phases) {
+    EXPECT_EQ(phase["generator_counters"]["shared_memory"], 1.0) << phase["generator_counters"];
+    EXPECT_GT(phase["generator_counters"]["shared_memory_bytes"].get<double>(), 0.0);
+    EXPECT_TRUE(phase["generator_stages"].contains("client_encode")) << phase["generator_stages"];
+  }
 
   // RenderView on the trainer's GPU gives the job's own test renders (renders/, also made on the GPU), frame
   // after frame from the model the service keeps.
@@ -144,6 +152,24 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
       EXPECT_LE((*rendered - *saved).abs().max().item<float>(), 1.0f / 255 + 1e-6) << camera.name();
       EXPECT_GT(rendered->std().item<float>(), 0.01f) << camera.name();
     }
+  }
+}
+
+// The hand-over the trainer's flags choose: float32 payloads in the messages, as before shared memory and compact
+// encoding existed.
+TEST_F(ServicesOnCuda, AFullJobWithFloat32PayloadsInTheMessagesRunsToo) {
+  GAPS_REQUIRE_CUDA();
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(run_full_job({"--backend", "reproject", "--device", "cuda"},
+                                       {"--worker_encoding", "float32", "--noworker_shared_memory"}, kShortJobGate,
+                                       &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  EXPECT_EQ(job.skipped, 0) << worker_->log_text();
+  EXPECT_GE(job.admitted, 1);
+  for (const nlohmann::json& phase : test::read_json(dir_ / "fetched" / "phases.json")) {
+    EXPECT_EQ(phase["generator_counters"]["shared_memory"], 0.0) << phase["generator_counters"];
+    // 16 float32 bytes per pixel at least (colour and depth) of 96x72 poses.
+    EXPECT_GT(phase["generator_counters"]["request_bytes"].get<double>(), 4 * 96 * 72 * 16.0);
   }
 }
 
