@@ -53,6 +53,7 @@ class TimedGenerator : public Generator {
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
   std::vector<std::string> notes() const override { return inner_->notes(); }
   std::map<std::string, double> stage_seconds() const override { return inner_->stage_seconds(); }
+  std::map<std::string, double> counters() const override { return inner_->counters(); }
   double seconds() const { return seconds_; }
 
  private:
