@@ -147,22 +147,6 @@ std::vector<double> relative_pose_distances(const std::vector<Camera>& test, con
 }
 
 // The training views with the model's renders there, ordered nearest first to `pose` (as the method sends them).
-std::vector<ReferenceView> references_for(const Camera& pose, const std::vector<ReferenceView>& refs) {
-  std::vector<ReferenceView> out = refs;
-  std::stable_sort(out.begin(), out.end(), [&](const ReferenceView& a, const ReferenceView& b) {
-    return pose_distance(pose, a.camera) < pose_distance(pose, b.camera);
-  });
-  return out;
-}
-
-std::vector<ReferenceView> references_of(const GaussianModel& model, const std::vector<TrainingView>& train) {
-  const std::vector<RenderOutput> at_gt = render_views(model, cameras_of(train));
-  std::vector<ReferenceView> refs;
-  for (size_t k = 0; k < train.size(); ++k)
-    refs.push_back({train[k].camera, train[k].image.cpu(), at_gt[k].depth.cpu(), at_gt[k].alpha.cpu()});
-  return refs;
-}
-
 // What every arm is judged at: the test views, their renders and the requests the method would send.
 struct Probes {
   std::vector<TrainingView> test;
@@ -174,10 +158,11 @@ Probes probes_at(const GaussianModel& model, const std::vector<TrainingView>& tr
                  const std::vector<TrainingView>& test, const GapsConfig& c, uint64_t seed) {
   at::AutoGradMode no_grad(false);
   Probes p{test, render_views(model, cameras_of(test)), {}};
-  const std::vector<ReferenceView> refs = references_of(model, train);
+  const std::vector<ReferenceView> refs = reference_views(model, train);
   for (size_t k = 0; k < test.size(); ++k) {
     RenderOutput cpu{p.renders[k].rgb.cpu(), p.renders[k].depth.cpu(), p.renders[k].alpha.cpu()};
-    p.requests.push_back(generation_request(test[k].camera, cpu, references_for(test[k].camera, refs), c, seed + k));
+    p.requests.push_back(generation_request(test[k].camera, cpu,
+                                            nearest_first(test[k].camera, refs, c.pose_rotation_weight), c, seed + k));
   }
   return p;
 }
@@ -326,7 +311,7 @@ absl::Status run() {
   GAPS_ASSIGN_OR_RETURN(GaussianModel initial, initial_model(s.options, s.loaded.scene, s.loaded.train, log, &init));
   s.header["init"] = init.method;
   const GapsConfig c;
-  const std::vector<ReferenceView> gt_refs = references_of(initial, s.loaded.train);
+  const std::vector<ReferenceView> gt_refs = reference_views(initial, s.loaded.train);
   for (Arm& arm : arms)
     if (arm.generator)
       GAPS_RETURN_IF_ERROR(

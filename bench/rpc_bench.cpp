@@ -1,11 +1,15 @@
 // The RPC path's cost: pseudo-view generation through a DiffusionWorker on loopback vs the same backend
-// in process (overhead per pseudo-view), and scene upload throughput into a Trainer service (SubmitJob
-// including the server's validation and writing). Services run in this process on 127.0.0.1, so the
-// figures hold serialization, HTTP/2 transfer and decoding, not network latency.
-//   rpc_bench [--scene DIR] [--resolution 8] [--batch 16] [--repeats 5] [--work_dir DIR]
+// in process (overhead per pseudo-view), for each hand-over (float32 or compact payloads, in the messages or
+// through shared memory) with the round trip's stages and bytes; and scene upload throughput into a Trainer
+// service (SubmitJob including the server's validation and writing). Services run in this process on
+// 127.0.0.1, so the figures hold serialization, HTTP/2 transfer and decoding, not network latency.
+// --busy_threads N keeps N more threads spinning meanwhile: a host whose cores other runs occupy.
+//   rpc_bench [--scene DIR] [--resolution 8] [--batch 16] [--repeats 5] [--busy_threads 0] [--work_dir DIR]
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <iostream>
+#include <thread>
 
 #include <ATen/ATen.h>
 #include <grpcpp/grpcpp.h>
@@ -25,6 +29,7 @@ ABSL_FLAG(int, resolution, 8, "downscale factor");
 ABSL_FLAG(int, batch, 16, "pseudo-views per Generate call (the paper's phase size on LLFF)");
 ABSL_FLAG(int, repeats, 5, "timed repetitions (the median is reported)");
 ABSL_FLAG(std::string, work_dir, "/tmp/gaps_rpc_bench", "folder for the trainer's data");
+ABSL_FLAG(int, busy_threads, 0, "threads kept spinning while the round trips are timed (a busy host)");
 
 namespace {
 
@@ -45,6 +50,26 @@ double median_seconds(int repeats, F&& f) {
   }
   return median(times);
 }
+
+// Threads that spin until destroyed: the other runs of a busy host.
+class BusyThreads {
+ public:
+  explicit BusyThreads(int n) {
+    for (int i = 0; i < n; ++i)
+      threads_.emplace_back([this] {
+        volatile double x = 1.0;
+        while (!stop_.load(std::memory_order_relaxed)) x = x * 1.0000001 + 1e-9;
+      });
+  }
+  ~BusyThreads() {
+    stop_ = true;
+    for (auto& t : threads_) t.join();
+  }
+
+ private:
+  std::atomic<bool> stop_{false};
+  std::vector<std::thread> threads_;
+};
 
 int fail(const absl::Status& st) {
   std::cerr << "rpc_bench: " << st << "\n";
@@ -91,6 +116,7 @@ int main(int argc, char** argv) {
   auto local = gaps::make_generator("reproject", "");
   auto hosted = gaps::make_generator("reproject", "");
   if (!local.ok() || !hosted.ok()) return fail(local.status());
+  if (absl::GetFlag(FLAGS_busy_threads) < 0) return fail(absl::InvalidArgumentError("--busy_threads must be >= 0"));
   gaps::WorkerServiceOptions worker_options;
   worker_options.backend = "reproject";
   worker_options.max_batch = batch;
@@ -101,28 +127,52 @@ int main(int argc, char** argv) {
   worker_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &worker_port);
   worker_builder.RegisterService(&worker);
   auto worker_server = worker_builder.BuildAndStart();
-  gaps::WorkerPoolOptions pool;
-  pool.addresses = {"127.0.0.1:" + std::to_string(worker_port)};
-  auto remote = gaps::RemoteGenerator::create(pool);
-  if (!remote.ok()) return fail(remote.status());
-  (void)(*local)->adapt(refs, std::nullopt);
-  (void)(*remote)->adapt(refs, std::nullopt);
-  if (auto warm = (*remote)->generate(requests); !warm.ok()) return fail(warm.status());  // connects, adapts
-  const double in_process = median_seconds(repeats, [&] { (void)(*local)->generate(requests); });
-  const double over_rpc = median_seconds(repeats, [&] { (void)(*remote)->generate(requests); });
   const auto& c0 = requests[0].camera;
-  std::cout << nlohmann::json{{"bench", "generation_round_trip"},
-                              {"backend", "reproject"},
-                              {"width", c0.width},
-                              {"height", c0.height},
-                              {"batch", batch},
-                              {"references", refs.size()},
-                              {"in_process_s", in_process},
-                              {"rpc_s", over_rpc},
-                              {"overhead_per_view_ms", 1000.0 * (over_rpc - in_process) / batch},
-                              {"repeats", repeats}}
-                   .dump()
-            << std::endl;
+  (void)(*local)->adapt(refs, std::nullopt);
+  struct Case {
+    const char* name;
+    gaps::rpc::TensorEncoding encoding;
+    bool shared_memory;
+  };
+  const std::vector<Case> cases = {{"float32-socket", gaps::rpc::TensorEncoding::kFloat32, false},
+                                   {"compact-socket", gaps::rpc::TensorEncoding::kUint8, false},
+                                   {"compact-shared", gaps::rpc::TensorEncoding::kUint8, true},
+                                   {"float32-shared", gaps::rpc::TensorEncoding::kFloat32, true}};
+  std::vector<std::unique_ptr<gaps::RemoteGenerator>> remotes;
+  for (const Case& c : cases) {
+    gaps::WorkerPoolOptions pool;
+    pool.addresses = {"127.0.0.1:" + std::to_string(worker_port)};
+    pool.encoding = c.encoding;
+    pool.shared_memory = c.shared_memory;
+    auto remote = gaps::RemoteGenerator::create(pool);
+    if (!remote.ok()) return fail(remote.status());
+    (void)(*remote)->adapt(refs, std::nullopt);
+    if (auto warm = (*remote)->generate(requests); !warm.ok()) return fail(warm.status());  // connects, adapts
+    remotes.push_back(*std::move(remote));
+  }
+  const BusyThreads busy(absl::GetFlag(FLAGS_busy_threads));
+  const double in_process = median_seconds(repeats, [&] { (void)(*local)->generate(requests); });
+  for (size_t k = 0; k < cases.size(); ++k) {
+    gaps::RemoteGenerator& remote = *remotes[k];
+    const double over_rpc = median_seconds(repeats, [&] { (void)remote.generate(requests); });
+    std::cout << nlohmann::json{{"bench", "generation_round_trip"},
+                                {"backend", "reproject"},
+                                {"hand_over", cases[k].name},
+                                {"width", c0.width},
+                                {"height", c0.height},
+                                {"batch", batch},
+                                {"references", refs.size()},
+                                {"busy_threads", absl::GetFlag(FLAGS_busy_threads)},
+                                {"in_process_s", in_process},
+                                {"rpc_s", over_rpc},
+                                {"ratio", over_rpc / in_process},
+                                {"overhead_per_view_ms", 1000.0 * (over_rpc - in_process) / batch},
+                                {"last_call_stage_seconds", remote.stage_seconds()},
+                                {"last_call_counters", remote.counters()},
+                                {"repeats", repeats}}
+                     .dump()
+              << std::endl;
+  }
 
   // Upload throughput: the whole scene (every image, as the client sends it) into a trainer whose job
   // threads are not started, so only SubmitJob is timed.

@@ -121,7 +121,7 @@ def main():
         if case != "in-process" and case not in CASES:
             raise SystemExit(f"unknown case {case}: in-process, {', '.join(CASES)}")
     args.init_cache = args.init_cache or args.work / "init_cache"
-    env = dict(os.environ, GAPS_CACHE=str(args.work / "cache"))
+    env = dict(os.environ)  # $GAPS_CACHE as the set-up made it: the LPIPS weights
     commit = args.commit or subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
                                            capture_output=True, text=True).stdout.strip()
     machine = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip().splitlines() \

@@ -62,7 +62,8 @@ absl::StatusOr<std::unique_ptr<SharedRegion>> SharedRegion::create(uint64_t size
     const std::string why = errno_text();
     close(fd);
     shm_unlink(name.c_str());
-    return absl::ResourceExhaustedError(absl::StrCat("shared memory ", name, ": cannot size to ", size, " bytes: ", why));
+    return absl::ResourceExhaustedError(
+        absl::StrCat("shared memory ", name, ": cannot size to ", size, " bytes: ", why));
   }
   absl::StatusOr<uint8_t*> data = map(fd, size, name);
   close(fd);
@@ -81,7 +82,7 @@ absl::StatusOr<std::unique_ptr<SharedRegion>> SharedRegion::open(const std::stri
   if (fd < 0)
     return absl::FailedPreconditionError(
         absl::StrCat("shared memory ", name, ": ", errno_text(), " (the caller does not share this host's /dev/shm)"));
-  struct stat st{};
+  struct stat st {};
   if (fstat(fd, &st) != 0 || static_cast<uint64_t>(st.st_size) != size) {
     close(fd);
     return absl::InvalidArgumentError(
@@ -148,8 +149,11 @@ int remove_stale_regions() {
   std::error_code ec;
   for (const auto& entry : std::filesystem::directory_iterator("/dev/shm", ec)) {
     const std::string name = "/" + entry.path().filename().string();
-    if (!well_formed(name, kRegionPrefix)) continue;
-    const std::vector<std::string> parts = absl::StrSplit(name.substr(sizeof(kRegionPrefix) - 1), '-');
+    const char* prefix = well_formed(name, kRegionPrefix) ? kRegionPrefix
+                         : well_formed(name, kProbePrefix) ? kProbePrefix
+                                                           : nullptr;
+    if (prefix == nullptr) continue;
+    const std::vector<std::string> parts = absl::StrSplit(name.substr(std::strlen(prefix)), '-');
     int pid = 0;
     if (!absl::SimpleAtoi(parts[0], &pid) || pid <= 0) continue;
     if (kill(pid, 0) == 0 || errno != ESRCH) continue;  // alive, or not ours to judge

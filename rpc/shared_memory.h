@@ -75,8 +75,8 @@ class SharedMemoryProbe {
 // The trainer's half: true when the probe object `name` exists here and holds `token`.
 bool shares_memory_with(const std::string& name, const std::string& token);
 
-// Unlinks /gaps-region-<pid>-* objects whose creating process is gone (a trainer that was killed leaves its
-// regions behind; a new one cleans up at start). Returns how many it removed.
+// Unlinks /gaps-region-<pid>-* and /gaps-probe-<pid>-* objects whose creating process is gone (a trainer or
+// worker that was killed leaves them behind; a trainer cleans up at start). Returns how many it removed.
 int remove_stale_regions();
 
 }  // namespace gaps::rpc

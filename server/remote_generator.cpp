@@ -260,7 +260,10 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
     const rpc::SharedLayout layout = rpc::shared_layout(requests, options_.encoding);
     if (!w.region || w.region->size() < layout.request_bytes + layout.answer_bytes) {
       w.region.reset();
-      GAPS_ASSIGN_OR_RETURN(w.region, rpc::SharedRegion::create(layout.request_bytes + layout.answer_bytes));
+      auto created = rpc::SharedRegion::create(layout.request_bytes + layout.answer_bytes);
+      // generate_on falls back to the messages for this.
+      if (!created.ok()) return absl::FailedPreconditionError(created.status().message());
+      w.region = *std::move(created);
     }
     arena.emplace(*w.region);
     v1::SharedRegion* region = batch.mutable_shared_region();

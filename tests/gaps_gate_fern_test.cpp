@@ -80,13 +80,7 @@ class FernGate : public ::testing::Test {
   }
 
   // The model's renders at the training views, as the method's references carry them.
-  static std::vector<ReferenceView> references() {
-    const std::vector<RenderOutput> at_gt = render_views(*model_, cameras_of(*train_));
-    std::vector<ReferenceView> refs;
-    for (size_t k = 0; k < train_->size(); ++k)
-      refs.push_back({(*train_)[k].camera, (*train_)[k].image, at_gt[k].depth, at_gt[k].alpha});
-    return refs;
-  }
+  static std::vector<ReferenceView> references() { return reference_views(*model_, *train_); }
 
   // Interpolated candidates at α = 0.25, 0.5, 0.75 of every pair, rendered, with their requests.
   static std::vector<Probe> probes(const std::vector<double>& alphas = {0.25, 0.5, 0.75}) {

@@ -60,6 +60,28 @@ GenerationRequest generation_request(const Camera& pose, const RenderOutput& ren
   return q;
 }
 
+std::vector<ReferenceView> reference_views(const GaussianModel& model, const std::vector<TrainingView>& views) {
+  std::vector<Camera> cameras;
+  for (const TrainingView& v : views) cameras.push_back(v.camera);
+  const std::vector<RenderOutput> renders = render_views(model, cameras);  // one stacked pass per image size
+  std::vector<ReferenceView> out;
+  for (size_t k = 0; k < views.size(); ++k)
+    out.push_back({views[k].camera, views[k].image.cpu(), renders[k].depth.cpu(), renders[k].alpha.cpu()});
+  return out;
+}
+
+std::vector<ReferenceView> nearest_first(const Camera& pose, std::vector<ReferenceView> references,
+                                         double rotation_weight) {
+  std::vector<double> distance;
+  for (const ReferenceView& r : references) distance.push_back(pose_distance(pose, r.camera, rotation_weight));
+  std::vector<size_t> order(references.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return distance[a] < distance[b]; });
+  std::vector<ReferenceView> out;
+  for (size_t i : order) out.push_back(std::move(references[i]));
+  return out;
+}
+
 GapsTraining::GapsTraining(Trainer& trainer, Generator* generator, std::vector<TrainingView> gt_views,
                            GapsConfig config, Variant variant, uint64_t seed)
     : trainer_(trainer),
@@ -108,16 +130,6 @@ std::vector<Camera> GapsTraining::supervised_cameras() const {
   std::vector<Camera> cams = gt_cameras_;
   for (const auto& [id, v] : active_) cams.push_back(v.camera);
   return cams;
-}
-
-std::vector<ReferenceView> GapsTraining::references_for(const Camera& pose) const {
-  std::vector<std::pair<double, size_t>> order;
-  for (size_t i = 0; i < gt_renders_.size(); ++i)
-    order.push_back({pose_distance(pose, gt_renders_[i].camera, config_.pose_rotation_weight), i});
-  std::sort(order.begin(), order.end());
-  std::vector<ReferenceView> refs;
-  for (const auto& [d, i] : order) refs.push_back(gt_renders_[i]);
-  return refs;
 }
 
 absl::Status GapsTraining::run_phase(int phase) {
@@ -169,10 +181,7 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
 
   auto clock = std::chrono::steady_clock::now();
   // The model's current renders at the GT poses: the references carry them (depth for warping).
-  gt_renders_.clear();
-  const std::vector<RenderOutput> at_gt = render_views(model, gt_cameras_);  // one stacked pass per image size
-  for (size_t k = 0; k < gt_views_.size(); ++k)
-    gt_renders_.push_back({gt_views_[k].camera, gt_views_[k].image.cpu(), at_gt[k].depth.cpu(), at_gt[k].alpha.cpu()});
+  gt_renders_ = reference_views(model, gt_views_);
   lap(entry, "references", &clock);
   if (!adapted_) {
     GAPS_RETURN_IF_ERROR(generator_->adapt(gt_renders_, scene_adaptation(config_)));
@@ -233,8 +242,9 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   for (const auto& c : chosen) poses.push_back(c.camera);
   const std::vector<RenderOutput> renders = render_views(model, poses);  // one stacked pass per image size
   for (size_t k = 0; k < chosen.size(); ++k)
-    requests.push_back(
-        generation_request(chosen[k].camera, renders[k], references_for(chosen[k].camera), config_, rng_()));
+    requests.push_back(generation_request(chosen[k].camera, renders[k],
+                                          nearest_first(chosen[k].camera, gt_renders_, config_.pose_rotation_weight),
+                                          config_, rng_()));
   lap(entry, "renders", &clock);
   GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
   lap(entry, "generation", &clock);

@@ -39,6 +39,13 @@ std::string variant_name(Variant v);
 GenerationRequest generation_request(const Camera& pose, const RenderOutput& render,
                                      std::vector<ReferenceView> references, const GapsConfig& c, uint64_t seed);
 
+// The training views as a generator's references: each photograph with the model's depth and alpha at its pose
+// (for warping), on the CPU.
+std::vector<ReferenceView> reference_views(const GaussianModel& model, const std::vector<TrainingView>& views);
+// `references` nearest to `pose` first (pose_distance with `rotation_weight`), equal distances in their order.
+std::vector<ReferenceView> nearest_first(const Camera& pose, std::vector<ReferenceView> references,
+                                         double rotation_weight);
+
 class GapsTraining {
  public:
   // `gt_views` are the trainer's training views (the references for generation).
@@ -71,7 +78,6 @@ class GapsTraining {
   // Applies this phase's admissions to the active set and records the change in the phase's entry.
   void update_active_set(std::map<int, PseudoView> admitted, const std::vector<int>& admitted_order,
                          const std::vector<int>& rejected, bool gate, nlohmann::json& entry);
-  std::vector<ReferenceView> references_for(const Camera& pose) const;
   // Where a generated view is saved for inspection (its phase's folder made); empty without an inspection dir.
   std::filesystem::path inspection_path(int phase, int id, bool admitted) const;
   at::Tensor drop_scale();
