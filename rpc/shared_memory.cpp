@@ -149,7 +149,7 @@ int remove_stale_regions() {
   std::error_code ec;
   for (const auto& entry : std::filesystem::directory_iterator("/dev/shm", ec)) {
     const std::string name = "/" + entry.path().filename().string();
-    const char* prefix = well_formed(name, kRegionPrefix) ? kRegionPrefix
+    const char* prefix = well_formed(name, kRegionPrefix)  ? kRegionPrefix
                          : well_formed(name, kProbePrefix) ? kProbePrefix
                                                            : nullptr;
     if (prefix == nullptr) continue;
