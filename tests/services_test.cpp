@@ -462,6 +462,19 @@ absl::StatusOr<std::unique_ptr<RemoteGenerator>> pool(const std::vector<std::str
   return RemoteGenerator::create(o);
 }
 
+// One Generate call of `batch` straight to a worker (no pool): the status the worker answered.
+grpc::Status generate_call(v1::DiffusionWorker::Stub& stub, const v1::GenerateBatch& batch,
+                           std::chrono::milliseconds timeout) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + timeout);
+  auto stream = stub.Generate(&context);
+  rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
+  stream->WritesDone();
+  v1::GenerateResult result;
+  (void)rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, 1 << 30, &result);
+  return stream->Finish();
+}
+
 // Float32 hands over exactly what an in-process backend sees, through the socket and through shared memory.
 TEST(WorkerService, RemoteGenerationEqualsInProcess) {
   auto local = make_generator("reproject", "");
@@ -566,14 +579,7 @@ TEST(WorkerService, SharedRegionsAreCheckedBeforeUse) {
   RunningWorker without(std::move(*closed), options);
   const auto call = [](const RunningWorker& w, const v1::GenerateBatch& batch) {
     auto stub = v1::DiffusionWorker::NewStub(grpc::CreateChannel(w.address(), grpc::InsecureChannelCredentials()));
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(20));
-    auto stream = stub->Generate(&context);
-    rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
-    stream->WritesDone();
-    v1::GenerateResult result;
-    (void)rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, 1 << 30, &result);
-    return stream->Finish();
+    return generate_call(*stub, batch, std::chrono::seconds(20));
   };
   const auto requests = test_requests();
   const rpc::SharedLayout layout = rpc::shared_layout(requests, rpc::TensorEncoding::kUint8);
@@ -748,16 +754,7 @@ TEST(WorkerService, FullQueueIsResourceExhaustedAndQueuedCallsHonourDeadlines) {
   auto stub = v1::DiffusionWorker::NewStub(channel);
   v1::GenerateBatch batch;
   ASSERT_TRUE(rpc::encode_generation_batch(test_requests(), &batch).ok());
-  const auto call = [&](std::chrono::milliseconds timeout) {
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + timeout);
-    auto stream = stub->Generate(&context);
-    rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
-    stream->WritesDone();
-    v1::GenerateResult result;
-    (void)rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, 1 << 30, &result);
-    return stream->Finish();
-  };
+  const auto call = [&](std::chrono::milliseconds timeout) { return generate_call(*stub, batch, timeout); };
   std::thread running([&] { EXPECT_TRUE(call(std::chrono::seconds(30)).ok()); });
   gate->wait_entered(1);
   // Waits in the queue (capacity 1) past its deadline.
