@@ -27,7 +27,7 @@ inline constexpr int kNActiveMip360 = 24;
   X(int, async_iterations, 0, 0, 1e6,                                                                                \
     "not in the paper: iterations training goes on (on the views it has) while a phase's pseudo-views are "        \
     "generated from the model as the phase found it; they are judged and admitted after exactly this many, at the "  \
-    "latest before the next phase, so a run stays reproducible (0 = the phase waits for them, as in the paper)")   \
+    "latest before the next phase, whatever the timing (0 = the phase waits for them, as in the paper)")        \
   X(double, pseudo_probability, 0.25, 0, 1, "p_pseudo: chance an iteration trains on an admitted pseudo-view")       \
   /* Candidate pool (sec. 3.4, eq. slerp). */                                                                        \
   X(int, n_active, 0, 0, 1e4,                                                                                        \

@@ -170,11 +170,10 @@ absl::Status GapsTraining::finish_pending_phase() {
   const auto wait_start = std::chrono::steady_clock::now();
   absl::StatusOr<std::vector<at::Tensor>> images = phase.images.get();
   const auto now = std::chrono::steady_clock::now();
-  phase.entry["async"] = {
-      {"launched_before", phase.launched_before},
-      {"joined_before", trainer_.iteration() + 1},
-      {"generation_seconds", std::chrono::duration<double>(now - phase.launched).count()},
-      {"waited_seconds", std::chrono::duration<double>(now - wait_start).count()}};
+  phase.entry["async"] = {{"launched_before", phase.launched_before},
+                          {"joined_before", trainer_.iteration() + 1},
+                          {"generation_seconds", std::chrono::duration<double>(now - phase.launched).count()},
+                          {"waited_seconds", std::chrono::duration<double>(now - wait_start).count()}};
   phase.entry["seconds"]["generation"] = std::chrono::duration<double>(now - wait_start).count();
   const absl::Status admitted =
       images.ok() ? admit_generated(phase, *std::move(images)) : absl::Status(images.status());
@@ -269,9 +268,9 @@ absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chos
   for (const auto& c : chosen) poses.push_back(c.camera);
   phase.renders = render_views(model, poses);  // one stacked pass per image size
   for (size_t k = 0; k < chosen.size(); ++k)
-    phase.requests.push_back(generation_request(chosen[k].camera, phase.renders[k],
-                                                nearest_first(chosen[k].camera, gt_renders_, config_.pose_rotation_weight),
-                                                config_, rng_()));
+    phase.requests.push_back(generation_request(
+        chosen[k].camera, phase.renders[k], nearest_first(chosen[k].camera, gt_renders_, config_.pose_rotation_weight),
+        config_, rng_()));
   lap(entry, "renders", &clock);
   phase.launched_before = trainer_.iteration() + 1;
   if (config_.async_iterations > 0) {
