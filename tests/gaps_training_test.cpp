@@ -169,6 +169,55 @@ TEST_F(GapsTrainingTest, TheActiveSetIsRefreshedEveryPhase) {
   }
 }
 
+// Asynchronous phases: training goes on while a phase's views are generated from the model as the phase found it;
+// they are judged exactly async_iterations later, or before the next phase, whatever the timing; a phase
+// started near the end is judged at the end. Synchronous phases carry no "async" record.
+TEST_F(GapsTrainingTest, AsynchronousPhasesAdmitTheirViewsAFixedNumberOfIterationsLater) {
+  EchoGenerator gen(0.05);
+  RunOptions run = options(Variant::kFull, &gen);
+  run.config.iterations = 120;  // phases before iterations 30, 60 and 90
+  run.gaps.async_iterations = 10;
+  auto first = run_pipeline(run, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(first.ok()) << first.status();
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_EQ(phases.size(), 3u);
+  for (const auto& p : phases) {
+    ASSERT_TRUE(p.contains("async")) << p;
+    const int launched = p["async"]["launched_before"].get<int>();
+    EXPECT_EQ(launched, p["iteration"].get<int>() + 1);
+    EXPECT_EQ(p["async"]["joined_before"].get<int>(), launched + 10);
+    EXPECT_GE(p["async"]["generation_seconds"].get<double>(), p["async"]["waited_seconds"].get<double>());
+    EXPECT_GT(p["admitted"].get<int>(), 0);
+    EXPECT_FALSE(p["active"].empty());
+  }
+  RunOptions again = run;
+  again.out_dir = dir_ / "again";
+  auto second = run_pipeline(again, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(second.ok()) << second.status();
+  // The schedule does not depend on timing. (The metrics may differ in the last digits: the generator's thread
+  // shares the CPU's parallel regions with training, whose float sums then split differently.)
+  const auto repeated = read_json(dir_ / "again" / "phases.json");
+  ASSERT_EQ(repeated.size(), 3u);
+  for (size_t k = 0; k < 3; ++k) EXPECT_EQ(repeated[k]["async"]["joined_before"], phases[k]["async"]["joined_before"]);
+  EXPECT_NEAR(second->metrics.psnr, first->metrics.psnr, 0.5);
+
+  RunOptions late = options(Variant::kFull, &gen);
+  late.config.iterations = 100;
+  late.gaps.async_iterations = 50;  // longer than a phase interval
+  late.out_dir = dir_ / "late";
+  ASSERT_TRUE(run_pipeline(late, nullptr, [](const std::string&) {}).ok());
+  const auto cut = read_json(dir_ / "late" / "phases.json");
+  ASSERT_EQ(cut.size(), 3u);
+  EXPECT_EQ(cut[0]["async"]["joined_before"].get<int>(), cut[1]["async"]["launched_before"].get<int>());
+  EXPECT_EQ(cut[1]["async"]["joined_before"].get<int>(), cut[2]["async"]["launched_before"].get<int>());
+  EXPECT_EQ(cut[2]["async"]["joined_before"].get<int>(), 101) << "judged when the run ended";
+
+  RunOptions sync = options(Variant::kFull, &gen);
+  sync.out_dir = dir_ / "sync";
+  ASSERT_TRUE(run_pipeline(sync, nullptr, [](const std::string&) {}).ok());
+  for (const auto& p : read_json(dir_ / "sync" / "phases.json")) EXPECT_FALSE(p.contains("async")) << p;
+}
+
 // The pseudo-views kept for inspection are written in the background: every one is on disk when the run ends, and
 // one that cannot be written fails the run, with phases.json kept.
 TEST_F(GapsTrainingTest, InspectionImagesAreAllWrittenAndAFailedWriteFailsTheRun) {

@@ -113,6 +113,7 @@ absl::StatusOr<at::Tensor> GapsTraining::step() {
   const int next = trainer_.iteration() + 1;
   if (variant_ != Variant::kVanilla) {
     const int phase = diffusion_phase_at(next, trainer_.config().iterations, config_);
+    if (pending_ && (phase >= 0 || next >= pending_->join_before)) GAPS_RETURN_IF_ERROR(finish_pending_phase());
     if (phase >= 0) GAPS_RETURN_IF_ERROR(run_phase(phase));
   }
   const at::Tensor scale = drop_scale();
@@ -146,6 +147,11 @@ absl::Status GapsTraining::run_phase(int phase) {
   if (variant_ == Variant::kNoGaps && phase > 0) return absl::OkStatus();  // generated once, never refreshed
   if (phase_observer_) phase_observer_("started", entry);
   const absl::Status generated = run_phase_generation(phase, entry);
+  if (generated.ok() && pending_) return absl::OkStatus();  // closed when its views are admitted
+  return close_phase(entry, generated);
+}
+
+absl::Status GapsTraining::close_phase(nlohmann::json& entry, const absl::Status& generated) {
   if (generated.code() != absl::StatusCode::kUnavailable) GAPS_RETURN_IF_ERROR(generated);
   if (!generated.ok()) {
     entry["skipped"] = true;
@@ -154,6 +160,24 @@ absl::Status GapsTraining::run_phase(int phase) {
   log_.push_back(entry);
   if (phase_observer_) phase_observer_(generated.ok() ? "finished" : "skipped", entry);
   return absl::OkStatus();
+}
+
+absl::Status GapsTraining::finish_pending_phase() {
+  if (!pending_) return absl::OkStatus();
+  at::AutoGradMode no_grad(false);
+  PendingPhase phase = std::move(*pending_);
+  pending_.reset();
+  const auto wait_start = std::chrono::steady_clock::now();
+  absl::StatusOr<std::vector<at::Tensor>> images = phase.images.get();
+  const auto now = std::chrono::steady_clock::now();
+  phase.entry["async"] = {{"launched_before", phase.launched_before},
+                          {"joined_before", trainer_.iteration() + 1},
+                          {"generation_seconds", std::chrono::duration<double>(now - phase.launched).count()},
+                          {"waited_seconds", std::chrono::duration<double>(now - wait_start).count()}};
+  phase.entry["seconds"]["generation"] = std::chrono::duration<double>(now - wait_start).count();
+  const absl::Status admitted =
+      images.ok() ? admit_generated(phase, *std::move(images)) : absl::Status(images.status());
+  return close_phase(phase.entry, admitted);
 }
 
 namespace {
@@ -237,17 +261,45 @@ std::filesystem::path GapsTraining::inspection_path(int phase, int id, bool admi
 absl::Status GapsTraining::generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry) {
   const GaussianModel& model = trainer_.model();
   auto clock = std::chrono::steady_clock::now();
-  std::vector<GenerationRequest> requests;
+  PendingPhase phase;
+  phase.chosen = chosen;
+  phase.gate = gate;
   std::vector<Camera> poses;
   for (const auto& c : chosen) poses.push_back(c.camera);
-  const std::vector<RenderOutput> renders = render_views(model, poses);  // one stacked pass per image size
+  phase.renders = render_views(model, poses);  // one stacked pass per image size
   for (size_t k = 0; k < chosen.size(); ++k)
-    requests.push_back(generation_request(chosen[k].camera, renders[k],
-                                          nearest_first(chosen[k].camera, gt_renders_, config_.pose_rotation_weight),
-                                          config_, rng_()));
+    phase.requests.push_back(generation_request(
+        chosen[k].camera, phase.renders[k], nearest_first(chosen[k].camera, gt_renders_, config_.pose_rotation_weight),
+        config_, rng_()));
   lap(entry, "renders", &clock);
-  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(requests));
+  phase.launched_before = trainer_.iteration() + 1;
+  if (config_.async_iterations > 0) {
+    phase.entry = entry;
+    phase.join_before = phase.launched_before + config_.async_iterations;
+    phase.launched = std::chrono::steady_clock::now();
+    // The requests are CPU tensors (generation_request); the generator is not used elsewhere until the join.
+    phase.images = std::async(std::launch::async, [generator = generator_, requests = phase.requests] {
+      return generator->generate(requests);
+    });
+    pending_ = std::move(phase);
+    return absl::OkStatus();
+  }
+  GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> images, generator_->generate(phase.requests));
   lap(entry, "generation", &clock);
+  phase.entry = std::move(entry);
+  const absl::Status admitted = admit_generated(phase, std::move(images));
+  entry = std::move(phase.entry);
+  return admitted;
+}
+
+absl::Status GapsTraining::admit_generated(PendingPhase& phase, std::vector<at::Tensor> images) {
+  const GaussianModel& model = trainer_.model();
+  auto clock = std::chrono::steady_clock::now();
+  nlohmann::json& entry = phase.entry;
+  const std::vector<Candidate>& chosen = phase.chosen;
+  const std::vector<RenderOutput>& renders = phase.renders;
+  const std::vector<GenerationRequest>& requests = phase.requests;
+  const bool gate = phase.gate;
   record_generator_notes(*generator_, entry);
   for (const auto& [stage, seconds] : generator_->stage_seconds()) entry["generator_stages"][stage] = seconds;
   for (const auto& [name, count] : generator_->counters()) entry["generator_counters"][name] = count;

@@ -7,10 +7,12 @@
 // the full method's uncertainty weights), no-dropgaussian. A generator answering UNAVAILABLE (e.g. no remote
 // worker reachable) skips the phase: it is logged with "skipped" and training goes on with the pseudo-views
 // admitted so far.
+#include <chrono>
 #include <filesystem>
 #include <functional>
 #include <future>
 #include <map>
+#include <optional>
 #include <random>
 #include <set>
 #include <string>
@@ -52,8 +54,14 @@ class GapsTraining {
   GapsTraining(Trainer& trainer, Generator* generator, std::vector<TrainingView> gt_views, GapsConfig config,
                Variant variant, uint64_t seed);
 
-  // One iteration: a diffusion phase first when one is due, then a pseudo or GT step.
+  // One iteration: a diffusion phase first when one is due (with async_iterations > 0 the phase only starts its
+  // generation, and the pseudo-views are judged and admitted async_iterations later, or before the next phase),
+  // then a pseudo or GT step.
   absl::StatusOr<at::Tensor> step();
+  // Waits for a phase whose pseudo-views are still being generated, then judges and admits them and logs the
+  // phase; a no-op when none is. The run calls it before saving a checkpoint and at its end.
+  absl::Status finish_pending_phase();
+  bool phase_pending() const { return pending_.has_value(); }
   // Per phase: candidates and scores, the selection, admissions with reasons, tier, beta, drop ratio, and
   // "generator_notes" when the generator could not honour all of the job's controls (Generator::notes()).
   const nlohmann::json& phase_log() const { return log_; }
@@ -72,9 +80,26 @@ class GapsTraining {
 
  private:
   friend struct CheckpointAccess;  // gs_trainer/run/checkpoint.cpp saves and restores this state
+  // A phase whose generation was asked for: what its admission needs once the images are there.
+  struct PendingPhase {
+    nlohmann::json entry;
+    std::vector<Candidate> chosen;
+    std::vector<RenderOutput> renders;
+    std::vector<GenerationRequest> requests;
+    bool gate = true;
+    int launched_before = 0;  // the iteration the phase ran before
+    int join_before = 0;      // the iteration before which its views are admitted
+    std::chrono::steady_clock::time_point launched;
+    std::future<absl::StatusOr<std::vector<at::Tensor>>> images;  // async only
+  };
   absl::Status run_phase(int phase);
   absl::Status run_phase_generation(int phase, nlohmann::json& entry);
+  // Renders the chosen poses and makes their requests; then generates and admits at once, or (async_iterations
+  // > 0) starts the generation on a thread of its own and leaves the rest in pending_.
   absl::Status generate_and_admit(const std::vector<Candidate>& chosen, bool gate, nlohmann::json& entry);
+  absl::Status admit_generated(PendingPhase& phase, std::vector<at::Tensor> images);
+  // Logs a phase that ended (skipped when the generator was unavailable) and tells the observer.
+  absl::Status close_phase(nlohmann::json& entry, const absl::Status& generated);
   // Applies this phase's admissions to the active set and records the change in the phase's entry.
   void update_active_set(std::map<int, PseudoView> admitted, const std::vector<int>& admitted_order,
                          const std::vector<int>& rejected, bool gate, nlohmann::json& entry);
@@ -104,6 +129,7 @@ class GapsTraining {
   std::future<absl::Status> inspection_written_;  // the last phase's images; its destructor waits for them
   absl::Status inspection_error_;
   std::vector<ReferenceView> gt_renders_;  // GT views with the model's renders, per phase
+  std::optional<PendingPhase> pending_;    // a phase whose pseudo-views are being generated
   nlohmann::json log_ = nlohmann::json::array();
   PhaseObserver phase_observer_;
 };

@@ -90,8 +90,11 @@ absl::Status TrainingRun::train(const ProgressCallback& on_progress, const std::
 absl::Status TrainingRun::keep_state(const absl::Status& trained) {
   if (absl::IsCancelled(trained)) save_checkpoint_and_tell();
   if (!method_) return absl::OkStatus();
+  // A phase started near the end (async_iterations) is judged and logged, though nothing trains on it any more.
+  const absl::Status joined = method_->finish_pending_phase();
   const absl::Status inspected = method_->finish_inspection();
   GAPS_RETURN_IF_ERROR(write_json(o_.out_dir / "phases.json", method_->phase_log()));
+  GAPS_RETURN_IF_ERROR(joined);
   return inspected;
 }
 
@@ -112,6 +115,9 @@ void TrainingRun::log_generator_notes(const nlohmann::json& entry) {
 }
 
 bool TrainingRun::checkpoint_due(int it) const {
+  // A checkpoint holds no phase in flight: the save waits until its views are admitted, where the run would have
+  // admitted them anyway (joining early would make the run depend on when it was saved).
+  if (method_ && method_->phase_pending()) return false;
   if (o_.checkpoint_every > 0 && it % o_.checkpoint_every == 0) return true;
   return o_.checkpoint_every_seconds > 0 &&
          std::chrono::duration<double>(std::chrono::steady_clock::now() - last_save_).count() >=
@@ -122,7 +128,12 @@ void TrainingRun::save_checkpoint_and_tell() {
   if (o_.checkpoint_dir.empty()) return;
   // A resumed run does not redo the phases before its checkpoint, so their images must be on disk first; a
   // failed write is the next phase's (or the run end's) error.
-  if (method_) (void)method_->finish_inspection();
+  if (method_) {
+    // Only a stop reaches here with a phase in flight: its views are admitted now rather than lost.
+    if (const absl::Status joined = method_->finish_pending_phase(); !joined.ok())
+      log_(absl::StrCat("warning: the phase in flight failed: ", joined.message()));
+    (void)method_->finish_inspection();
+  }
   const auto save_start = std::chrono::steady_clock::now();
   last_save_ = save_start;
   const nlohmann::json kept = {{"curve", curve_}, {"train_seconds", seconds_since_start(save_start)}};
