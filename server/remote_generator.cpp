@@ -16,6 +16,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/strip.h"
 #include "common/status_macros.h"
+#include "common/stopwatch.h"
 #include "grpc/health/v1/health.grpc.pb.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
@@ -238,17 +239,6 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
   return absl::OkStatus();
 }
 
-namespace {
-
-double lap(std::chrono::steady_clock::time_point* since) {
-  const auto now = std::chrono::steady_clock::now();
-  const double seconds = std::chrono::duration<double>(now - *since).count();
-  *since = now;
-  return seconds;
-}
-
-}  // namespace
-
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w,
                                                                        const std::vector<GenerationRequest>& requests,
                                                                        bool shared) {
@@ -273,7 +263,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   }
   GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, {options_.encoding, arena ? &*arena : nullptr}));
   if (!w.scene_handle.empty()) batch.set_scene_handle(w.scene_handle);
-  attempt_stages_["client_encode"] += lap(&clock);
+  attempt_stages_["client_encode"] += lap_seconds(&clock);
   attempt_counters_["request_bytes"] += static_cast<double>(batch.ByteSizeLong());
   attempt_counters_["shared_memory"] = shared ? 1.0 : 0.0;
 
@@ -284,12 +274,12 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   auto stream = w.stub->Generate(&context);
   rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
   stream->WritesDone();
-  attempt_stages_["client_send"] += lap(&clock);
+  attempt_stages_["client_send"] += lap_seconds(&clock);
   v1::GenerateResult result;
   const absl::Status read =
       rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " Generate"));
-  attempt_stages_["client_receive"] += lap(&clock);
+  attempt_stages_["client_receive"] += lap_seconds(&clock);
   if (!read.ok()) return malformed(read);
   if (static_cast<size_t>(result.images_size()) != requests.size())
     return malformed(
@@ -302,7 +292,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
     if (!image.ok()) return malformed(image.status());  // the decoder refuses NaN and infinite pixels too
     images.push_back(*std::move(image));
   }
-  attempt_stages_["client_decode"] += lap(&clock);
+  attempt_stages_["client_decode"] += lap_seconds(&clock);
   attempt_counters_["answer_bytes"] += static_cast<double>(result.ByteSizeLong());
   if (arena) attempt_counters_["shared_memory_bytes"] += static_cast<double>(w.region->size());
   for (const auto& [stage, seconds] : result.stage_seconds()) attempt_stages_[stage] += seconds;

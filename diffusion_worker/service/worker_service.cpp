@@ -9,6 +9,7 @@
 #include <ATen/Context.h>
 #include "absl/strings/str_cat.h"
 #include "common/status_macros.h"
+#include "common/stopwatch.h"
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
 #include "rpc/security.h"
@@ -169,17 +170,6 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   return grpc::Status::OK;
 }
 
-namespace {
-
-double seconds_since(std::chrono::steady_clock::time_point* since) {
-  const auto now = std::chrono::steady_clock::now();
-  const double seconds = std::chrono::duration<double>(now - *since).count();
-  *since = now;
-  return seconds;
-}
-
-}  // namespace
-
 absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> WorkerService::open_region(const v1::GenerateBatch& batch) {
   if (!batch.has_shared_region()) return nullptr;
   if (!probe_)
@@ -203,7 +193,7 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   if (auto st = rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, options_.max_request_bytes, &batch);
       !st.ok())
     return rpc::to_grpc(st);
-  transfer["worker_receive"] = seconds_since(&clock);
+  transfer["worker_receive"] = lap_seconds(&clock);
   if (batch.poses_size() == 0)
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "Generate needs at least one pose");
   if (batch.poses_size() > options_.max_batch)
@@ -216,10 +206,10 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   if (!region.ok()) return rpc::to_grpc(region.status());
   auto requests = rpc::decode_generation_batch(batch, region->get());
   if (!requests.ok()) return rpc::to_grpc(requests.status());
-  transfer["worker_decode"] = seconds_since(&clock);
+  transfer["worker_decode"] = lap_seconds(&clock);
   std::unique_ptr<BackendTurn> turn;
   if (auto st = wait_for_backend(context, &turn); !st.ok()) return st;
-  transfer["worker_queue"] = seconds_since(&clock);
+  transfer["worker_queue"] = lap_seconds(&clock);
   if (auto st = ensure_adapted(batch.scene_handle()); !st.ok()) return rpc::to_grpc(st);
   const auto start = std::chrono::steady_clock::now();
   auto images = generator_->generate(*requests);
@@ -236,7 +226,7 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   if (auto st = rpc::encode_answer(*images, {*answer_encoding, arena ? &*arena : nullptr}, &result); !st.ok())
     // The backend, not the request, produced what cannot be sent: the caller asks another worker.
     return rpc::to_grpc(absl::DataLossError(absl::StrCat("malformed answer: ", st.message())));
-  transfer["worker_encode"] = seconds_since(&clock);
+  transfer["worker_encode"] = lap_seconds(&clock);
   for (const std::string& note : notes) result.add_notes(note);
   result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
   if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))
