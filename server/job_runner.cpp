@@ -7,6 +7,7 @@
 #include <optional>
 #include <utility>
 
+#include <ATen/Parallel.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_replace.h"
@@ -66,7 +67,8 @@ v1::JobStatus run_outcome(v1::JobStatus status, const absl::StatusOr<RunResult>&
 }  // namespace
 
 void JobRunner::start() {
-  for (int i = 0; i < options_.concurrency; ++i) threads_.emplace_back([this] { job_loop(); });
+  const int cpu_threads = cpu_threads_per_job();
+  for (int i = 0; i < options_.concurrency; ++i) threads_.emplace_back([this, cpu_threads] { job_loop(cpu_threads); });
   threads_.emplace_back([this] { retry_loop(); });
   threads_.emplace_back([this] { heartbeat_loop(); });
 }
@@ -122,7 +124,19 @@ void JobRunner::log_store_error(const std::string& job_id, const std::string& wh
                                              ": ", error.ToString()));
 }
 
-void JobRunner::job_loop() {
+int JobRunner::cpu_threads_per_job() const {
+  if (options_.threads_per_job > 0) return options_.threads_per_job;
+  // Read before any job thread changed it: the process's default (OMP_NUM_THREADS, else its cores).
+  static const int process_threads = at::get_num_threads();
+  return std::max(1, process_threads / options_.concurrency);
+}
+
+void JobRunner::job_loop(int cpu_threads) {
+  // Concurrent jobs whose parallel regions each ask for every core oversubscribe the host, and waiting OpenMP
+  // threads then spin on cores other jobs need: a busy trainer's jobs ran many times slower than one alone,
+  // initialisation (PatchMatch and fusion on the CPU) most. The bound holds for this thread's regions and for
+  // the threads a run starts (asynchronous phases), which begin with the last bound set.
+  at::set_num_threads(cpu_threads);
   std::string last_error;
   while (true) {
     {
@@ -195,6 +209,10 @@ void JobRunner::run_job(v1::JobStatus status) {
   v1::JobEvent started = event_for(job_id);
   started.set_state_changed(v1::RUNNING);
   publish(started);
+  v1::JobEvent threads = event_for(job_id);
+  threads.set_log(absl::StrCat("trains with ", at::get_num_threads(), " CPU thread(s) on ", options_.device, " (",
+                               options_.concurrency, " job(s) at once on this trainer)"));
+  publish(threads);
 
   v1::JobStatus final_status = train(status, *flags);
   if (flags->lease_lost) {

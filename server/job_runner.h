@@ -65,11 +65,13 @@ class JobRunner {
     absl::Status error;  // for clients: the store's latest refusal, naming the job and its outcome
   };
 
-  void job_loop();
+  void job_loop(int cpu_threads);
   // Takes over a job a dead or stopped runner left RUNNING (counting a resume, and a crash unless it
   // stopped cleanly) and runs it; a job that reached max_crashes is FAILED instead.
   void run_claimed(v1::JobStatus job);
   void run_job(v1::JobStatus status);
+  // The CPU threads each job thread's parallel regions use (TrainerServiceOptions::threads_per_job resolved).
+  int cpu_threads_per_job() const;
   // Leaves a job interrupted by shutdown RUNNING, stopped cleanly, for the next process or replica.
   void leave_for_later(v1::JobStatus status);
   // Runs the pipeline for a job; returns its final status (or the status to keep when shutting down).

@@ -1,6 +1,7 @@
 // gaps-trainer: the training service (gaps.v1.Trainer) with its job queue and SQLite job store.
 //   gaps-trainer --listen 127.0.0.1:50051 --workers 127.0.0.1:50052[,ADDR...] --data-dir DIR --device cpu|cuda:0
-//                [--concurrency N] [--token-file F] [--tls-cert F --tls-key F [--tls-client-ca F]]
+//                [--concurrency N] [--threads-per-job N] [--token-file F] [--tls-cert F --tls-key F [--tls-client-ca
+//                F]]
 //                [--worker-token-file F] [--worker-tls-ca F [--worker-tls-cert F --worker-tls-key F]]
 // SIGTERM/SIGINT: running jobs stop at their next iteration, write a checkpoint and stay RUNNING in the
 // store; the next trainer started on the same data folder resumes them from it.
@@ -35,6 +36,9 @@ ABSL_FLAG(double, lease_seconds, 30, "a job whose trainer stops renewing its lea
 ABSL_FLAG(std::string, replica_id, "", "this trainer's name in leases and logs (default: host-pid-random)");
 ABSL_FLAG(std::string, device, "cpu", "training device (cpu, cuda, cuda:N)");
 ABSL_FLAG(int, concurrency, 1, "jobs trained at once");
+ABSL_FLAG(int, threads_per_job, 0,
+          "CPU threads of each job's parallel regions (0: the process's threads, OMP_NUM_THREADS or its cores, "
+          "shared out among the --concurrency jobs)");
 ABSL_FLAG(double, checkpoint_seconds, 120,
           "a running job saves its state at least this often (seconds of wall time; 0: only at the diffusion "
           "phases and on shutdown), so a trainer killed without warning loses at most that much work");
@@ -78,8 +82,8 @@ gaps::cli::CommandSpec command() {
       "--tryfromenv=NAME,... takes those flags from FLAGS_NAME environment variables when set.";
   spec.groups = {
       {"service",
-       {"listen", "data_dir", "device", "gpu_memory_gib", "concurrency", "max_crashes", "max_upload_mb",
-        "checkpoint_seconds", "lpips_weights", "init_cache"}},
+       {"listen", "data_dir", "device", "gpu_memory_gib", "concurrency", "threads_per_job", "max_crashes",
+        "max_upload_mb", "checkpoint_seconds", "lpips_weights", "init_cache"}},
       {"job store (replicas)", {"job_store", "replica_id", "lease_seconds"}},
       {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
@@ -147,6 +151,8 @@ int serve() {
   options.max_crashes = absl::GetFlag(FLAGS_max_crashes);
   if (options.max_crashes < 1) return usage("--max-crashes must be at least 1");
   if (options.concurrency < 1) return usage("--concurrency must be at least 1");
+  options.threads_per_job = absl::GetFlag(FLAGS_threads_per_job);
+  if (options.threads_per_job < 0) return usage("--threads-per-job must be 0 (automatic) or positive");
   options.checkpoint_seconds = absl::GetFlag(FLAGS_checkpoint_seconds);
   if (!(options.checkpoint_seconds >= 0)) return usage("--checkpoint-seconds must be 0 or positive");
   options.token = security->settings.token;

@@ -21,6 +21,9 @@ struct TrainerServiceOptions {
   std::chrono::milliseconds claim_interval{1000};  // how often idle job threads look for work
   std::string device = "cpu";                      // training device of every job
   int concurrency = 1;                             // jobs trained at once
+  // The CPU threads of each job's parallel regions (ATen's intra-op threads); 0: the process's threads
+  // (OMP_NUM_THREADS, else its cores) shared out among the `concurrency` jobs, at least one each.
+  int threads_per_job = 0;
   double checkpoint_seconds = 120;  // a job's state is saved at least this often (0: phases and shutdown only)
   // A job found RUNNING at start-up whose trainer died (no clean stop) this many times is FAILED, not run
   // again: it may be what killed the trainer.

@@ -98,6 +98,8 @@ TrainerService::~TrainerService() { shutdown(); }
 absl::StatusOr<std::unique_ptr<TrainerService>> TrainerService::create(TrainerServiceOptions options) {
   if (options.data_dir.empty()) return absl::InvalidArgumentError("the trainer needs a data folder");
   if (options.concurrency < 1) return absl::InvalidArgumentError("concurrency must be at least 1");
+  if (options.threads_per_job < 0)
+    return absl::InvalidArgumentError("threads_per_job must be 0 (automatic) or positive");
   if (!(options.lease_seconds > 0)) return absl::InvalidArgumentError("the lease must last longer than 0 seconds");
   if (options.replica_id.empty()) options.replica_id = default_replica_id();
   std::error_code ec;

@@ -18,10 +18,12 @@
 #include <functional>
 #include <iterator>
 #include <optional>
+#include <regex>
 #include <set>
 #include <thread>
 
 #include <ATen/ATen.h>
+#include <ATen/Parallel.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <gtest/gtest.h>
@@ -1222,6 +1224,52 @@ TEST_F(TrainerStoreErrors, ARefusedCancellationKeepsTheJobQueued) {
   EXPECT_EQ(watched->state(), v1::CANCELLED);
 }
 
+// The CPU threads each concurrent job's parallel regions get, as its log reports them (read in the job's thread).
+std::vector<std::string> thread_counts_of_jobs(TrainerInProcess& t, int jobs) {
+  std::vector<std::string> ids;
+  for (int i = 0; i < jobs; ++i) {
+    const auto job = t.trainer->submit(TrainerInProcess::spec(20), t.scene);
+    EXPECT_TRUE(job.ok()) << job.status();
+    if (job.ok()) ids.push_back(*job);
+  }
+  std::vector<std::string> counts;
+  const std::regex line("trains with ([0-9]+) CPU thread");
+  for (const std::string& id : ids) {
+    std::string count = "none";
+    const auto end = t.trainer->watch(id, [&](const v1::JobEvent& e) {
+      std::smatch m;
+      if (e.has_log() && std::regex_search(e.log(), m, line)) count = m[1];
+    });
+    EXPECT_TRUE(end.ok()) << end.status();
+    if (end.ok()) EXPECT_EQ(end->state(), v1::SUCCEEDED) << end->error();
+    counts.push_back(count);
+  }
+  return counts;
+}
+
+// Jobs trained at once share the process's CPU threads out instead of each taking all of them (which
+// oversubscribed a busy trainer's cores); an explicit count holds whatever the concurrency.
+TEST_F(TrainerInProcess, EachJobTrainsWithItsShareOfTheCpuThreads) {
+  const int process_threads = at::get_num_threads();
+  TrainerServiceOptions options;
+  options.concurrency = 2;
+  ASSERT_NO_FATAL_FAILURE(start(options));
+  const std::string share = std::to_string(std::max(1, process_threads / 2));
+  EXPECT_EQ(thread_counts_of_jobs(*this, 2), std::vector<std::string>({share, share}));
+}
+
+TEST_F(TrainerInProcess, AnExplicitThreadCountHoldsForEveryJob) {
+  TrainerServiceOptions options;
+  options.threads_per_job = 3;
+  ASSERT_NO_FATAL_FAILURE(start(options));
+  EXPECT_EQ(thread_counts_of_jobs(*this, 1), std::vector<std::string>({"3"}));
+  options.threads_per_job = -1;
+  options.data_dir = dir_ / "other";
+  const auto refused = TrainerService::create(options);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "threads_per_job")) << refused.status();
+}
+
 // A vanilla trainer with no worker.
 struct TrainerAlone : TrainerInProcess {
   void SetUp() override {
@@ -1330,6 +1378,35 @@ TEST_F(TrainerWithWorker, BackendNotesReachThePhaseEntryAndTheJobLog) {
   ASSERT_TRUE(fetched.ok()) << fetched.status();
   std::ifstream phases_file(dir_ / "fetched" / "phases.json");
   EXPECT_EQ(nlohmann::json::parse(phases_file)[0]["generator_notes"], phases[0]["generator_notes"]);
+}
+
+// Asynchronous phases through a worker: the remote generation runs beside training and its views are judged a
+// fixed number of iterations later, as in process; the hand-over's stages still reach the phase's entry.
+TEST_F(TrainerWithWorker, AsynchronousPhasesJoinAFixedNumberOfIterationsLater) {
+  v1::JobSpec s = spec(40);
+  s.mutable_config()->set_variant("full");
+  ASSERT_TRUE(
+      rpc::set_fields({{"warmup_iterations", 20}, {"phase_interval", 10}, {"n_active", 2}, {"async_iterations", 4}},
+                      s.mutable_config()->mutable_gaps())
+          .ok());
+  const auto job = trainer->submit(s, scene);
+  ASSERT_TRUE(job.ok()) << job.status();
+  std::vector<nlohmann::json> phases;
+  const auto final_status = trainer->watch(*job, [&](const v1::JobEvent& e) {
+    if (e.has_phase_finished()) phases.push_back(nlohmann::json::parse(e.phase_finished().details_json()));
+  });
+  ASSERT_TRUE(final_status.ok()) << final_status.status();
+  ASSERT_EQ(final_status->state(), v1::SUCCEEDED) << final_status->error();
+  ASSERT_EQ(phases.size(), 2u);  // after 20 and 30 iterations, each joined 4 iterations after its launch
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const nlohmann::json& p = phases[k];
+    ASSERT_TRUE(p.contains("async")) << p.dump();
+    EXPECT_EQ(p["iteration"].get<int>(), 19 + 10 * static_cast<int>(k)) << p.dump();  // counted from 0
+    EXPECT_EQ(p["async"]["launched_before"].get<int>(), p["iteration"].get<int>() + 1) << p.dump();
+    EXPECT_EQ(p["async"]["joined_before"].get<int>(), p["async"]["launched_before"].get<int>() + 4) << p.dump();
+    EXPECT_TRUE(p.contains("generator_stages") && p["generator_stages"].contains("transfer")) << p.dump();
+    EXPECT_FALSE(p.value("skipped", false)) << p.dump();
+  }
 }
 
 // ... with a worker whose backend never answers until released, and an hour's deadline on each call.
