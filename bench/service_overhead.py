@@ -22,6 +22,7 @@ place the two services; the worker's reproject backend computes on the CPU where
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -58,6 +59,7 @@ def results(folder):
 
 
 def in_process(args, seed, out, env):
+    shutil.rmtree(out, ignore_errors=True)  # a failed run must not report an earlier run's metrics
     start = time.time()
     done = subprocess.run([str(args.build / "client" / "gaps"), "train", str(args.scene), "-o", str(out), "--quiet",
                            "--init-cache", str(args.init_cache), *run_flags(args, seed)], env=env,
@@ -88,6 +90,7 @@ def through_services(args, case, seed, work, env):
         job = submitted.stdout.strip().splitlines()[0]
         watch = subprocess.run([gaps, "watch", job, "--quiet", "--trainer", address], env=env)
         wall = time.time() - start
+        shutil.rmtree(work / "fetched", ignore_errors=True)
         subprocess.run([gaps, "fetch", job, "-o", str(work / "fetched"), "--trainer", address], env=env,
                        capture_output=True)
     finally:
