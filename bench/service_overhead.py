@@ -137,8 +137,9 @@ def main():
             folder = args.work / f"{case}_s{seed}"
             row = in_process(args, seed, folder, env) if case == "in-process" else \
                 through_services(args, case, seed, folder, env)
-            row = {"bench": "service_overhead", "case": case, "seed": seed, "label": args.label, "commit": commit,
-                   "gpus": machine, "cpus": os.cpu_count(), "scene": args.scene.name, "views": args.views,
+            row = {"bench": "service_overhead", "case": case, "seed": seed, "label": args.label,
+                   "run_flags": " ".join(args.run_flags), "commit": commit, "gpus": machine,
+                   "cpus": os.cpu_count(), "scene": args.scene.name, "views": args.views,
                    "resolution": args.resolution, **row}
             print(json.dumps(row), flush=True)
             with open(args.out, "a") as f:
