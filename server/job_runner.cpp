@@ -132,10 +132,9 @@ int JobRunner::cpu_threads_per_job() const {
 }
 
 void JobRunner::job_loop(int cpu_threads) {
-  // Concurrent jobs whose parallel regions each ask for every core oversubscribe the host, and waiting OpenMP
-  // threads then spin on cores other jobs need: a busy trainer's jobs ran many times slower than one alone,
-  // initialisation (PatchMatch and fusion on the CPU) most. The bound holds for this thread's regions and for
-  // the threads a run starts (asynchronous phases), which begin with the last bound set.
+  // Concurrent jobs whose parallel regions each ask for every core oversubscribe the host, and a job's speed then
+  // depends on what else runs (docs/deploy.md has the measurements). The bound holds for this thread's regions
+  // and for the threads a run starts (asynchronous phases), which begin with the last bound set.
   at::set_num_threads(cpu_threads);
   std::string last_error;
   while (true) {

@@ -10,6 +10,7 @@
 #include "absl/strings/str_format.h"
 #include "common/image_io.h"
 #include "common/status_macros.h"
+#include "common/stopwatch.h"
 #include "gs_trainer/gaps/active_set.h"
 #include "gs_trainer/gaps/admission.h"
 #include "gs_trainer/gaps/candidate_renders.h"
@@ -185,11 +186,9 @@ namespace {
 // Adds the seconds since *start to entry["seconds"][section] and restarts the clock: the phase's time
 // breakdown (renders and scores reach the host before the next section starts, so GPU work is included).
 void lap(nlohmann::json& entry, const char* section, std::chrono::steady_clock::time_point* start) {
-  const auto now = std::chrono::steady_clock::now();
   nlohmann::json& seconds = entry["seconds"];
   if (!seconds.is_object()) seconds = nlohmann::json::object();
-  seconds[section] = seconds.value(section, 0.0) + std::chrono::duration<double>(now - *start).count();
-  *start = now;
+  seconds[section] = seconds.value(section, 0.0) + lap_seconds(start);
 }
 
 // What the generator's last call could not honour of the job's controls, kept with the phase.
