@@ -20,9 +20,12 @@
 
 #include "diffusion_worker/backend_registry.h"
 #include "gs_trainer/scene/scene.h"
+#include "tests/camera_test_util.h"
 
 namespace gaps {
 namespace {
+
+using test::camera_looking_down_z;
 
 constexpr double kPi = 3.14159265358979323846;
 
@@ -32,18 +35,6 @@ bool contains(const absl::Status& status, const std::string& text) {
 
 // ---------------------------------------------------------------------------------------------------
 // Ray-cast synthetic scenes. Cameras look down +z (R = identity) from a centre on the x axis.
-
-Camera make_camera(int width, int height, double focal, const Eigen::Vector3d& center) {
-  Camera c;
-  c.width = width;
-  c.height = height;
-  c.fx = c.fy = focal;
-  c.cx = width / 2.0;
-  c.cy = height / 2.0;
-  c.R = Eigen::Matrix3d::Identity();
-  c.t = -center;
-  return c;
-}
 
 struct Hit {
   Eigen::Vector3d color;
@@ -158,8 +149,8 @@ constexpr double kF = 60;  // 15 pixels per world unit on the z = 4 plane
 // and pixels j >= 73 (beyond column 79) were never seen.
 TEST(ReprojectGeneratorTest, SidewaysPlaneMatchesTheDirectViewAndInpaintsTheDisocclusion) {
   const double b = 7.3 * 4.0 / kF;
-  const Camera ref_cam = make_camera(kW, kH, kF, {0, 0, 0});
-  const Camera pseudo = make_camera(kW, kH, kF, {b, 0, 0});
+  const Camera ref_cam = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
+  const Camera pseudo = camera_looking_down_z(kW, kH, kF, {b, 0, 0});
   const ReferenceView direct = view_of(pseudo, textured_plane());
 
   ReprojectGenerator generator;
@@ -187,8 +178,8 @@ TEST(ReprojectGeneratorTest, SidewaysPlaneMatchesTheDirectViewAndInpaintsTheDiso
 // square in the reference land under it in the pseudo view (the z-buffer must keep the square), and plane
 // pixels hidden behind it become visible to its right (uncovered, inpainted).
 TEST(ReprojectGeneratorTest, NearSquareOccludesTheFarPlane) {
-  const Camera ref_cam = make_camera(kW, kH, kF, {0, 0, 0});
-  const Camera pseudo = make_camera(kW, kH, kF, {0.62, 0, 0});
+  const Camera ref_cam = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
+  const Camera pseudo = camera_looking_down_z(kW, kH, kF, {0.62, 0, 0});
   const ReferenceView direct = view_of(pseudo, square_before_plane());
   ReprojectGenerator generator;
   absl::StatusOr<ReprojectResult> r =
@@ -251,9 +242,9 @@ TEST(ReprojectGeneratorTest, NearSquareOccludesTheFarPlane) {
 // is the direct view.
 TEST(ReprojectGeneratorTest, TwoReferencesCoverEachOthersBorders) {
   const double b = 5.2 * 4.0 / kF;
-  const Camera pseudo = make_camera(kW, kH, kF, {0, 0, 0});
-  const ReferenceView left = view_of(make_camera(kW, kH, kF, {-b, 0, 0}), textured_plane());
-  const ReferenceView right = view_of(make_camera(kW, kH, kF, {b, 0, 0}), textured_plane());
+  const Camera pseudo = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
+  const ReferenceView left = view_of(camera_looking_down_z(kW, kH, kF, {-b, 0, 0}), textured_plane());
+  const ReferenceView right = view_of(camera_looking_down_z(kW, kH, kF, {b, 0, 0}), textured_plane());
   ReprojectGenerator generator;
   absl::StatusOr<ReprojectResult> r = generator.generate_one(empty_render_request(pseudo, {left, right}));
   ASSERT_TRUE(r.ok()) << r.status();
@@ -274,9 +265,9 @@ TEST(ReprojectGeneratorTest, TwoReferencesCoverEachOthersBorders) {
 // A reference at the pseudo pose itself outweighs one seeing the points ~7 degrees off (weight ratio
 // (0.5 / 7.5)^2 < 0.5%), even when the other disagrees in colour.
 TEST(ReprojectGeneratorTest, AReferenceAtThePseudoPoseDominatesTheBlend) {
-  const Camera pseudo = make_camera(kW, kH, kF, {0, 0, 0});
+  const Camera pseudo = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
   const ReferenceView same = view_of(pseudo, textured_plane());
-  ReferenceView other = view_of(make_camera(kW, kH, kF, {0.49, 0, 0}), textured_plane());
+  ReferenceView other = view_of(camera_looking_down_z(kW, kH, kF, {0.49, 0, 0}), textured_plane());
   other.image = (other.image + 0.2).clamp(0, 1);
   ReprojectGenerator generator;
   absl::StatusOr<ReprojectResult> r = generator.generate_one(empty_render_request(pseudo, {other, same}));
@@ -291,8 +282,8 @@ TEST(ReprojectGeneratorTest, AReferenceAtThePseudoPoseDominatesTheBlend) {
 // test). So every pixel is covered by one or both; nothing is inpainted.
 TEST(ReprojectGeneratorTest, StrengthAnchorsOnTheRender) {
   const double b = 7.3 * 4.0 / kF;
-  const Camera pseudo = make_camera(kW, kH, kF, {b, 0, 0});
-  const ReferenceView ref = view_of(make_camera(kW, kH, kF, {0, 0, 0}), textured_plane());
+  const Camera pseudo = camera_looking_down_z(kW, kH, kF, {b, 0, 0});
+  const ReferenceView ref = view_of(camera_looking_down_z(kW, kH, kF, {0, 0, 0}), textured_plane());
   const at::Tensor col = column_index(kH, kW);
   const at::Tensor render_covered = col >= 10;
   const at::Tensor flat = at::tensor({0.1f, 0.9f, 0.3f}).view({1, 1, 3}).expand({kH, kW, 3}).contiguous();
@@ -326,11 +317,11 @@ TEST(ReprojectGeneratorTest, StrengthAnchorsOnTheRender) {
 // --- Batch, determinism, errors ------------------------------------------------------------------------
 
 TEST(ReprojectGeneratorTest, GenerateIsDeterministicAndInRequestOrder) {
-  const Camera ref_cam = make_camera(kW, kH, kF, {0, 0, 0});
+  const Camera ref_cam = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
   const ReferenceView ref = view_of(ref_cam, square_before_plane());
   std::vector<GenerationRequest> requests;
   for (double x : {0.31, -0.2, 0.1}) {
-    requests.push_back(empty_render_request(make_camera(kW, kH, kF, {x, 0.05, 0}), {ref}));
+    requests.push_back(empty_render_request(camera_looking_down_z(kW, kH, kF, {x, 0.05, 0}), {ref}));
     requests.back().seed = 7;
   }
   ReprojectGenerator generator;
@@ -348,7 +339,7 @@ TEST(ReprojectGeneratorTest, GenerateIsDeterministicAndInRequestOrder) {
 }
 
 TEST(ReprojectGeneratorTest, RejectsBadInputsNamingTheProblem) {
-  const Camera cam = make_camera(kW, kH, kF, {0, 0, 0});
+  const Camera cam = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
   const ReferenceView ref = view_of(cam, textured_plane());
   ReprojectGenerator generator;
   auto expect_error = [&](GenerationRequest q, const std::vector<std::string>& words) {
@@ -401,7 +392,7 @@ TEST(ReprojectGeneratorTest, RejectsBadInputsNamingTheProblem) {
 
 // The backend has neither LoRA nor an IP-Adapter: asked for either, it says so instead of ignoring it.
 TEST(ReprojectGeneratorTest, ControlsItCannotHonourAreNoted) {
-  const Camera ref_cam = make_camera(kW, kH, kF, {0, 0, 0});
+  const Camera ref_cam = camera_looking_down_z(kW, kH, kF, {0, 0, 0});
   const ReferenceView ref = view_of(ref_cam, square_before_plane());
   ReprojectGenerator generator;
   ASSERT_TRUE(generator.adapt({ref}, SceneAdaptation{4, 50}).ok());
@@ -414,7 +405,7 @@ TEST(ReprojectGeneratorTest, ControlsItCannotHonourAreNoted) {
     EXPECT_TRUE(generator.notes().empty());
   }
 
-  GenerationRequest plain = empty_render_request(make_camera(kW, kH, kF, {0.1, 0, 0}), {ref});
+  GenerationRequest plain = empty_render_request(camera_looking_down_z(kW, kH, kF, {0.1, 0, 0}), {ref});
   GenerationRequest asking = plain;
   asking.ip_adapter_scale = 0.5;
   absl::StatusOr<std::vector<at::Tensor>> images = generator.generate({asking, plain});

@@ -18,25 +18,15 @@
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/restore/realesrgan_weights.h"
 #include "gs_trainer/eval/lpips.h"
+#include "tests/camera_test_util.h"
 #include "tests/restore_test_util.h"
 #include "tests/test_util.h"
 
 namespace gaps {
 namespace {
 
+using test::camera_looking_down_z;
 using test::contains;
-
-Camera make_camera(int width, int height, double focal, const Eigen::Vector3d& center) {
-  Camera c;
-  c.width = width;
-  c.height = height;
-  c.fx = c.fy = focal;
-  c.cx = width / 2.0;
-  c.cy = height / 2.0;
-  c.R = Eigen::Matrix3d::Identity();
-  c.t = -center;
-  return c;
-}
 
 // A fronto-parallel plane at z = 4 with a smooth colour texture, seen exactly (alpha 1, depth = distance).
 ReferenceView plane_view(const Camera& camera) {
@@ -117,7 +107,7 @@ void restore_fern(int64_t top, int64_t left, int64_t height, int64_t width, doub
   out->sharp = test::fern_crop(top, left, height, width);
   ASSERT_TRUE(out->sharp.defined());
   out->render = gaussian_blurred(out->sharp, sigma);
-  const Camera camera = make_camera(static_cast<int>(width), static_cast<int>(height), 100, {0, 0, 0});
+  const Camera camera = camera_looking_down_z(static_cast<int>(width), static_cast<int>(height), 100, {0, 0, 0});
   absl::StatusOr<std::unique_ptr<Generator>> generator = make_generator("restore", options);
   ASSERT_TRUE(generator.ok()) << generator.status();
   absl::StatusOr<std::vector<at::Tensor>> images = (*generator)->generate({render_request(out->render, camera)});
@@ -185,8 +175,8 @@ TEST_F(RestoreComposeTest, TheWarpIsComposedWhereItCoversAndTheRestorationElsewh
   EXPECT_EQ((*plain)->name(), "restore 1");
 
   const int w = 40, h = 32;
-  const Camera pseudo = make_camera(w, h, 40, {0, 0, 0});
-  const ReferenceView reference = plane_view(make_camera(w, h, 40, {0.8, 0, 0}));
+  const Camera pseudo = camera_looking_down_z(w, h, 40, {0, 0, 0});
+  const ReferenceView reference = plane_view(camera_looking_down_z(w, h, 40, {0.8, 0, 0}));
   GenerationRequest q = render_request(blurred(plane_view(pseudo).image), pseudo);
   q.render_alpha.slice(1, w / 2).zero_();
   q.references = {reference};
@@ -236,7 +226,7 @@ TEST_F(RestoreComposeTest, RequestErrorsAndNotes) {
       make_generator("restore", nlohmann::json{{"weights", (dir_ / "x4plus_random.safetensors").string()}}.dump());
   ASSERT_TRUE(generator.ok()) << generator.status();
   EXPECT_EQ((*generator)->weights_identity(), "realesrgan=" + (dir_ / "x4plus_random.safetensors").string());
-  const Camera camera = make_camera(16, 12, 20, {0, 0, 0});
+  const Camera camera = camera_looking_down_z(16, 12, 20, {0, 0, 0});
   const GenerationRequest good = render_request(at::full({12, 16, 3}, 0.5f), camera);
   GenerationRequest wrong_size = good;
   wrong_size.render_rgb = at::zeros({12, 15, 3});

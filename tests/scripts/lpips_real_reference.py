@@ -9,26 +9,9 @@ Exit status 77 when a Python module it needs is missing.
 """
 import argparse
 import json
-import struct
 import sys
 
-MISSING_MODULE = 77
-
-
-def read_safetensors(path):
-    import numpy as np
-    with open(path, "rb") as f:
-        (length,) = struct.unpack("<Q", f.read(8))
-        header = json.loads(f.read(length))
-        data = f.read()
-    tensors = {}
-    for name, entry in header.items():
-        if name == "__metadata__":
-            continue
-        assert entry["dtype"] == "F32", f"{name}: {entry['dtype']}"
-        begin, end = entry["data_offsets"]
-        tensors[name] = np.frombuffer(data[begin:end], dtype="<f4").reshape(entry["shape"])
-    return tensors
+from f32_safetensors import MISSING_MODULE, read_safetensors
 
 
 def reference_model(weights_path):

