@@ -15,10 +15,10 @@
 #include "absl/strings/match.h"
 #include "client/remote_client.h"
 #include "common/io_util.h"
-#include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
 #include "tests/postgres_server.h"
 #include "tests/process_util.h"
+#include "tests/synthetic_scene_util.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -36,12 +36,7 @@ struct ScaleOut : test::TempDirTest {
     ASSERT_TRUE(pg.ok()) << pg.status();
     postgres = std::move(*pg);
     ASSERT_TRUE(postgres->create_database("gaps").ok());
-    SyntheticSceneOptions s;
-    s.images = 9;
-    s.width = 48;
-    s.height = 36;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "synthetic", s).ok());
-    auto prepared = client::prepare_scene(dir_ / "synthetic", 1);
+    auto prepared = test::prepared_synthetic_scene(dir_ / "synthetic", 48, 36);
     ASSERT_TRUE(prepared.ok()) << prepared.status();
     scene = *prepared;
   }

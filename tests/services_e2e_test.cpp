@@ -35,6 +35,7 @@
 #include "rpc/config_codec.h"
 #include "tests/option_values.h"
 #include "tests/process_util.h"
+#include "tests/synthetic_scene_util.h"
 #include "tests/test_util.h"
 
 extern char** environ;
@@ -94,12 +95,7 @@ struct Services : test::TempDirTest {
 
   // A synthetic scene of 9 images in dir_/<folder>, by default small for quick jobs.
   client::PreparedScene synthetic_scene(int width = 64, int height = 48, const std::string& folder = "synthetic") {
-    SyntheticSceneOptions s;
-    s.images = 9;
-    s.width = width;
-    s.height = height;
-    EXPECT_TRUE(write_synthetic_scene(dir_ / folder, s).ok());
-    auto scene = client::prepare_scene(dir_ / folder, 1);
+    auto scene = test::prepared_synthetic_scene(dir_ / folder, width, height);
     EXPECT_TRUE(scene.ok()) << scene.status();
     return *scene;
   }

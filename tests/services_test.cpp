@@ -41,7 +41,6 @@
 #include "common/status_macros.h"
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/service/worker_service.h"
-#include "gs_trainer/synthetic.h"
 #include "rpc/codec.h"
 #include "rpc/config_codec.h"
 #include "rpc/generation_codec.h"
@@ -52,6 +51,7 @@
 #include "server/remote_generator.h"
 #include "server/scene_upload.h"
 #include "server/trainer_service.h"
+#include "tests/synthetic_scene_util.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -1093,12 +1093,7 @@ struct TrainerInProcess : test::TempDirTest {
     auto connected = client::TrainerClient::connect("127.0.0.1:" + std::to_string(port), {});
     ASSERT_TRUE(connected.ok()) << connected.status();
     trainer = std::make_unique<client::TrainerClient>(std::move(*connected));
-    SyntheticSceneOptions s;
-    s.images = 9;
-    s.width = 32;
-    s.height = 24;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "source", s).ok());
-    auto prepared = client::prepare_scene(dir_ / "source", 1);
+    auto prepared = test::prepared_synthetic_scene(dir_ / "source", 32, 24);
     ASSERT_TRUE(prepared.ok()) << prepared.status();
     scene = *prepared;
   }
@@ -1512,12 +1507,7 @@ absl::StatusOr<SceneUpload> receive(const std::vector<v1::SubmitJobRequest>& mes
 struct UploadTest : test::TempDirTest {
   void SetUp() override {
     test::TempDirTest::SetUp();
-    SyntheticSceneOptions s;
-    s.images = 9;
-    s.width = 32;
-    s.height = 24;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "source", s).ok());
-    auto scene = client::prepare_scene(dir_ / "source", 1);
+    auto scene = test::prepared_synthetic_scene(dir_ / "source", 32, 24);
     ASSERT_TRUE(scene.ok()) << scene.status();
     upload.spec.mutable_config()->set_views(3);
     for (const auto& c : scene->cameras) *upload.spec.add_cameras() = c;

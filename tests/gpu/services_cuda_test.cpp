@@ -12,11 +12,11 @@
 
 #include "client/remote_client.h"
 #include "common/image_io.h"
-#include "gs_trainer/synthetic.h"
 #include "rpc/config_codec.h"
 #include "tests/gpu/require_cuda.h"
 #include "tests/process_util.h"
 #include "tests/restore_test_util.h"
+#include "tests/synthetic_scene_util.h"
 #include "tests/test_util.h"
 
 namespace gaps {
@@ -88,12 +88,7 @@ struct ServicesOnCuda : test::TempDirTest {
   void run_full_job(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags,
                     const nlohmann::json& gaps_fields, FinishedJob* finished) {
     ASSERT_NO_FATAL_FAILURE(start_services(worker_flags, trainer_flags));
-    SyntheticSceneOptions scene_options;
-    scene_options.images = 9;
-    scene_options.width = 96;
-    scene_options.height = 72;
-    ASSERT_TRUE(write_synthetic_scene(dir_ / "scene", scene_options).ok());
-    auto scene = client::prepare_scene(dir_ / "scene", 1);
+    auto scene = test::prepared_synthetic_scene(dir_ / "scene", 96, 72);
     ASSERT_TRUE(scene.ok()) << scene.status();
     v1::JobSpec spec;
     spec.set_name("cuda");
