@@ -1,8 +1,9 @@
 #pragma once
-// A pinhole camera for ray-cast test scenes (reproject_generator_test.cpp, restore_generator_test.cpp).
+// A pinhole camera for ray-cast test scenes (reproject_generator_test.cpp, restore_generator_test.cpp, and the
+// intrinsics of synthetic_stereo.h's look_at).
 #include <Eigen/Dense>
 
-#include "gs_trainer/scene/scene.h"
+#include "gs_trainer/scene/camera.h"
 
 namespace gaps::test {
 

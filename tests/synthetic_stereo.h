@@ -14,6 +14,7 @@
 
 #include "gs_trainer/init/patchmatch.h"
 #include "gs_trainer/scene/camera.h"
+#include "tests/camera_test_util.h"
 
 namespace gaps::synthetic_stereo {
 
@@ -102,12 +103,7 @@ inline Camera look_at(const Eigen::Vector3d& centre, const Eigen::Vector3d& targ
   const Eigen::Vector3d z = (target - centre).normalized();
   const Eigen::Vector3d x = Eigen::Vector3d(0, 1, 0).cross(z).normalized();
   const Eigen::Vector3d y = z.cross(x);
-  Camera c;
-  c.width = width;
-  c.height = height;
-  c.fx = c.fy = focal;
-  c.cx = width / 2.0;
-  c.cy = height / 2.0;
+  Camera c = test::camera_looking_down_z(width, height, focal, centre);
   c.R.row(0) = x;
   c.R.row(1) = y;
   c.R.row(2) = z;

@@ -18,7 +18,7 @@ def reference_model(weights_path):
     import lpips
     import torch
     import torchvision
-    tensors = {name: torch.from_numpy(array.copy()) for name, array in read_safetensors(weights_path).items()}
+    tensors = {name: torch.from_numpy(array) for name, array in read_safetensors(weights_path).items()}
     vgg = torchvision.models.vgg16(weights=None)
     features = {name[len("features."):]: t for name, t in tensors.items() if name.startswith("features.")}
     vgg.features.load_state_dict(features, strict=True)
