@@ -8,10 +8,13 @@ training time and allocator peak (metrics.json), and where each diffusion phase'
 trainer's sections and the generator's stages: AdaptScene with the LoRA training, img2img, SD2 inpainting and
 its first load, transfer). Cases (--cases, in order):
 
+  vanilla          the trainer alone on GPU 0 (--variant vanilla): what the method's time is compared with
   reproject        the weight-free backend (worker on the CPU), trainer on GPU 0: the method's time without SDXL
   one-card         trainer and sdxl worker on GPU 0, each allocator capped (--trainer_gib, --worker_gib) so that
                    the pair must fit a 24 GB card (--card_gib): the run proves the fit instead of assuming it
   two-gpus         trainer on GPU 0, sdxl worker on GPU 1, uncapped
+  two-gpus-both    trainer on GPU 0, one sdxl worker on each GPU, uncapped: the trainer spreads each phase's
+                   pseudo-views over both (gaps-trainer --worker_fan_out, its default)
   weights          nothing but writing the weights
 
 The weights (SDXL base from `generator_bench --write_model`; ControlNet depth, IP-Adapter + ViT-H image encoder,
@@ -20,7 +23,8 @@ WORK once and reused. Random weights make the pseudo-views meaningless: admissio
 as run. One JSON line per case goes to --out.
 
   python3 bench/placements_bench.py --build build --scene ../shared/data/llff/fern --work /tmp/placements \
-      --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus]
+      --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus] \
+      [--submit_flags --async-iterations 500]
 """
 import argparse
 import json
@@ -144,39 +148,50 @@ def phase_breakdown(phases):
             "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}}
 
 
+def case_layout(case, args, backend_options):
+    """The case's workers (gaps-worker flags, GPU, allocator cap), the trainer's device and cap, and the variant."""
+    sdxl = ["--backend", "sdxl", "--backend_options", json.dumps(backend_options)]
+    if case == "vanilla":
+        return [], ("cuda:0", 0.0), "vanilla"
+    if case == "reproject":
+        return [(["--backend", "reproject"], None, 0.0)], ("cuda:0", 0.0), "full"
+    if case == "one-card":
+        return [([*sdxl, "--device", "cuda:0"], 0, args.worker_gib)], ("cuda:0", args.trainer_gib), "full"
+    if case == "two-gpus":
+        return [([*sdxl, "--device", "cuda:1"], 1, 0.0)], ("cuda:0", 0.0), "full"
+    if case == "two-gpus-both":
+        return ([([*sdxl, "--device", "cuda:1"], 1, 0.0), ([*sdxl, "--device", "cuda:0"], 0, 0.0)],
+                ("cuda:0", 0.0), "full")
+    raise SystemExit(f"unknown case {case} (vanilla, reproject, one-card, two-gpus, two-gpus-both)")
+
+
 def run_case(case, args, backend_options, env):
     gaps = args.build / "client" / "gaps"
     work = args.work / case
     work.mkdir(parents=True, exist_ok=True)
-    if case == "reproject":
-        worker_cmd = ["--backend", "reproject"]
-        trainer_device, worker_gpu, caps = "cuda:0", None, (0.0, 0.0)
-    elif case == "one-card":
-        worker_cmd = ["--backend", "sdxl", "--device", "cuda:0", "--backend_options", json.dumps(backend_options)]
-        trainer_device, worker_gpu, caps = "cuda:0", 0, (args.trainer_gib, args.worker_gib)
-    elif case == "two-gpus":
-        worker_cmd = ["--backend", "sdxl", "--device", "cuda:1", "--backend_options", json.dumps(backend_options)]
-        trainer_device, worker_gpu, caps = "cuda:0", 1, (0.0, 0.0)
-    else:
-        raise SystemExit(f"unknown case {case} (reproject, one-card, two-gpus)")
+    worker_layout, (trainer_device, trainer_cap), variant = case_layout(case, args, backend_options)
+    caps = (trainer_cap, max((cap for _, _, cap in worker_layout), default=0.0))
 
     with GpuMemorySampler() as sampler:
         start = time.time()
-        worker = Service("gaps-worker", [str(args.build / "diffusion_worker" / "service" / "gaps-worker"), "--listen",
-                                         "127.0.0.1:0", "--gpu_memory_gib", str(caps[1]), *worker_cmd],
-                         work / "worker.log", env)
+        # The workers load at once (each its own weights), as a deployment starts them.
+        workers = [Service(f"gaps-worker {k}", [str(args.build / "diffusion_worker" / "service" / "gaps-worker"),
+                                                "--listen", "127.0.0.1:0", "--gpu_memory_gib", str(cap), *flags],
+                           work / f"worker{k}.log", env)
+                   for k, (flags, _, cap) in enumerate(worker_layout)]
         trainer = None
         try:
-            worker_port = worker.wait_for_port(600)
+            worker_ports = [w.wait_for_port(600) for w in workers]
             worker_ready = time.time() - start
+            pool = ["--workers", ",".join(f"127.0.0.1:{p}" for p in worker_ports)] if workers else []
             trainer = Service("gaps-trainer", [str(args.build / "server" / "gaps-trainer"), "--listen", "127.0.0.1:0",
                                                "--data_dir", str(work / "data"), "--device", trainer_device,
-                                               "--gpu_memory_gib", str(caps[0]),
-                                               "--workers", f"127.0.0.1:{worker_port}"], work / "trainer.log", env)
+                                               "--gpu_memory_gib", str(trainer_cap), *pool], work / "trainer.log", env)
             address = f"127.0.0.1:{trainer.wait_for_port(120)}"
             submitted = time.time()
-            out = run([gaps, "submit", args.scene, "--views", args.views, "-r", args.resolution, "--variant", "full",
-                       "--device", trainer_device, "--trainer", address, *args.submit_flags],
+            out = run([gaps, "submit", args.scene, "--views", args.views, "-r", args.resolution, "--variant", variant,
+                       "--device", trainer_device, "--trainer", address,
+                       *(args.submit_flags if variant != "vanilla" else [])],
                       capture_output=True, text=True).stdout
             job = out.strip().splitlines()[0]
             watch = subprocess.run([str(gaps), "watch", job, "--quiet", "--trainer", address])
@@ -185,18 +200,21 @@ def run_case(case, args, backend_options, env):
         finally:
             if trainer:
                 trainer.stop()
-            worker.stop()
+            for w in workers:
+                w.stop()
     fetched = work / "fetched"
     metrics = json.loads((fetched / "metrics.json").read_text()) if (fetched / "metrics.json").exists() else {}
     phases = json.loads((fetched / "phases.json").read_text()) if (fetched / "phases.json").exists() else []
-    pids = {"trainer": trainer.proc.pid, "worker": worker.proc.pid}
+    pids = {"trainer": trainer.proc.pid,
+            **{("worker" if k == 0 else f"worker{k}"): w.proc.pid for k, w in enumerate(workers)}}
     per_process = {name: sampler.pid_peak_mib.get(pid) for name, pid in pids.items()}
-    gpus_used = sorted({0} | ({worker_gpu} if worker_gpu is not None else set()))
+    gpus_used = sorted({0} | {gpu for _, gpu, _ in worker_layout if gpu is not None})
     gpu_peak = {g: sampler.gpu_peak_mib.get(g, 0.0) - sampler.gpu_base_mib.get(g, 0.0) for g in gpus_used}
     row = {
-        "case": case, "submit_flags": args.submit_flags, "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
+        "case": case, "variant": variant, "workers": len(workers),
+        "submit_flags": args.submit_flags if variant != "vanilla" else [], "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
         "succeeded": watch.returncode == 0, "job_wall_seconds": round(job_seconds, 2),
-        "worker_start_seconds": round(worker_ready, 2),
+        "worker_start_seconds": round(worker_ready, 2) if workers else None,
         "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"),
         "iterations": metrics.get("iterations"), "num_gaussians": metrics.get("num_gaussians"),
         "trainer_allocator_peak_gib": round(metrics.get("peak_memory", {}).get("bytes", 0) / GIB, 3),
@@ -233,7 +251,8 @@ def main():
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     cases = args.cases.split(",")
-    backend_options = ensure_weights(args.build, args.work, args.python) if cases != ["reproject"] else {}
+    needs_sdxl = any(c not in ("vanilla", "reproject") for c in cases)
+    backend_options = ensure_weights(args.build, args.work, args.python) if needs_sdxl else {}
     # nvidia-smi numbers GPUs by PCI bus; CUDA's own order may differ unless told.
     env = dict(os.environ, CUDA_DEVICE_ORDER="PCI_BUS_ID")
     machine = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip().splitlines()

@@ -8,6 +8,7 @@
 #include <set>
 
 #include <condition_variable>
+#include <future>
 #include <mutex>
 #include <thread>
 
@@ -211,7 +212,14 @@ absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views,
   return absl::OkStatus();
 }
 
-absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* notes) {
+void RemoteGenerator::Attempt::add(const Attempt& other) {
+  for (const auto& [stage, seconds] : other.stages) stages[stage] += seconds;
+  for (const auto& [name, value] : other.counters)
+    counters[name] = name == "shared_memory" ? std::max(counters[name], value) : counters[name] + value;
+  notes.insert(notes.end(), other.notes.begin(), other.notes.end());
+}
+
+absl::Status RemoteGenerator::adapt_on(Worker& w, Attempt& attempt) {
   if (views_.empty() || w.adapted_version == views_version_) return absl::OkStatus();
   v1::AdaptSceneBatch batch;
   rpc::encode_adapt_batch(options_.scene_id, views_, adaptation_, &batch);
@@ -232,8 +240,8 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
   }
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " AdaptScene"));
   if (handle.empty()) return absl::InternalError(absl::StrCat(w.address, " AdaptScene returned no scene handle"));
-  notes->insert(notes->end(), adapt_notes.begin(), adapt_notes.end());
-  attempt_stages_["adapt_scene"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  attempt.notes.insert(attempt.notes.end(), adapt_notes.begin(), adapt_notes.end());
+  attempt.stages["adapt_scene"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   w.scene_handle = handle;
   w.adapted_version = views_version_;
   return absl::OkStatus();
@@ -241,7 +249,8 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, std::vector<std::string>* note
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w,
                                                                        const std::vector<GenerationRequest>& requests,
-                                                                       bool shared) {
+                                                                       bool shared, Attempt& attempt,
+                                                                       std::vector<std::string>* worker_notes) {
   const auto start = std::chrono::steady_clock::now();
   auto clock = start;
   v1::GenerateBatch batch;
@@ -263,9 +272,9 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   }
   GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, {options_.encoding, arena ? &*arena : nullptr}));
   if (!w.scene_handle.empty()) batch.set_scene_handle(w.scene_handle);
-  attempt_stages_["client_encode"] += lap_seconds(&clock);
-  attempt_counters_["request_bytes"] += static_cast<double>(batch.ByteSizeLong());
-  attempt_counters_["shared_memory"] = shared ? 1.0 : 0.0;
+  attempt.stages["client_encode"] += lap_seconds(&clock);
+  attempt.counters["request_bytes"] += static_cast<double>(batch.ByteSizeLong());
+  attempt.counters["shared_memory"] = shared ? 1.0 : 0.0;
 
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
@@ -274,12 +283,12 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   auto stream = w.stub->Generate(&context);
   rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
   stream->WritesDone();
-  attempt_stages_["client_send"] += lap_seconds(&clock);
+  attempt.stages["client_send"] += lap_seconds(&clock);
   v1::GenerateResult result;
   const absl::Status read =
       rpc::read_chunked([&](v1::Chunk* c) { return stream->Read(c); }, uint64_t{1} << 34, &result);
   GAPS_RETURN_IF_ERROR(rpc::from_grpc(stream->Finish(), w.address + " Generate"));
-  attempt_stages_["client_receive"] += lap_seconds(&clock);
+  attempt.stages["client_receive"] += lap_seconds(&clock);
   if (!read.ok()) return malformed(read);
   if (static_cast<size_t>(result.images_size()) != requests.size())
     return malformed(
@@ -292,44 +301,44 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
     if (!image.ok()) return malformed(image.status());  // the decoder refuses NaN and infinite pixels too
     images.push_back(*std::move(image));
   }
-  attempt_stages_["client_decode"] += lap_seconds(&clock);
-  attempt_counters_["answer_bytes"] += static_cast<double>(result.ByteSizeLong());
-  if (arena) attempt_counters_["shared_memory_bytes"] += static_cast<double>(w.region->size());
-  for (const auto& [stage, seconds] : result.stage_seconds()) attempt_stages_[stage] += seconds;
-  for (const auto& [stage, seconds] : result.transfer_seconds()) attempt_stages_[stage] += seconds;
-  attempt_stages_["worker_generate"] += result.backend_seconds();
-  attempt_stages_["transfer"] +=
+  attempt.stages["client_decode"] += lap_seconds(&clock);
+  attempt.counters["answer_bytes"] += static_cast<double>(result.ByteSizeLong());
+  if (arena) attempt.counters["shared_memory_bytes"] += static_cast<double>(w.region->size());
+  for (const auto& [stage, seconds] : result.stage_seconds()) attempt.stages[stage] += seconds;
+  for (const auto& [stage, seconds] : result.transfer_seconds()) attempt.stages[stage] += seconds;
+  attempt.stages["worker_generate"] += result.backend_seconds();
+  attempt.stages["transfer"] +=
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() - result.backend_seconds();
-  add_worker_notes(w.address, result.notes(), &pending_notes_);
+  add_worker_notes(w.address, result.notes(), worker_notes);
   return images;
 }
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_on(Worker& w,
                                                                      const std::vector<GenerationRequest>& requests,
-                                                                     std::vector<std::string>* notes) {
-  pending_notes_.clear();
-  auto images = call_generate(w, requests, w.shares_memory);
+                                                                     Attempt& attempt) {
+  std::vector<std::string> worker_notes;
+  auto images = call_generate(w, requests, w.shares_memory, attempt, &worker_notes);
   if (w.shares_memory && !images.ok() &&
       (absl::IsFailedPrecondition(images.status()) || absl::IsResourceExhausted(images.status()))) {
     // The probe said the memory is shared, but the region could not be made or opened: the socket still works.
-    notes->push_back(absl::StrCat(w.address, ": shared memory unusable (", images.status().message(),
-                                  "); payloads travel in the messages"));
+    attempt.notes.push_back(absl::StrCat(w.address, ": shared memory unusable (", images.status().message(),
+                                         "); payloads travel in the messages"));
     w.shares_memory = false;
     w.region.reset();
-    pending_notes_.clear();
-    images = call_generate(w, requests, false);
+    worker_notes.clear();
+    images = call_generate(w, requests, false, attempt, &worker_notes);
   }
-  notes->insert(notes->end(), pending_notes_.begin(), pending_notes_.end());
+  attempt.notes.insert(attempt.notes.end(), worker_notes.begin(), worker_notes.end());
   return images;
 }
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::adapt_and_generate_on(
-    Worker& w, const std::vector<GenerationRequest>& requests, std::vector<std::string>* notes) {
-  for (int attempt = 0;; ++attempt) {
-    GAPS_RETURN_IF_ERROR(adapt_on(w, notes));
+    Worker& w, const std::vector<GenerationRequest>& requests, Attempt& attempt) {
+  for (int tries = 0;; ++tries) {
+    GAPS_RETURN_IF_ERROR(adapt_on(w, attempt));
     const bool had_handle = !w.scene_handle.empty();
-    auto images = generate_on(w, requests, notes);
-    if (images.ok() || attempt > 0 || !had_handle || !absl::IsNotFound(images.status())) return images;
+    auto images = generate_on(w, requests, attempt);
+    if (images.ok() || tries > 0 || !had_handle || !absl::IsNotFound(images.status())) return images;
     w.scene_handle.clear();
     w.adapted_version = 0;
   }
@@ -340,29 +349,82 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
   stage_seconds_.clear();
   counters_.clear();
   if (requests.empty()) return std::vector<at::Tensor>{};
+  std::vector<Worker*> ready;
+  if (options_.fan_out && requests.size() > 1)
+    for (auto& w : workers_)
+      if (!stopping() && usable(*w)) ready.push_back(w.get());
+  Attempt attempt;
+  auto images =
+      ready.size() > 1 ? generate_fanned_out(requests, ready, attempt) : generate_with_failover(requests, attempt);
+  if (!images.ok()) return images;
+  notes_ = std::move(attempt.notes);
+  stage_seconds_ = std::move(attempt.stages);
+  counters_ = std::move(attempt.counters);
+  if (!counters_.count("workers")) counters_["workers"] = 1;
+  return images;
+}
+
+namespace {
+
+// The errors after which another worker may succeed: the worker failed or answered malformed, not the request.
+bool another_worker_may_help(const absl::Status& st) { return retryable(st.code()) || absl::IsDataLoss(st); }
+
+}  // namespace
+
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
+    const std::vector<GenerationRequest>& requests, const std::vector<Worker*>& ready, Attempt& attempt) {
+  const size_t shards = std::min(ready.size(), requests.size());
+  std::vector<std::vector<GenerationRequest>> parts(shards);
+  for (size_t s = 0; s < shards; ++s)
+    parts[s].assign(requests.begin() + s * requests.size() / shards,
+                    requests.begin() + (s + 1) * requests.size() / shards);
+  std::vector<Attempt> attempts(shards);
+  std::vector<std::future<absl::StatusOr<std::vector<at::Tensor>>>> calls;
+  for (size_t s = 1; s < shards; ++s)
+    calls.push_back(
+        std::async(std::launch::async, [&, s] { return adapt_and_generate_on(*ready[s], parts[s], attempts[s]); }));
+  std::vector<absl::StatusOr<std::vector<at::Tensor>>> answers;
+  answers.push_back(adapt_and_generate_on(*ready[0], parts[0], attempts[0]));
+  for (auto& call : calls) answers.push_back(call.get());
+
+  std::vector<at::Tensor> images;
+  for (size_t s = 0; s < shards; ++s) {
+    if (!answers[s].ok()) {
+      const absl::Status st = answers[s].status();
+      if (stopping()) return absl::UnavailableError("the job is stopping: the generation call was cancelled");
+      if (!another_worker_may_help(st)) return st;
+      ready[s]->last_error = std::string(st.message());
+      mark_failed(*ready[s]);
+      attempts[s] = Attempt();
+      answers[s] = generate_with_failover(parts[s], attempts[s]);
+      if (!answers[s].ok()) return answers[s].status();
+    }
+    attempt.add(attempts[s]);
+    images.insert(images.end(), answers[s]->begin(), answers[s]->end());
+  }
+  attempt.counters["workers"] = static_cast<double>(shards);
+  return images;
+}
+
+absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_with_failover(
+    const std::vector<GenerationRequest>& requests, Attempt& attempt) {
   auto backoff = options_.backoff_initial;
-  const auto stopping = [&] { return options_.should_stop && options_.should_stop(); };
   const absl::Status stopped = absl::UnavailableError("the job is stopping: the generation call was cancelled");
   for (int round = 0; round < options_.max_rounds; ++round) {
     for (size_t k = 0; k < workers_.size(); ++k) {
       if (stopping()) return stopped;
       Worker& w = *workers_[(next_ + k) % workers_.size()];
       if (!usable(w)) continue;
-      std::vector<std::string> notes;  // of this worker only: a failed one's are not this call's
-      attempt_stages_.clear();
-      attempt_counters_.clear();
-      auto images = adapt_and_generate_on(w, requests, &notes);
+      Attempt tried;  // of this worker only: a failed one's notes and seconds are not this call's
+      auto images = adapt_and_generate_on(w, requests, tried);
       if (images.ok()) {
         next_ = (next_ + k + 1) % workers_.size();
-        notes_ = std::move(notes);
-        stage_seconds_ = attempt_stages_;
-        counters_ = attempt_counters_;
+        attempt = std::move(tried);
         return images;
       }
       const absl::Status st = images.status();
       if (stopping()) return stopped;
-      // The request itself is at fault unless the worker failed or answered malformed: then another may help.
-      if (!retryable(st.code()) && !absl::IsDataLoss(st)) return st;
+      if (!another_worker_may_help(st)) return st;
       w.last_error = std::string(st.message());
       mark_failed(w);
     }

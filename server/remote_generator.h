@@ -1,8 +1,8 @@
 #pragma once
 #include <functional>
-// A gaps::Generator that asks diffusion workers (gaps-worker) over gRPC. It spreads calls over a pool of
-// worker addresses, skips workers that failed recently until a health check passes again, retries with
-// exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
+// A gaps::Generator that asks diffusion workers (gaps-worker) over gRPC. It spreads each call's poses over
+// the pool's usable workers (fan_out), skips workers that failed recently until a health check passes again,
+// retries with exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
 // return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps/training.h).
 #include <chrono>
 #include <map>
@@ -44,6 +44,11 @@ struct WorkerPoolOptions {
   // Pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker by
   // its probe, rpc/shared_memory.h); the others, and all when false, get them in the messages.
   bool shared_memory = true;
+  // Split every generate() call into contiguous shards, one per usable worker, asked at once, so that a
+  // phase's pseudo-views are made by every GPU of the pool; a shard whose worker fails goes to the others.
+  // Each worker is adapted to the scene before its first shard: an adaptation that trains (sdxl's LoRA) runs
+  // on every worker, in parallel. False: one worker per call, the others stand by.
+  bool fan_out = true;
 };
 
 // The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per
@@ -67,36 +72,54 @@ class RemoteGenerator final : public Generator {
   // After generate(): the answering worker's notes, "<address>: <note>", those of its adaptation (when this
   // call adapted it) first.
   std::vector<std::string> notes() const override { return notes_; }
-  // After generate(): "adapt_scene" (the AdaptScene call, LoRA training included, when this call adapted the
-  // worker), "worker_generate" (the backend's own seconds), "transfer" (the rest of the Generate call), its
+  // After generate(), summed over the workers that shared the call: "adapt_scene" (the AdaptScene call, LoRA
+  // training included, when this call adapted the worker), "worker_generate" (the backend's own seconds),
+  // "transfer" (the rest of the Generate call), its
   // parts on this side ("client_encode": tensors into the message or shared memory, "client_send",
   // "client_receive": from the last chunk sent to the answer parsed, the worker's work included,
   // "client_decode") and on the worker's (GenerateResult.transfer_seconds), and the backend's stages
   // (GenerateResult.stage_seconds) of the answering worker.
   std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
   // After generate(): "request_bytes" and "answer_bytes" (serialized messages), "shared_memory_bytes" (payload
-  // passed through shared memory) and "shared_memory" (1 when it was used) of the answering worker's call.
+  // passed through shared memory), summed over the answering workers' calls, "shared_memory" (1 when one of
+  // them used it) and "workers" (how many workers answered a shard).
   std::map<std::string, double> counters() const override { return counters_; }
 
  private:
   struct Worker;
+  // What the calls that made one shard report: their stages, counters and the workers' notes.
+  struct Attempt {
+    std::map<std::string, double> stages, counters;
+    std::vector<std::string> notes;
+    void add(const Attempt& other);
+  };
   explicit RemoteGenerator(WorkerPoolOptions options);
   // True when the worker may be called now (healthy, or its cooldown passed and a probe succeeded).
   bool usable(Worker& worker);
   absl::Status probe(Worker& worker);
   // Adapts the worker unless it is adapted to the current views; appends the worker's notes to *notes.
-  absl::Status adapt_on(Worker& worker, std::vector<std::string>* notes);
+  absl::Status adapt_on(Worker& worker, Attempt& attempt);
   // One Generate call; through shared memory when the worker shares it, falling back to the messages (with
   // a note) when the worker cannot open the region after all.
   absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const std::vector<GenerationRequest>& requests,
-                                                      std::vector<std::string>* notes);
+                                                      Attempt& attempt);
+  // The worker's notes go to *worker_notes (kept only when the call is the one that answers).
   absl::StatusOr<std::vector<at::Tensor>> call_generate(Worker& worker, const std::vector<GenerationRequest>& requests,
-                                                        bool shared);
+                                                        bool shared, Attempt& attempt,
+                                                        std::vector<std::string>* worker_notes);
   // adapt_on, then generate_on; a worker that no longer knows its scene handle (restarted between two calls,
   // so no call failed to tell us) is adapted again and asked once more.
   absl::StatusOr<std::vector<at::Tensor>> adapt_and_generate_on(Worker& worker,
                                                                 const std::vector<GenerationRequest>& requests,
-                                                                std::vector<std::string>* notes);
+                                                                Attempt& attempt);
+  // The whole of `requests` from one worker, the next usable one in round-robin order, moving on when one
+  // fails, for max_rounds passes over the pool.
+  absl::StatusOr<std::vector<at::Tensor>> generate_with_failover(const std::vector<GenerationRequest>& requests,
+                                                                 Attempt& attempt);
+  // One shard per worker of `ready`, asked at once; a shard whose worker failed goes to generate_with_failover.
+  absl::StatusOr<std::vector<at::Tensor>> generate_fanned_out(const std::vector<GenerationRequest>& requests,
+                                                              const std::vector<Worker*>& ready, Attempt& attempt);
+  bool stopping() const { return options_.should_stop && options_.should_stop(); }
   void mark_failed(Worker& worker);
 
   WorkerPoolOptions options_;
@@ -107,10 +130,7 @@ class RemoteGenerator final : public Generator {
   uint64_t views_version_ = 0;
   std::vector<std::string> notes_;
   std::map<std::string, double> stage_seconds_;
-  std::map<std::string, double> attempt_stages_;  // of the worker being tried (generate() is not reentrant)
   std::map<std::string, double> counters_;
-  std::vector<std::string> pending_notes_;  // the answering call's worker notes
-  std::map<std::string, double> attempt_counters_;
   mutable std::mutex name_mutex_;
   std::string backend_version_;
 };

@@ -59,6 +59,9 @@ ABSL_FLAG(std::string, worker_encoding, "compact",
 ABSL_FLAG(bool, worker_shared_memory, true,
           "pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker; "
           "the others get them in the messages)");
+ABSL_FLAG(bool, worker_fan_out, true,
+          "spread each diffusion phase's pseudo-views over every reachable worker at once (each worker is adapted to "
+          "the scene, LoRA training included); false: one worker per phase, the others stand by for failover");
 ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
 ABSL_FLAG(std::string, lpips_weights, "",
           "LPIPS-VGG weights of the jobs' metrics (default: ~/.cache/gaps/lpips/vgg16_lpips_v0.1.safetensors, as "
@@ -88,7 +91,7 @@ gaps::cli::CommandSpec command() {
       {"security", gaps::rpc::security_flag_names()},
       {"diffusion workers",
        {"workers", "worker_token_file", "worker_tls_ca", "worker_tls_server_name", "worker_tls_cert", "worker_tls_key",
-        "worker_timeout_s", "worker_rounds", "worker_encoding", "worker_shared_memory"}},
+        "worker_timeout_s", "worker_rounds", "worker_encoding", "worker_shared_memory", "worker_fan_out"}},
   };
   spec.epilogue = gaps::cli::exit_code_table();
   return spec;
@@ -184,6 +187,7 @@ int serve() {
   options.workers.encoding =
       encoding == "compact" ? gaps::rpc::TensorEncoding::kUint8 : gaps::rpc::TensorEncoding::kFloat32;
   options.workers.shared_memory = absl::GetFlag(FLAGS_worker_shared_memory);
+  options.workers.fan_out = absl::GetFlag(FLAGS_worker_fan_out);
   // Regions a killed trainer on this host left behind in /dev/shm.
   gaps::rpc::remove_stale_regions();
   auto service = gaps::TrainerService::create(options);

@@ -939,6 +939,90 @@ TEST(WorkerPool, AWorkerRestartedBetweenCallsIsAdaptedAgain) {
   EXPECT_TRUE(images.ok()) << images.status();
 }
 
+// Echoes each render and counts the poses and adaptations it was asked for.
+class EchoGenerator : public Generator {
+ public:
+  std::string name() const override { return "echo (test)"; }
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    ++adaptations;
+    return absl::OkStatus();
+  }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    poses += static_cast<int>(requests.size());
+    std::vector<at::Tensor> out;
+    for (const auto& r : requests) out.push_back(r.render_rgb);
+    return out;
+  }
+  std::atomic<int> adaptations{0}, poses{0};
+};
+
+std::vector<GenerationRequest> many_requests(int count) {
+  std::vector<GenerationRequest> out;
+  for (int k = 0; k < count; ++k) {
+    GenerationRequest q = test_requests()[k % 2];
+    q.render_rgb = at::full_like(q.render_rgb, k / 16.0);
+    out.push_back(q);
+  }
+  return out;
+}
+
+// Each image must be the answer to its own pose (EchoGenerator: the render), in the order asked.
+void expect_in_order(const std::vector<at::Tensor>& images, const std::vector<GenerationRequest>& requests) {
+  ASSERT_EQ(images.size(), requests.size());
+  for (size_t k = 0; k < images.size(); ++k) EXPECT_TRUE(at::equal(images[k], requests[k].render_rgb)) << "pose " << k;
+}
+
+// A phase's poses are shared among the pool's workers (each adapted to the scene first) and come back in order;
+// with fan_out off one worker makes them all.
+TEST(WorkerPool, APhaseIsSharedAmongTheWorkersAndAnsweredInOrder) {
+  WorkerServiceOptions options;
+  options.backend = "echo";
+  auto a = std::make_unique<EchoGenerator>(), b = std::make_unique<EchoGenerator>();
+  const EchoGenerator &first = *a, &second = *b;
+  RunningWorker wa(std::move(a), options), wb(std::move(b), options);
+  const auto requests = many_requests(5);
+  for (const bool fan_out : {true, false}) {
+    WorkerPoolOptions o;
+    o.addresses = {wa.address(), wb.address()};
+    o.encoding = rpc::TensorEncoding::kFloat32;
+    o.fan_out = fan_out;
+    auto remote = RemoteGenerator::create(o);
+    ASSERT_TRUE(remote.ok()) << remote.status();
+    ASSERT_TRUE((*remote)->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+    const int poses_before = first.poses + second.poses, first_before = first.poses;
+    const int adaptations_before = first.adaptations + second.adaptations;
+    const auto images = (*remote)->generate(requests);
+    ASSERT_TRUE(images.ok()) << images.status();
+    expect_in_order(*images, requests);
+    EXPECT_EQ(first.poses + second.poses - poses_before, 5);
+    EXPECT_EQ((*remote)->counters().at("workers"), fan_out ? 2.0 : 1.0);
+    EXPECT_EQ(first.adaptations + second.adaptations - adaptations_before, fan_out ? 2 : 1);
+    if (fan_out) EXPECT_EQ(first.poses - first_before, 2) << "contiguous shards: 2 poses, then 3";
+  }
+}
+
+// A worker that fails its shard hands it to the others: the phase still gets every image, in order.
+TEST(WorkerPool, AShardWhoseWorkerFailsIsAnsweredByAnother) {
+  WorkerServiceOptions options;
+  options.backend = "flaky";
+  auto flaky = std::make_unique<FlakyGenerator>();
+  const FlakyGenerator& failing = *flaky;
+  RunningWorker broken(std::move(flaky), options);
+  auto echo = std::make_unique<EchoGenerator>();
+  const EchoGenerator& healthy = *echo;
+  options.backend = "echo";
+  RunningWorker good(std::move(echo), options);
+  auto remote = pool({broken.address(), good.address()}, "", {rpc::TensorEncoding::kFloat32, true});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = many_requests(4);
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  const auto images = (*remote)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  expect_in_order(*images, requests);
+  EXPECT_EQ(failing.generations, 1) << "its shard failed once and went elsewhere";
+  EXPECT_EQ(healthy.poses, 4);
+}
+
 // The pool reports where a call's time went: the AdaptScene call when this call adapted the worker, the
 // backend's seconds and the transfer around them.
 TEST(WorkerPool, GenerateReportsTheAdaptationAndTheWorkersSecondsByStage) {

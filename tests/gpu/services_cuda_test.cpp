@@ -7,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include <absl/strings/str_join.h>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
@@ -33,11 +34,21 @@ struct FinishedJob {
 struct ServicesOnCuda : test::TempDirTest {
   // Starts the worker with `worker_flags` and a trainer on cuda with `trainer_flags`, and connects the client.
   void start_services(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags) {
-    std::vector<std::string> worker_args = {GAPS_WORKER_BIN, "--listen", "127.0.0.1:0"};
-    worker_args.insert(worker_args.end(), worker_flags.begin(), worker_flags.end());
-    worker_ = std::make_unique<Process>(worker_args, dir_ / "worker.log");
-    const int worker_port = worker_->wait_for_port();
-    ASSERT_GT(worker_port, 0) << worker_->log_text();
+    start_services(std::vector<std::vector<std::string>>{worker_flags}, trainer_flags);
+  }
+  // The same with one worker per entry of `workers_flags`, all in the trainer's pool.
+  void start_services(const std::vector<std::vector<std::string>>& workers_flags,
+                      const std::vector<std::string>& trainer_flags) {
+    std::vector<std::string> addresses;
+    for (size_t k = 0; k < workers_flags.size(); ++k) {
+      std::vector<std::string> worker_args = {GAPS_WORKER_BIN, "--listen", "127.0.0.1:0"};
+      worker_args.insert(worker_args.end(), workers_flags[k].begin(), workers_flags[k].end());
+      workers_.push_back(std::make_unique<Process>(worker_args, dir_ / ("worker" + std::to_string(k) + ".log")));
+      const int worker_port = workers_.back()->wait_for_port();
+      ASSERT_GT(worker_port, 0) << workers_.back()->log_text();
+      addresses.push_back("127.0.0.1:" + std::to_string(worker_port));
+    }
+    worker_ = workers_.front().get();
     std::vector<std::string> trainer_args = {GAPS_TRAINER_BIN,
                                              "--listen",
                                              "127.0.0.1:0",
@@ -46,7 +57,7 @@ struct ServicesOnCuda : test::TempDirTest {
                                              "--device",
                                              "cuda",
                                              "--workers",
-                                             "127.0.0.1:" + std::to_string(worker_port)};
+                                             absl::StrJoin(addresses, ",")};
     trainer_args.insert(trainer_args.end(), trainer_flags.begin(), trainer_flags.end());
     trainer_ = std::make_unique<Process>(trainer_args, dir_ / "trainer.log");
     const int trainer_port = trainer_->wait_for_port();
@@ -87,7 +98,12 @@ struct ServicesOnCuda : test::TempDirTest {
   // A job of the method on a small synthetic scene, through services started as start_services does.
   void run_full_job(const std::vector<std::string>& worker_flags, const std::vector<std::string>& trainer_flags,
                     const nlohmann::json& gaps_fields, FinishedJob* finished) {
-    ASSERT_NO_FATAL_FAILURE(start_services(worker_flags, trainer_flags));
+    run_full_job(std::vector<std::vector<std::string>>{worker_flags}, trainer_flags, gaps_fields, finished);
+  }
+  void run_full_job(const std::vector<std::vector<std::string>>& workers_flags,
+                    const std::vector<std::string>& trainer_flags, const nlohmann::json& gaps_fields,
+                    FinishedJob* finished) {
+    ASSERT_NO_FATAL_FAILURE(start_services(workers_flags, trainer_flags));
     auto scene = test::prepared_synthetic_scene(dir_ / "scene", 96, 72);
     ASSERT_TRUE(scene.ok()) << scene.status();
     v1::JobSpec spec;
@@ -104,7 +120,9 @@ struct ServicesOnCuda : test::TempDirTest {
     ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, finished));
   }
 
-  std::unique_ptr<Process> worker_, trainer_;
+  std::vector<std::unique_ptr<Process>> workers_;
+  Process* worker_ = nullptr;  // the first of workers_
+  std::unique_ptr<Process> trainer_;
   std::unique_ptr<client::TrainerClient> client_;
 };
 
@@ -147,6 +165,27 @@ TEST_F(ServicesOnCuda, AFullJobWithAWorkerAndATrainerOnCudaAdmitsPseudoViews) {
       EXPECT_LE((*rendered - *saved).abs().max().item<float>(), 1.0f / 255 + 1e-6) << camera.name();
       EXPECT_GT(rendered->std().item<float>(), 0.01f) << camera.name();
     }
+  }
+}
+
+// Two workers, on two GPUs where the machine has them: each phase's poses are shared between them (the trainer's
+// default, --worker_fan_out), with asynchronous phases as a two-GPU deployment runs them.
+TEST_F(ServicesOnCuda, AFullJobSharesEachPhaseBetweenTwoWorkers) {
+  GAPS_REQUIRE_CUDA();
+  const std::string second = at::getNumGPUs() > 1 ? "cuda:1" : "cuda:0";
+  FinishedJob job;
+  nlohmann::json fields = kShortJobGate;
+  fields["async_iterations"] = 50;
+  ASSERT_NO_FATAL_FAILURE(
+      run_full_job({{"--backend", "reproject", "--device", "cuda:0"}, {"--backend", "reproject", "--device", second}},
+                   {}, fields, &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  EXPECT_EQ(job.phases, 2);
+  EXPECT_EQ(job.skipped, 0) << workers_[0]->log_text() << workers_[1]->log_text();
+  EXPECT_GE(job.admitted, 1);
+  for (const nlohmann::json& phase : test::read_json(dir_ / "fetched" / "phases.json")) {
+    EXPECT_EQ(phase["generator_counters"]["workers"], 2.0) << phase["generator_counters"];
+    EXPECT_TRUE(phase.contains("async")) << phase.dump();
   }
 }
 
