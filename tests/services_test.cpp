@@ -881,21 +881,32 @@ TEST(WorkerPool, NoReachableWorkerIsUnavailableNamingEachAddress) {
   EXPECT_NE(result.status().message().find("127.0.0.1:2"), std::string_view::npos);
 }
 
-// Fails its first generate() with UNAVAILABLE, as a worker going away would, and counts its adaptations.
-class FlakyGenerator : public Generator {
+// Echoes each render and counts the poses and adaptations it was asked for.
+class EchoGenerator : public Generator {
  public:
-  std::string name() const override { return "flaky (test)"; }
+  std::string name() const override { return "echo (test)"; }
   absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
     ++adaptations;
     return absl::OkStatus();
   }
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
-    if (++generations == 1) return absl::UnavailableError("going away (test)");
+    poses += static_cast<int>(requests.size());
     std::vector<at::Tensor> out;
     for (const auto& r : requests) out.push_back(r.render_rgb);
     return out;
   }
-  std::atomic<int> adaptations{0}, generations{0};
+  std::atomic<int> adaptations{0}, poses{0};
+};
+
+// Fails its first generate() with UNAVAILABLE, as a worker going away would, then echoes.
+class FlakyGenerator : public EchoGenerator {
+ public:
+  std::string name() const override { return "flaky (test)"; }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    if (++generations == 1) return absl::UnavailableError("going away (test)");
+    return EchoGenerator::generate(requests);
+  }
+  std::atomic<int> generations{0};
 };
 
 // A worker that failed may have restarted and forgotten the scene: it is adapted again before it generates.
@@ -938,23 +949,6 @@ TEST(WorkerPool, AWorkerRestartedBetweenCallsIsAdaptedAgain) {
   const auto images = (*remote)->generate(requests);
   EXPECT_TRUE(images.ok()) << images.status();
 }
-
-// Echoes each render and counts the poses and adaptations it was asked for.
-class EchoGenerator : public Generator {
- public:
-  std::string name() const override { return "echo (test)"; }
-  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
-    ++adaptations;
-    return absl::OkStatus();
-  }
-  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
-    poses += static_cast<int>(requests.size());
-    std::vector<at::Tensor> out;
-    for (const auto& r : requests) out.push_back(r.render_rgb);
-    return out;
-  }
-  std::atomic<int> adaptations{0}, poses{0};
-};
 
 std::vector<GenerationRequest> many_requests(int count) {
   std::vector<GenerationRequest> out;

@@ -25,6 +25,7 @@ import charts  # noqa: E402
 import harness  # noqa: E402
 import init_times  # noqa: E402
 import kernel_profile  # noqa: E402
+import placements_bench  # noqa: E402
 import tables  # noqa: E402
 
 # Stands in for `gaps train`: PSNR from views, seed and variant; variant "no-gaps" diverges (exit 3 with a
@@ -541,6 +542,39 @@ class KernelProfileTest(unittest.TestCase):
         with self.assertRaises(SystemExit) as refused:
             list(kernel_profile.summarise("==PROF== No kernels were profiled.\n"))
         self.assertIn("no ncu rows", str(refused.exception))
+
+
+
+class PlacementsBenchTest(unittest.TestCase):
+    """Which processes each case starts, on which GPU, under which allocator caps, and the variant it submits."""
+
+    args = unittest.mock.Mock(trainer_gib=3.0, worker_gib=17.0)
+    options = {"weights": "/w/sdxl"}
+
+    def layout(self, case):
+        return placements_bench.case_layout(case, self.args, self.options)
+
+    def test_vanilla_starts_no_worker(self):
+        self.assertEqual(self.layout("vanilla"), ([], ("cuda:0", 0.0), "vanilla"))
+
+    def test_one_card_caps_both_on_gpu_0(self):
+        workers, trainer, variant = self.layout("one-card")
+        self.assertEqual([(gpu, cap) for _, gpu, cap in workers], [(0, 17.0)])
+        self.assertEqual((trainer, variant), (("cuda:0", 3.0), "full"))
+        self.assertIn("cuda:0", workers[0][0])
+        self.assertEqual(json.loads(workers[0][0][workers[0][0].index("--backend_options") + 1]), self.options)
+
+    def test_two_gpus_both_puts_an_uncapped_sdxl_worker_on_each_gpu(self):
+        workers, trainer, variant = self.layout("two-gpus-both")
+        self.assertEqual([(gpu, cap) for _, gpu, cap in workers], [(1, 0.0), (0, 0.0)])
+        self.assertEqual([flags[flags.index("--device") + 1] for flags, _, _ in workers], ["cuda:1", "cuda:0"])
+        self.assertTrue(all(flags[flags.index("--backend") + 1] == "sdxl" for flags, _, _ in workers))
+        self.assertEqual((trainer, variant), (("cuda:0", 0.0), "full"))
+
+    def test_an_unknown_case_is_refused_naming_the_cases(self):
+        with self.assertRaises(SystemExit) as refused:
+            self.layout("three-gpus")
+        self.assertIn("two-gpus-both", str(refused.exception))
 
 
 if __name__ == "__main__":
