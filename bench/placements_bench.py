@@ -174,13 +174,14 @@ def run_case(case, args, backend_options, env):
 
     with GpuMemorySampler() as sampler:
         start = time.time()
-        # The workers load at once (each its own weights), as a deployment starts them.
-        workers = [Service(f"gaps-worker {k}", [str(args.build / "diffusion_worker" / "service" / "gaps-worker"),
-                                                "--listen", "127.0.0.1:0", "--gpu_memory_gib", str(cap), *flags],
-                           work / f"worker{k}.log", env)
-                   for k, (flags, _, cap) in enumerate(worker_layout)]
-        trainer = None
+        workers, trainer = [], None
         try:
+            # The workers load at once (each its own weights), as a deployment starts them.
+            for k, (flags, _, cap) in enumerate(worker_layout):
+                workers.append(Service(f"gaps-worker {k}",
+                                       [str(args.build / "diffusion_worker" / "service" / "gaps-worker"), "--listen",
+                                        "127.0.0.1:0", "--gpu_memory_gib", str(cap), *flags],
+                                       work / f"worker{k}.log", env))
             worker_ports = [w.wait_for_port(600) for w in workers]
             worker_ready = time.time() - start
             pool = ["--workers", ",".join(f"127.0.0.1:{p}" for p in worker_ports)] if workers else []
