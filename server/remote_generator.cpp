@@ -369,6 +369,10 @@ namespace {
 // The errors after which another worker may succeed: the worker failed or answered malformed, not the request.
 bool another_worker_may_help(const absl::Status& st) { return retryable(st.code()) || absl::IsDataLoss(st); }
 
+absl::Status stopped_status() {
+  return absl::UnavailableError("the job is stopping: the generation call was cancelled");
+}
+
 }  // namespace
 
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
@@ -391,7 +395,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
   for (size_t s = 0; s < shards; ++s) {
     if (!answers[s].ok()) {
       const absl::Status st = answers[s].status();
-      if (stopping()) return absl::UnavailableError("the job is stopping: the generation call was cancelled");
+      if (stopping()) return stopped_status();
       if (!another_worker_may_help(st)) return st;
       ready[s]->last_error = std::string(st.message());
       mark_failed(*ready[s]);
@@ -409,7 +413,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_with_failover(
     const std::vector<GenerationRequest>& requests, Attempt& attempt) {
   auto backoff = options_.backoff_initial;
-  const absl::Status stopped = absl::UnavailableError("the job is stopping: the generation call was cancelled");
+  const absl::Status stopped = stopped_status();
   for (int round = 0; round < options_.max_rounds; ++round) {
     for (size_t k = 0; k < workers_.size(); ++k) {
       if (stopping()) return stopped;

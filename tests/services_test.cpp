@@ -951,9 +951,10 @@ TEST(WorkerPool, AWorkerRestartedBetweenCallsIsAdaptedAgain) {
 }
 
 std::vector<GenerationRequest> many_requests(int count) {
+  const std::vector<GenerationRequest> pair = test_requests();
   std::vector<GenerationRequest> out;
   for (int k = 0; k < count; ++k) {
-    GenerationRequest q = test_requests()[k % 2];
+    GenerationRequest q = pair[k % 2];
     q.render_rgb = at::full_like(q.render_rgb, k / 16.0);
     out.push_back(q);
   }
