@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <set>
 
 #include <condition_variable>
@@ -38,6 +39,7 @@ struct RemoteGenerator::Worker {
   uint64_t adapted_version = 0;               // views_version_ the handle belongs to
   bool shares_memory = false;                 // its probe was read here (set by probe())
   std::unique_ptr<rpc::SharedRegion> region;  // reused by its calls while large enough
+  double seconds_per_pose = 0;                // its shards' Generate seconds per pose, smoothed; 0: unmeasured
 };
 
 namespace {
@@ -125,6 +127,32 @@ std::vector<std::string> resolve_worker_addresses(const std::vector<std::string>
     out.insert(out.end(), addresses.begin(), addresses.end());
   }
   return out;
+}
+
+std::vector<size_t> shard_sizes(size_t poses, const std::vector<double>& seconds_per_pose) {
+  const size_t shards = seconds_per_pose.size();
+  double measured_sum = 0;
+  size_t measured = 0;
+  for (const double s : seconds_per_pose)
+    if (s > 0) measured_sum += s, ++measured;
+  const double unmeasured = measured > 0 ? measured_sum / static_cast<double>(measured) : 1.0;
+  std::vector<double> speed;
+  double total = 0;
+  for (const double s : seconds_per_pose) total += speed.emplace_back(1.0 / (s > 0 ? s : unmeasured));
+  std::vector<size_t> sizes(shards);
+  size_t begin = 0;
+  double cumulative = 0;
+  for (size_t k = 0; k < shards; ++k) {
+    cumulative += speed[k];
+    size_t end = k + 1 == shards
+                     ? poses
+                     : static_cast<size_t>(std::floor(static_cast<double>(poses) * cumulative / total + 1e-9));
+    // At least one pose for this shard, and one left for each later one.
+    end = std::clamp(end, begin + 1, poses - (shards - k - 1));
+    sizes[k] = end - begin;
+    begin = end;
+  }
+  return sizes;
 }
 
 RemoteGenerator::RemoteGenerator(WorkerPoolOptions options) : options_(std::move(options)) {}
@@ -378,17 +406,31 @@ absl::Status stopped_status() {
 absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
     const std::vector<GenerationRequest>& requests, const std::vector<Worker*>& ready, Attempt& attempt) {
   const size_t shards = std::min(ready.size(), requests.size());
+  std::vector<double> seconds_per_pose;
+  for (size_t s = 0; s < shards; ++s) seconds_per_pose.push_back(ready[s]->seconds_per_pose);
+  const std::vector<size_t> sizes = shard_sizes(requests.size(), seconds_per_pose);
   std::vector<std::vector<GenerationRequest>> parts(shards);
-  for (size_t s = 0; s < shards; ++s)
-    parts[s].assign(requests.begin() + s * requests.size() / shards,
-                    requests.begin() + (s + 1) * requests.size() / shards);
+  for (size_t s = 0, begin = 0; s < shards; begin += sizes[s], ++s)
+    parts[s].assign(requests.begin() + begin, requests.begin() + begin + sizes[s]);
   std::vector<Attempt> attempts(shards);
+  // Each shard runs on its own worker, so each thread updates only its worker's speed.
+  const auto shard = [&](size_t s) {
+    const auto start = std::chrono::steady_clock::now();
+    auto images = adapt_and_generate_on(*ready[s], parts[s], attempts[s]);
+    if (images.ok()) {
+      const auto adapting = attempts[s].stages.find("adapt_scene");
+      const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() -
+                             (adapting != attempts[s].stages.end() ? adapting->second : 0.0);
+      const double measured = seconds / static_cast<double>(parts[s].size());
+      double& smoothed = ready[s]->seconds_per_pose;
+      smoothed = smoothed > 0 ? 0.5 * (smoothed + measured) : measured;
+    }
+    return images;
+  };
   std::vector<std::future<absl::StatusOr<std::vector<at::Tensor>>>> calls;
-  for (size_t s = 1; s < shards; ++s)
-    calls.push_back(
-        std::async(std::launch::async, [&, s] { return adapt_and_generate_on(*ready[s], parts[s], attempts[s]); }));
+  for (size_t s = 1; s < shards; ++s) calls.push_back(std::async(std::launch::async, shard, s));
   std::vector<absl::StatusOr<std::vector<at::Tensor>>> answers;
-  answers.push_back(adapt_and_generate_on(*ready[0], parts[0], attempts[0]));
+  answers.push_back(shard(0));
   for (auto& call : calls) answers.push_back(call.get());
 
   std::vector<at::Tensor> images;
@@ -407,6 +449,8 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
     images.insert(images.end(), answers[s]->begin(), answers[s]->end());
   }
   attempt.counters["workers"] = static_cast<double>(shards);
+  for (size_t s = 0; s < shards; ++s)
+    attempt.counters[absl::StrCat("shard ", ready[s]->address)] += static_cast<double>(sizes[s]);
   return images;
 }
 

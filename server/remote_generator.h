@@ -46,6 +46,8 @@ struct WorkerPoolOptions {
   bool shared_memory = true;
   // Split every generate() call into contiguous shards, one per usable worker, asked at once, so that a
   // phase's pseudo-views are made by every GPU of the pool; a shard whose worker fails goes to the others.
+  // Shards are sized by each worker's measured speed (shard_sizes), so that a worker on a GPU it shares with
+  // the trainer, or on a slower one, does not hold the phase up.
   // Each worker is adapted to the scene before its first shard: an adaptation that trains (sdxl's LoRA) runs
   // on every worker, in parallel. False: one worker per call, the others stand by.
   bool fan_out = true;
@@ -57,6 +59,12 @@ struct WorkerPoolOptions {
 // than leave them to gRPC's load balancing, because a worker keeps per-scene state (the adaptation made by
 // AdaptScene) that the scene's Generate calls must find: each address is one worker.
 std::vector<std::string> resolve_worker_addresses(const std::vector<std::string>& targets);
+
+// How many of `poses` consecutive poses each worker is given, in proportion to its speed (1 / its seconds per
+// pose, measured on its earlier shards; 0: not measured yet, counted as the mean of the measured ones, so an
+// unmeasured pool splits evenly). Every worker gets at least one pose, so that its speed keeps being measured;
+// needs poses >= seconds_per_pose.size() >= 1. The sizes sum to `poses`.
+std::vector<size_t> shard_sizes(size_t poses, const std::vector<double>& seconds_per_pose);
 
 class RemoteGenerator final : public Generator {
  public:
@@ -82,7 +90,8 @@ class RemoteGenerator final : public Generator {
   std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
   // After generate(): "request_bytes" and "answer_bytes" (serialized messages), "shared_memory_bytes" (payload
   // passed through shared memory), summed over the answering workers' calls, "shared_memory" (1 when one of
-  // them used it) and "workers" (how many workers answered a shard).
+  // them used it), "workers" (how many workers answered a shard) and, when the call was shared, "shard
+  // <address>" (the poses given to that worker).
   std::map<std::string, double> counters() const override { return counters_; }
 
  private:

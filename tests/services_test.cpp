@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <condition_variable>
 #include <fstream>
@@ -993,6 +994,62 @@ TEST(WorkerPool, APhaseIsSharedAmongTheWorkersAndAnsweredInOrder) {
     EXPECT_EQ((*remote)->counters().at("workers"), fan_out ? 2.0 : 1.0);
     EXPECT_EQ(first.adaptations + second.adaptations - adaptations_before, fan_out ? 2 : 1);
     if (fan_out) EXPECT_EQ(first.poses - first_before, 2) << "contiguous shards: 2 poses, then 3";
+  }
+}
+
+// Shards follow the workers' speeds: even while none is measured, in proportion once they are, never empty.
+TEST(WorkerPool, ShardsAreSizedByEachWorkersSpeed) {
+  EXPECT_EQ(shard_sizes(5, {0, 0}), (std::vector<size_t>{2, 3}));
+  EXPECT_EQ(shard_sizes(16, {0, 0, 0}), (std::vector<size_t>{5, 5, 6}));
+  EXPECT_EQ(shard_sizes(16, {0.1, 0.3}), (std::vector<size_t>{12, 4})) << "three times as fast: three times the poses";
+  EXPECT_EQ(shard_sizes(16, {0.1, 0}), (std::vector<size_t>{8, 8})) << "unmeasured counts as the measured mean";
+  EXPECT_EQ(shard_sizes(10, {10, 0.01}), (std::vector<size_t>{1, 9})) << "the slow one keeps one pose";
+  EXPECT_EQ(shard_sizes(4, {0.01, 10, 10, 10}), (std::vector<size_t>{1, 1, 1, 1}));
+  EXPECT_EQ(shard_sizes(7, {2.5}), (std::vector<size_t>{7}));
+  for (size_t poses = 3; poses < 40; poses += 3) {
+    const std::vector<size_t> sizes = shard_sizes(poses, {0.3, 0.01, 1.7});
+    EXPECT_EQ(sizes[0] + sizes[1] + sizes[2], poses);
+    EXPECT_GE(*std::min_element(sizes.begin(), sizes.end()), 1u);
+    EXPECT_GE(sizes[1], sizes[0]);
+    EXPECT_GE(sizes[0], sizes[2]);
+  }
+}
+
+// Echoes after `delay` per pose, as a worker on a slower (or busier) GPU would.
+class SlowEchoGenerator : public EchoGenerator {
+ public:
+  explicit SlowEchoGenerator(std::chrono::milliseconds delay) : delay_(delay) {}
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    std::this_thread::sleep_for(delay_ * static_cast<int>(requests.size()));
+    return EchoGenerator::generate(requests);
+  }
+
+ private:
+  std::chrono::milliseconds delay_;
+};
+
+// The first shared phase splits evenly; once the pool has seen that one worker takes far longer per pose, it
+// gives that worker fewer poses (still at least one), and the answers stay in order.
+TEST(WorkerPool, ASlowerWorkerIsGivenFewerPosesOnceItsSpeedIsKnown) {
+  WorkerServiceOptions options;
+  options.backend = "echo";
+  auto slow = std::make_unique<SlowEchoGenerator>(std::chrono::milliseconds(200));
+  auto fast = std::make_unique<EchoGenerator>();
+  const EchoGenerator& slower = *slow;
+  RunningWorker ws(std::move(slow), options), wf(std::move(fast), options);
+  auto remote = pool({ws.address(), wf.address()}, "", {rpc::TensorEncoding::kFloat32, true});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = many_requests(8);
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  const std::string slow_shard = "shard " + ws.address();
+  for (const int expected_at_most : {4, 1}) {
+    const int before = slower.poses;
+    const auto images = (*remote)->generate(requests);
+    ASSERT_TRUE(images.ok()) << images.status();
+    expect_in_order(*images, requests);
+    EXPECT_LE(slower.poses - before, expected_at_most);
+    EXPECT_GE(slower.poses - before, 1);
+    EXPECT_EQ((*remote)->counters().at(slow_shard), slower.poses - before);
   }
 }
 
