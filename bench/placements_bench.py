@@ -143,8 +143,11 @@ def phase_breakdown(phases):
         for s in p.get("selection", []):
             admitted += bool(s.get("admitted"))
             rejected += not s.get("admitted")
+    # The first phase carries the scene adaptation (sdxl's LoRA training), which a second worker cannot shorten.
+    first = phases[0].get("seconds", {}).get("generation") if phases else None
     return {"phases": len(phases), "phases_skipped": skipped, "pseudo_views_admitted": admitted,
             "pseudo_views_rejected": rejected, "phase_seconds": {k: round(v, 3) for k, v in sections.items()},
+            "first_phase_generation_seconds": round(first, 3) if first is not None else None,
             "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}}
 
 

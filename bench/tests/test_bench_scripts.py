@@ -576,6 +576,19 @@ class PlacementsBenchTest(unittest.TestCase):
             self.layout("three-gpus")
         self.assertIn("two-gpus-both", str(refused.exception))
 
+    def test_the_breakdown_sums_the_phases_and_keeps_the_first_phases_wait(self):
+        phases = [{"seconds": {"generation": 25.0, "renders": 0.1}, "generator_stages": {"adapt_scene": 21.0},
+                   "selection": [{"admitted": True}, {"admitted": False}]},
+                  {"seconds": {"generation": 2.0, "renders": 0.2}, "generator_stages": {"img2img": 3.0},
+                   "skipped": True, "selection": []}]
+        row = placements_bench.phase_breakdown(phases)
+        self.assertEqual(row["phase_seconds"], {"generation": 27.0, "renders": 0.3})
+        self.assertEqual(row["generator_stage_seconds"], {"adapt_scene": 21.0, "img2img": 3.0})
+        self.assertEqual(row["first_phase_generation_seconds"], 25.0)
+        self.assertEqual((row["phases"], row["phases_skipped"]), (2, 1))
+        self.assertEqual((row["pseudo_views_admitted"], row["pseudo_views_rejected"]), (1, 1))
+        self.assertIsNone(placements_bench.phase_breakdown([])["first_phase_generation_seconds"])
+
 
 if __name__ == "__main__":
     unittest.main()
