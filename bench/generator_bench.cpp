@@ -27,10 +27,12 @@
 #include <iostream>
 #include <memory>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
 #include <ATen/ATen.h>
+#include <torch/csrc/autograd/profiler_kineto.h>
 #include <torch/headeronly/version.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
@@ -75,6 +77,12 @@ ABSL_FLAG(std::string, inpaint_scheduler, "", "\"\" = the folder's (DDIM); euler
 ABSL_FLAG(bool, cuda_graphs, false, "replay the SDXL UNet from CUDA graphs (the backend's cuda_graphs option)");
 ABSL_FLAG(std::string, commit, "", "the commit measured, recorded in every line");
 ABSL_FLAG(std::string, json, "", "also append the JSON lines to this file");
+ABSL_FLAG(std::string, phases, "lora,worker",
+          "which to run: lora (LoRA training, ControlNet + LoRA img2img), worker (the other cases), or both");
+ABSL_FLAG(std::string, lora_trace, "",
+          "after the timed LoRA training, run --lora_trace_steps more steps under the PyTorch (Kineto) profiler "
+          "and write its Chrome trace here (bench/trace_summary.py TRACE --iterations N ranks it)");
+ABSL_FLAG(int, lora_trace_steps, 5, "LoRA training steps in the trace");
 
 namespace {
 
@@ -294,6 +302,29 @@ struct Bench {
     return o;
   }
 
+  // A few LoRA training steps under the profiler (--lora_trace), apart from the timed run, whose time the
+  // profiler would inflate.
+  bool trace_lora_training(sdxl::SdxlPipeline& pipeline, const ViewInputs& in, const sdxl::ControlInput& control,
+                           const sdxl::LoraConfig& config) const {
+    const std::string trace = absl::GetFlag(FLAGS_lora_trace);
+    if (trace.empty()) return true;
+    namespace prof = torch::profiler::impl;
+    const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
+    std::set<prof::ActivityType> activities = {prof::ActivityType::CPU};
+    if (device.device().is_cuda()) activities.insert(prof::ActivityType::CUDA);
+    sdxl::LoraTrainingOptions options;
+    options.steps = absl::GetFlag(FLAGS_lora_trace_steps);
+    torch::autograd::profiler::prepareProfiler(trace_config, activities);
+    device.sync();
+    torch::autograd::profiler::enableProfiler(trace_config, activities);
+    auto trained = pipeline.train_lora(in.image, {kPrompt}, control, config, options);
+    device.sync();
+    torch::autograd::profiler::disableProfiler()->save(trace);
+    if (!trained.ok()) return fail("LoRA training (traced)", trained.status());
+    std::cerr << "generator_bench: " << options.steps << " LoRA training steps traced into " << trace << "\n";
+    return true;
+  }
+
   // (c) LoRA training on the ControlNet pipeline, then ControlNet + LoRA img2img (LoRA training and the
   // IP-Adapter do not go together: the backend refuses that combination).
   bool lora_phase(const std::string& sdxl_dir) const {
@@ -332,6 +363,7 @@ struct Bench {
     j["last_loss"] = losses.back();
     j["peak_mib"] = case_peak();
     emit(j);
+    if (!trace_lora_training(**pipeline, in, control, config)) return false;
     if (absl::Status s = (*pipeline)->load_lora(lora_file()); !s.ok()) return fail("loading the LoRA", s);
     return time_img2img(**pipeline, "img2img_controlnet_lora", false);
   }
@@ -485,7 +517,15 @@ int main(int argc, char** argv) {
   common["dtype"] = dtype_name;
   common["commit"] = absl::GetFlag(FLAGS_commit);
   const Bench bench{dev, *dtype, common, sizes, *lora_size, absl::GetFlag(FLAGS_weights_dir)};
-  if (!bench.lora_phase(sdxl_dir)) return 1;
-  if (!bench.worker_phase(sdxl_dir)) return 1;
+  const std::vector<std::string> phases = absl::StrSplit(absl::GetFlag(FLAGS_phases), ',');
+  const auto asked = [&](const char* phase) { return std::find(phases.begin(), phases.end(), phase) != phases.end(); };
+  for (const std::string& phase : phases) {
+    if (phase != "lora" && phase != "worker") {
+      std::cerr << "generator_bench: --phases takes lora, worker or both (lora,worker), not '" << phase << "'\n";
+      return 2;
+    }
+  }
+  if (asked("lora") && !bench.lora_phase(sdxl_dir)) return 1;
+  if (asked("worker") && !bench.worker_phase(sdxl_dir)) return 1;
   return 0;
 }
