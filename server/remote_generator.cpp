@@ -156,7 +156,7 @@ std::vector<size_t> shard_sizes(size_t poses, const std::vector<double>& seconds
 }
 
 RemoteGenerator::RemoteGenerator(WorkerPoolOptions options) : options_(std::move(options)) {}
-RemoteGenerator::~RemoteGenerator() = default;
+RemoteGenerator::~RemoteGenerator() { join_adaptation(nullptr); }
 
 absl::StatusOr<std::unique_ptr<RemoteGenerator>> RemoteGenerator::create(WorkerPoolOptions options) {
   if (options.addresses.empty()) return absl::InvalidArgumentError("the worker pool needs at least one address");
@@ -233,11 +233,46 @@ void add_worker_notes(const std::string& address, const google::protobuf::Repeat
 
 absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views,
                                     const std::optional<SceneAdaptation>& adaptation) {
+  join_adaptation(nullptr);  // calls for earlier views read views_
   views_ = views;
   adaptation_ = adaptation;
   ++views_version_;
   notes_.clear();
+  start_adaptation();
   return absl::OkStatus();
+}
+
+void RemoteGenerator::start_adaptation() {
+  if (views_.empty() || workers_.empty() || stopping()) return;
+  std::vector<Worker*> targets;
+  if (options_.fan_out) {
+    for (auto& w : workers_) targets.push_back(w.get());
+  } else {
+    targets.push_back(workers_[next_ % workers_.size()].get());
+  }
+  adaptation_attempts_.assign(targets.size(), Attempt());
+  for (size_t k = 0; k < targets.size(); ++k) {
+    adaptations_.push_back(std::async(std::launch::async, [this, &w = *targets[k], &attempt = adaptation_attempts_[k]] {
+      if (!usable(w)) return;
+      const absl::Status adapted = adapt_on(w, attempt);
+      if (adapted.ok() || stopping()) return;
+      // As a failed call in generate() would: the worker sits out its cooldown instead of being waited on again.
+      w.last_error = std::string(adapted.message());
+      mark_failed(w);
+    }));
+  }
+}
+
+void RemoteGenerator::join_adaptation(Attempt* into) {
+  if (adaptations_.empty()) return;
+  const auto start = std::chrono::steady_clock::now();
+  for (auto& call : adaptations_) call.get();
+  adaptations_.clear();
+  if (into != nullptr) {
+    for (const Attempt& a : adaptation_attempts_) into->add(a);
+    into->stages["adaptation_wait"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  }
+  adaptation_attempts_.clear();
 }
 
 void RemoteGenerator::Attempt::add(const Attempt& other) {
@@ -377,14 +412,18 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
   stage_seconds_.clear();
   counters_.clear();
   if (requests.empty()) return std::vector<at::Tensor>{};
+  // The background adaptation's stages and notes come first in this call's report.
+  Attempt attempt;
+  join_adaptation(&attempt);
   std::vector<Worker*> ready;
   if (options_.fan_out && requests.size() > 1)
     for (auto& w : workers_)
       if (!stopping() && usable(*w)) ready.push_back(w.get());
-  Attempt attempt;
-  auto images =
-      ready.size() > 1 ? generate_fanned_out(requests, ready, attempt) : generate_with_failover(requests, attempt);
+  Attempt generation;
+  auto images = ready.size() > 1 ? generate_fanned_out(requests, ready, generation)
+                                 : generate_with_failover(requests, generation);
   if (!images.ok()) return images;
+  attempt.add(generation);
   notes_ = std::move(attempt.notes);
   stage_seconds_ = std::move(attempt.stages);
   counters_ = std::move(attempt.counters);

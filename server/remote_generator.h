@@ -5,6 +5,7 @@
 // retries with exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
 // return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps/training.h).
 #include <chrono>
+#include <future>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -73,7 +74,10 @@ class RemoteGenerator final : public Generator {
 
   // "remote <backend version>" once a worker answered GetInfo, else "remote (no worker reached yet)".
   std::string name() const override;
-  // Remembers the views and the adaptation; each worker is adapted on its first Generate call.
+  // Remembers the views and the adaptation and starts adapting the workers in the background (every usable
+  // worker with fan_out, else the one asked next), so that a LoRA trains while the model does; returns at once.
+  // generate() waits for those calls; a worker whose adaptation failed is marked failed, and any worker not
+  // adapted yet is adapted before it generates.
   absl::Status adapt(const std::vector<ReferenceView>& views,
                      const std::optional<SceneAdaptation>& adaptation) override;
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
@@ -81,12 +85,12 @@ class RemoteGenerator final : public Generator {
   // call adapted it) first.
   std::vector<std::string> notes() const override { return notes_; }
   // After generate(), summed over the workers that shared the call: "adapt_scene" (the AdaptScene call, LoRA
-  // training included, when this call adapted the worker), "worker_generate" (the backend's own seconds),
-  // "transfer" (the rest of the Generate call), its
-  // parts on this side ("client_encode": tensors into the message or shared memory, "client_send",
-  // "client_receive": from the last chunk sent to the answer parsed, the worker's work included,
-  // "client_decode") and on the worker's (GenerateResult.transfer_seconds), and the backend's stages
-  // (GenerateResult.stage_seconds) of the answering worker.
+  // training included, when this call or the adaptation adapt() started adapted the worker), "adaptation_wait"
+  // (how long this call waited for that background adaptation; the rest of it overlapped training), "worker_generate"
+  // (the backend's own seconds), "transfer" (the rest of the Generate call), its parts on this side ("client_encode":
+  // tensors into the message or shared memory, "client_send", "client_receive": from the last chunk sent to the answer
+  // parsed, the worker's work included, "client_decode") and on the worker's (GenerateResult.transfer_seconds), and the
+  // backend's stages (GenerateResult.stage_seconds) of the answering worker.
   std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
   // After generate(): "request_bytes" and "answer_bytes" (serialized messages), "shared_memory_bytes" (payload
   // passed through shared memory), summed over the answering workers' calls, "shared_memory" (1 when one of
@@ -130,6 +134,10 @@ class RemoteGenerator final : public Generator {
                                                               const std::vector<Worker*>& ready, Attempt& attempt);
   bool stopping() const { return options_.should_stop && options_.should_stop(); }
   void mark_failed(Worker& worker);
+  // adapt()'s background AdaptScene calls, one thread per worker (each writes only its worker and its Attempt).
+  void start_adaptation();
+  // Waits for them; their stages and notes go to *into (when given), the wait to its "adaptation_wait".
+  void join_adaptation(Attempt* into);
 
   WorkerPoolOptions options_;
   std::vector<std::unique_ptr<Worker>> workers_;
@@ -142,6 +150,8 @@ class RemoteGenerator final : public Generator {
   std::map<std::string, double> counters_;
   mutable std::mutex name_mutex_;
   std::string backend_version_;
+  std::vector<Attempt> adaptation_attempts_;    // sized before the threads start; one per thread
+  std::vector<std::future<void>> adaptations_;  // declared last: joined (destroyed) before the rest
 };
 
 }  // namespace gaps

@@ -32,6 +32,8 @@ class EchoGenerator : public Generator {
   absl::Status adapt(const std::vector<ReferenceView>& views,
                      const std::optional<SceneAdaptation>& adaptation) override {
     adapted_views = static_cast<int>(views.size());
+    adaptations += 1;
+    generations_before_adapting = calls;
     this->adaptation = adaptation;
     last_notes = adapt_notes;
     return absl::OkStatus();
@@ -55,6 +57,7 @@ class EchoGenerator : public Generator {
   std::map<std::string, double> stage_seconds() const override { return {{"echo", 0.25 * calls}}; }
   int calls = 0;
   int adapted_views = 0;
+  int adaptations = 0, generations_before_adapting = -1;
   std::optional<SceneAdaptation> adaptation;
   InpaintSettings inpaint;                               // of the last request
   std::optional<double> ip_adapter_scale;                // of the last request
@@ -244,7 +247,7 @@ TEST_F(GapsTrainingTest, InspectionImagesAreAllWrittenAndAFailedWriteFailsTheRun
 }
 
 // Each phase says where its time went: the sections in the order they run, the generator's own stages as it
-// reported them; the adaptation belongs to the first phase only.
+// reported them; the adaptation, made at the run's first step, is recorded with the first phase only.
 TEST_F(GapsTrainingTest, PhasesRecordTheirTimeBySectionAndTheGeneratorsStages) {
   EchoGenerator gen(0.05);
   auto r = run_pipeline(options(Variant::kFull, &gen), nullptr, [](const std::string&) {});
@@ -257,9 +260,35 @@ TEST_F(GapsTrainingTest, PhasesRecordTheirTimeBySectionAndTheGeneratorsStages) {
       ASSERT_TRUE(seconds.contains(section)) << k << " " << section << " " << seconds;
       EXPECT_GE(seconds[section].get<double>(), 0.0);
     }
-    EXPECT_EQ(seconds.contains("adaptation"), k == 0) << seconds;
+    EXPECT_FALSE(seconds.contains("adaptation")) << "adapted before the phase: " << seconds;
+    EXPECT_EQ(phases[k].contains("early_adaptation"), k == 0) << phases[k];
     EXPECT_DOUBLE_EQ(phases[k]["generator_stages"]["echo"].get<double>(), 0.25 * (k + 1));
   }
+}
+
+// The generator is adapted once, at the run's first step rather than at the first phase (a worker pool then
+// trains its LoRA while the model trains), with the views of the model as it is then; a run too short for any
+// phase adapts nothing.
+TEST_F(GapsTrainingTest, TheGeneratorIsAdaptedAtTheFirstStepOnlyWhenAPhaseWillCome) {
+  EchoGenerator gen(0.05);
+  auto r = run_pipeline(options(Variant::kFull, &gen), nullptr, [](const std::string&) {});
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(gen.adaptations, 1);
+  EXPECT_EQ(gen.generations_before_adapting, 0);
+  EXPECT_EQ(gen.adapted_views, 3);
+  const auto phases = read_json(dir_ / "out" / "phases.json");
+  ASSERT_FALSE(phases.empty());
+  EXPECT_EQ(phases[0]["early_adaptation"]["before_iteration"], 1) << phases[0];
+  EXPECT_GE(phases[0]["early_adaptation"]["seconds"].get<double>(), 0.0);
+
+  EchoGenerator idle(0.05);
+  RunOptions short_run = options(Variant::kFull, &idle);
+  short_run.out_dir = dir_ / "short";
+  short_run.config.iterations = short_run.gaps.warmup_iterations;  // ends before the first phase
+  auto s = run_pipeline(short_run, nullptr, [](const std::string&) {});
+  ASSERT_TRUE(s.ok()) << s.status();
+  EXPECT_EQ(idle.adaptations, 0);
+  EXPECT_EQ(idle.calls, 0);
 }
 
 // What the generator could not honour goes into each phase's entry (the adaptation's into the first phase's

@@ -18,6 +18,7 @@
 #include <fstream>
 #include <functional>
 #include <iterator>
+#include <mutex>
 #include <optional>
 #include <regex>
 #include <set>
@@ -1097,6 +1098,58 @@ TEST(WorkerPool, GenerateReportsTheAdaptationAndTheWorkersSecondsByStage) {
   const std::map<std::string, double> second = (*remote)->stage_seconds();
   EXPECT_EQ(second.count("adapt_scene"), 0u) << "adapted once, by the first call";
   EXPECT_EQ(second.count("worker_generate"), 1u);
+}
+
+// Echoes; its adapt() holds until the test releases it (or 20 s pass), and says whether it was released.
+class GatedAdaptGenerator : public EchoGenerator {
+ public:
+  absl::Status adapt(const std::vector<ReferenceView>& views, const std::optional<SceneAdaptation>& a) override {
+    std::unique_lock<std::mutex> lock(mutex_);
+    released_in_time = changed_.wait_for(lock, std::chrono::seconds(20), [this] { return released_; });
+    return EchoGenerator::adapt(views, a);
+  }
+  void release() {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      released_ = true;
+    }
+    changed_.notify_all();
+  }
+  std::atomic<bool> released_in_time{false};
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable changed_;
+  bool released_ = false;
+};
+
+// adapt() starts the workers' adaptation and returns while it runs (so a LoRA trains while the model does);
+// generate() waits for it and reports it: its AdaptScene seconds and how long generate() waited.
+TEST(WorkerPool, AdaptReturnsAtOnceAndGenerateWaitsForTheWorkersAdaptation) {
+  WorkerServiceOptions options;
+  options.backend = "gated";
+  auto gated = std::make_unique<GatedAdaptGenerator>();
+  GatedAdaptGenerator& backend = *gated;
+  RunningWorker worker(std::move(gated), options);
+  auto remote = pool({worker.address()}, "", {rpc::TensorEncoding::kFloat32, true});
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = many_requests(3);
+  // Were adapt() to wait for the worker, it would return only when the gate gave up, unreleased.
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  backend.release();
+  const auto images = (*remote)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  expect_in_order(*images, requests);
+  EXPECT_TRUE(backend.released_in_time) << "adapt() waited for the worker's adaptation";
+  EXPECT_EQ(backend.adaptations, 1);
+  const std::map<std::string, double> stages = (*remote)->stage_seconds();
+  for (const char* stage : {"adapt_scene", "adaptation_wait"}) {
+    ASSERT_EQ(stages.count(stage), 1u) << stage;
+    EXPECT_GE(stages.at(stage), 0.0) << stage;
+  }
+  ASSERT_TRUE((*remote)->generate(requests).ok());
+  EXPECT_EQ((*remote)->stage_seconds().count("adaptation_wait"), 0u) << "waited for once";
+  EXPECT_EQ(backend.adaptations, 1);
 }
 
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).

@@ -110,9 +110,27 @@ at::Tensor GapsTraining::drop_scale() {
   return drop_gaussian_scale(model.size(), r, drop_rng_, model.means.options());
 }
 
+void GapsTraining::adapt_early(int next) {
+  early_adaptation_tried_ = true;
+  const int total = trainer_.config().iterations, phases = num_diffusion_phases(total, config_);
+  // Only when a phase is still to come: a run too short for one adapts nothing (a LoRA costs minutes on a CPU).
+  if (phases == 0 || next > config_.warmup_iterations + (phases - 1) * config_.phase_interval) return;
+  const auto start = std::chrono::steady_clock::now();
+  const absl::Status adapted =
+      generator_->adapt(reference_views(trainer_.model(), gt_views_), scene_adaptation(config_));
+  // A failure is not the run's: the first phase adapts again and reports it there, as without this.
+  if (!adapted.ok()) return;
+  adapted_ = true;
+  early_adaptation_ = nlohmann::json::object();
+  early_adaptation_["before_iteration"] = next;
+  early_adaptation_["seconds"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  for (const std::string& note : generator_->notes()) early_adaptation_["notes"].push_back(note);
+}
+
 absl::StatusOr<at::Tensor> GapsTraining::step() {
   const int next = trainer_.iteration() + 1;
   if (variant_ != Variant::kVanilla) {
+    if (!adapted_ && !early_adaptation_tried_) adapt_early(next);
     const int phase = diffusion_phase_at(next, trainer_.config().iterations, config_);
     if (pending_ && (phase >= 0 || next >= pending_->join_before)) GAPS_RETURN_IF_ERROR(finish_pending_phase());
     if (phase >= 0) GAPS_RETURN_IF_ERROR(run_phase(phase));
@@ -211,6 +229,12 @@ absl::Status GapsTraining::run_phase_generation(int phase, nlohmann::json& entry
     lap(entry, "adaptation", &clock);
     record_generator_notes(*generator_, entry);
     adapted_ = true;
+  } else if (!early_adaptation_.is_null()) {
+    // The adaptation started at the run's first step belongs to this, the first phase after it.
+    entry["early_adaptation"] = std::move(early_adaptation_);
+    for (const auto& note : entry["early_adaptation"].value("notes", nlohmann::json::array()))
+      entry["generator_notes"].push_back(note);
+    early_adaptation_ = nullptr;
   }
 
   std::vector<Candidate> chosen;

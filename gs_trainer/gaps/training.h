@@ -92,6 +92,9 @@ class GapsTraining {
     std::chrono::steady_clock::time_point launched;
     std::future<absl::StatusOr<std::vector<at::Tensor>>> images;  // async only
   };
+  // Adapts the generator at the run's first step rather than at the first phase, so that a generator that
+  // adapts in the background (the worker pool: sdxl's LoRA training) overlaps the iterations before it.
+  void adapt_early(int next);
   absl::Status run_phase(int phase);
   absl::Status run_phase_generation(int phase, nlohmann::json& entry);
   // Renders the chosen poses and makes their requests; then generates and admits at once, or (async_iterations
@@ -121,6 +124,8 @@ class GapsTraining {
   at::Generator drop_rng_;
   int tier_ = 0;
   bool adapted_ = false;
+  bool early_adaptation_tried_ = false;
+  nlohmann::json early_adaptation_;         // iteration, seconds and notes of that call, for the first phase's entry
   std::map<int, PseudoView> active_;        // candidate id -> its admitted view trained on now
   std::map<int, int> active_phase_;         // candidate id -> the phase its active view was generated in
   std::set<int> ever_admitted_;             // every candidate admitted at least once (forced exploration)

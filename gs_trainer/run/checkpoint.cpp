@@ -158,6 +158,7 @@ struct CheckpointAccess {
     method->tier_ = m.at("tier");
     method->log_ = m.at("log");
     method->adapted_ = false;  // the generator may be another process now: adapt it again
+    method->early_adaptation_tried_ = false;
     method->uncertainty_history_.clear();
     for (const auto& e : m.at("uncertainty_history")) {
       // Checkpoints written before the history kept every phase hold one number per view: its last admitted
