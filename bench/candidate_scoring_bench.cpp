@@ -14,11 +14,11 @@
 #include <set>
 
 #include <ATen/ATen.h>
-#include <torch/csrc/autograd/profiler_kineto.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "bench/bench_scene.h"
+#include "bench/kineto_trace.h"
 #include "gs_trainer/gaps/candidate_renders.h"
 #include "gs_trainer/gaps/pose.h"
 #include "gs_trainer/gaps/scores.h"
@@ -165,15 +165,12 @@ int main(int argc, char** argv) {
                            {"selection_kept", chosen.empty() ? 1.0 : double(kept) / double(chosen.size())}});
   }
   if (const std::string trace = absl::GetFlag(FLAGS_trace); !trace.empty()) {
-    namespace prof = torch::profiler::impl;
-    const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
-    const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU, prof::ActivityType::CUDA};
-    torch::autograd::profiler::prepareProfiler(trace_config, activities);
+    gaps::bench::KinetoTrace profiler(/*cuda=*/true);
     sync(device);
-    torch::autograd::profiler::enableProfiler(trace_config, activities);
+    profiler.start();
     gaps::candidate_statistics(gaussians, cameras, config);
     sync(device);
-    torch::autograd::profiler::disableProfiler()->save(trace);
+    profiler.stop_and_save(trace);
     j["trace"] = trace;
   }
   std::cout << j.dump() << "\n";

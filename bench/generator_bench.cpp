@@ -27,18 +27,17 @@
 #include <iostream>
 #include <memory>
 #include <optional>
-#include <set>
 #include <string>
 #include <vector>
 
 #include <ATen/ATen.h>
-#include <torch/csrc/autograd/profiler_kineto.h>
 #include <torch/headeronly/version.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
+#include "bench/kineto_trace.h"
 #include "bench/random_sdxl_folder.h"
 #include "diffusion_worker/depth/depth_anything.h"
 #include "diffusion_worker/sdxl/inpaint_pipeline.h"
@@ -308,18 +307,14 @@ struct Bench {
                            const sdxl::LoraConfig& config) const {
     const std::string trace = absl::GetFlag(FLAGS_lora_trace);
     if (trace.empty()) return true;
-    namespace prof = torch::profiler::impl;
-    const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
-    std::set<prof::ActivityType> activities = {prof::ActivityType::CPU};
-    if (device.device().is_cuda()) activities.insert(prof::ActivityType::CUDA);
     sdxl::LoraTrainingOptions options;
     options.steps = absl::GetFlag(FLAGS_lora_trace_steps);
-    torch::autograd::profiler::prepareProfiler(trace_config, activities);
+    gaps::bench::KinetoTrace profiler(device.device().is_cuda());
     device.sync();
-    torch::autograd::profiler::enableProfiler(trace_config, activities);
+    profiler.start();
     auto trained = pipeline.train_lora(in.image, {kPrompt}, control, config, options);
     device.sync();
-    torch::autograd::profiler::disableProfiler()->save(trace);
+    profiler.stop_and_save(trace);
     if (!trained.ok()) return fail("LoRA training (traced)", trained.status());
     std::cerr << "generator_bench: " << options.steps << " LoRA training steps traced into " << trace << "\n";
     return true;

@@ -7,15 +7,15 @@
 #include <chrono>
 #include <fstream>
 #include <iostream>
-#include <set>
+#include <optional>
 
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
-#include <torch/csrc/autograd/profiler_kineto.h>
 #include <nlohmann/json.hpp>
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "bench/bench_scene.h"
+#include "bench/kineto_trace.h"
 #include "common/image_io.h"
 #include "common/ply.h"
 #include "gs_trainer/model/render.h"
@@ -107,25 +107,23 @@ int main(int argc, char** argv) {
   }
 
   gaps::Trainer trainer(model, views, config);
-  namespace prof = torch::profiler::impl;
-  const prof::ProfilerConfig trace_config(prof::ProfilerState::KINETO);
-  const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU, prof::ActivityType::CUDA};
   const std::string trace = absl::GetFlag(FLAGS_trace);
   const int trace_begin = absl::GetFlag(FLAGS_trace_at),
             trace_end = trace_begin + absl::GetFlag(FLAGS_trace_iterations);
-  if (!trace.empty()) torch::autograd::profiler::prepareProfiler(trace_config, activities);
+  std::optional<gaps::bench::KinetoTrace> profiler;
+  if (!trace.empty()) profiler.emplace(/*cuda=*/true);
   double traced_seconds = 0;
   const auto start = std::chrono::steady_clock::now();
   for (int it = 0; it < config.iterations; ++it) {
     if (!trace.empty() && it == trace_begin) {
       sync(device);
-      torch::autograd::profiler::enableProfiler(trace_config, activities);
+      profiler->start();
     }
     const auto t0 = std::chrono::steady_clock::now();
     trainer.step();
     if (!trace.empty() && it + 1 == trace_end) {
       sync(device);
-      torch::autograd::profiler::disableProfiler()->save(trace);
+      profiler->stop_and_save(trace);
     }
     if (it >= trace_begin && it < trace_end) traced_seconds += seconds_since(t0);
   }
