@@ -92,6 +92,9 @@ bool retryable(absl::StatusCode code) {
          code == absl::StatusCode::kCancelled;
 }
 
+// The errors after which another worker may succeed: the worker failed or answered malformed, not the request.
+bool another_worker_may_help(const absl::Status& st) { return retryable(st.code()) || absl::IsDataLoss(st); }
+
 }  // namespace
 
 std::vector<std::string> resolve_worker_addresses(const std::vector<std::string>& targets) {
@@ -255,8 +258,9 @@ void RemoteGenerator::start_adaptation() {
     adaptations_.push_back(std::async(std::launch::async, [this, &w = *targets[k], &attempt = adaptation_attempts_[k]] {
       if (!usable(w)) return;
       const absl::Status adapted = adapt_on(w, attempt);
-      if (adapted.ok() || stopping()) return;
-      // As a failed call in generate() would: the worker sits out its cooldown instead of being waited on again.
+      // A worker that failed sits out its cooldown, as after a failed call in generate(); an error of the request
+      // (the views, the adaptation asked for) is left for generate(), whose adaptation of the worker reports it.
+      if (adapted.ok() || stopping() || !another_worker_may_help(adapted)) return;
       w.last_error = std::string(adapted.message());
       mark_failed(w);
     }));
@@ -432,9 +436,6 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
 }
 
 namespace {
-
-// The errors after which another worker may succeed: the worker failed or answered malformed, not the request.
-bool another_worker_may_help(const absl::Status& st) { return retryable(st.code()) || absl::IsDataLoss(st); }
 
 absl::Status stopped_status() {
   return absl::UnavailableError("the job is stopping: the generation call was cancelled");

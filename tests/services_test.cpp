@@ -1152,6 +1152,34 @@ TEST(WorkerPool, AdaptReturnsAtOnceAndGenerateWaitsForTheWorkersAdaptation) {
   EXPECT_EQ(backend.adaptations, 1);
 }
 
+// Refuses every adaptation as a request error (the views, the settings), not as a failing worker.
+class RefusingAdaptGenerator : public EchoGenerator {
+ public:
+  absl::Status adapt(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&) override {
+    return absl::InvalidArgumentError("these views cannot be adapted to (test)");
+  }
+};
+
+// The background adaptation does not turn a refused request into an unreachable worker: generate() reports the
+// worker's own error, as when it adapted the worker itself.
+TEST(WorkerPool, AnAdaptationRefusedInTheBackgroundIsReportedByGenerate) {
+  WorkerServiceOptions options;
+  options.backend = "refusing";
+  RunningWorker worker(std::make_unique<RefusingAdaptGenerator>(), options);
+  WorkerPoolOptions o;
+  o.addresses = {worker.address()};
+  o.encoding = rpc::TensorEncoding::kFloat32;
+  o.max_rounds = 1;  // one pass: a worker wrongly set aside as failed would leave only UNAVAILABLE
+  auto remote = RemoteGenerator::create(o);
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = many_requests(2);
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, std::nullopt).ok());
+  const auto images = (*remote)->generate(requests);
+  ASSERT_FALSE(images.ok());
+  EXPECT_TRUE(absl::IsInvalidArgument(images.status())) << images.status();
+  EXPECT_TRUE(absl::StrContains(images.status().message(), "cannot be adapted to (test)")) << images.status();
+}
+
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).
 using JobStoreTest = test::TempDirTest;
 
