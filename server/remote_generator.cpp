@@ -269,12 +269,12 @@ void RemoteGenerator::start_adaptation() {
 
 void RemoteGenerator::join_adaptation(Attempt* into) {
   if (adaptations_.empty()) return;
-  const auto start = std::chrono::steady_clock::now();
+  auto start = std::chrono::steady_clock::now();
   for (auto& call : adaptations_) call.get();
   adaptations_.clear();
   if (into != nullptr) {
     for (const Attempt& a : adaptation_attempts_) into->add(a);
-    into->stages["adaptation_wait"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    into->stages["adaptation_wait"] += lap_seconds(&start);
   }
   adaptation_attempts_.clear();
 }
@@ -455,12 +455,11 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_fanned_out(
   std::vector<Attempt> attempts(shards);
   // Each shard runs on its own worker, so each thread updates only its worker's speed.
   const auto shard = [&](size_t s) {
-    const auto start = std::chrono::steady_clock::now();
+    auto start = std::chrono::steady_clock::now();
     auto images = adapt_and_generate_on(*ready[s], parts[s], attempts[s]);
     if (images.ok()) {
       const auto adapting = attempts[s].stages.find("adapt_scene");
-      const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() -
-                             (adapting != attempts[s].stages.end() ? adapting->second : 0.0);
+      const double seconds = lap_seconds(&start) - (adapting != attempts[s].stages.end() ? adapting->second : 0.0);
       const double measured = seconds / static_cast<double>(parts[s].size());
       double& smoothed = ready[s]->seconds_per_pose;
       smoothed = smoothed > 0 ? 0.5 * (smoothed + measured) : measured;

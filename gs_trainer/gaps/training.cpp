@@ -115,7 +115,7 @@ void GapsTraining::adapt_early(int next) {
   const int total = trainer_.config().iterations, phases = num_diffusion_phases(total, config_);
   // Only when a phase is still to come: a run too short for one adapts nothing (a LoRA costs minutes on a CPU).
   if (phases == 0 || next > config_.warmup_iterations + (phases - 1) * config_.phase_interval) return;
-  const auto start = std::chrono::steady_clock::now();
+  auto start = std::chrono::steady_clock::now();
   const absl::Status adapted =
       generator_->adapt(reference_views(trainer_.model(), gt_views_), scene_adaptation(config_));
   // A failure is not the run's: the first phase adapts again and reports it there, as without this.
@@ -123,7 +123,7 @@ void GapsTraining::adapt_early(int next) {
   adapted_ = true;
   early_adaptation_ = nlohmann::json::object();
   early_adaptation_["before_iteration"] = next;
-  early_adaptation_["seconds"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  early_adaptation_["seconds"] = lap_seconds(&start);
   for (const std::string& note : generator_->notes()) early_adaptation_["notes"].push_back(note);
 }
 
