@@ -1,6 +1,7 @@
 // Speed and GPU memory of the sdxl backend's models with every component at full size (random weights):
 //   lora_training          scene adaptation: 50 Adam steps of LoRA (rank 4, to_q/k/v/out) on three 504 x 378
-//                          views with their depth ControlNet (SdxlPipeline::train_lora, what adapt() runs);
+//                          views with their depth ControlNet (SdxlPipeline::train_lora, what adapt() runs),
+//                          eager and (on CUDA) replayed from a CUDA graph, side by side;
 //   img2img_controlnet_lora
 //                          a pseudo-view: ControlNet depth + LoRA img2img (30-step schedule at strength 0.6,
 //                          guidance 5, conditioning scale 1);
@@ -338,26 +339,32 @@ struct Bench {
       return fail("LoRA training (warm-up)", warm.status());
     }
     options.steps = absl::GetFlag(FLAGS_lora_steps);
-    std::vector<double> losses;
-    device.reset_peak();
-    const Timing t = time_ms(device, 0, 1, [&]() -> absl::Status {
-      auto trained = (*pipeline)->train_lora(in.image, {kPrompt}, control, config, options);
-      if (!trained.ok()) return trained.status();
-      losses = *trained;
-      return absl::OkStatus();
-    });
-    if (!t.status.ok()) return fail("LoRA training", t.status);
-    nlohmann::json j = line("lora_training", lora_size);
-    j["views"] = views;
-    j["steps"] = options.steps;
-    j["rank"] = config.rank;
-    j["controlnet"] = true;
-    j["ms"] = t.median_ms;
-    j["ms_per_step"] = t.median_ms / static_cast<double>(options.steps);
-    j["first_loss"] = losses.front();
-    j["last_loss"] = losses.back();
-    j["peak_mib"] = case_peak();
-    emit(j);
+    // Eager steps and, on CUDA, the captured step replayed (the backend's lora_cuda_graph), one after the other.
+    for (const bool cuda_graph : {false, true}) {
+      if (cuda_graph && !device.device().is_cuda()) continue;
+      options.cuda_graph = cuda_graph;
+      std::vector<double> losses;
+      device.reset_peak();
+      const Timing t = time_ms(device, 0, 1, [&]() -> absl::Status {
+        auto trained = (*pipeline)->train_lora(in.image, {kPrompt}, control, config, options);
+        if (!trained.ok()) return trained.status();
+        losses = *trained;
+        return absl::OkStatus();
+      });
+      if (!t.status.ok()) return fail(cuda_graph ? "LoRA training (CUDA graph)" : "LoRA training", t.status);
+      nlohmann::json j = line("lora_training", lora_size);
+      j["views"] = views;
+      j["steps"] = options.steps;
+      j["rank"] = config.rank;
+      j["controlnet"] = true;
+      j["cuda_graph"] = cuda_graph;
+      j["ms"] = t.median_ms;
+      j["ms_per_step"] = t.median_ms / static_cast<double>(options.steps);
+      j["first_loss"] = losses.front();
+      j["last_loss"] = losses.back();
+      j["peak_mib"] = case_peak();
+      emit(j);
+    }
     if (!trace_lora_training(**pipeline, in, control, config)) return false;
     if (absl::Status s = (*pipeline)->load_lora(lora_file()); !s.ok()) return fail("loading the LoRA", s);
     return time_img2img(**pipeline, "img2img_controlnet_lora", false);

@@ -24,7 +24,7 @@ as run. One JSON line per case goes to --out.
 
   python3 bench/placements_bench.py --build build --scene ../shared/data/llff/fern --work /tmp/placements \
       --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus] \
-      [--submit_flags --async-iterations 500]
+      [--worker_options '{"cuda_graphs": true}'] [--submit_flags --async-iterations 500]
 """
 import argparse
 import json
@@ -250,6 +250,8 @@ def main():
                              "has 23.99 GiB, some of it the driver's)")
     parser.add_argument("--python", default=sys.executable, help="Python with diffusers, for the weights")
     parser.add_argument("--commit", default="")
+    parser.add_argument("--worker_options", type=json.loads, default={},
+                        help='more sdxl backend options (JSON) over the bench\'s, e.g. \'{"cuda_graphs": true}\'')
     parser.add_argument("--submit_flags", nargs=argparse.REMAINDER, default=[],
                         help="more `gaps submit` flags, e.g. --iterations 3000 (last on the line)")
     args = parser.parse_args()
@@ -257,6 +259,8 @@ def main():
     cases = args.cases.split(",")
     needs_sdxl = any(c not in ("vanilla", "reproject") for c in cases)
     backend_options = ensure_weights(args.build, args.work, args.python) if needs_sdxl else {}
+    if needs_sdxl:
+        backend_options.update(args.worker_options)
     # nvidia-smi numbers GPUs by PCI bus; CUDA's own order may differ unless told.
     env = dict(os.environ, CUDA_DEVICE_ORDER="PCI_BUS_ID")
     machine = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip().splitlines()
@@ -267,6 +271,7 @@ def main():
         if case == "weights":  # only write them (a run split over several sittings)
             continue
         row = {"bench": "placements", "commit": commit, "gpus": machine, "cpus": os.cpu_count(),
+               "worker_options": args.worker_options if case not in ("vanilla", "reproject") else {},
                **run_case(case, args, backend_options, env)}
         print(json.dumps(row), flush=True)
         with open(args.out, "a") as f:

@@ -88,6 +88,8 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
               "lora_rank", &O::lora_rank, at_least(1),
               "rank of the LoRA adapters (cross-attention to_q/to_k/to_v/to_out) of adapt() calls without the job's"),
           number_option<O>("lora_lr", &O::lora_lr, above(0), "Adam learning rate of the adapters"),
+          bool_option<O>("lora_cuda_graph", &O::lora_cuda_graph,
+                         "on a CUDA device, replay LoRA training's steps from one CUDA graph"),
           string_option<O>("lora_save", &O::lora_save, "file the trained adapters are saved to; not with lora"),
           string_option<O>("lora", &O::lora, "LoRA file attached at start-up (all its adapters); not with lora_steps"),
           string_option<O>("depth_anything", &O::depth_anything,
@@ -268,6 +270,7 @@ absl::Status SdxlGenerator::train_lora(const std::vector<ReferenceView>& views, 
   sdxl::LoraTrainingOptions training;
   training.steps = adaptation.lora_steps;
   training.learning_rate = options_.lora_lr;
+  training.cuda_graph = options_.lora_cuda_graph && pipeline_->device().is_cuda();
   GAPS_ASSIGN_OR_RETURN(const std::vector<double> losses,
                         pipeline_->train_lora(at::cat(images), {options_.prompt}, control, config, training));
   if (options_.lora_save.empty()) return absl::OkStatus();

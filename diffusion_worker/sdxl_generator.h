@@ -66,10 +66,13 @@ struct SdxlOptions {
   // SceneAdaptation asks (lora_steps and lora_rank: for adapt() calls without one; 0 steps = no training) at lora_lr,
   // and writes them to lora_save when set. lora: a LoRA file (diffusers/PEFT safetensors) attached at startup instead,
   // e.g. one saved by an earlier run, with every adapter it holds (self-attention ones too, sdxl/lora.h); it
-  // stays for every job, which then trains none (a note says so).
+  // stays for every job, which then trains none (a note says so). lora_cuda_graph: on a CUDA device the
+  // training's steps after the first two replay one captured CUDA graph (LoraTrainingOptions::cuda_graph);
+  // the CPU trains eagerly either way.
   int64_t lora_steps = 0;
   int64_t lora_rank = 4;
   double lora_lr = 1e-4;
+  bool lora_cuda_graph = true;
   std::string lora_save;
   std::string lora;
 };

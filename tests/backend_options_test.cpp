@@ -30,7 +30,7 @@ template <typename Options>
 std::optional<nlohmann::json> valid_non_default(const Option<Options>& option) {
   const nlohmann::json fallback = option.get(Options{});
   for (const nlohmann::json& value :
-       std::vector<nlohmann::json>{"x", "float16", "reproject", true, 2, 3, 5, 0.25, 0.75}) {
+       std::vector<nlohmann::json>{"x", "float16", "reproject", true, false, 2, 3, 5, 0.25, 0.75}) {
     Options options;
     if (option.set(value, options) && value.dump() != fallback.dump()) return value;
   }

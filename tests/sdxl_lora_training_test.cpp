@@ -247,5 +247,21 @@ TEST(LoraTrainingTest, MisuseIsAnError) {
   EXPECT_TRUE(contains_all(std::string(wrong_noise.status().message()), {"noise", "[1, 4, 8, 6]"}));
 }
 
+// A CUDA graph of the step is asked for views on the CPU: an error that says so, nothing trained.
+TEST(LoraTrainingTest, ACudaGraphOfViewsOnTheCpuIsAnError) {
+  TinyModel model = tiny_model();
+  auto lora = UNetLora::create(model.unet, {}, 3);
+  ASSERT_TRUE(lora.ok()) << lora.status();
+  const at::Tensor up_before = lora->adapters()[0].up.clone();
+  sdxl::LoraTrainingOptions options;
+  options.steps = 3;
+  options.cuda_graph = true;
+  sdxl::LoraTrainer trainer(model.unet, *lora, model.alphas_cumprod, nullptr, options);
+  const auto losses = trainer.train(training_data(lora_reference("train_step")));
+  ASSERT_FALSE(losses.ok());
+  EXPECT_TRUE(contains_all(std::string(losses.status().message()), {"CUDA"})) << losses.status();
+  EXPECT_TRUE(at::equal(lora->adapters()[0].up, up_before));
+}
+
 }  // namespace
 }  // namespace gaps

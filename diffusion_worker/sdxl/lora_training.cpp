@@ -1,6 +1,8 @@
 #include "diffusion_worker/sdxl/lora_training.h"
 
+#include <algorithm>
 #include <cmath>
+#include <string>
 #include <utility>
 
 #include <ATen/ATen.h>
@@ -16,6 +18,14 @@
 #include <c10/util/Exception.h>
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+
+#if defined(GAPS_CUDA_KERNELS)
+#include <ATen/cuda/CUDAEvent.h>
+#include <ATen/cuda/CUDAGraph.h>
+#include <c10/cuda/CUDACachingAllocator.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#endif
 
 namespace gaps::sdxl {
 namespace {
@@ -108,7 +118,8 @@ absl::StatusOr<at::Tensor> LoraTrainer::loss(const LoraTrainingData& data, const
   }
 }
 
-absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const DenoisingSample& sample) {
+absl::StatusOr<at::Tensor> LoraTrainer::loss_and_gradients(const LoraTrainingData& data,
+                                                           const DenoisingSample& sample) {
   for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
   auto value = loss(data, sample);
   if (!value.ok()) return value.status();
@@ -118,9 +129,13 @@ absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const Den
     return absl::InternalError(
         absl::StrCat("LoRA training backward failed (inference-mode weights?): ", e.what_without_backtrace()));
   }
-  // torch.optim.Adam's update, on the adapters only, as multi-tensor operations: SDXL has 560 adapter
-  // tensors, and eight launches for each would cost more than the arithmetic (the same element-wise
-  // operations in the same order as the per-tensor update, so the same numbers).
+  return value;
+}
+
+// torch.optim.Adam's update, on the adapters only, as multi-tensor operations: SDXL has 560 adapter tensors,
+// and eight launches for each would cost more than the arithmetic (the same element-wise operations in the
+// same order as the per-tensor update, so the same numbers).
+void LoraTrainer::adam_update() {
   at::NoGradGuard no_grad;
   ++adam_steps_;
   std::vector<at::Tensor> parameters, gradients, first_moments, second_moments;
@@ -131,7 +146,7 @@ absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const Den
     first_moments.push_back(first_moments_[i]);
     second_moments.push_back(second_moments_[i]);
   }
-  if (parameters.empty()) return value->item<double>();
+  if (parameters.empty()) return;
   const double correction1 = 1 - std::pow(options_.beta1, adam_steps_);
   const double correction2 = 1 - std::pow(options_.beta2, adam_steps_);
   at::_foreach_mul_(first_moments, options_.beta1);
@@ -142,6 +157,12 @@ absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const Den
   at::_foreach_div_(denominators, std::sqrt(correction2));
   at::_foreach_add_(denominators, options_.epsilon);
   at::_foreach_addcdiv_(parameters, first_moments, denominators, -options_.learning_rate / correction1);
+}
+
+absl::StatusOr<double> LoraTrainer::step(const LoraTrainingData& data, const DenoisingSample& sample) {
+  auto value = loss_and_gradients(data, sample);
+  if (!value.ok()) return value.status();
+  adam_update();
   return value->item<double>();
 }
 
@@ -154,6 +175,7 @@ DenoisingSample LoraTrainer::draw(const LoraTrainingData& data) {
 
 absl::StatusOr<std::vector<double>> LoraTrainer::train(const LoraTrainingData& data) {
   if (absl::Status s = check(data); !s.ok()) return s;
+  if (options_.cuda_graph) return train_with_cuda_graph(data);
   std::vector<double> losses;
   for (int64_t i = 0; i < options_.steps; ++i) {
     auto value = step(data, draw(data));
@@ -162,5 +184,81 @@ absl::StatusOr<std::vector<double>> LoraTrainer::train(const LoraTrainingData& d
   }
   return losses;
 }
+
+#if defined(GAPS_CUDA_KERNELS)
+absl::StatusOr<std::vector<double>> LoraTrainer::train_with_cuda_graph(const LoraTrainingData& data) {
+  if (!data.latents.is_cuda()) {
+    return absl::InvalidArgumentError(absl::StrCat("LoRA training: a CUDA graph needs the views on a CUDA device, not ",
+                                                   data.latents.device().str()));
+  }
+  // The first steps run eagerly: they are real steps, and they let cuBLAS, cuDNN and the allocator settle
+  // before the capture, which must not allocate workspaces or choose algorithms.
+  constexpr int64_t kEagerSteps = 2;
+  const c10::DeviceIndex device = data.latents.device().index();
+  const c10::cuda::CUDAStream caller = c10::cuda::getCurrentCUDAStream(device);
+  const c10::cuda::CUDAStream stream = c10::cuda::getStreamFromPool(/*isHighPriority=*/false, device);
+  at::cuda::CUDAEvent ready;
+  ready.record(caller);
+  ready.block(stream);
+  c10::cuda::CUDAStreamGuard on_stream(stream);
+  std::vector<double> losses;
+  for (int64_t i = 0; i < std::min(kEagerSteps, options_.steps); ++i) {
+    auto value = step(data, draw(data));
+    if (!value.ok()) return value.status();
+    losses.push_back(*value);
+  }
+  if (options_.steps > kEagerSteps) {
+    // The graph reads its noise and timesteps from these buffers, refilled before every replay, and leaves
+    // the loss and the adapters' gradients in tensors of its own memory pool.
+    DenoisingSample first = draw(data);
+    const DenoisingSample buffers{
+        first.noise.to(data.latents.options()).clone(),
+        first.timesteps.to(at::TensorOptions().dtype(at::kLong).device(data.latents.device()))};
+    for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
+    // The eager steps' cached blocks go back to the device, so that the graph's private pool can take their
+    // place (the capture itself must not need to free memory, under a memory cap least of all).
+    stream.synchronize();
+    c10::cuda::CUDACachingAllocator::emptyCache();
+    at::cuda::CUDAGraph graph;
+    absl::StatusOr<at::Tensor> loss = absl::UnknownError("not captured");
+    std::string capture_error;
+    try {
+      // Thread-local: the process's other threads may keep using the device meanwhile.
+      graph.capture_begin(at::cuda::MempoolId_t{0, 0}, cudaStreamCaptureModeThreadLocal);
+      loss = loss_and_gradients(data, buffers);  // its errors come back as statuses
+      graph.capture_end();                       // also ends a capture that an error invalidated
+    } catch (const c10::Error& e) {
+      capture_error = e.what_without_backtrace();
+    }
+    if (!loss.ok() || !capture_error.empty()) {
+      for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
+      return absl::InternalError(
+          absl::StrCat("LoRA training: capturing the step as a CUDA graph failed (train without "
+                       "it: lora_cuda_graph false): ",
+                       loss.ok() ? capture_error : loss.status().message()));
+    }
+    for (int64_t i = kEagerSteps; i < options_.steps; ++i) {
+      if (i > kEagerSteps) {
+        const DenoisingSample sample = draw(data);
+        buffers.noise.copy_(sample.noise);
+        buffers.timesteps.copy_(sample.timesteps);
+      }
+      graph.replay();
+      adam_update();
+      losses.push_back(loss->item<double>());
+    }
+    // The gradients live in the graph's pool, which goes with it.
+    for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
+  }
+  at::cuda::CUDAEvent done;
+  done.record(stream);
+  done.block(caller);
+  return losses;
+}
+#else
+absl::StatusOr<std::vector<double>> LoraTrainer::train_with_cuda_graph(const LoraTrainingData&) {
+  return absl::UnimplementedError("LoRA training: CUDA graphs need a CUDA build of gaps");
+}
+#endif
 
 }  // namespace gaps::sdxl

@@ -20,6 +20,11 @@ struct LoraTrainingOptions {
   double learning_rate = 1e-4;
   double beta1 = 0.9, beta2 = 0.999, epsilon = 1e-8;  // Adam (torch.optim.Adam's defaults)
   uint64_t seed = 0;                                  // draws of timesteps and noise
+  // Replay every step after the first two from one captured CUDA graph of the loss and its backward (the
+  // Adam update stays eager). SDXL's step is thousands of small launches and the host cannot issue them as
+  // fast as an H200 runs them; replayed, the step costs what its kernels cost. Needs the views on a CUDA
+  // device and a CUDA build; the draws, losses and updates are those of the eager steps.
+  bool cuda_graph = false;
 };
 
 // The ground-truth views, one batch entry each.
@@ -59,6 +64,11 @@ class LoraTrainer {
 
  private:
   absl::Status check(const LoraTrainingData& data) const;
+  // The loss at sample with the adapters' gradients of it accumulated (they start undefined).
+  absl::StatusOr<at::Tensor> loss_and_gradients(const LoraTrainingData& data, const DenoisingSample& sample);
+  // Adam on the adapters that have gradients.
+  void adam_update();
+  absl::StatusOr<std::vector<double>> train_with_cuda_graph(const LoraTrainingData& data);
 
   UNet2DCondition& unet_;
   std::vector<at::Tensor> parameters_;

@@ -123,6 +123,7 @@ class SdxlPipeline {
   const IpAdapter* ip_adapter() const { return ip_adapter_.get(); }
   const ClipVisionEncoder* image_encoder() const { return image_encoder_ ? &*image_encoder_ : nullptr; }
   int64_t latent_factor() const { return vae_->scale_factor(); }
+  at::Device device() const { return options_.device; }
 
  private:
   PipelineOptions options_;
