@@ -5,6 +5,7 @@
 // mantissa), 1e-1 for bfloat16 (8-bit).
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -25,6 +26,13 @@ namespace gaps::sdxl {
 namespace {
 
 using test::expect_close;
+
+// The tiny SDXL with its tiny ControlNet, float16 on the GPU.
+absl::StatusOr<std::unique_ptr<SdxlPipeline>> half_precision_controlnet_pipeline() {
+  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
+  options.controlnet = test::controlnet_dir();
+  return SdxlPipeline::load(test::sdxl_model_dir(), options);
+}
 
 TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
   GAPS_REQUIRE_CUDA();
@@ -51,9 +59,7 @@ TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
 
 TEST(ControlNetPipelineTest, RunsOnTheGpuInHalfPrecisionAndFromCudaGraphs) {
   GAPS_REQUIRE_CUDA();
-  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
-  options.controlnet = test::controlnet_dir();
-  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  auto pipeline = half_precision_controlnet_pipeline();
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   const test::ControlledRun run = test::controlled_run();
   const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
@@ -133,9 +139,7 @@ TEST(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
 // deterministic.
 TEST(LoraTrainingTest, ACudaGraphTrainsAsTheEagerStepsDo) {
   GAPS_REQUIRE_CUDA();
-  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
-  options.controlnet = test::controlnet_dir();
-  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  auto pipeline = half_precision_controlnet_pipeline();
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   const test::ControlledRun run = test::controlled_run();
   const ControlInput control{run.ref.at("control_image"), {1.0}};
