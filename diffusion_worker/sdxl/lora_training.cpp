@@ -25,6 +25,7 @@
 #include <c10/cuda/CUDACachingAllocator.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
+#include "absl/cleanup/cleanup.h"
 #endif
 
 namespace gaps::sdxl {
@@ -200,6 +201,12 @@ absl::StatusOr<std::vector<double>> LoraTrainer::train_with_cuda_graph(const Lor
   at::cuda::CUDAEvent ready;
   ready.record(caller);
   ready.block(stream);
+  // Whatever way this returns, the caller's stream waits for the work issued here (the views it owns are read).
+  const absl::Cleanup join_caller = [&] {
+    at::cuda::CUDAEvent done;
+    done.record(stream);
+    done.block(caller);
+  };
   c10::cuda::CUDAStreamGuard on_stream(stream);
   std::vector<double> losses;
   for (int64_t i = 0; i < std::min(kEagerSteps, options_.steps); ++i) {
@@ -250,9 +257,6 @@ absl::StatusOr<std::vector<double>> LoraTrainer::train_with_cuda_graph(const Lor
     // The gradients live in the graph's pool, which goes with it.
     for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
   }
-  at::cuda::CUDAEvent done;
-  done.record(stream);
-  done.block(caller);
   return losses;
 }
 #else
