@@ -178,12 +178,17 @@ absl::StatusOr<std::vector<double>> LoraTrainer::train(const LoraTrainingData& d
   if (absl::Status s = check(data); !s.ok()) return s;
   if (options_.cuda_graph) return train_with_cuda_graph(data);
   std::vector<double> losses;
-  for (int64_t i = 0; i < options_.steps; ++i) {
+  if (absl::Status s = eager_steps(data, options_.steps, &losses); !s.ok()) return s;
+  return losses;
+}
+
+absl::Status LoraTrainer::eager_steps(const LoraTrainingData& data, int64_t count, std::vector<double>* losses) {
+  for (int64_t i = 0; i < count; ++i) {
     auto value = step(data, draw(data));
     if (!value.ok()) return value.status();
-    losses.push_back(*value);
+    losses->push_back(*value);
   }
-  return losses;
+  return absl::OkStatus();
 }
 
 #if defined(GAPS_CUDA_KERNELS)
@@ -209,18 +214,12 @@ absl::StatusOr<std::vector<double>> LoraTrainer::train_with_cuda_graph(const Lor
   };
   c10::cuda::CUDAStreamGuard on_stream(stream);
   std::vector<double> losses;
-  for (int64_t i = 0; i < std::min(kEagerSteps, options_.steps); ++i) {
-    auto value = step(data, draw(data));
-    if (!value.ok()) return value.status();
-    losses.push_back(*value);
-  }
+  if (absl::Status s = eager_steps(data, std::min(kEagerSteps, options_.steps), &losses); !s.ok()) return s;
   if (options_.steps > kEagerSteps) {
     // The graph reads its noise and timesteps from these buffers, refilled before every replay, and leaves
     // the loss and the adapters' gradients in tensors of its own memory pool.
-    DenoisingSample first = draw(data);
-    const DenoisingSample buffers{
-        first.noise.to(data.latents.options()).clone(),
-        first.timesteps.to(at::TensorOptions().dtype(at::kLong).device(data.latents.device()))};
+    DenoisingSample buffers = draw(data);  // its noise is already on the views' device
+    buffers.timesteps = buffers.timesteps.to(data.latents.device());
     for (auto& p : parameters_) p.mutable_grad() = at::Tensor();
     // The eager steps' cached blocks go back to the device, so that the graph's private pool can take their
     // place (the capture itself must not need to free memory, under a memory cap least of all).

@@ -68,6 +68,8 @@ class LoraTrainer {
   absl::StatusOr<at::Tensor> loss_and_gradients(const LoraTrainingData& data, const DenoisingSample& sample);
   // Adam on the adapters that have gradients.
   void adam_update();
+  // count eager steps, each on a fresh draw; their losses appended to losses.
+  absl::Status eager_steps(const LoraTrainingData& data, int64_t count, std::vector<double>* losses);
   absl::StatusOr<std::vector<double>> train_with_cuda_graph(const LoraTrainingData& data);
 
   UNet2DCondition& unet_;
