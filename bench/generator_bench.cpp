@@ -27,6 +27,7 @@
 #include <functional>
 #include <iostream>
 #include <memory>
+#include <numeric>
 #include <optional>
 #include <string>
 #include <vector>
@@ -37,6 +38,7 @@
 #include "absl/flags/flag.h"
 #include "absl/flags/parse.h"
 #include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "bench/kineto_trace.h"
 #include "bench/random_sdxl_folder.h"
@@ -61,6 +63,9 @@ ABSL_FLAG(std::string, device, "cuda", "cuda or cpu");
 ABSL_FLAG(std::string, dtype, "float16", "float16, bfloat16 or float32 (the CPU runs float32 only)");
 ABSL_FLAG(std::string, sizes, "504x378,1024x1024", "pseudo-view sizes WxH, padded to the latent factor");
 ABSL_FLAG(std::string, lora_size, "504x378", "size of the LoRA training views");
+ABSL_FLAG(std::string, batches, "1",
+          "pseudo-views per img2img call, comma-separated (the worker's batch_size); each case's line gives "
+          "the call's time and the time per view");
 ABSL_FLAG(int, runs, 3, "timed runs per case (median reported)");
 ABSL_FLAG(int, warmup, 1, "untimed runs before them");
 ABSL_FLAG(int, steps, 30, "img2img schedule length");
@@ -216,6 +221,7 @@ struct Bench {
   at::ScalarType dtype;
   nlohmann::json common;
   std::vector<Size> sizes;
+  std::vector<int64_t> batches;
   Size lora_size;
   std::string weights_dir;
   mutable nlohmann::json phase_peak_mib = nullptr;  // the largest case peak since the last reset of it
@@ -262,32 +268,40 @@ struct Bench {
     emit(j);
   }
 
-  // One pseudo-view through the pipeline at every size: img2img with the ControlNet, optionally the image
-  // prompt.
+  // Batches of pseudo-views through the pipeline at every size and batch size (--batches): img2img with the
+  // ControlNet, optionally the image prompt.
   bool time_img2img(sdxl::SdxlPipeline& pipeline, const std::string& case_name, bool image_prompt) const {
     for (const Size& s : sizes) {
-      const ViewInputs in = view_inputs(s, 1, 4);
-      const sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
-      const sdxl::ControlInput control{in.control, {absl::GetFlag(FLAGS_control_scale)}};
-      at::Tensor out;
-      device.reset_peak();
-      const Timing t = time_ms(device, absl::GetFlag(FLAGS_warmup), absl::GetFlag(FLAGS_runs), [&]() -> absl::Status {
-        auto result = pipeline.img2img(in.image, {kPrompt}, params, {1234}, control);
-        if (!result.ok()) return result.status();
-        out = *result;
-        return absl::OkStatus();
-      });
-      if (!t.status.ok()) return fail(case_name + " at " + s.name, t.status);
-      nlohmann::json j = line(case_name, s);
-      j["steps"] = params.steps;
-      j["strength"] = params.strength;
-      j["unet_steps"] = static_cast<int>(params.steps * params.strength);
-      j["guidance"] = params.guidance_scale;
-      j["controlnet_scale"] = absl::GetFlag(FLAGS_control_scale);
-      j["ip_adapter_scale"] = image_prompt ? nlohmann::json(absl::GetFlag(FLAGS_ip_scale)) : nlohmann::json(nullptr);
-      j["lora"] = pipeline.lora() != nullptr;
-      j["cuda_graphs"] = absl::GetFlag(FLAGS_cuda_graphs);
-      emit_timed(j, t, out);
+      for (const int64_t batch : batches) {
+        const ViewInputs in = view_inputs(s, batch, 4);
+        sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
+        if (image_prompt) params.reference_images.assign(batch, in.reference);
+        const sdxl::ControlInput control{in.control, {absl::GetFlag(FLAGS_control_scale)}};
+        const std::vector<std::string> prompts(batch, kPrompt);
+        std::vector<uint64_t> seeds(batch);
+        std::iota(seeds.begin(), seeds.end(), uint64_t{1234});
+        at::Tensor out;
+        device.reset_peak();
+        const Timing t = time_ms(device, absl::GetFlag(FLAGS_warmup), absl::GetFlag(FLAGS_runs), [&]() -> absl::Status {
+          auto result = pipeline.img2img(in.image, prompts, params, seeds, control);
+          if (!result.ok()) return result.status();
+          out = *result;
+          return absl::OkStatus();
+        });
+        if (!t.status.ok()) return fail(absl::StrCat(case_name, " at ", s.name, " batch ", batch), t.status);
+        nlohmann::json j = line(case_name, s);
+        j["batch"] = batch;
+        j["steps"] = params.steps;
+        j["strength"] = params.strength;
+        j["unet_steps"] = static_cast<int>(params.steps * params.strength);
+        j["guidance"] = params.guidance_scale;
+        j["controlnet_scale"] = absl::GetFlag(FLAGS_control_scale);
+        j["ip_adapter_scale"] = image_prompt ? nlohmann::json(absl::GetFlag(FLAGS_ip_scale)) : nlohmann::json(nullptr);
+        j["lora"] = pipeline.lora() != nullptr;
+        j["cuda_graphs"] = absl::GetFlag(FLAGS_cuda_graphs);
+        j["ms_per_view"] = t.median_ms / static_cast<double>(batch);
+        emit_timed(j, t, out);
+      }
     }
     return true;
   }
@@ -504,6 +518,15 @@ int main(int argc, char** argv) {
     }
     sizes.push_back(*s);
   }
+  std::vector<int64_t> batches;
+  for (const absl::string_view item : absl::StrSplit(absl::GetFlag(FLAGS_batches), ',')) {
+    int64_t batch = 0;
+    if (!absl::SimpleAtoi(item, &batch) || batch < 1) {
+      std::cerr << "generator_bench: --batches entry '" << item << "' is not a positive integer\n";
+      return 2;
+    }
+    batches.push_back(batch);
+  }
   const std::optional<Size> lora_size = parse_size(absl::GetFlag(FLAGS_lora_size), factor);
   if (sizes.empty() || !lora_size) {
     std::cerr << "generator_bench: --sizes and --lora_size take WxH\n";
@@ -518,7 +541,7 @@ int main(int argc, char** argv) {
   common["torch"] = TORCH_VERSION;
   common["dtype"] = dtype_name;
   common["commit"] = absl::GetFlag(FLAGS_commit);
-  const Bench bench{dev, *dtype, common, sizes, *lora_size, absl::GetFlag(FLAGS_weights_dir)};
+  const Bench bench{dev, *dtype, common, sizes, batches, *lora_size, absl::GetFlag(FLAGS_weights_dir)};
   const std::vector<std::string> phases = absl::StrSplit(absl::GetFlag(FLAGS_phases), ',');
   const auto asked = [&](const char* phase) { return std::find(phases.begin(), phases.end(), phase) != phases.end(); };
   for (const std::string& phase : phases) {
