@@ -20,12 +20,9 @@
 #include "absl/strings/str_join.h"
 
 #if defined(GAPS_CUDA_KERNELS)
-#include <ATen/cuda/CUDAEvent.h>
 #include <ATen/cuda/CUDAGraph.h>
 #include <c10/cuda/CUDACachingAllocator.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
-#include "absl/cleanup/cleanup.h"
+#include "diffusion_worker/sdxl/side_stream.h"
 #endif
 
 namespace gaps::sdxl {
@@ -200,19 +197,9 @@ absl::StatusOr<std::vector<double>> LoraTrainer::train_with_cuda_graph(const Lor
   // The first steps run eagerly: they are real steps, and they let cuBLAS, cuDNN and the allocator settle
   // before the capture, which must not allocate workspaces or choose algorithms.
   constexpr int64_t kEagerSteps = 2;
-  const c10::DeviceIndex device = data.latents.device().index();
-  const c10::cuda::CUDAStream caller = c10::cuda::getCurrentCUDAStream(device);
-  const c10::cuda::CUDAStream stream = c10::cuda::getStreamFromPool(/*isHighPriority=*/false, device);
-  at::cuda::CUDAEvent ready;
-  ready.record(caller);
-  ready.block(stream);
   // Whatever way this returns, the caller's stream waits for the work issued here (the views it owns are read).
-  const absl::Cleanup join_caller = [&] {
-    at::cuda::CUDAEvent done;
-    done.record(stream);
-    done.block(caller);
-  };
-  c10::cuda::CUDAStreamGuard on_stream(stream);
+  const SideStream side(data.latents.device().index());
+  const c10::cuda::CUDAStream& stream = side.stream();
   std::vector<double> losses;
   if (absl::Status s = eager_steps(data, std::min(kEagerSteps, options_.steps), &losses); !s.ok()) return s;
   if (options_.steps > kEagerSteps) {

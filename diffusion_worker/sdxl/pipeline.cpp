@@ -16,10 +16,8 @@
 #include "diffusion_worker/sdxl/model_folder.h"
 
 #if defined(GAPS_CUDA_KERNELS)
-#include <ATen/cuda/CUDAEvent.h>
 #include <ATen/cuda/CUDAGraph.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
+#include "diffusion_worker/sdxl/side_stream.h"
 #endif
 
 namespace gaps::sdxl {
@@ -51,13 +49,8 @@ struct UNetGraphs {
       }
       for (at::Tensor& r : entry->inputs.down_block_residuals) r = r.clone();
       if (in.mid_block_residual.defined()) entry->inputs.mid_block_residual = in.mid_block_residual.clone();
-      const c10::cuda::CUDAStream stream = c10::cuda::getStreamFromPool();
-      const c10::cuda::CUDAStream caller = c10::cuda::getCurrentCUDAStream();
-      at::cuda::CUDAEvent inputs_ready;
-      inputs_ready.record(caller);
-      inputs_ready.block(stream);
       {
-        c10::cuda::CUDAStreamGuard guard(stream);
+        const SideStream capture_stream(in.sample.device().index());
         for (int i = 0; i < 2; ++i) entry->output = unet.forward(entry->inputs);  // warm-up before capture
         // Thread-local capture: other threads (the trainer) may keep using the GPU meanwhile.
         entry->graph.capture_begin(pool.value_or(at::cuda::MempoolId_t{0, 0}), cudaStreamCaptureModeThreadLocal);
@@ -65,9 +58,6 @@ struct UNetGraphs {
         entry->graph.capture_end();
         if (!pool) pool = entry->graph.pool();
       }
-      at::cuda::CUDAEvent captured;
-      captured.record(stream);
-      captured.block(caller);
       it = entries.emplace(key, std::move(entry)).first;
     }
     Entry& e = *it->second;
