@@ -243,7 +243,7 @@ struct Bench {
     p.strength = absl::GetFlag(FLAGS_strength);
     p.guidance_scale = absl::GetFlag(FLAGS_guidance);
     if (image_prompt) {
-      p.reference_images = {in.reference};
+      p.reference_images.assign(in.image.size(0), in.reference);  // one image prompt per view of the batch
       p.ip_adapter_scales = {absl::GetFlag(FLAGS_ip_scale)};
     }
     return p;
@@ -274,8 +274,7 @@ struct Bench {
     for (const Size& s : sizes) {
       for (const int64_t batch : batches) {
         const ViewInputs in = view_inputs(s, batch, 4);
-        sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
-        if (image_prompt) params.reference_images.assign(batch, in.reference);
+        const sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
         const sdxl::ControlInput control{in.control, {absl::GetFlag(FLAGS_control_scale)}};
         const std::vector<std::string> prompts(batch, kPrompt);
         std::vector<uint64_t> seeds(batch);

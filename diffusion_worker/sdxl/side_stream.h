@@ -1,6 +1,6 @@
 #pragma once
 // A CUDA stream of the pool for work that must not run on the caller's stream: CUDA-graph captures, which
-// need a stream of their own, and the replays of their memory pools.
+// need a stream of their own (the UNet's graphs, the LoRA training's), and the LoRA training's replays.
 #if defined(GAPS_CUDA_KERNELS)
 #include <ATen/cuda/CUDAEvent.h>
 #include <c10/cuda/CUDAGuard.h>
