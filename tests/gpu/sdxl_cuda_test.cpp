@@ -1,8 +1,8 @@
 // The diffusion pipelines on CUDA in half precision, against the float32 references their CPU parity
 // suites check (sdxl_pipeline_test.cpp, sdxl_controlnet_test.cpp, sdxl_ip_adapter_test.cpp,
-// sd2_inpaint_test.cpp), and CUDA-graph replay (of img2img's UNet, of LoRA training's step) against eager runs. Half
-// precision follows the float32 result on the tiny random weights within its rounding: 5e-2 for float16 (11-bit
-// mantissa), 1e-1 for bfloat16 (8-bit).
+// sd2_inpaint_test.cpp), and CUDA-graph replay (of img2img's UNet, of LoRA training's step) against eager runs,
+// also on a second GPU while the first is current. Half precision follows the float32 result on the tiny random
+// weights within its rounding: 5e-2 for float16 (11-bit mantissa), 1e-1 for bfloat16 (8-bit).
 #include <algorithm>
 #include <cmath>
 #include <memory>
@@ -11,6 +11,8 @@
 #include <vector>
 
 #include <ATen/ATen.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <c10/cuda/CUDAGuard.h>
 #include <gtest/gtest.h>
 #include "absl/strings/str_cat.h"
 
@@ -175,6 +177,50 @@ TEST(LoraTrainingTest, ACudaGraphTrainsAsTheEagerStepsDo) {
   EXPECT_GT(moved, 0.0);
   EXPECT_LE(diff, 0.02 * moved) << "summed |up| " << moved;
   RecordProperty("relative_up_diff", absl::StrCat(diff / moved));
+}
+
+// A pipeline on a second GPU while the first is the current device, as a worker placed on `cuda:1` in a process
+// whose other work (the trainer) runs on `cuda:0`: the UNet's graphs and the LoRA training's graph must be captured
+// on the pipeline's device. Captured on the current device instead, they are empty and a replay returns the first
+// step's output at every step, which the comparisons with the eager runs catch.
+TEST(SdxlPipelineTest, CapturesAndReplaysItsGraphsOnItsOwnDeviceWhenAnotherIsCurrent) {
+  GAPS_REQUIRE_CUDA();
+  if (at::cuda::device_count() < 2) GTEST_SKIP() << "needs two CUDA devices";
+  const c10::cuda::CUDAGuard first_is_current(c10::DeviceIndex{0});
+  PipelineOptions options{at::kHalf, at::Device(at::kCUDA, 1), ""};
+  options.controlnet = test::controlnet_dir();
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const test::ControlledRun run = test::controlled_run();
+  const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
+  const ControlInput control{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}};
+  auto eager = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+  ASSERT_TRUE(eager.ok()) << eager.status();
+  expect_close(*eager, run.ref.at("out"), 5e-2, "ControlNet img2img on the second GPU");
+  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+  for (int pass = 0; pass < 2; ++pass) {  // capture, then replay
+    auto graphed = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+    ASSERT_TRUE(graphed.ok()) << graphed.status();
+    expect_close(*graphed, *eager, 1e-3, "ControlNet img2img with CUDA graphs on the second GPU");
+  }
+  LoraConfig config;
+  LoraTrainingOptions training;
+  training.steps = 5;
+  training.learning_rate = 1e-3;
+  training.seed = 11;
+  std::vector<std::vector<double>> losses;
+  for (const bool cuda_graph : {false, true}) {
+    training.cuda_graph = cuda_graph;
+    auto trained = (*pipeline)->train_lora(run.ref.at("image"), {"a photo of a fern"},
+                                           ControlInput{control.image, {1.0}}, config, training);
+    ASSERT_TRUE(trained.ok()) << trained.status();
+    ASSERT_EQ(trained->size(), 5u);
+    losses.push_back(*trained);
+  }
+  for (size_t i = 0; i < losses[0].size(); ++i) {
+    EXPECT_NEAR(losses[1][i], losses[0][i], 1e-3 * std::abs(losses[0][i])) << "LoRA step " << i;
+  }
+  EXPECT_EQ(c10::cuda::current_device(), 0) << "the pipeline left another device current";
 }
 
 }  // namespace
