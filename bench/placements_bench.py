@@ -20,7 +20,8 @@ its first load, transfer). Cases (--cases, in order):
 The weights (SDXL base from `generator_bench --write_model`; ControlNet depth, IP-Adapter + ViT-H image encoder,
 SD2 inpainting, Depth-Anything from `make_random_generator_weights.py`, which needs diffusers) are written into
 WORK once and reused. Random weights make the pseudo-views meaningless: admission may reject them; phases count
-as run. One JSON line per case goes to --out.
+as run. One JSON line per case goes to --out; a case whose worker logged an empty CUDA-graph capture is marked
+`"timing_valid": false` (its replays skipped the UNet).
 
   python3 bench/placements_bench.py --build build --scene ../shared/data/llff/fern --work /tmp/placements \
       --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus] \
@@ -151,6 +152,17 @@ def phase_breakdown(phases):
             "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}}
 
 
+# LibTorch's warning when a capture recorded nothing: the replays of that graph would skip the UNet, so the
+# case's times would not be those of the method (a capture on another device's stream did exactly that).
+EMPTY_GRAPH_WARNING = "The CUDA Graph is empty"
+
+
+def empty_graph_warnings(logs):
+    """How many empty CUDA-graph captures each worker's log reports; a timing with any of them is void."""
+    return {name: (path.read_text(errors="replace").count(EMPTY_GRAPH_WARNING) if path.exists() else None)
+            for name, path in logs.items()}
+
+
 def case_layout(case, args, backend_options):
     """The case's workers (gaps-worker flags, GPU, allocator cap), the trainer's device and cap, and the variant."""
     sdxl = ["--backend", "sdxl", "--backend_options", json.dumps(backend_options)]
@@ -212,6 +224,11 @@ def run_case(case, args, backend_options, env):
     pids = {"trainer": trainer.proc.pid,
             **{("worker" if k == 0 else f"worker{k}"): w.proc.pid for k, w in enumerate(workers)}}
     per_process = {name: sampler.pid_peak_mib.get(pid) for name, pid in pids.items()}
+    empty_graphs = empty_graph_warnings({("worker" if k == 0 else f"worker{k}"): work / f"worker{k}.log"
+                                         for k in range(len(workers))})
+    if any(empty_graphs.values()):
+        print(f"VOID: a worker captured empty CUDA graphs {empty_graphs}: its replays skipped the UNet",
+              file=sys.stderr, flush=True)
     gpus_used = sorted({0} | {gpu for _, gpu, _ in worker_layout if gpu is not None})
     gpu_peak = {g: sampler.gpu_peak_mib.get(g, 0.0) - sampler.gpu_base_mib.get(g, 0.0) for g in gpus_used}
     row = {
@@ -226,6 +243,7 @@ def run_case(case, args, backend_options, env):
         "driver_peak_gib_per_process": {k: (round(v / 1024, 3) if v is not None else None)
                                         for k, v in per_process.items()},
         "driver_peak_gib_per_gpu": {str(g): round(v / 1024, 3) for g, v in gpu_peak.items()},
+        "worker_empty_cuda_graphs": empty_graphs, "timing_valid": not any(empty_graphs.values()),
         **phase_breakdown(phases),
     }
     if case == "one-card":

@@ -589,6 +589,15 @@ class PlacementsBenchTest(unittest.TestCase):
         self.assertEqual((row["pseudo_views_admitted"], row["pseudo_views_rejected"]), (1, 1))
         self.assertIsNone(placements_bench.phase_breakdown([])["first_phase_generation_seconds"])
 
+    def test_empty_graph_captures_are_counted_per_worker_log(self):
+        with tempfile.TemporaryDirectory() as tmp:
+            good, bad = Path(tmp) / "worker0.log", Path(tmp) / "worker1.log"
+            good.write_text("listening on 127.0.0.1:5000\n")
+            bad.write_text("[W CUDAGraph.cpp:147] Warning: The CUDA Graph is empty. This usually means ...\n" * 4)
+            counts = placements_bench.empty_graph_warnings(
+                {"worker": good, "worker1": bad, "worker2": Path(tmp) / "missing.log"})
+        self.assertEqual(counts, {"worker": 0, "worker1": 4, "worker2": None})
+
 
 if __name__ == "__main__":
     unittest.main()
