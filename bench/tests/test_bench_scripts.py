@@ -323,7 +323,8 @@ class HarnessTest(unittest.TestCase):
 
     def test_shipped_configs_expand(self):
         sizes = {"llff_protocol": 2 * 3 * 3, "mipnerf360_protocol": 2 * 2 * 3, "ablation": 4 * 3,
-                 "gaps_variants": 5 * 4 * 3, "budget_study": 5 * 3, "budget_sweep": 2 * 5}
+                 "gaps_variants": 5 * 4 * 3, "budget_study": 5 * 3, "budget_sweep": 2 * 5,
+                 "async_phases": 2 * 2 * 3, "async_phases_rest": 3 * 2 * 3}
         for name, size in sizes.items():
             config = harness.load_config(BENCH / "configs" / f"{name}.json")
             self.assertEqual(len(harness.expand(config)), size, name)
