@@ -163,6 +163,11 @@ def empty_graph_warnings(logs):
             for name, path in logs.items()}
 
 
+def worker_name(k):
+    """How a row names the case's k-th worker (its log is worker{k}.log)."""
+    return "worker" if k == 0 else f"worker{k}"
+
+
 def case_layout(case, args, backend_options):
     """The case's workers (gaps-worker flags, GPU, allocator cap), the trainer's device and cap, and the variant."""
     sdxl = ["--backend", "sdxl", "--backend_options", json.dumps(backend_options)]
@@ -222,10 +227,9 @@ def run_case(case, args, backend_options, env):
     metrics = json.loads((fetched / "metrics.json").read_text()) if (fetched / "metrics.json").exists() else {}
     phases = json.loads((fetched / "phases.json").read_text()) if (fetched / "phases.json").exists() else []
     pids = {"trainer": trainer.proc.pid,
-            **{("worker" if k == 0 else f"worker{k}"): w.proc.pid for k, w in enumerate(workers)}}
+            **{worker_name(k): w.proc.pid for k, w in enumerate(workers)}}
     per_process = {name: sampler.pid_peak_mib.get(pid) for name, pid in pids.items()}
-    empty_graphs = empty_graph_warnings({("worker" if k == 0 else f"worker{k}"): work / f"worker{k}.log"
-                                         for k in range(len(workers))})
+    empty_graphs = empty_graph_warnings({worker_name(k): work / f"worker{k}.log" for k in range(len(workers))})
     if any(empty_graphs.values()):
         print(f"VOID: a worker captured empty CUDA graphs {empty_graphs}: its replays skipped the UNet",
               file=sys.stderr, flush=True)

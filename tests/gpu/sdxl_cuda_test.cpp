@@ -29,9 +29,10 @@ namespace {
 
 using test::expect_close;
 
-// The tiny SDXL with its tiny ControlNet, float16 on the GPU.
-absl::StatusOr<std::unique_ptr<SdxlPipeline>> half_precision_controlnet_pipeline() {
-  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
+// The tiny SDXL with its tiny ControlNet, float16 on a GPU (the current one unless given).
+absl::StatusOr<std::unique_ptr<SdxlPipeline>> half_precision_controlnet_pipeline(
+    at::Device device = at::Device(at::kCUDA)) {
+  PipelineOptions options{at::kHalf, device, ""};
   options.controlnet = test::controlnet_dir();
   return SdxlPipeline::load(test::sdxl_model_dir(), options);
 }
@@ -187,9 +188,7 @@ TEST(SdxlPipelineTest, CapturesAndReplaysItsGraphsOnItsOwnDeviceWhenAnotherIsCur
   GAPS_REQUIRE_CUDA();
   if (at::cuda::device_count() < 2) GTEST_SKIP() << "needs two CUDA devices";
   const c10::cuda::CUDAGuard first_is_current(c10::DeviceIndex{0});
-  PipelineOptions options{at::kHalf, at::Device(at::kCUDA, 1), ""};
-  options.controlnet = test::controlnet_dir();
-  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  auto pipeline = half_precision_controlnet_pipeline(at::Device(at::kCUDA, 1));
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   const test::ControlledRun run = test::controlled_run();
   const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
