@@ -1,11 +1,13 @@
 # LibTorch from PyPI's torch wheel. Provides the target gaps::torch.
 # With CUDA the wheel's own CMake config is used (it needs the CUDA toolkit); without, only the
 # CPU libraries are linked, so a machine without nvcc still builds.
+# The tests' Python (GAPS_PYTHON) is looked up even when Torch_DIR is given, so the scripts the tests run have
+# an interpreter on every build.
+find_program(GAPS_PYTHON NAMES python3 python HINTS $ENV{HOME}/.cache/gaps/venv/bin NO_DEFAULT_PATH)
+if(NOT GAPS_PYTHON)
+  find_program(GAPS_PYTHON NAMES python3 python)
+endif()
 if(NOT Torch_DIR AND NOT DEFINED ENV{Torch_DIR})
-  find_program(GAPS_PYTHON NAMES python3 python HINTS $ENV{HOME}/.cache/gaps/venv/bin NO_DEFAULT_PATH)
-  if(NOT GAPS_PYTHON)
-    find_program(GAPS_PYTHON NAMES python3 python)
-  endif()
   execute_process(COMMAND ${GAPS_PYTHON} -c "import torch, os; print(os.path.dirname(torch.__file__))"
                   OUTPUT_VARIABLE GAPS_TORCH_ROOT OUTPUT_STRIP_TRAILING_WHITESPACE RESULT_VARIABLE _rc ERROR_QUIET)
   if(NOT _rc EQUAL 0 OR NOT GAPS_TORCH_ROOT)
