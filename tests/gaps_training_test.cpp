@@ -174,7 +174,7 @@ TEST_F(GapsTrainingTest, TheActiveSetIsRefreshedEveryPhase) {
 
 // Asynchronous phases: training goes on while a phase's views are generated from the model as the phase found it;
 // they are judged exactly async_iterations later, or before the next phase, whatever the timing; a phase
-// started near the end is judged at the end. Synchronous phases carry no "async" record.
+// started near the end is judged at the end.
 TEST_F(GapsTrainingTest, AsynchronousPhasesAdmitTheirViewsAFixedNumberOfIterationsLater) {
   EchoGenerator gen(0.05);
   RunOptions run = options(Variant::kFull, &gen);
@@ -215,7 +215,10 @@ TEST_F(GapsTrainingTest, AsynchronousPhasesAdmitTheirViewsAFixedNumberOfIteratio
   EXPECT_EQ(cut[1]["async"]["joined_before"].get<int>(), cut[2]["async"]["launched_before"].get<int>());
   EXPECT_EQ(cut[2]["async"]["joined_before"].get<int>(), 101) << "judged when the run ended";
 
+  // Asynchronous phases are the default; 0 is the paper's synchronous schedule, which carries no "async" record.
+  EXPECT_EQ(GapsConfig{}.async_iterations, 250);
   RunOptions sync = options(Variant::kFull, &gen);
+  sync.gaps.async_iterations = 0;
   sync.out_dir = dir_ / "sync";
   ASSERT_TRUE(run_pipeline(sync, nullptr, [](const std::string&) {}).ok());
   for (const auto& p : read_json(dir_ / "sync" / "phases.json")) EXPECT_FALSE(p.contains("async")) << p;

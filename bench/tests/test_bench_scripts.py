@@ -329,6 +329,17 @@ class HarnessTest(unittest.TestCase):
             config = harness.load_config(BENCH / "configs" / f"{name}.json")
             self.assertEqual(len(harness.expand(config)), size, name)
 
+    def test_async_configs_compare_against_the_synchronous_schedule(self):
+        # 250 is the default, so the `full` arm must ask for the paper's synchronous phases itself.
+        for name in ("async_phases", "async_phases_rest"):
+            config = harness.load_config(BENCH / "configs" / f"{name}.json")
+            by_arm = {}
+            for cell in harness.expand(config):
+                by_arm[cell["variant"]] = harness.command(config, cell, "gaps", "data", self.out)
+            self.assertIn("--async-iterations=0", by_arm["full"], name)
+            self.assertIn("--async-iterations=250", by_arm["full_async250"], name)
+            self.assertIn("--variant=full", by_arm["full_async250"], name)
+
 
 def row(scene, views, variant, seed, psnr, ssim=0.5, lpips=None, gaussians=1000, status="ok"):
     return {"config": "paper", "cell": harness.cell_name(scene, views, variant, seed), "scene": scene,

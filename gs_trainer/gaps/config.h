@@ -24,10 +24,11 @@ inline constexpr int kNActiveMip360 = 24;
   /* Schedule (sec. 3.2): a diffusion phase runs at every iteration t >= warmup with (t - warmup) % interval == 0. */ \
   X(int, warmup_iterations, 1000, 0, 1e6, "T_w: iterations before the first diffusion phase")                        \
   X(int, phase_interval, 500, 1, 1e6, "Delta T: iterations between diffusion phases")                               \
-  X(int, async_iterations, 0, 0, 1e6,                                                                                \
+  X(int, async_iterations, 250, 0, 1e6,                                                                              \
     "not in the paper: iterations training goes on (on the views it has) while a phase's pseudo-views are "        \
     "generated from the model as the phase found it; they are judged and admitted after exactly this many, at the "  \
-    "latest before the next phase, whatever the timing (0 = the phase waits for them, as in the paper)")        \
+    "latest before the next phase, whatever the timing (0 = the phase waits for them, as in the paper; 250 costs "  \
+    "no quality on fern 3 / 6 / 9 and bonsai 12 / 24, docs/results.md)")                                            \
   X(double, pseudo_probability, 0.25, 0, 1, "p_pseudo: chance an iteration trains on an admitted pseudo-view")       \
   /* Candidate pool (sec. 3.4, eq. slerp). */                                                                        \
   X(int, n_active, 0, 0, 1e4,                                                                                        \
