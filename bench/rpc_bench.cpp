@@ -9,6 +9,7 @@
 #include <atomic>
 #include <chrono>
 #include <iostream>
+#include <optional>
 #include <thread>
 
 #include <ATen/ATen.h>
@@ -133,16 +134,22 @@ int main(int argc, char** argv) {
     const char* name;
     gaps::rpc::TensorEncoding encoding;
     bool shared_memory;
+    std::optional<gaps::rpc::TensorEncoding> depth;  // unset: the encoding's (float16 with compact)
   };
-  const std::vector<Case> cases = {{"float32-socket", gaps::rpc::TensorEncoding::kFloat32, false},
-                                   {"compact-socket", gaps::rpc::TensorEncoding::kUint8, false},
-                                   {"compact-shared", gaps::rpc::TensorEncoding::kUint8, true},
-                                   {"float32-shared", gaps::rpc::TensorEncoding::kFloat32, true}};
+  using gaps::rpc::TensorEncoding;
+  const std::vector<Case> cases = {
+      {"float32-socket", TensorEncoding::kFloat32, false, std::nullopt},
+      {"compact-socket", TensorEncoding::kUint8, false, std::nullopt},
+      {"compact-socket-float32-depth", TensorEncoding::kUint8, false, TensorEncoding::kFloat32},
+      {"compact-shared", TensorEncoding::kUint8, true, std::nullopt},
+      {"compact-shared-float32-depth", TensorEncoding::kUint8, true, TensorEncoding::kFloat32},
+      {"float32-shared", TensorEncoding::kFloat32, true, std::nullopt}};
   std::vector<std::unique_ptr<gaps::RemoteGenerator>> remotes;
   for (const Case& c : cases) {
     gaps::WorkerPoolOptions pool;
     pool.addresses = {"127.0.0.1:" + std::to_string(worker_port)};
     pool.encoding = c.encoding;
+    pool.depth_encoding = c.depth;
     pool.shared_memory = c.shared_memory;
     auto remote = gaps::RemoteGenerator::create(pool);
     if (!remote.ok()) return fail(remote.status());

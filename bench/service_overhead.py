@@ -7,7 +7,7 @@ every run then shares, so that initialisation does not differ between cases):
 
   in-process        gaps train
   float32-socket    the services, float32 payloads in the gRPC messages (the hand-over before compact encoding)
-  compact-socket    colour and alpha as bytes, depth float32, in the messages
+  compact-socket    colour and alpha as bytes, depth in half precision, in the messages
   compact-shared    compact, through shared memory (the default on one host)
   float32-shared    float32 through shared memory
 

@@ -1,5 +1,6 @@
 // What a diffusion worker decodes from the trainer: the first byte picks GenerateBatch or AdaptSceneBatch,
-// the rest is the message. What decodes must encode and decode again to the same requests, in both encodings.
+// the rest is the message. What decodes must encode and decode again to the same requests, in both hand-overs
+// (float32; compact: bytes for colour and alpha, half precision for depth).
 #include "fuzz/fuzz_support.h"
 #include "rpc/generation_codec.h"
 
@@ -13,7 +14,8 @@ void generate_batch(const uint8_t* data, size_t size) {
   for (const auto encoding : {gaps::rpc::TensorEncoding::kFloat32, gaps::rpc::TensorEncoding::kUint8}) {
     gaps::v1::GenerateBatch again;
     // Decoded tensors are finite, so neither encoding may refuse them.
-    if (!gaps::rpc::encode_generation_batch(*requests, &again, {encoding, nullptr}).ok()) __builtin_trap();
+    const gaps::rpc::TensorTransfer transfer{encoding, nullptr, gaps::rpc::depth_encoding_for(encoding)};
+    if (!gaps::rpc::encode_generation_batch(*requests, &again, transfer).ok()) __builtin_trap();
     const auto back = gaps::rpc::decode_generation_batch(again);
     if (!back.ok() || back->size() != requests->size()) __builtin_trap();
   }

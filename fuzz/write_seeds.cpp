@@ -282,7 +282,9 @@ void generation_seeds(const fs::path& out) {
   if (!rpc::encode_generation_batch({q}, &batch).ok()) std::abort();
   put(out / "generate", std::string(1, '\0') + batch.SerializeAsString());
   v1::GenerateBatch compact;
-  if (!rpc::encode_generation_batch({q}, &compact, {rpc::TensorEncoding::kUint8, nullptr}).ok()) std::abort();
+  const rpc::TensorTransfer compact_transfer{rpc::TensorEncoding::kUint8, nullptr,
+                                             rpc::depth_encoding_for(rpc::TensorEncoding::kUint8)};
+  if (!rpc::encode_generation_batch({q}, &compact, compact_transfer).ok()) std::abort();
   put(out / "generate_compact", std::string(1, '\0') + compact.SerializeAsString());
   v1::AdaptSceneBatch adapt;
   rpc::encode_adapt_batch("scene", {seed_reference(0), seed_reference(1)}, SceneAdaptation{4, 50}, &adapt);

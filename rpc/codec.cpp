@@ -31,8 +31,24 @@ absl::Status encode_png(const at::Tensor& image, v1::Tensor* out) {
   return absl::OkStatus();
 }
 
+namespace {
+
+size_t element_bytes(TensorEncoding encoding) {
+  switch (encoding) {
+    case TensorEncoding::kUint8:
+      return 1;
+    case TensorEncoding::kFloat16:
+      return 2;
+    case TensorEncoding::kFloat32:
+      break;
+  }
+  return sizeof(float);
+}
+
+}  // namespace
+
 uint64_t encoded_bytes(const at::Tensor& tensor, TensorEncoding encoding) {
-  return static_cast<uint64_t>(tensor.numel()) * (encoding == TensorEncoding::kUint8 ? 1 : sizeof(float));
+  return static_cast<uint64_t>(tensor.numel()) * element_bytes(encoding);
 }
 
 namespace {
@@ -45,6 +61,20 @@ bool all_finite(const float* values, int64_t count) {
   bool finite = true;
   for (int64_t i = 0; i < count; ++i) finite &= std::isfinite(values[i]);
   return finite;
+}
+
+bool within_half_range(const float* values, int64_t count) {
+  bool within = true;
+  for (int64_t i = 0; i < count; ++i) within &= std::fabs(values[i]) <= kHalfMax;
+  return within;
+}
+
+// Rounded to nearest even (c10::Half's conversion, the one at::Tensor::to(kHalf) uses).
+void to_halves(const float* values, int64_t count, uint8_t* out) {
+  for (int64_t i = 0; i < count; ++i) {
+    const c10::Half h(values[i]);
+    std::memcpy(out + i * sizeof(h), &h, sizeof(h));  // a message's payload need not be aligned for c10::Half
+  }
 }
 
 // Clamped to [0, 1] and rounded half to even, as at::round does: adding and subtracting 1.5 * 2^23 leaves the
@@ -65,8 +95,9 @@ absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, Sh
   const at::Tensor t = tensor.detach().to(at::kCPU, at::kFloat).contiguous();
   const float* values = t.data_ptr<float>();
   const int64_t count = t.numel();
-  if (encoding == TensorEncoding::kUint8 && !all_finite(values, count))
+  if (encoding != TensorEncoding::kFloat32 && !all_finite(values, count))
     return absl::InvalidArgumentError(absl::StrCat(what, ": contains NaN or infinite values"));
+  if (encoding == TensorEncoding::kFloat16 && !within_half_range(values, count)) encoding = TensorEncoding::kFloat32;
   out->set_encoding(to_proto(encoding));
   out->clear_shape();
   for (int64_t d : t.sizes()) out->add_shape(d);
@@ -84,6 +115,8 @@ absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, Sh
   if (bytes == 0) return absl::OkStatus();
   if (encoding == TensorEncoding::kUint8)
     to_bytes(values, count, destination);
+  else if (encoding == TensorEncoding::kFloat16)
+    to_halves(values, count, destination);
   else
     std::memcpy(destination, values, bytes);
   return absl::OkStatus();
@@ -96,14 +129,24 @@ absl::StatusOr<TensorEncoding> tensor_encoding(v1::Tensor::Encoding encoding, co
       return TensorEncoding::kFloat32;
     case v1::Tensor::RAW_U8:
       return TensorEncoding::kUint8;
+    case v1::Tensor::RAW_F16:
+      return TensorEncoding::kFloat16;
     default:
       return absl::InvalidArgumentError(
-          absl::StrCat(what, ": encoding ", v1::Tensor::Encoding_Name(encoding), " is not RAW_F32 or RAW_U8"));
+          absl::StrCat(what, ": encoding ", v1::Tensor::Encoding_Name(encoding), " is not RAW_F32, RAW_U8 or RAW_F16"));
   }
 }
 
 v1::Tensor::Encoding to_proto(TensorEncoding encoding) {
-  return encoding == TensorEncoding::kUint8 ? v1::Tensor::RAW_U8 : v1::Tensor::RAW_F32;
+  switch (encoding) {
+    case TensorEncoding::kUint8:
+      return v1::Tensor::RAW_U8;
+    case TensorEncoding::kFloat16:
+      return v1::Tensor::RAW_F16;
+    case TensorEncoding::kFloat32:
+      break;
+  }
+  return v1::Tensor::RAW_F32;
 }
 
 namespace {
@@ -134,6 +177,14 @@ absl::StatusOr<at::Tensor> decode_raw(std::string_view bytes, const std::vector<
   }
   at::Tensor out = at::empty(shape, at::kFloat);
   float* values = out.data_ptr<float>();
+  if (element_size == sizeof(c10::Half)) {
+    for (int64_t i = 0; i < count; ++i) {
+      c10::Half h;
+      std::memcpy(&h, bytes.data() + i * sizeof(h), sizeof(h));
+      values[i] = static_cast<float>(h);
+    }
+    return out;
+  }
   const auto* in = reinterpret_cast<const uint8_t*>(bytes.data());
   // Divided, not multiplied by 1/255: the values an 8-bit image decodes to everywhere else.
   for (int64_t i = 0; i < count; ++i) values[i] = static_cast<float>(in[i]) / 255.0f;
@@ -153,6 +204,8 @@ absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::st
       return decode_raw(bytes, shape, *checked, sizeof(float), what);
     case v1::Tensor::RAW_U8:
       return decode_raw(bytes, shape, *checked, 1, what);
+    case v1::Tensor::RAW_F16:
+      return decode_raw(bytes, shape, *checked, sizeof(c10::Half), what);
     case v1::Tensor::PNG: {
       GAPS_ASSIGN_OR_RETURN(at::Tensor image, decode_image(std::string(bytes), what));
       if (shape.size() >= 2 && (shape[0] != image.size(0) || shape[1] != image.size(1)))

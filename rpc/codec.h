@@ -21,19 +21,25 @@ class SharedRegion;
 // Bytes per Chunk / file chunk message: well under gRPC's default 4 MiB message cap.
 inline constexpr size_t kChunkBytes = 1 << 20;
 
-// How a float tensor travels: RAW_F32, or RAW_U8 for images and alpha maps in [0, 1].
-enum class TensorEncoding { kFloat32, kUint8 };
+// How a float tensor travels: RAW_F32, RAW_U8 for images and alpha maps in [0, 1], or RAW_F16 for depth maps.
+enum class TensorEncoding { kFloat32, kUint8, kFloat16 };
+
+// Largest magnitude a half-precision value holds.
+inline constexpr float kHalfMax = 65504.0f;
 
 // Float tensor (any shape, any device) -> RAW_F32 (any shape).
 void encode_raw(const at::Tensor& tensor, v1::Tensor* out);
 // Float tensor (any shape, any device) -> `encoding`, its payload in the message or, given an arena, in the
-// arena's shared region (RESOURCE_EXHAUSTED when it is full). kUint8 refuses NaN and infinite values
-// (INVALID_ARGUMENT naming `what`: they have no byte) and clamps the rest to [0, 1].
+// arena's shared region (RESOURCE_EXHAUSTED when it is full). kUint8 and kFloat16 refuse NaN and infinite values
+// (INVALID_ARGUMENT naming `what`); kUint8 clamps the rest to [0, 1]; kFloat16 rounds to nearest even and, when a
+// magnitude exceeds kHalfMax, sends the tensor as RAW_F32 instead (the message says which), so that no value is
+// lost.
 absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
                            const std::string& what, v1::Tensor* out);
 // The payload size of `tensor` in `encoding`.
 uint64_t encoded_bytes(const at::Tensor& tensor, TensorEncoding encoding);
-// RAW_F32 / unspecified -> kFloat32, RAW_U8 -> kUint8; any other is INVALID_ARGUMENT naming `what`.
+// RAW_F32 / unspecified -> kFloat32, RAW_U8 -> kUint8, RAW_F16 -> kFloat16; any other is INVALID_ARGUMENT naming
+// `what`.
 absl::StatusOr<TensorEncoding> tensor_encoding(v1::Tensor::Encoding encoding, const std::string& what);
 v1::Tensor::Encoding to_proto(TensorEncoding encoding);
 // H x W x 3 (or x 1) image in [0, 1] -> 8-bit PNG.

@@ -18,7 +18,7 @@ absl::Status encode_reference_as(const ReferenceView& view, const TensorTransfer
   encode_camera(view.camera, out->mutable_camera());
   GAPS_RETURN_IF_ERROR(
       encode_tensor(view.image, transfer.images, transfer.arena, absl::StrCat(what, " image"), out->mutable_image()));
-  GAPS_RETURN_IF_ERROR(encode_tensor(view.render_depth, TensorEncoding::kFloat32, transfer.arena,
+  GAPS_RETURN_IF_ERROR(encode_tensor(view.render_depth, transfer.depths, transfer.arena,
                                      absl::StrCat(what, " render_depth"), out->mutable_render_depth()));
   return encode_tensor(view.render_alpha, transfer.images, transfer.arena, absl::StrCat(what, " render_alpha"),
                        out->mutable_render_alpha());
@@ -43,6 +43,10 @@ uint64_t view_bytes(const at::Tensor& rgb, const at::Tensor& depth, const at::Te
 }
 
 }  // namespace
+
+TensorEncoding depth_encoding_for(TensorEncoding images) {
+  return images == TensorEncoding::kUint8 ? TensorEncoding::kFloat16 : TensorEncoding::kFloat32;
+}
 
 void encode_reference(const ReferenceView& view, v1::ReferenceView* out) {
   // Float32 into the message fails on nothing.
@@ -127,7 +131,7 @@ absl::Status encode_generation_batch(const std::vector<GenerationRequest>& reque
     encode_camera(q.camera, pose->mutable_camera());
     GAPS_RETURN_IF_ERROR(encode_tensor(q.render_rgb, transfer.images, transfer.arena, absl::StrCat(what, " render_rgb"),
                                        pose->mutable_render_rgb()));
-    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_depth, TensorEncoding::kFloat32, transfer.arena,
+    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_depth, transfer.depths, transfer.arena,
                                        absl::StrCat(what, " render_depth"), pose->mutable_render_depth()));
     GAPS_RETURN_IF_ERROR(encode_tensor(q.render_alpha, transfer.images, transfer.arena,
                                        absl::StrCat(what, " render_alpha"), pose->mutable_render_alpha()));

@@ -2,7 +2,7 @@
 // GenerationRequest / ReferenceView / SceneAdaptation <-> gaps.v1 generation messages. Reference views
 // shared by the poses of a batch travel once (matched by camera name), each pose keeping its own
 // nearest-first order. Tensors travel as raw float32, so that a remote backend sees exactly what an
-// in-process one would, or compact (`TensorTransfer`): colour and alpha as bytes, depth as float32; either
+// in-process one would, or compact (`TensorTransfer`): colour and alpha as bytes, depth as float16; either
 // in the message or in a shared-memory region. Decoding checks the controls' ranges: INVALID_ARGUMENT naming
 // the field.
 #include <optional>
@@ -31,13 +31,20 @@ void encode_adapt_batch(const std::string& scene_id, const std::vector<Reference
 absl::StatusOr<AdaptRequest> decode_adapt_batch(const v1::AdaptSceneBatch& batch);
 
 // How a batch's tensors travel: `images` is the encoding of colour and alpha (renders, reference photos, the
-// answer's images; depth is always float32); with an arena their payloads go into its shared region.
+// answer's images), `depths` that of the depth maps (kFloat32 or kFloat16; a map beyond half precision's range
+// goes as float32 whatever this says); with an arena their payloads go into its shared region.
 struct TensorTransfer {
   TensorEncoding images = TensorEncoding::kFloat32;
   SharedArena* arena = nullptr;
+  TensorEncoding depths = TensorEncoding::kFloat32;
 };
 
-// Shared-region bytes a batch needs in `images` encoding: its tensors (references once) and its answer.
+// The depth encoding that goes with an image encoding: float16 with bytes (compact), float32 with float32 (what
+// an in-process backend sees, bit for bit).
+TensorEncoding depth_encoding_for(TensorEncoding images);
+
+// Shared-region bytes a batch needs in `images` encoding: its tensors (references once) and its answer. Depth maps
+// are counted at float32's size, which holds them in any encoding.
 struct SharedLayout {
   uint64_t request_bytes = 0;
   uint64_t answer_bytes = 0;

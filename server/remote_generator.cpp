@@ -337,7 +337,9 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
     region->set_size(w.region->size());
     region->set_answer_offset(layout.request_bytes);
   }
-  GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, {options_.encoding, arena ? &*arena : nullptr}));
+  const rpc::TensorTransfer transfer{options_.encoding, arena ? &*arena : nullptr,
+                                     options_.depth_encoding.value_or(rpc::depth_encoding_for(options_.encoding))};
+  GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, transfer));
   if (!w.scene_handle.empty()) batch.set_scene_handle(w.scene_handle);
   attempt.stages["client_encode"] += lap_seconds(&clock);
   attempt.counters["request_bytes"] += static_cast<double>(batch.ByteSizeLong());
