@@ -134,7 +134,7 @@ int main(int argc, char** argv) {
     const char* name;
     gaps::rpc::TensorEncoding encoding;
     bool shared_memory;
-    std::optional<gaps::rpc::TensorEncoding> depth;  // unset: the encoding's (float16 with compact)
+    std::optional<gaps::rpc::TensorEncoding> depth;  // unset: the pool's choice (float16 with compact on a socket)
   };
   using gaps::rpc::TensorEncoding;
   const std::vector<Case> cases = {
@@ -142,7 +142,7 @@ int main(int argc, char** argv) {
       {"compact-socket", TensorEncoding::kUint8, false, std::nullopt},
       {"compact-socket-float32-depth", TensorEncoding::kUint8, false, TensorEncoding::kFloat32},
       {"compact-shared", TensorEncoding::kUint8, true, std::nullopt},
-      {"compact-shared-float32-depth", TensorEncoding::kUint8, true, TensorEncoding::kFloat32},
+      {"compact-shared-half-depth", TensorEncoding::kUint8, true, TensorEncoding::kFloat16},
       {"float32-shared", TensorEncoding::kFloat32, true, std::nullopt}};
   std::vector<std::unique_ptr<gaps::RemoteGenerator>> remotes;
   for (const Case& c : cases) {

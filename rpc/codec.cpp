@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <vector>
 
 #include <ATen/ATen.h>
 #include "absl/strings/str_cat.h"
@@ -69,12 +70,12 @@ bool within_half_range(const float* values, int64_t count) {
   return within;
 }
 
-// Rounded to nearest even (c10::Half's conversion, the one at::Tensor::to(kHalf) uses).
+// Rounded to nearest even (c10::Half's conversion, the one at::Tensor::to(kHalf) uses). Converted into an aligned
+// buffer, which the loop vectorises, then copied: a payload in a message or a region need not be aligned for it.
 void to_halves(const float* values, int64_t count, uint8_t* out) {
-  for (int64_t i = 0; i < count; ++i) {
-    const c10::Half h(values[i]);
-    std::memcpy(out + i * sizeof(h), &h, sizeof(h));  // a message's payload need not be aligned for c10::Half
-  }
+  std::vector<uint16_t> halves(count);
+  for (int64_t i = 0; i < count; ++i) halves[i] = c10::detail::fp16_ieee_from_fp32_value(values[i]);
+  std::memcpy(out, halves.data(), count * sizeof(uint16_t));
 }
 
 // Clamped to [0, 1] and rounded half to even, as at::round does: adding and subtracting 1.5 * 2^23 leaves the
@@ -177,12 +178,10 @@ absl::StatusOr<at::Tensor> decode_raw(std::string_view bytes, const std::vector<
   }
   at::Tensor out = at::empty(shape, at::kFloat);
   float* values = out.data_ptr<float>();
-  if (element_size == sizeof(c10::Half)) {
-    for (int64_t i = 0; i < count; ++i) {
-      c10::Half h;
-      std::memcpy(&h, bytes.data() + i * sizeof(h), sizeof(h));
-      values[i] = static_cast<float>(h);
-    }
+  if (element_size == sizeof(uint16_t)) {
+    std::vector<uint16_t> halves(count);
+    if (count > 0) std::memcpy(halves.data(), bytes.data(), bytes.size());
+    for (int64_t i = 0; i < count; ++i) values[i] = c10::detail::fp16_ieee_to_fp32_value(halves[i]);
     return out;
   }
   const auto* in = reinterpret_cast<const uint8_t*>(bytes.data());
@@ -205,7 +204,7 @@ absl::StatusOr<at::Tensor> decode_tensor(const v1::Tensor& tensor, const std::st
     case v1::Tensor::RAW_U8:
       return decode_raw(bytes, shape, *checked, 1, what);
     case v1::Tensor::RAW_F16:
-      return decode_raw(bytes, shape, *checked, sizeof(c10::Half), what);
+      return decode_raw(bytes, shape, *checked, sizeof(uint16_t), what);
     case v1::Tensor::PNG: {
       GAPS_ASSIGN_OR_RETURN(at::Tensor image, decode_image(std::string(bytes), what));
       if (shape.size() >= 2 && (shape[0] != image.size(0) || shape[1] != image.size(1)))
