@@ -55,7 +55,8 @@ ABSL_FLAG(int, worker_timeout_s, 300, "deadline of each generation call");
 ABSL_FLAG(int, worker_rounds, 3, "passes over the worker pool (with backoff) before a phase is skipped");
 ABSL_FLAG(std::string, worker_encoding, "compact",
           "how renders and images travel to and from the workers: compact (colour and alpha as bytes, depth as "
-          "float16) or float32 (what an in-process backend sees, bit for bit)");
+          "float16 in the messages, float32 through shared memory) or float32 (what an in-process backend sees, "
+          "bit for bit)");
 ABSL_FLAG(bool, worker_shared_memory, true,
           "pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker; "
           "the others get them in the messages)");
