@@ -470,23 +470,36 @@ Camera midway(const Camera& a, const Camera& b) {
   return c;
 }
 
-TEST(ReprojectGeneratorTest, FernViewsWarpToAMidwayPoseAndReproduceThemselves) {
-  const std::filesystem::path root = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
-  if (!std::filesystem::exists(root)) GTEST_SKIP() << "benchmark data not found at " << root;
-  SceneLoadOptions load;
-  load.resolution = 8;
-  absl::StatusOr<Scene> scene = load_scene(root, load);
-  ASSERT_TRUE(scene.ok()) << scene.status();
-  ASSERT_GT(scene->cameras.size(), 10u);
-  // A plane-like constant distance: halfway between the scene's median near and far bounds.
-  std::vector<double> nears, fars;
-  for (const Camera& c : scene->cameras) {
-    nears.push_back(c.near);
-    fars.push_back(c.far);
+// Fern at -r 8, with its cameras' median near and far bounds (the test skips without the benchmark data).
+class ReprojectGeneratorFernTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    const std::filesystem::path root = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
+    if (!std::filesystem::exists(root)) GTEST_SKIP() << "benchmark data not found at " << root;
+    SceneLoadOptions load;
+    load.resolution = 8;
+    absl::StatusOr<Scene> scene = load_scene(root, load);
+    ASSERT_TRUE(scene.ok()) << scene.status();
+    ASSERT_GT(scene->cameras.size(), 10u);
+    std::vector<double> nears, fars;
+    for (const Camera& c : scene->cameras) {
+      nears.push_back(c.near);
+      fars.push_back(c.far);
+    }
+    near_ = median(nears);
+    far_ = median(fars);
+    cameras_ = scene->cameras;
   }
-  const float distance = static_cast<float>(0.5 * (median(nears) + median(fars)));
-  const Camera& cam1 = scene->cameras[1];
-  const Camera& cam10 = scene->cameras[10];
+
+  std::vector<Camera> cameras_;
+  double near_ = 0, far_ = 0;
+};
+
+TEST_F(ReprojectGeneratorFernTest, ViewsWarpToAMidwayPoseAndReproduceThemselves) {
+  // A plane-like constant distance: halfway between the scene's median near and far bounds.
+  const float distance = static_cast<float>(0.5 * (near_ + far_));
+  const Camera& cam1 = cameras_[1];
+  const Camera& cam10 = cameras_[10];
   const ReferenceView ref1 = fern_reference(cam1, distance);
   const ReferenceView ref10 = fern_reference(cam10, distance);
 
@@ -517,19 +530,8 @@ TEST(ReprojectGeneratorTest, FernViewsWarpToAMidwayPoseAndReproduceThemselves) {
 // The compact hand-over sends depth maps in half precision (rpc/codec.h): on fern's views with a varying depth
 // (a slanted, rippled surface between the scene's bounds), the warp to a midway pose from the rounded depths is the
 // warp from the exact ones (measured: 99.7 % of the pixels within a byte, 44.6 dB apart).
-TEST(ReprojectGeneratorTest, HalfPrecisionDepthsWarpFernAsTheExactOnesDo) {
-  const std::filesystem::path root = std::filesystem::path(GAPS_DATA_DIR) / "llff" / "fern";
-  if (!std::filesystem::exists(root)) GTEST_SKIP() << "benchmark data not found at " << root;
-  SceneLoadOptions load;
-  load.resolution = 8;
-  absl::StatusOr<Scene> scene = load_scene(root, load);
-  ASSERT_TRUE(scene.ok()) << scene.status();
-  std::vector<double> nears, fars;
-  for (const Camera& c : scene->cameras) {
-    nears.push_back(c.near);
-    fars.push_back(c.far);
-  }
-  const double near = median(nears), far = median(fars);
+TEST_F(ReprojectGeneratorFernTest, HalfPrecisionDepthsWarpAsTheExactOnesDo) {
+  const double near = near_, far = far_;
   const auto varying = [&](const Camera& camera) {
     ReferenceView v = fern_reference(camera, 1.0f);
     const at::Tensor x = at::linspace(0, 1, camera.width).unsqueeze(0);
@@ -542,8 +544,8 @@ TEST(ReprojectGeneratorTest, HalfPrecisionDepthsWarpFernAsTheExactOnesDo) {
     v.render_depth = v.render_depth.to(at::kHalf).to(at::kFloat);
     return v;
   };
-  const Camera& cam1 = scene->cameras[1];
-  const Camera& cam10 = scene->cameras[10];
+  const Camera& cam1 = cameras_[1];
+  const Camera& cam10 = cameras_[10];
   const std::vector<ReferenceView> exact = {varying(cam1), varying(cam10)};
   const std::vector<ReferenceView> rounded = {halves(exact[0]), halves(exact[1])};
   ASSERT_FALSE(at::equal(exact[0].render_depth, rounded[0].render_depth));  // the rounding changes the depths
