@@ -26,6 +26,10 @@ as run. One JSON line per case goes to --out; a case whose worker logged an empt
   python3 bench/placements_bench.py --build build --scene ../shared/data/llff/fern --work /tmp/placements \
       --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus] \
       [--worker_options '{"cuda_graphs": true}'] [--submit_flags --async-iterations 500]
+
+Jobs run with the trainer's defaults unless --submit_flags says otherwise: asynchronous phases (250) since
+2026-11-30, so the synchronous rows recorded before need `--submit_flags --async-iterations 0` to be repeated. Each
+row records the schedule its job had (`async_iterations`, from metrics.json).
 """
 import argparse
 import json
@@ -241,6 +245,8 @@ def run_case(case, args, backend_options, env):
         "succeeded": watch.returncode == 0, "job_wall_seconds": round(job_seconds, 2),
         "worker_start_seconds": round(worker_ready, 2) if workers else None,
         "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"),
+        # The schedule the job had (asynchronous, 250, by default since 2026-11-30; 0: synchronous).
+        "async_iterations": metrics.get("gaps", {}).get("async_iterations"),
         "iterations": metrics.get("iterations"), "num_gaussians": metrics.get("num_gaussians"),
         "trainer_allocator_peak_gib": round(metrics.get("peak_memory", {}).get("bytes", 0) / GIB, 3),
         "caps_gib": {"trainer": caps[0], "worker": caps[1]},

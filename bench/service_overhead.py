@@ -54,6 +54,8 @@ def results(folder):
             counters[key] = counters.get(key, 0.0) + value
     return {"train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"), "ssim": metrics.get("ssim"),
             "lpips": metrics.get("lpips"), "iterations": metrics.get("iterations"),
+            # The schedule the run had (asynchronous, 250, by default since 2026-11-30; 0: synchronous).
+            "async_iterations": metrics.get("gaps", {}).get("async_iterations"),
             "num_gaussians": metrics.get("num_gaussians"), **phase_breakdown(phases),
             "generator_counters": counters}
 
