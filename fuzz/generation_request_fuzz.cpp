@@ -14,7 +14,7 @@ void generate_batch(const uint8_t* data, size_t size) {
   for (const auto encoding : {gaps::rpc::TensorEncoding::kFloat32, gaps::rpc::TensorEncoding::kUint8}) {
     gaps::v1::GenerateBatch again;
     // Decoded tensors are finite, so neither encoding may refuse them.
-    const gaps::rpc::TensorTransfer transfer{encoding, nullptr, gaps::rpc::depth_encoding_for(encoding)};
+    const gaps::rpc::TensorTransfer transfer{encoding, nullptr, gaps::rpc::depth_encoding_for(encoding, false)};
     if (!gaps::rpc::encode_generation_batch(*requests, &again, transfer).ok()) __builtin_trap();
     const auto back = gaps::rpc::decode_generation_batch(again);
     if (!back.ok() || back->size() != requests->size()) __builtin_trap();

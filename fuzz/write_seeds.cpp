@@ -283,7 +283,7 @@ void generation_seeds(const fs::path& out) {
   put(out / "generate", std::string(1, '\0') + batch.SerializeAsString());
   v1::GenerateBatch compact;
   const rpc::TensorTransfer compact_transfer{rpc::TensorEncoding::kUint8, nullptr,
-                                             rpc::depth_encoding_for(rpc::TensorEncoding::kUint8)};
+                                             rpc::depth_encoding_for(rpc::TensorEncoding::kUint8, false)};
   if (!rpc::encode_generation_batch({q}, &compact, compact_transfer).ok()) std::abort();
   put(out / "generate_compact", std::string(1, '\0') + compact.SerializeAsString());
   v1::AdaptSceneBatch adapt;

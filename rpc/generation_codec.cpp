@@ -44,8 +44,8 @@ uint64_t view_bytes(const at::Tensor& rgb, const at::Tensor& depth, const at::Te
 
 }  // namespace
 
-TensorEncoding depth_encoding_for(TensorEncoding images) {
-  return images == TensorEncoding::kUint8 ? TensorEncoding::kFloat16 : TensorEncoding::kFloat32;
+TensorEncoding depth_encoding_for(TensorEncoding images, bool shared_memory) {
+  return images == TensorEncoding::kUint8 && !shared_memory ? TensorEncoding::kFloat16 : TensorEncoding::kFloat32;
 }
 
 void encode_reference(const ReferenceView& view, v1::ReferenceView* out) {

@@ -2,8 +2,8 @@
 // GenerationRequest / ReferenceView / SceneAdaptation <-> gaps.v1 generation messages. Reference views
 // shared by the poses of a batch travel once (matched by camera name), each pose keeping its own
 // nearest-first order. Tensors travel as raw float32, so that a remote backend sees exactly what an
-// in-process one would, or compact (`TensorTransfer`): colour and alpha as bytes, depth as float16; either
-// in the message or in a shared-memory region. Decoding checks the controls' ranges: INVALID_ARGUMENT naming
+// in-process one would, or compact (`TensorTransfer`): colour and alpha as bytes, depth as float16 in the
+// message or float32 in a shared-memory region. Decoding checks the controls' ranges: INVALID_ARGUMENT naming
 // the field.
 #include <optional>
 #include <string>
@@ -39,9 +39,10 @@ struct TensorTransfer {
   TensorEncoding depths = TensorEncoding::kFloat32;
 };
 
-// The depth encoding that goes with an image encoding: float16 with bytes (compact), float32 with float32 (what
-// an in-process backend sees, bit for bit).
-TensorEncoding depth_encoding_for(TensorEncoding images);
+// The depth encoding that goes with an image encoding: float16 with bytes (compact) where the payload crosses a
+// socket; float32 through shared memory (a copy costs less than converting there) and with float32 images (what an
+// in-process backend sees, bit for bit).
+TensorEncoding depth_encoding_for(TensorEncoding images, bool shared_memory);
 
 // Shared-region bytes a batch needs in `images` encoding: its tensors (references once) and its answer. Depth maps
 // are counted at float32's size, which holds them in any encoding.

@@ -337,9 +337,8 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
     region->set_size(w.region->size());
     region->set_answer_offset(layout.request_bytes);
   }
-  // Half-precision depth saves bytes on a socket; through shared memory a float32 copy is cheaper than converting.
-  const rpc::TensorEncoding depths = options_.depth_encoding.value_or(
-      arena ? rpc::TensorEncoding::kFloat32 : rpc::depth_encoding_for(options_.encoding));
+  const rpc::TensorEncoding depths =
+      options_.depth_encoding.value_or(rpc::depth_encoding_for(options_.encoding, arena.has_value()));
   const rpc::TensorTransfer transfer{options_.encoding, arena ? &*arena : nullptr, depths};
   GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, transfer));
   if (!w.scene_handle.empty()) batch.set_scene_handle(w.scene_handle);

@@ -41,8 +41,7 @@ struct WorkerPoolOptions {
   // How renders, reference photos and the answer's images travel: kUint8 (a quarter of the bytes; 8-bit
   // photographs lose nothing) or kFloat32 (what an in-process backend sees, bit for bit).
   rpc::TensorEncoding encoding = rpc::TensorEncoding::kUint8;
-  // How depth maps travel; unset: float32 through shared memory (a copy costs less than converting), else
-  // rpc::depth_encoding_for(encoding) (float16 with kUint8, float32 with kFloat32).
+  // How depth maps travel; unset: rpc::depth_encoding_for(encoding, whether the call uses shared memory).
   std::optional<rpc::TensorEncoding> depth_encoding;
   // Pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker by
   // its probe, rpc/shared_memory.h); the others, and all when false, get them in the messages.
