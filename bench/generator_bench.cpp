@@ -88,6 +88,9 @@ ABSL_FLAG(std::string, lora_trace, "",
           "after the timed LoRA training, run --lora_trace_steps more steps under the PyTorch (Kineto) profiler "
           "and write its Chrome trace here (bench/trace_summary.py TRACE --iterations N ranks it)");
 ABSL_FLAG(int, lora_trace_steps, 5, "LoRA training steps in the trace");
+ABSL_FLAG(std::string, img2img_trace, "",
+          "after timing img2img_controlnet_ip_lora (the four constraints), run one more call at the last size and "
+          "batch under the profiler and write its Chrome trace here (bench/trace_summary.py TRACE --iterations 1)");
 
 namespace {
 
@@ -302,6 +305,28 @@ struct Bench {
         emit_timed(j, t, out);
       }
     }
+    return case_name != "img2img_controlnet_ip_lora" || trace_img2img(pipeline, image_prompt);
+  }
+
+  // One call of the last size and batch under the profiler (--img2img_trace), apart from the timed runs, whose
+  // time the profiler would inflate.
+  bool trace_img2img(sdxl::SdxlPipeline& pipeline, bool image_prompt) const {
+    const std::string trace = absl::GetFlag(FLAGS_img2img_trace);
+    if (trace.empty()) return true;
+    const int64_t batch = batches.back();
+    const ViewInputs in = view_inputs(sizes.back(), batch, 4);
+    const sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
+    const sdxl::ControlInput control{in.control, {absl::GetFlag(FLAGS_control_scale)}};
+    std::vector<uint64_t> seeds(batch);
+    std::iota(seeds.begin(), seeds.end(), uint64_t{1234});
+    gaps::bench::KinetoTrace profiler(device.device().is_cuda());
+    device.sync();
+    profiler.start();
+    auto result = pipeline.img2img(in.image, std::vector<std::string>(batch, kPrompt), params, seeds, control);
+    device.sync();
+    profiler.stop_and_save(trace);
+    if (!result.ok()) return fail("img2img (traced)", result.status());
+    std::cerr << "generator_bench: one img2img call of batch " << batch << " traced into " << trace << "\n";
     return true;
   }
 

@@ -136,14 +136,14 @@ class Service:
 
 
 def phase_breakdown(phases):
-    """Sums of the phases' sections and generator stages, and the admission counts."""
-    sections, stages = {}, {}
+    """Sums of the phases' sections, generator stages and generator counters (bytes, the sdxl backend's batches and
+    denoising steps), and the admission counts."""
+    sections, stages, counters = {}, {}, {}
     admitted = rejected = skipped = 0
     for p in phases:
-        for key, value in p.get("seconds", {}).items():
-            sections[key] = sections.get(key, 0.0) + value
-        for key, value in p.get("generator_stages", {}).items():
-            stages[key] = stages.get(key, 0.0) + value
+        for totals, entry in ((sections, "seconds"), (stages, "generator_stages"), (counters, "generator_counters")):
+            for key, value in p.get(entry, {}).items():
+                totals[key] = totals.get(key, 0.0) + value
         skipped += bool(p.get("skipped"))
         for s in p.get("selection", []):
             admitted += bool(s.get("admitted"))
@@ -153,7 +153,7 @@ def phase_breakdown(phases):
     return {"phases": len(phases), "phases_skipped": skipped, "pseudo_views_admitted": admitted,
             "pseudo_views_rejected": rejected, "phase_seconds": {k: round(v, 3) for k, v in sections.items()},
             "first_phase_generation_seconds": round(first, 3) if first is not None else None,
-            "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}}
+            "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}, "generator_counters": counters}
 
 
 # LibTorch's warning when a capture recorded nothing: the replays of that graph would skip the UNet, so the

@@ -48,16 +48,11 @@ def run_flags(args, seed):
 def results(folder):
     metrics = json.loads((folder / "metrics.json").read_text()) if (folder / "metrics.json").exists() else {}
     phases = json.loads((folder / "phases.json").read_text()) if (folder / "phases.json").exists() else []
-    counters = {}
-    for p in phases:
-        for key, value in p.get("generator_counters", {}).items():
-            counters[key] = counters.get(key, 0.0) + value
     return {"train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"), "ssim": metrics.get("ssim"),
             "lpips": metrics.get("lpips"), "iterations": metrics.get("iterations"),
             # The schedule the run had (asynchronous, 250, by default since 2026-11-30; 0: synchronous).
             "async_iterations": metrics.get("gaps", {}).get("async_iterations"),
-            "num_gaussians": metrics.get("num_gaussians"), **phase_breakdown(phases),
-            "generator_counters": counters}
+            "num_gaussians": metrics.get("num_gaussians"), **phase_breakdown(phases)}
 
 
 def in_process(args, seed, out, env):

@@ -1,10 +1,11 @@
 #include "diffusion_worker/sdxl_generator.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <optional>
-#include <tuple>
 #include <utility>
 
 #include <ATen/ATen.h>
@@ -57,6 +58,9 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
           string_option<O>("variant", &O::variant, "fp16 = the *.fp16.safetensors weight copies"),
           string_option<O>("scheduler", &O::scheduler, "euler, ddim, dpmpp2m or pndm; \"\" = the folder's"),
           integer_option<O>("batch_size", &O::batch_size, at_least(1), "requests denoised together"),
+          number_option<O>("batch_step_overhead", &O::batch_step_overhead, at_least(0),
+                           "a denoising step's fixed cost in batch members, above which requests of unequal "
+                           "strengths share a batch; unset = 1 on CUDA, 0 on the CPU"),
           bool_option<O>("cuda_graphs", &O::cuda_graphs, "replay the UNet from CUDA graphs (CUDA only)"),
           string_option<O>("controlnet", &O::controlnet, "depth ControlNet folder; \"\" = the SDXL folder's, if any"),
           number_option<O>(
@@ -285,12 +289,33 @@ double seconds_since(std::chrono::steady_clock::time_point start) {
 
 }  // namespace
 
+std::vector<size_t> img2img_batch_ends(const std::vector<int64_t>& steps, size_t batch_size, double step_overhead) {
+  const size_t n = steps.size();
+  std::vector<double> best(n + 1, 0.0);
+  std::vector<size_t> begin_of(n + 1, 0);
+  for (size_t j = 1; j <= n; ++j) {
+    best[j] = std::numeric_limits<double>::infinity();
+    // Ties go to the earliest begin: fewer, larger batches for the same cost.
+    for (size_t i = j > batch_size ? j - batch_size : 0; i < j; ++i) {
+      const double cost = best[i] + static_cast<double>(steps[i]) * (step_overhead + static_cast<double>(j - i));
+      if (cost < best[j]) {
+        best[j] = cost;
+        begin_of[j] = i;
+      }
+    }
+  }
+  std::vector<size_t> ends;
+  for (size_t j = n; j > 0; j = begin_of[j]) ends.insert(ends.begin(), j);
+  return ends;
+}
+
 absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vector<GenerationRequest>& requests) {
   notes_.clear();
   stage_seconds_.clear();
+  counters_.clear();
   std::vector<at::Tensor> results(requests.size());
-  // Requests of one size and step count share a batch.
-  std::map<std::tuple<int64_t, int64_t, int64_t>, std::vector<size_t>> groups;
+  // Requests of one size share batches, whatever their step counts (the pipeline starts each at its own step).
+  std::map<std::pair<int64_t, int64_t>, std::vector<std::pair<int64_t, size_t>>> groups;  // (steps, request)
   const int64_t f = pipeline_->latent_factor();
   for (size_t i = 0; i < requests.size(); ++i) {
     const at::Tensor& rgb = requests[i].render_rgb;
@@ -328,15 +353,26 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       results[i] = rgb.to(at::kFloat).clamp(0, 1).contiguous();
       continue;
     }
-    groups[{rgb.size(0), rgb.size(1), run_steps}].push_back(i);
+    groups[{rgb.size(0), rgb.size(1)}].push_back({run_steps, i});
   }
+  const double step_overhead = !std::isnan(options_.batch_step_overhead) ? options_.batch_step_overhead
+                               : pipeline_->device().is_cuda()           ? kImg2ImgStepOverheadCuda
+                                                                         : 0.0;
   // The pipelines return CPU tensors, so the wall clock includes the device's work.
   const auto img2img_start = std::chrono::steady_clock::now();
-  for (const auto& [key, members] : groups) {
-    const auto [height, width, run_steps] = key;
+  for (auto& [size, group] : groups) {
+    const auto [height, width] = size;
     const int64_t padded_h = (height + f - 1) / f * f, padded_w = (width + f - 1) / f * f;
-    for (size_t begin = 0; begin < members.size(); begin += options_.batch_size) {
-      const size_t end = std::min(members.size(), begin + static_cast<size_t>(options_.batch_size));
+    // Most steps first, so that a batch's members start close together.
+    std::stable_sort(group.begin(), group.end(), [](const auto& a, const auto& b) { return a.first > b.first; });
+    std::vector<size_t> members;
+    std::vector<int64_t> member_steps;
+    for (const auto& [run_steps, index] : group) {
+      members.push_back(index);
+      member_steps.push_back(run_steps);
+    }
+    size_t begin = 0;
+    for (const size_t end : img2img_batch_ends(member_steps, static_cast<size_t>(options_.batch_size), step_overhead)) {
       std::vector<at::Tensor> images, controls;
       std::vector<std::string> prompts;
       std::vector<uint64_t> seeds;
@@ -366,15 +402,18 @@ absl::StatusOr<std::vector<at::Tensor>> SdxlGenerator::generate(const std::vecto
       params.guidance_scale = options_.guidance;
       params.reference_images = std::move(references);
       if (!ip_scales.empty()) params.ip_adapter_scales = std::move(ip_scales);
-      // Every member runs int(steps * strength) = run_steps steps, so any member's strength serves.
-      params.strength = requests[members[begin]].strength;
+      for (size_t m = begin; m < end; ++m) params.strengths.push_back(requests[members[m]].strength);
       std::optional<sdxl::ControlInput> control;
       if (pipeline_->controlnet()) control = sdxl::ControlInput{at::cat(controls), scales};
       GAPS_ASSIGN_OR_RETURN(at::Tensor out, pipeline_->img2img(at::cat(images), prompts, params, seeds, control));
       for (size_t m = begin; m < end; ++m) {
         results[members[m]] =
             out[static_cast<int64_t>(m - begin)].slice(1, 0, height).slice(2, 0, width).permute({1, 2, 0}).contiguous();
+        counters_["img2img_member_steps"] += static_cast<double>(member_steps[m]);
       }
+      counters_["img2img_batches"] += 1;
+      counters_["img2img_batch_steps"] += static_cast<double>((end - begin) * member_steps[begin]);
+      begin = end;
     }
   }
   stage_seconds_["img2img"] = seconds_since(img2img_start);

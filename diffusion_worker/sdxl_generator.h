@@ -33,9 +33,13 @@ struct SdxlOptions {
   std::string device = "cpu";     // cpu | cuda | cuda:N
   std::string prompt;             // used when a request has no prompt
   std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m | pndm
-  int64_t batch_size = 4;         // requests of one size and strength denoised together
-  bool cuda_graphs = false;       // replay the UNet from CUDA graphs (CUDA device and build only)
-  std::string variant;            // "" = full weight files; "fp16" = the *.fp16.safetensors copies
+  int64_t batch_size = 4;         // requests of one size denoised together
+  // A denoising step's fixed cost in batch members (img2img_batch_ends): requests of unequal strengths share a
+  // batch when that saves more than their extra steps cost. NaN: by device, kImg2ImgStepOverheadCuda on CUDA and 0
+  // on the CPU (only equal strengths share).
+  double batch_step_overhead = std::numeric_limits<double>::quiet_NaN();
+  bool cuda_graphs = false;  // replay the UNet from CUDA graphs (CUDA device and build only)
+  std::string variant;       // "" = full weight files; "fp16" = the *.fp16.safetensors copies
   // Depth ControlNet: a diffusers ControlNetModel folder ("" = the SDXL folder's "controlnet" component
   // if it lists one, else none) and the reliability mask of its depth image.
   std::string controlnet;
@@ -111,6 +115,9 @@ class SdxlGenerator final : public Generator {
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
   std::vector<std::string> notes() const override { return notes_; }
   std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
+  // Of the last generate(): "img2img_batches", "img2img_member_steps" (the denoising steps the requests' strengths
+  // ask for) and "img2img_batch_steps" (steps computed: each batch's size times its longest member's steps).
+  std::map<std::string, double> counters() const override { return counters_; }
   // What is loaded: the SDXL folder and each optional component given (the inpainting model marked
   // "loaded" or "on first need").
   std::string weights_identity() const override;
@@ -134,6 +141,21 @@ class SdxlGenerator final : public Generator {
   std::unique_ptr<sdxl::InpaintPipeline> inpaint_;
   std::vector<std::string> notes_;               // of the last adapt() or generate()
   std::map<std::string, double> stage_seconds_;  // of the last generate()
+  std::map<std::string, double> counters_;       // of the last generate()
 };
+
+// A UNet step's cost that does not grow with the batch, in batch members' worth, on a CUDA device at the
+// pseudo-view size: launches, weight reads and the ControlNet's fixed work, which batching shares. On an H200 at
+// 504 x 384 a step of one image (a UNet batch of 2 with guidance) took 14.8 ms replayed from a CUDA graph
+// (docs/benchmarks.md, "SDXL in LibTorch against diffusers") and ~10 ms per image in batches of 8 in a job,
+// which puts the fixed share near one image's. On a CPU the work is linear in the batch: 0.
+inline constexpr double kImg2ImgStepOverheadCuda = 1.0;
+
+// How img2img_batch_ends cuts requests, sorted by their denoising steps (most first), into batches of at most
+// batch_size: a batch costs its first (longest) member's steps times (step_overhead + its size), and the cut
+// minimises the sum (dynamic programming over the sorted list). Members with equal steps share batches at no
+// cost; with step_overhead 0 nothing else does; with more, short requests ride along with longer ones when the
+// steps they waste cost less than a batch of their own. Returns each batch's end index.
+std::vector<size_t> img2img_batch_ends(const std::vector<int64_t>& steps, size_t batch_size, double step_overhead);
 
 }  // namespace gaps

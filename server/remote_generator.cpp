@@ -376,6 +376,7 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   if (arena) attempt.counters["shared_memory_bytes"] += static_cast<double>(w.region->size());
   for (const auto& [stage, seconds] : result.stage_seconds()) attempt.stages[stage] += seconds;
   for (const auto& [stage, seconds] : result.transfer_seconds()) attempt.stages[stage] += seconds;
+  for (const auto& [name, count] : result.backend_counters()) attempt.counters[name] += count;
   attempt.stages["worker_generate"] += result.backend_seconds();
   attempt.stages["transfer"] +=
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() - result.backend_seconds();

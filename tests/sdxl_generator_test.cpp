@@ -2,10 +2,14 @@
 // generation on the tiny fixture model (padding to the latent factor, per-request strength and seed).
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <string>
+#include <vector>
 
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
 
 #include "diffusion_worker/backend_registry.h"
 #include "diffusion_worker/sdxl/pipeline.h"
@@ -66,6 +70,59 @@ TEST(SdxlGeneratorTest, RegisteredAndGeneratesAtEachRequestsStrength) {
   auto direct = (*pipeline)->img2img(padded, {"a fern"}, params, {2});
   ASSERT_TRUE(direct.ok());
   test::expect_close((*alone)[0], (*direct)[0].slice(1, 0, 13).permute({1, 2, 0}), 1e-5, "generator vs pipeline");
+}
+
+// The batching of requests by their denoising steps (sorted, most first).
+TEST(SdxlBatchingTest, MergesUnequalStepsOnlyWhenABatchStepsFixedCostIsWorthIt) {
+  EXPECT_TRUE(img2img_batch_ends({}, 8, 1.0).empty());
+  // Without a fixed cost only equal steps share a batch.
+  EXPECT_EQ(img2img_batch_ends({10, 10, 10, 9, 9}, 8, 0.0), (std::vector<size_t>{3, 5}));
+  // With one: 11 x (1 + 4) = 55 member-steps together, against 11 x 2 + 10 x 3 + 9 x 2 = 70 apart.
+  EXPECT_EQ(img2img_batch_ends({11, 10, 10, 9}, 8, 1.0), (std::vector<size_t>{4}));
+  // A long request alone, not dragging seven short ones through its steps: 25 x 2 + 10 x 8 against 25 x 9.
+  EXPECT_EQ(img2img_batch_ends({25, 10, 10, 10, 10, 10, 10, 10}, 8, 1.0), (std::vector<size_t>{1, 8}));
+  // The batch size caps a batch.
+  for (const std::vector<size_t>& ends :
+       {img2img_batch_ends({5, 5, 5, 5, 5}, 2, 1.0), img2img_batch_ends({5, 5, 5, 5, 5}, 2, 0.0)}) {
+    ASSERT_EQ(ends.size(), 3u);
+    EXPECT_EQ(ends.back(), 5u);
+    for (size_t b = 0, begin = 0; b < ends.size(); begin = ends[b++]) EXPECT_LE(ends[b] - begin, 2u);
+  }
+}
+
+// The counters of a generate() call: batches, the steps asked for and the steps computed. On the CPU (no fixed
+// cost per step) requests of unequal steps run in batches of their own.
+TEST(SdxlGeneratorTest, CountsItsBatchesAndSteps) {
+  auto generator = make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"batch_size\": 4"));
+  ASSERT_TRUE(generator.ok()) << generator.status();
+  // Steps of 4: 4, 2, 3, 2 and (strength 0.1) none.
+  std::vector<GenerationRequest> requests{request(12, 8, 1.0, 1), request(12, 8, 0.5, 2), request(12, 8, 0.75, 3),
+                                          request(12, 8, 0.5, 4), request(12, 8, 0.1, 5)};
+  auto images = (*generator)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  const std::map<std::string, double> counters = (*generator)->counters();
+  EXPECT_EQ(counters.at("img2img_batches"), 3.0);
+  EXPECT_EQ(counters.at("img2img_member_steps"), 11.0);
+  EXPECT_EQ(counters.at("img2img_batch_steps"), 11.0);
+  auto alone = (*generator)->generate({requests[2]});
+  ASSERT_TRUE(alone.ok());
+  test::expect_close((*alone)[0], (*images)[2], 1e-4, "batched vs single generation");
+  EXPECT_EQ((*generator)->counters().at("img2img_member_steps"), 3.0);  // of the last call only
+
+  // With a fixed cost of 3 per step the four share one batch: 4 x (3 + 4) = 28 member-steps, against 30 for the next
+  // best cut ({4, 3} and {2, 2}) and 38 apart;
+  // and each image comes out as it did in its own batch.
+  auto merging =
+      make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"batch_size\": 4, \"batch_step_overhead\": 3"));
+  ASSERT_TRUE(merging.ok()) << merging.status();
+  auto merged = (*merging)->generate(requests);
+  ASSERT_TRUE(merged.ok()) << merged.status();
+  EXPECT_EQ((*merging)->counters().at("img2img_batches"), 1.0);
+  EXPECT_EQ((*merging)->counters().at("img2img_member_steps"), 11.0);
+  EXPECT_EQ((*merging)->counters().at("img2img_batch_steps"), 16.0);
+  for (size_t i = 0; i < requests.size(); ++i)
+    test::expect_close((*merged)[i], (*images)[i], 1e-4, absl::StrCat("request ", i, " merged vs apart"));
+  EXPECT_FALSE(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"batch_step_overhead\": -1")).ok());
 }
 
 // Without an IP-Adapter loaded, requests that ask for an image prompt are generated without one and the

@@ -7,6 +7,7 @@
 #include <ATen/ATen.h>
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include "absl/strings/str_cat.h"
 
 #include "diffusion_worker/sdxl/model_folder.h"
 #include "diffusion_worker/sdxl/pipeline.h"
@@ -57,6 +58,44 @@ TEST(SdxlPipelineTest, Img2ImgWithDdimAndDpmSolverMatchesDiffusers) {
   }
 }
 
+// One batch of images with different strengths (4, 6 and 8 of 8 steps) gives each image what it gives alone: a
+// later image joins the batch at its start step, and each start keeps its own scheduler history (DPM-Solver++ is
+// multistep; the fixture's scheduler config does not allow PNDM).
+TEST(SdxlPipelineTest, Img2ImgWithMixedStrengthsGivesEachImageWhatItGivesAlone) {
+  const at::Tensor images = test::sdxl_reference("img2img").at("image");
+  const at::Tensor batch = at::cat({images, images.slice(0, 0, 1).flip(3)});
+  const std::vector<double> strengths = {1.0, 0.5, 0.75};
+  const std::vector<std::string> prompts = {"a fern", "a bonsai tree", "a garden"};
+  const std::vector<uint64_t> seeds = {11, 12, 13};
+  for (const char* kind : {"euler", "ddim", "dpmpp2m"}) {
+    PipelineOptions options;
+    options.scheduler = kind;
+    auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    Img2ImgParams params;
+    params.steps = 8;
+    params.guidance_scale = 5.0;
+    params.strengths = strengths;
+    auto mixed = (*pipeline)->img2img(batch, prompts, params, seeds);
+    ASSERT_TRUE(mixed.ok()) << mixed.status();
+    for (int64_t b = 0; b < batch.size(0); ++b) {
+      Img2ImgParams alone = params;
+      alone.strengths.clear();
+      alone.strength = strengths[b];
+      auto single = (*pipeline)->img2img(batch.slice(0, b, b + 1), {prompts[b]}, alone, {seeds[b]});
+      ASSERT_TRUE(single.ok()) << single.status();
+      test::expect_close((*mixed).slice(0, b, b + 1), *single, 1e-4,
+                         absl::StrCat(kind, ": image ", b, " of the mixed batch"));
+    }
+    // The strengths are used: the same batch at one strength differs.
+    params.strengths.clear();
+    params.strength = 0.5;
+    auto uniform = (*pipeline)->img2img(batch, prompts, params, seeds);
+    ASSERT_TRUE(uniform.ok());
+    EXPECT_GT(((*uniform).slice(0, 0, 1) - (*mixed).slice(0, 0, 1)).abs().max().item<double>(), 1e-3) << kind;
+  }
+}
+
 TEST(SdxlPipelineTest, RejectsBadRequests) {
   auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{});
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
@@ -68,6 +107,12 @@ TEST(SdxlPipelineTest, RejectsBadRequests) {
   params.strength = 0.5;
   EXPECT_FALSE((*pipeline)->img2img(at::rand({1, 3, 9, 8}), {"a"}, params, {1}).ok());
   EXPECT_FALSE((*pipeline)->img2img(image, {"a", "b"}, params, {1}).ok());
+  params.strengths = {0.5, 0.5};  // two strengths for one image
+  EXPECT_FALSE((*pipeline)->img2img(image, {"a"}, params, {1}).ok());
+  params.strengths = {1.5};
+  const auto out_of_range = (*pipeline)->img2img(image, {"a"}, params, {1});
+  ASSERT_FALSE(out_of_range.ok());
+  EXPECT_NE(out_of_range.status().message().find("1.5"), std::string::npos) << out_of_range.status();
   EXPECT_FALSE((*pipeline)->set_cuda_graphs(true).ok());  // CPU pipeline
 }
 

@@ -358,17 +358,8 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
     return absl::InvalidArgumentError("img2img: give one seed, or one per image");
   }
   if (control) GAPS_RETURN_IF_ERROR(check_control(*control, images));
-  if (!(params.strength > 0 && params.strength <= 1) || params.steps < 1) {
-    return absl::InvalidArgumentError("img2img: strength must be in (0, 1] and steps >= 1");
-  }
-  // diffusers' get_timesteps: the last int(steps * strength) steps of the schedule.
-  const int64_t run_steps = std::min<int64_t>(static_cast<int64_t>(params.steps * params.strength), params.steps);
-  if (run_steps < 1) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("img2img: strength ", params.strength, " with ", params.steps, " steps leaves no step to run"));
-  }
-  GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
-  scheduler->set_timesteps(params.steps);
+  if (params.steps < 1) return absl::InvalidArgumentError("img2img: steps must be >= 1");
+  GAPS_ASSIGN_OR_RETURN(std::vector<Cohort> cohorts, make_cohorts(params, batch));
   GAPS_RETURN_IF_ERROR(set_image_prompts(params, batch));
   at::Tensor result;
   {
@@ -382,9 +373,14 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
     const at::Tensor std = at::exp(0.5 * at::clamp(parts[1].to(at::kCPU, at::kFloat), -30.0, 20.0));
     const auto [latent_draw, noise] = draw_latent_and_noise(mean.sizes(), seeds);
     const double scaling = vae_->config().scaling_factor;
-    const int64_t start = params.steps - run_steps;
-    at::Tensor latents = scheduler->add_noise((mean + std * latent_draw) * scaling, noise, start);
-    latents = denoise(*scheduler, latents.to(options_.device, options_.dtype), start, all_prompts, height, width,
+    const at::Tensor clean = (mean + std * latent_draw) * scaling;
+    at::Tensor latents = at::empty_like(clean);
+    for (const Cohort& c : cohorts) {
+      const at::Tensor rows = at::tensor(c.rows, at::kLong);
+      latents.index_copy_(0, rows,
+                          c.scheduler->add_noise(clean.index_select(0, rows), noise.index_select(0, rows), c.start));
+    }
+    latents = denoise(cohorts, latents.to(options_.device, options_.dtype), all_prompts, height, width,
                       params.guidance_scale, control);
     const at::Tensor decoded = vae_->decode((latents / scaling).to(vae_->dtype()));
     result = (decoded.to(at::kCPU, at::kFloat) / 2 + 0.5).clamp(0, 1);
@@ -392,7 +388,34 @@ absl::StatusOr<at::Tensor> SdxlPipeline::img2img(const at::Tensor& images, const
   return result.clone();
 }
 
-at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64_t start,
+absl::StatusOr<std::vector<SdxlPipeline::Cohort>> SdxlPipeline::make_cohorts(const Img2ImgParams& params,
+                                                                             int64_t batch) const {
+  if (!params.strengths.empty() && static_cast<int64_t>(params.strengths.size()) != batch)
+    return absl::InvalidArgumentError("img2img: give one strength per image, or none");
+  std::map<int64_t, std::vector<int64_t>> rows_by_start;
+  for (int64_t b = 0; b < batch; ++b) {
+    const double strength = params.strengths.empty() ? params.strength : params.strengths[b];
+    if (!(strength > 0 && strength <= 1)) {
+      return absl::InvalidArgumentError(absl::StrCat("img2img: strength ", strength, " is not in (0, 1]"));
+    }
+    // diffusers' get_timesteps: the last int(steps * strength) steps of the schedule.
+    const int64_t run_steps = std::min<int64_t>(static_cast<int64_t>(params.steps * strength), params.steps);
+    if (run_steps < 1) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("img2img: strength ", strength, " with ", params.steps, " steps leaves no step to run"));
+    }
+    rows_by_start[params.steps - run_steps].push_back(b);
+  }
+  std::vector<Cohort> cohorts;
+  for (auto& [start, rows] : rows_by_start) {
+    GAPS_ASSIGN_OR_RETURN(std::unique_ptr<Scheduler> scheduler, make_scheduler(scheduler_config_));
+    scheduler->set_timesteps(params.steps);
+    cohorts.push_back(Cohort{start, std::move(scheduler), std::move(rows)});
+  }
+  return cohorts;
+}
+
+at::Tensor SdxlPipeline::denoise(std::vector<Cohort>& cohorts, at::Tensor latents,
                                  const std::vector<std::string>& prompts, int64_t height, int64_t width,
                                  double guidance_scale, const std::optional<ControlInput>& control) {
   const bool cfg = guidance_scale > 1.0;
@@ -425,10 +448,15 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
       control_scale = at::cat({control_scale, control_scale});
     }
   }
-  const auto steps = static_cast<int64_t>(scheduler.timesteps().size());
-  for (int64_t i = start; i < steps; ++i) {
-    in.sample = scheduler.scale_model_input(cfg ? at::cat({latents, latents}) : latents, i);
-    in.timestep = at::scalar_tensor(scheduler.timesteps()[i], at::TensorOptions().device(options_.device));
+  // Cohorts are ordered by start; the first one's scheduler gives every step's timestep and input scale (all
+  // share the schedule), which a cohort that has not started yet gets too, its output discarded.
+  const Scheduler& schedule = *cohorts.front().scheduler;
+  const auto steps = static_cast<int64_t>(schedule.timesteps().size());
+  std::vector<at::Tensor> rows;
+  for (const Cohort& c : cohorts) rows.push_back(at::tensor(c.rows, at::kLong).to(options_.device));
+  for (int64_t i = cohorts.front().start; i < steps; ++i) {
+    in.sample = schedule.scale_model_input(cfg ? at::cat({latents, latents}) : latents, i);
+    in.timestep = at::scalar_tensor(schedule.timesteps()[i], at::TensorOptions().device(options_.device));
     if (control_image.defined()) {
       ControlNetResiduals residuals = controlnet_->forward(in, control_image, control_scale);
       in.down_block_residuals = std::move(residuals.down);
@@ -436,7 +464,17 @@ at::Tensor SdxlPipeline::denoise(Scheduler& scheduler, at::Tensor latents, int64
     }
     at::Tensor prediction = run_unet(in);
     if (cfg) prediction = classifier_free_guidance(prediction, guidance_scale);
-    latents = scheduler.step(prediction, i, latents);
+    if (cohorts.size() == 1) {
+      latents = cohorts.front().scheduler->step(prediction, i, latents);
+      continue;
+    }
+    at::Tensor next = latents.clone();
+    for (size_t c = 0; c < cohorts.size() && cohorts[c].start <= i; ++c) {
+      next.index_copy_(
+          0, rows[c],
+          cohorts[c].scheduler->step(prediction.index_select(0, rows[c]), i, latents.index_select(0, rows[c])));
+    }
+    latents = next;
   }
   return latents;
 }

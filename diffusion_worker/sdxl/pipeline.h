@@ -53,7 +53,12 @@ struct PipelineOptions {
 struct UNetGraphs;  // the captured graphs (CUDA builds only)
 
 struct Img2ImgParams {
-  double strength = 0.5;        // fraction of the schedule re-run: steps from int(steps * strength) back
+  double strength = 0.5;  // fraction of the schedule re-run: steps from int(steps * strength) back
+  // One strength per image instead (empty: `strength` for all). Each image runs exactly its own steps: an image
+  // that starts later joins the batch's denoising when the schedule reaches its start step (its slot in the
+  // batch is computed and discarded until then), so one batch serves mixed strengths and each image comes out
+  // as it would alone.
+  std::vector<double> strengths;
   int64_t steps = 30;           // steps of the full schedule
   double guidance_scale = 5.0;  // classifier-free guidance when > 1
   // IP-Adapter image prompts (pipelines loaded with one): per image a reference image H x W x 3 in [0, 1]
@@ -147,8 +152,17 @@ class SdxlPipeline {
   at::Tensor run_unet(const UNetInputs& in);
   absl::Status load_controlnet(const ModelFolder& folder);
   absl::Status check_control(const ControlInput& control, const at::Tensor& images) const;
-  // Steps start.. of the scheduler from noised latents, with classifier-free guidance when > 1.
-  at::Tensor denoise(Scheduler& scheduler, at::Tensor latents, int64_t start, const std::vector<std::string>& prompts,
+  // The images of a batch that start the schedule at one step, with a scheduler of their own: a multistep
+  // scheduler's history (DPM-Solver++, PNDM) belongs to the images that took those steps.
+  struct Cohort {
+    int64_t start = 0;
+    std::unique_ptr<Scheduler> scheduler;
+    std::vector<int64_t> rows;  // the images' indices in the batch
+  };
+  absl::StatusOr<std::vector<Cohort>> make_cohorts(const Img2ImgParams& params, int64_t batch) const;
+  // The schedule from the earliest cohort's start, from noised latents, with classifier-free guidance when > 1;
+  // each step advances the cohorts that have started.
+  at::Tensor denoise(std::vector<Cohort>& cohorts, at::Tensor latents, const std::vector<std::string>& prompts,
                      int64_t height, int64_t width, double guidance_scale, const std::optional<ControlInput>& control);
 };
 

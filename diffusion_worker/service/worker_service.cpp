@@ -217,6 +217,7 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   // Re-adapting above repeats what this scene's AdaptScene already reported; only generate()'s notes are new.
   const std::vector<std::string> notes = generator_->notes();
   const std::map<std::string, double> stages = generator_->stage_seconds();
+  const std::map<std::string, double> counters = generator_->counters();
   turn.reset();
   if (context->IsCancelled()) return grpc::Status(grpc::StatusCode::CANCELLED, "caller gave up during generation");
   result.set_backend_seconds(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
@@ -229,6 +230,7 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   transfer["worker_encode"] = lap_seconds(&clock);
   for (const std::string& note : notes) result.add_notes(note);
   result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
+  result.mutable_backend_counters()->insert(counters.begin(), counters.end());
   if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))
     return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
   return grpc::Status::OK;
