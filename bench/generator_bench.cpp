@@ -88,6 +88,7 @@ ABSL_FLAG(std::string, lora_trace, "",
           "after the timed LoRA training, run --lora_trace_steps more steps under the PyTorch (Kineto) profiler "
           "and write its Chrome trace here (bench/trace_summary.py TRACE --iterations N ranks it)");
 ABSL_FLAG(int, lora_trace_steps, 5, "LoRA training steps in the trace");
+ABSL_FLAG(bool, cudnn_benchmark, false, "let cuDNN time its convolution algorithms (recorded in every line)");
 ABSL_FLAG(std::string, img2img_trace, "",
           "after timing img2img_controlnet_ip_lora (the four constraints), run one more call at the last size and "
           "batch under the profiler and write its Chrome trace here (bench/trace_summary.py TRACE --iterations 1)");
@@ -493,6 +494,8 @@ struct Bench {
 
 int main(int argc, char** argv) {
   absl::ParseCommandLine(argc, argv);
+  // cuDNN's autotuner picks each convolution's algorithm by timing the candidates at the first call of a shape.
+  at::globalContext().setBenchmarkCuDNN(absl::GetFlag(FLAGS_cudnn_benchmark));
   const std::string sdxl_dir = absl::GetFlag(FLAGS_sdxl_dir);
   if (!gaps::bench::ensure_random_sdxl(sdxl_dir, absl::GetFlag(FLAGS_write_model), absl::GetFlag(FLAGS_configs_from),
                                        absl::GetFlag(FLAGS_weights_seed), "generator_bench")) {
@@ -561,6 +564,7 @@ int main(int argc, char** argv) {
   nlohmann::json common;
   common["bench"] = "generator";
   common["impl"] = "gaps-libtorch";
+  common["cudnn_benchmark"] = absl::GetFlag(FLAGS_cudnn_benchmark);
   common["device"] = dev.name();
   common["torch"] = TORCH_VERSION;
   common["dtype"] = dtype_name;

@@ -21,6 +21,13 @@ at::Tensor Linear::operator()(const at::Tensor& x) const {
   return y + (low_rank * lora_scale).to(y.scalar_type());
 }
 
+Linear output_rows(const Linear& layer, int64_t begin, int64_t end) {
+  Linear l;
+  l.weight = layer.weight.slice(0, begin, end).contiguous();
+  if (layer.bias.defined()) l.bias = layer.bias.slice(0, begin, end).contiguous();
+  return l;
+}
+
 Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel, int64_t stride,
                     int64_t padding, bool with_bias) {
   Conv2d c;

@@ -20,6 +20,9 @@ struct Linear {
   at::Tensor operator()(const at::Tensor& x) const;
 };
 
+// The layer that computes outputs [begin, end) of `layer` (weights copied; no adapter).
+Linear output_rows(const Linear& layer, int64_t begin, int64_t end);
+
 struct Conv2d {
   at::Tensor weight, bias;  // bias undefined when the layer has none
   int64_t stride = 1, padding = 0;

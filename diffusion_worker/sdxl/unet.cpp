@@ -151,12 +151,13 @@ UNet2DCondition::Transformer2D UNet2DCondition::load_transformer(WeightLoader& w
   const int64_t dim_head = channels / heads, inner = 4 * channels;
   for (int64_t i = 0; i < layers; ++i) {
     const std::string p = absl::StrCat(prefix, ".transformer_blocks.", i);
+    const Linear geglu = Linear::load(w, p + ".ff.net.0.proj", channels, 2 * inner);
     t.blocks.push_back({LayerNorm::load(w, p + ".norm1", channels, 1e-5),
                         LayerNorm::load(w, p + ".norm2", channels, 1e-5),
                         LayerNorm::load(w, p + ".norm3", channels, 1e-5),
                         Attention::load(w, p + ".attn1", channels, channels, heads, dim_head, false),
                         Attention::load(w, p + ".attn2", channels, c.cross_attention_dim, heads, dim_head, false),
-                        Linear::load(w, p + ".ff.net.0.proj", channels, 2 * inner),
+                        output_rows(geglu, 0, inner), output_rows(geglu, inner, 2 * inner),
                         Linear::load(w, p + ".ff.net.2", inner, channels)});
   }
   return t;
@@ -247,8 +248,8 @@ at::Tensor UNet2DCondition::block_forward(const TransformerBlock& b, const at::T
   const at::Tensor n1 = b.norm1(x);
   at::Tensor h = x + b.attn1(n1, n1);
   h = h + b.attn2(b.norm2(h), context);
-  const auto parts = b.ff_in(b.norm3(h)).chunk(2, -1);
-  return h + b.ff_out(parts[0] * at::gelu(parts[1]));
+  const at::Tensor n3 = b.norm3(h);
+  return h + b.ff_out(b.ff_hidden(n3) * at::gelu(b.ff_gate(n3)));
 }
 
 at::Tensor UNet2DCondition::transformer_forward(const Transformer2D& t, const at::Tensor& x,
