@@ -140,6 +140,7 @@ def phase_breakdown(phases):
     denoising steps), and the admission counts."""
     sections, stages, counters = {}, {}, {}
     admitted = rejected = skipped = 0
+    strengths = []
     for p in phases:
         for totals, entry in ((sections, "seconds"), (stages, "generator_stages"), (counters, "generator_counters")):
             for key, value in p.get(entry, {}).items():
@@ -148,12 +149,17 @@ def phase_breakdown(phases):
         for s in p.get("selection", []):
             admitted += bool(s.get("admitted"))
             rejected += not s.get("admitted")
+            if "strength" in s:
+                strengths.append(s["strength"])
     # The first phase carries the scene adaptation (sdxl's LoRA training), which a second worker cannot shorten.
     first = phases[0].get("seconds", {}).get("generation") if phases else None
     return {"phases": len(phases), "phases_skipped": skipped, "pseudo_views_admitted": admitted,
             "pseudo_views_rejected": rejected, "phase_seconds": {k: round(v, 3) for k, v in sections.items()},
             "first_phase_generation_seconds": round(first, 3) if first is not None else None,
-            "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}, "generator_counters": counters}
+            "generator_stage_seconds": {k: round(v, 3) for k, v in stages.items()}, "generator_counters": counters,
+            # The img2img strengths the phases asked for (a request runs int(steps x strength) denoising steps).
+            "request_strengths": {"count": len(strengths), "min": min(strengths), "max": max(strengths),
+                                  "mean": sum(strengths) / len(strengths)} if strengths else None}
 
 
 # LibTorch's warning when a capture recorded nothing: the replays of that graph would skip the UNet, so the

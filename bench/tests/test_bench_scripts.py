@@ -590,16 +590,34 @@ class PlacementsBenchTest(unittest.TestCase):
 
     def test_the_breakdown_sums_the_phases_and_keeps_the_first_phases_wait(self):
         phases = [{"seconds": {"generation": 25.0, "renders": 0.1}, "generator_stages": {"adapt_scene": 21.0},
-                   "selection": [{"admitted": True}, {"admitted": False}]},
+                   "generator_counters": {"img2img_batches": 2, "img2img_member_steps": 18},
+                   "selection": [{"admitted": True, "strength": 0.3}, {"admitted": False, "strength": 0.5}]},
                   {"seconds": {"generation": 2.0, "renders": 0.2}, "generator_stages": {"img2img": 3.0},
-                   "skipped": True, "selection": []}]
+                   "generator_counters": {"img2img_batches": 1}, "skipped": True, "selection": []}]
         row = placements_bench.phase_breakdown(phases)
         self.assertEqual(row["phase_seconds"], {"generation": 27.0, "renders": 0.3})
         self.assertEqual(row["generator_stage_seconds"], {"adapt_scene": 21.0, "img2img": 3.0})
+        self.assertEqual(row["generator_counters"], {"img2img_batches": 3, "img2img_member_steps": 18})
+        self.assertEqual(row["request_strengths"], {"count": 2, "min": 0.3, "max": 0.5, "mean": 0.4})
         self.assertEqual(row["first_phase_generation_seconds"], 25.0)
         self.assertEqual((row["phases"], row["phases_skipped"]), (2, 1))
         self.assertEqual((row["pseudo_views_admitted"], row["pseudo_views_rejected"]), (1, 1))
         self.assertIsNone(placements_bench.phase_breakdown([])["first_phase_generation_seconds"])
+        self.assertIsNone(placements_bench.phase_breakdown([])["request_strengths"])
+
+    def test_phase_summary_reads_a_run_folder_and_counts_denoising_steps(self):
+        with tempfile.TemporaryDirectory() as tmp:
+            run = Path(tmp)
+            script = [sys.executable, str(BENCH / "phase_summary.py"), str(run)]
+            missing = subprocess.run(script, capture_output=True, text=True)
+            self.assertNotEqual(missing.returncode, 0)
+            self.assertIn("phases.json", missing.stderr)
+            (run / "phases.json").write_text(json.dumps(
+                [{"selection": [{"admitted": True, "strength": 0.301}, {"admitted": True, "strength": 0.85}]}]))
+            (run / "metrics.json").write_text(json.dumps({"psnr": 23.0}))
+            row = json.loads(subprocess.run(script, capture_output=True, text=True, check=True).stdout)
+        self.assertEqual(row["denoising_steps"], {"9": 1, "25": 1})
+        self.assertEqual((row["psnr"], row["pseudo_views_admitted"]), (23.0, 2))
 
     def test_empty_graph_captures_are_counted_per_worker_log(self):
         with tempfile.TemporaryDirectory() as tmp:
