@@ -146,9 +146,9 @@ class SdxlGenerator final : public Generator {
 
 // A UNet step's cost that does not grow with the batch, in batch members' worth, on a CUDA device at the
 // pseudo-view size: launches, weight reads and the ControlNet's fixed work, which batching shares. On an H200 at
-// 504 x 384 a step of one image (a UNet batch of 2 with guidance) took 14.8 ms replayed from a CUDA graph
-// (docs/benchmarks.md, "SDXL in LibTorch against diffusers") and ~10 ms per image in batches of 8 in a job,
-// which puts the fixed share near one image's. On a CPU the work is linear in the batch: 0.
+// 504 x 384, 9 steps with the four constraints, calls of 1, 4 and 8 images took 281, 563 and 957 ms
+// (docs/benchmarks.md, "What one SDXL pseudo-view costs"): a fixed part of ~1.8 images' worth per call, some of it
+// per call rather than per step; 1 keeps to the safe side (fewer merges). On a CPU the work is linear: 0.
 inline constexpr double kImg2ImgStepOverheadCuda = 1.0;
 
 // How img2img_batch_ends cuts requests, sorted by their denoising steps (most first), into batches of at most
