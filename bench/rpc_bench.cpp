@@ -3,7 +3,9 @@
 // through shared memory) with the round trip's stages and bytes; and scene upload throughput into a Trainer
 // service (SubmitJob including the server's validation and writing). Services run in this process on
 // 127.0.0.1, so the figures hold serialization, HTTP/2 transfer and decoding, not network latency.
-// --busy_threads N keeps N more threads spinning meanwhile: a host whose cores other runs occupy.
+// --busy_threads N keeps N more threads spinning meanwhile: a host whose cores other runs occupy. The
+// "-converted-at-once" cases convert every payload before sending (both sides), the others convert while sending.
+// The cases' calls take turns (round robin), each case's median reported.
 //   rpc_bench [--scene DIR] [--resolution 8] [--batch 16] [--repeats 5] [--busy_threads 0] [--work_dir DIR]
 #include <algorithm>
 #include <atomic>
@@ -122,12 +124,21 @@ int main(int argc, char** argv) {
   worker_options.backend = "reproject";
   worker_options.max_batch = batch;
   gaps::WorkerService worker(std::move(*hosted), worker_options);
+  // A second worker that converts its answers at once, then sends them: the hand-over before streaming.
+  auto hosted_at_once = gaps::make_generator("reproject", "");
+  if (!hosted_at_once.ok()) return fail(hosted_at_once.status());
+  worker_options.convert_while_sending = false;
+  gaps::WorkerService worker_at_once(std::move(*hosted_at_once), worker_options);
   grpc::EnableDefaultHealthCheckService(true);
-  int worker_port = 0;
+  int worker_port = 0, worker_at_once_port = 0;
   grpc::ServerBuilder worker_builder;
   worker_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &worker_port);
   worker_builder.RegisterService(&worker);
   auto worker_server = worker_builder.BuildAndStart();
+  grpc::ServerBuilder worker_at_once_builder;
+  worker_at_once_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &worker_at_once_port);
+  worker_at_once_builder.RegisterService(&worker_at_once);
+  auto worker_at_once_server = worker_at_once_builder.BuildAndStart();
   const auto& c0 = requests[0].camera;
   (void)(*local)->adapt(refs, std::nullopt);
   struct Case {
@@ -135,22 +146,27 @@ int main(int argc, char** argv) {
     gaps::rpc::TensorEncoding encoding;
     bool shared_memory;
     std::optional<gaps::rpc::TensorEncoding> depth;  // unset: the pool's choice (float16 with compact on a socket)
+    bool convert_while_sending = true;               // false: both sides convert everything, then send
   };
   using gaps::rpc::TensorEncoding;
   const std::vector<Case> cases = {
       {"float32-socket", TensorEncoding::kFloat32, false, std::nullopt},
+      {"float32-socket-converted-at-once", TensorEncoding::kFloat32, false, std::nullopt, false},
       {"compact-socket", TensorEncoding::kUint8, false, std::nullopt},
+      {"compact-socket-converted-at-once", TensorEncoding::kUint8, false, std::nullopt, false},
       {"compact-socket-float32-depth", TensorEncoding::kUint8, false, TensorEncoding::kFloat32},
       {"compact-shared", TensorEncoding::kUint8, true, std::nullopt},
+      {"compact-shared-converted-at-once", TensorEncoding::kUint8, true, std::nullopt, false},
       {"compact-shared-half-depth", TensorEncoding::kUint8, true, TensorEncoding::kFloat16},
       {"float32-shared", TensorEncoding::kFloat32, true, std::nullopt}};
   std::vector<std::unique_ptr<gaps::RemoteGenerator>> remotes;
   for (const Case& c : cases) {
     gaps::WorkerPoolOptions pool;
-    pool.addresses = {"127.0.0.1:" + std::to_string(worker_port)};
+    pool.addresses = {"127.0.0.1:" + std::to_string(c.convert_while_sending ? worker_port : worker_at_once_port)};
     pool.encoding = c.encoding;
     pool.depth_encoding = c.depth;
     pool.shared_memory = c.shared_memory;
+    pool.convert_while_sending = c.convert_while_sending;
     auto remote = gaps::RemoteGenerator::create(pool);
     if (!remote.ok()) return fail(remote.status());
     (void)(*remote)->adapt(refs, std::nullopt);
@@ -158,10 +174,20 @@ int main(int argc, char** argv) {
     remotes.push_back(*std::move(remote));
   }
   const BusyThreads busy(absl::GetFlag(FLAGS_busy_threads));
-  const double in_process = median_seconds(repeats, [&] { (void)(*local)->generate(requests); });
+  // Round robin over the in-process call and the cases, so that a drift of the host touches them alike.
+  std::vector<std::vector<double>> times(cases.size() + 1);
+  for (int r = 0; r < repeats; ++r)
+    for (size_t k = 0; k <= cases.size(); ++k)
+      times[k].push_back(median_seconds(1, [&] {
+        if (k == cases.size())
+          (void)(*local)->generate(requests);
+        else
+          (void)remotes[k]->generate(requests);
+      }));
+  const double in_process = median(times[cases.size()]);
   for (size_t k = 0; k < cases.size(); ++k) {
     gaps::RemoteGenerator& remote = *remotes[k];
-    const double over_rpc = median_seconds(repeats, [&] { (void)remote.generate(requests); });
+    const double over_rpc = median(times[k]);
     std::cout << nlohmann::json{{"bench", "generation_round_trip"},
                                 {"backend", "reproject"},
                                 {"hand_over", cases[k].name},

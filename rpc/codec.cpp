@@ -90,37 +90,55 @@ void to_bytes(const float* values, int64_t count, uint8_t* out) {
 
 }  // namespace
 
-absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
-                           const std::string& what, v1::Tensor* out) {
-  // One device-to-host copy (the copy engine), whatever the encoding.
-  const at::Tensor t = tensor.detach().to(at::kCPU, at::kFloat).contiguous();
-  const float* values = t.data_ptr<float>();
-  const int64_t count = t.numel();
-  if (encoding != TensorEncoding::kFloat32 && !all_finite(values, count))
-    return absl::InvalidArgumentError(absl::StrCat(what, ": contains NaN or infinite values"));
-  if (encoding == TensorEncoding::kFloat16 && !within_half_range(values, count)) encoding = TensorEncoding::kFloat32;
-  out->set_encoding(to_proto(encoding));
+absl::StatusOr<DeferredPayload> lay_out_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
+                                               const std::string& what, v1::Tensor* out) {
+  DeferredPayload payload{tensor.detach(), encoding, nullptr, what};
+  if (encoding == TensorEncoding::kFloat16) {
+    // Whether it fits half precision decides its size: the values are needed now. One device-to-host copy (the
+    // copy engine); the other encodings leave it to fill_payload.
+    payload.values = payload.values.to(at::kCPU, at::kFloat).contiguous();
+    const float* values = payload.values.data_ptr<float>();
+    if (!all_finite(values, payload.values.numel()))
+      return absl::InvalidArgumentError(absl::StrCat(what, ": contains NaN or infinite values"));
+    if (!within_half_range(values, payload.values.numel())) payload.encoding = TensorEncoding::kFloat32;
+  }
+  out->set_encoding(to_proto(payload.encoding));
   out->clear_shape();
-  for (int64_t d : t.sizes()) out->add_shape(d);
-  const uint64_t bytes = encoded_bytes(t, encoding);
-  uint8_t* destination = nullptr;
+  for (int64_t d : payload.values.sizes()) out->add_shape(d);
+  const uint64_t bytes = encoded_bytes(payload.values, payload.encoding);
   if (arena == nullptr) {
     out->mutable_data()->resize(bytes);
-    destination = reinterpret_cast<uint8_t*>(out->mutable_data()->data());
+    payload.destination = reinterpret_cast<uint8_t*>(out->mutable_data()->data());
   } else {
     GAPS_ASSIGN_OR_RETURN(const uint64_t offset, arena->allocate(bytes));
-    destination = arena->region().data() + offset;
+    payload.destination = arena->region().data() + offset;
     out->mutable_shared()->set_offset(offset);
     out->mutable_shared()->set_length(bytes);
   }
-  if (bytes == 0) return absl::OkStatus();
-  if (encoding == TensorEncoding::kUint8)
-    to_bytes(values, count, destination);
-  else if (encoding == TensorEncoding::kFloat16)
-    to_halves(values, count, destination);
+  return payload;
+}
+
+absl::Status fill_payload(const DeferredPayload& payload) {
+  // One device-to-host copy (the copy engine), whatever the encoding.
+  const at::Tensor t = payload.values.to(at::kCPU, at::kFloat).contiguous();
+  const float* values = t.data_ptr<float>();
+  const int64_t count = t.numel();
+  if (payload.encoding != TensorEncoding::kFloat32 && !all_finite(values, count))
+    return absl::InvalidArgumentError(absl::StrCat(payload.what, ": contains NaN or infinite values"));
+  if (count == 0) return absl::OkStatus();
+  if (payload.encoding == TensorEncoding::kUint8)
+    to_bytes(values, count, payload.destination);
+  else if (payload.encoding == TensorEncoding::kFloat16)
+    to_halves(values, count, payload.destination);
   else
-    std::memcpy(destination, values, bytes);
+    std::memcpy(payload.destination, values, count * sizeof(float));
   return absl::OkStatus();
+}
+
+absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
+                           const std::string& what, v1::Tensor* out) {
+  GAPS_ASSIGN_OR_RETURN(const DeferredPayload payload, lay_out_tensor(tensor, encoding, arena, what, out));
+  return fill_payload(payload);
 }
 
 absl::StatusOr<TensorEncoding> tensor_encoding(v1::Tensor::Encoding encoding, const std::string& what) {

@@ -33,9 +33,26 @@ void encode_raw(const at::Tensor& tensor, v1::Tensor* out);
 // arena's shared region (RESOURCE_EXHAUSTED when it is full). kUint8 and kFloat16 refuse NaN and infinite values
 // (INVALID_ARGUMENT naming `what`); kUint8 clamps the rest to [0, 1]; kFloat16 rounds to nearest even and, when a
 // magnitude exceeds kHalfMax, sends the tensor as RAW_F32 instead (the message says which), so that no value is
-// lost.
+// lost. After an error `out` holds a partial encoding.
 absl::Status encode_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
                            const std::string& what, v1::Tensor* out);
+
+// A payload laid out but not yet converted: its destination (in a message or a shared region) has its final
+// size, so the message's size is known before the conversions run (rpc/streamed_send.h overlaps them with
+// sending).
+struct DeferredPayload {
+  at::Tensor values;  // the tensor as given, or its float32 CPU copy where laying out needed the values
+  TensorEncoding encoding = TensorEncoding::kFloat32;
+  uint8_t* destination = nullptr;
+  std::string what;
+};
+// As encode_tensor, but only lays the payload out (encoding, shape, a destination of the final size) and
+// returns the conversion for fill_payload. Fails when the arena is full, and for kFloat16, whose size depends on
+// the values, on NaN and infinite ones.
+absl::StatusOr<DeferredPayload> lay_out_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena,
+                                               const std::string& what, v1::Tensor* out);
+// Converts a laid-out payload into its destination: encode_tensor's second half, with its errors.
+absl::Status fill_payload(const DeferredPayload& payload);
 // The payload size of `tensor` in `encoding`.
 uint64_t encoded_bytes(const at::Tensor& tensor, TensorEncoding encoding);
 // RAW_F32 / unspecified -> kFloat32, RAW_U8 -> kUint8, RAW_F16 -> kFloat16; any other is INVALID_ARGUMENT naming

@@ -13,15 +13,24 @@ namespace gaps::rpc {
 
 namespace {
 
+// Encodes `tensor` now, or lays it out and leaves its conversion to `part`'s sender when there is a part.
+absl::Status put_tensor(const at::Tensor& tensor, TensorEncoding encoding, SharedArena* arena, const std::string& what,
+                        v1::Tensor* out, MessagePart* part) {
+  if (part == nullptr) return encode_tensor(tensor, encoding, arena, what, out);
+  GAPS_ASSIGN_OR_RETURN(DeferredPayload payload, lay_out_tensor(tensor, encoding, arena, what, out));
+  part->payloads.push_back(std::move(payload));
+  return absl::OkStatus();
+}
+
 absl::Status encode_reference_as(const ReferenceView& view, const TensorTransfer& transfer, const std::string& what,
-                                 v1::ReferenceView* out) {
+                                 v1::ReferenceView* out, MessagePart* part = nullptr) {
   encode_camera(view.camera, out->mutable_camera());
-  GAPS_RETURN_IF_ERROR(
-      encode_tensor(view.image, transfer.images, transfer.arena, absl::StrCat(what, " image"), out->mutable_image()));
-  GAPS_RETURN_IF_ERROR(encode_tensor(view.render_depth, transfer.depths, transfer.arena,
-                                     absl::StrCat(what, " render_depth"), out->mutable_render_depth()));
-  return encode_tensor(view.render_alpha, transfer.images, transfer.arena, absl::StrCat(what, " render_alpha"),
-                       out->mutable_render_alpha());
+  GAPS_RETURN_IF_ERROR(put_tensor(view.image, transfer.images, transfer.arena, absl::StrCat(what, " image"),
+                                  out->mutable_image(), part));
+  GAPS_RETURN_IF_ERROR(put_tensor(view.render_depth, transfer.depths, transfer.arena,
+                                  absl::StrCat(what, " render_depth"), out->mutable_render_depth(), part));
+  return put_tensor(view.render_alpha, transfer.images, transfer.arena, absl::StrCat(what, " render_alpha"),
+                    out->mutable_render_alpha(), part);
 }
 
 absl::StatusOr<ReferenceView> decode_reference_in(const v1::ReferenceView& in, const std::string& what,
@@ -120,21 +129,33 @@ SharedLayout shared_layout(const std::vector<GenerationRequest>& requests, Tenso
   return layout;
 }
 
+namespace {
+
+// The next part of `parts` (nullptr when there are none), for element `index` of field `field`.
+MessagePart* next_part(std::vector<MessagePart>* parts, int field, int index) {
+  if (parts == nullptr) return nullptr;
+  parts->push_back({field, index, {}});
+  return &parts->back();
+}
+
+}  // namespace
+
 absl::Status encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out,
-                                     const TensorTransfer& transfer) {
+                                     const TensorTransfer& transfer, std::vector<MessagePart>* parts) {
   out->set_answer_encoding(to_proto(transfer.images));
   std::map<std::string, int> index;  // camera name -> position in out->references
   for (size_t k = 0; k < requests.size(); ++k) {
     const GenerationRequest& q = requests[k];
     const std::string what = absl::StrCat("pose ", k);
+    MessagePart* part = next_part(parts, v1::GenerateBatch::kPosesFieldNumber, static_cast<int>(k));
     v1::PoseConstraints* pose = out->add_poses();
     encode_camera(q.camera, pose->mutable_camera());
-    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_rgb, transfer.images, transfer.arena, absl::StrCat(what, " render_rgb"),
-                                       pose->mutable_render_rgb()));
-    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_depth, transfer.depths, transfer.arena,
-                                       absl::StrCat(what, " render_depth"), pose->mutable_render_depth()));
-    GAPS_RETURN_IF_ERROR(encode_tensor(q.render_alpha, transfer.images, transfer.arena,
-                                       absl::StrCat(what, " render_alpha"), pose->mutable_render_alpha()));
+    GAPS_RETURN_IF_ERROR(put_tensor(q.render_rgb, transfer.images, transfer.arena, absl::StrCat(what, " render_rgb"),
+                                    pose->mutable_render_rgb(), part));
+    GAPS_RETURN_IF_ERROR(put_tensor(q.render_depth, transfer.depths, transfer.arena,
+                                    absl::StrCat(what, " render_depth"), pose->mutable_render_depth(), part));
+    GAPS_RETURN_IF_ERROR(put_tensor(q.render_alpha, transfer.images, transfer.arena,
+                                    absl::StrCat(what, " render_alpha"), pose->mutable_render_alpha(), part));
     pose->set_coverage(q.coverage);
     pose->set_strength(q.strength);
     pose->set_control_scale(q.control_scale);
@@ -150,7 +171,8 @@ absl::Status encode_generation_batch(const std::vector<GenerationRequest>& reque
       auto [it, inserted] = index.emplace(r.camera.name, out->references_size());
       if (inserted)
         GAPS_RETURN_IF_ERROR(
-            encode_reference_as(r, transfer, absl::StrCat("reference ", r.camera.name), out->add_references()));
+            encode_reference_as(r, transfer, absl::StrCat("reference ", r.camera.name), out->add_references(),
+                                next_part(parts, v1::GenerateBatch::kReferencesFieldNumber, it->second)));
       pose->add_reference_order(it->second);
     }
   }
@@ -158,7 +180,7 @@ absl::Status encode_generation_batch(const std::vector<GenerationRequest>& reque
 }
 
 absl::Status encode_answer(const std::vector<at::Tensor>& images, const TensorTransfer& transfer,
-                           v1::GenerateResult* out) {
+                           v1::GenerateResult* out, std::vector<MessagePart>* parts) {
   SharedArena* arena = transfer.arena;
   if (arena != nullptr) {
     uint64_t need = 0;
@@ -166,8 +188,8 @@ absl::Status encode_answer(const std::vector<at::Tensor>& images, const TensorTr
     if (need > arena->region().size() - std::min(arena->used_end(), arena->region().size())) arena = nullptr;
   }
   for (size_t k = 0; k < images.size(); ++k)
-    GAPS_RETURN_IF_ERROR(
-        encode_tensor(images[k], transfer.images, arena, absl::StrCat("image ", k), out->add_images()));
+    GAPS_RETURN_IF_ERROR(put_tensor(images[k], transfer.images, arena, absl::StrCat("image ", k), out->add_images(),
+                                    next_part(parts, v1::GenerateResult::kImagesFieldNumber, static_cast<int>(k))));
   return absl::OkStatus();
 }
 

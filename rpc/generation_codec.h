@@ -14,6 +14,7 @@
 #include "gs_trainer/gaps/generator.h"
 #include "rpc/codec.h"
 #include "rpc/shared_memory.h"
+#include "rpc/streamed_send.h"
 
 namespace gaps::rpc {
 
@@ -52,16 +53,20 @@ struct SharedLayout {
 };
 SharedLayout shared_layout(const std::vector<GenerationRequest>& requests, TensorEncoding images);
 
-// Sets answer_encoding too. Fails only when the arena is full or kUint8 meets a non-finite value.
+// Sets answer_encoding too. Fails only when the arena is full or kUint8 or kFloat16 meets a non-finite value.
+// Given `parts`, the payloads are laid out but not converted, and *parts gets one part per pose and reference in
+// the order they were laid out, for write_streamed (rpc/streamed_send.h), whose conversions report what kUint8
+// refuses.
 absl::Status encode_generation_batch(const std::vector<GenerationRequest>& requests, v1::GenerateBatch* out,
-                                     const TensorTransfer& transfer = {});
+                                     const TensorTransfer& transfer = {}, std::vector<MessagePart>* parts = nullptr);
 // Payloads in shared memory are read from `region` (the batch's shared_region, opened by the caller).
 absl::StatusOr<std::vector<GenerationRequest>> decode_generation_batch(const v1::GenerateBatch& batch,
                                                                        const SharedRegion* region = nullptr);
 
 // The answer's images in `transfer`'s encoding, into its arena when they all fit there, else into the
-// message. kUint8 refuses non-finite pixels (INVALID_ARGUMENT naming the image).
+// message. kUint8 refuses non-finite pixels (INVALID_ARGUMENT naming the image). Given `parts`, as
+// encode_generation_batch: one part per image, converted by write_streamed.
 absl::Status encode_answer(const std::vector<at::Tensor>& images, const TensorTransfer& transfer,
-                           v1::GenerateResult* out);
+                           v1::GenerateResult* out, std::vector<MessagePart>* parts = nullptr);
 
 }  // namespace gaps::rpc

@@ -23,6 +23,7 @@
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
 #include "rpc/shared_memory.h"
+#include "rpc/streamed_send.h"
 
 namespace gaps {
 
@@ -340,9 +341,12 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   const rpc::TensorEncoding depths =
       options_.depth_encoding.value_or(rpc::depth_encoding_for(options_.encoding, arena.has_value()));
   const rpc::TensorTransfer transfer{options_.encoding, arena ? &*arena : nullptr, depths};
-  GAPS_RETURN_IF_ERROR(rpc::encode_generation_batch(requests, &batch, transfer));
+  // Laid out now, converted while the converted parts are sent (rpc/streamed_send.h); or converted at once.
+  std::vector<rpc::MessagePart> parts;
+  GAPS_RETURN_IF_ERROR(
+      rpc::encode_generation_batch(requests, &batch, transfer, options_.convert_while_sending ? &parts : nullptr));
   if (!w.scene_handle.empty()) batch.set_scene_handle(w.scene_handle);
-  attempt.stages["client_encode"] += lap_seconds(&clock);
+  const double lay_out_seconds = lap_seconds(&clock);
   attempt.counters["request_bytes"] += static_cast<double>(batch.ByteSizeLong());
   attempt.counters["shared_memory"] = shared ? 1.0 : 0.0;
 
@@ -351,8 +355,17 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::call_generate(Worker& w
   rpc::attach_token(context, options_.security.token);
   const CancelWhenStopping cancel(context, options_.should_stop);
   auto stream = w.stub->Generate(&context);
-  rpc::write_chunked(batch, [&](const v1::Chunk& c) { return stream->Write(c); });
+  rpc::StreamedSendTimes sent;
+  const absl::Status converted = rpc::write_streamed(
+      batch, parts, [&](const v1::Chunk& c) { return stream->Write(c); }, nullptr, &sent);
+  if (!converted.ok() && !absl::IsUnavailable(converted)) {
+    // A tensor the encoding refuses (the stream is incomplete): the request is at fault, not the worker.
+    context.TryCancel();
+    (void)stream->Finish();
+    return converted;
+  }
   stream->WritesDone();
+  attempt.stages["client_encode"] += lay_out_seconds + sent.convert_seconds;
   attempt.stages["client_send"] += lap_seconds(&clock);
   v1::GenerateResult result;
   const absl::Status read =

@@ -46,6 +46,9 @@ struct WorkerPoolOptions {
   // Pass payloads through shared memory to workers that share this host's /dev/shm (found out per worker by
   // its probe, rpc/shared_memory.h); the others, and all when false, get them in the messages.
   bool shared_memory = true;
+  // Convert the payloads pose by pose while the converted poses are sent (rpc/streamed_send.h); false: convert
+  // them all, then send (the hand-over before that, kept for side-by-side measurement in bench/rpc_bench).
+  bool convert_while_sending = true;
   // Split every generate() call into contiguous shards, one per usable worker, asked at once, so that a
   // phase's pseudo-views are made by every GPU of the pool; a shard whose worker fails goes to the others.
   // Shards are sized by each worker's measured speed (shard_sizes), so that a worker on a GPU it shares with
@@ -89,9 +92,11 @@ class RemoteGenerator final : public Generator {
   // training included, when this call or the adaptation adapt() started adapted the worker), "adaptation_wait"
   // (how long this call waited for that background adaptation; the rest of it overlapped training), "worker_generate"
   // (the backend's own seconds), "transfer" (the rest of the Generate call), its parts on this side ("client_encode":
-  // tensors into the message or shared memory, "client_send", "client_receive": from the last chunk sent to the answer
-  // parsed, the worker's work included, "client_decode") and on the worker's (GenerateResult.transfer_seconds), and the
-  // backend's stages (GenerateResult.stage_seconds) of the answering worker.
+  // tensors laid out and converted into the message or shared memory, on a thread of their own that overlaps
+  // "client_send": the request serialised and sent as its parts are converted, "client_receive": from the last chunk
+  // sent to the answer parsed, the worker's work included, "client_decode") and on the worker's
+  // (GenerateResult.transfer_seconds; its "worker_encode" overlaps its sending likewise), and the backend's stages
+  // (GenerateResult.stage_seconds) of the answering worker.
   std::map<std::string, double> stage_seconds() const override { return stage_seconds_; }
   // After generate(): "request_bytes" and "answer_bytes" (serialized messages), "shared_memory_bytes" (payload
   // passed through shared memory), summed over the answering workers' calls, "shared_memory" (1 when one of

@@ -183,6 +183,15 @@ absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> WorkerService::open_region(co
   return rpc::SharedRegion::open(r.name(), r.size());
 }
 
+namespace {
+
+// The backend, not the request, produced what cannot be sent: the caller asks another worker.
+grpc::Status malformed_answer(const absl::Status& why) {
+  return rpc::to_grpc(absl::DataLossError(absl::StrCat("malformed answer: ", why.message())));
+}
+
+}  // namespace
+
 grpc::Status WorkerService::Generate(grpc::ServerContext* context,
                                      grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
@@ -224,15 +233,24 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   clock = std::chrono::steady_clock::now();
   std::optional<rpc::SharedArena> arena;
   if (*region) arena.emplace(**region, batch.shared_region().answer_offset());
-  if (auto st = rpc::encode_answer(*images, {*answer_encoding, arena ? &*arena : nullptr}, &result); !st.ok())
-    // The backend, not the request, produced what cannot be sent: the caller asks another worker.
-    return rpc::to_grpc(absl::DataLossError(absl::StrCat("malformed answer: ", st.message())));
-  transfer["worker_encode"] = lap_seconds(&clock);
+  // The images are laid out now and converted while the converted ones are sent (rpc/streamed_send.h), or
+  // converted at once.
+  std::vector<rpc::MessagePart> parts;
+  if (auto st = rpc::encode_answer(*images, {*answer_encoding, arena ? &*arena : nullptr}, &result,
+                                   options_.convert_while_sending ? &parts : nullptr);
+      !st.ok())
+    return malformed_answer(st);
+  const double lay_out_seconds = lap_seconds(&clock);
   for (const std::string& note : notes) result.add_notes(note);
   result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
   result.mutable_backend_counters()->insert(counters.begin(), counters.end());
-  if (!rpc::write_chunked(result, [&](const v1::Chunk& c) { return stream->Write(c); }))
-    return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
+  // A placeholder of the final value's size: the message's size is announced before the conversions ran.
+  transfer["worker_encode"] = -1.0;
+  const absl::Status sent = rpc::write_streamed(
+      result, parts, [&](const v1::Chunk& c) { return stream->Write(c); },
+      [&](double convert_seconds) { transfer["worker_encode"] = lay_out_seconds + convert_seconds; });
+  if (absl::IsUnavailable(sent)) return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
+  if (!sent.ok()) return malformed_answer(sent);
   return grpc::Status::OK;
 }
 

@@ -27,6 +27,9 @@ struct WorkerServiceOptions {
   std::string token;                        // required bearer token (empty: none)
   // Accept payloads in shared memory from trainers that share this host's /dev/shm (rpc/shared_memory.h).
   bool shared_memory = true;
+  // Convert the answer's images one by one while the converted ones are sent (rpc/streamed_send.h); false:
+  // convert them all, then send (kept for side-by-side measurement in bench/rpc_bench).
+  bool convert_while_sending = true;
 };
 
 class WorkerService final : public v1::DiffusionWorker::Service {
