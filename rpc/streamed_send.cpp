@@ -83,7 +83,7 @@ class ChunkWriter {
 
 // The repeated fields the parts stand for, each with its descriptor; INTERNAL when the parts do not match them.
 absl::StatusOr<std::vector<const FieldDescriptor*>> streamed_fields(const Message& message,
-                                                                  const std::vector<MessagePart>& parts) {
+                                                                    const std::vector<MessagePart>& parts) {
   std::map<int, int> next_index;
   for (const MessagePart& part : parts) {
     int& next = next_index[part.field];
@@ -96,8 +96,8 @@ absl::StatusOr<std::vector<const FieldDescriptor*>> streamed_fields(const Messag
     const FieldDescriptor* field = message.GetDescriptor()->FindFieldByNumber(number);
     if (field == nullptr || !field->is_repeated() || field->cpp_type() != FieldDescriptor::CPPTYPE_MESSAGE ||
         message.GetReflection()->FieldSize(message, field) != count)
-      return absl::InternalError(absl::StrCat("streamed parts do not cover field ", number, " of ",
-                                              message.GetTypeName()));
+      return absl::InternalError(
+          absl::StrCat("streamed parts do not cover field ", number, " of ", message.GetTypeName()));
     fields.push_back(field);
   }
   return fields;
@@ -106,8 +106,7 @@ absl::StatusOr<std::vector<const FieldDescriptor*>> streamed_fields(const Messag
 // Runs the parts' conversions in order on a thread of its own; converted(i) waits until part i is done.
 class Converter {
  public:
-  explicit Converter(const std::vector<MessagePart>& parts)
-      : parts_(parts), thread_([this] { run(); }) {}
+  explicit Converter(const std::vector<MessagePart>& parts) : parts_(parts), thread_([this] { run(); }) {}
   ~Converter() {
     {
       std::lock_guard<std::mutex> lock(mutex_);
@@ -135,8 +134,10 @@ class Converter {
         if (st = fill_payload(payload); !st.ok()) break;
       std::lock_guard<std::mutex> lock(mutex_);
       seconds_ += lap_seconds(&clock);
-      if (!st.ok()) failure_ = st;
-      else ++done_;
+      if (!st.ok())
+        failure_ = st;
+      else
+        ++done_;
       done_changed_.notify_all();
       if (stop_ || !st.ok()) return;
     }
@@ -186,8 +187,8 @@ absl::Status write_streamed(Message& message, const std::vector<MessagePart>& pa
   const std::string tail = message.SerializeAsString();
   reflection.SwapFields(&message, aside.get(), *fields);
   if (tail.size() != rest)
-    return absl::InternalError(absl::StrCat("the rest of ", message.GetTypeName(), " changed size from ", rest,
-                                            " to ", tail.size(), " bytes while it was being sent"));
+    return absl::InternalError(absl::StrCat("the rest of ", message.GetTypeName(), " changed size from ", rest, " to ",
+                                            tail.size(), " bytes while it was being sent"));
   if (!writer.append(tail) || !writer.finish()) return broke;
   if (times != nullptr) *times = {convert_seconds, lap_seconds(&start)};
   return absl::OkStatus();

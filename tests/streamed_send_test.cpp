@@ -97,8 +97,9 @@ void expect_equal_messages(const google::protobuf::Message& a, const google::pro
 
 TEST(StreamedSend, ABatchArrivesAsTheBatchEncodedAtOnce) {
   const std::vector<GenerationRequest> requests = requests_of_size(24, 18);
-  for (const rpc::TensorTransfer transfer : {rpc::TensorTransfer{TensorEncoding::kFloat32, nullptr, TensorEncoding::kFloat32},
-                                             rpc::TensorTransfer{TensorEncoding::kUint8, nullptr, TensorEncoding::kFloat16}}) {
+  for (const rpc::TensorTransfer transfer :
+       {rpc::TensorTransfer{TensorEncoding::kFloat32, nullptr, TensorEncoding::kFloat32},
+        rpc::TensorTransfer{TensorEncoding::kUint8, nullptr, TensorEncoding::kFloat16}}) {
     v1::GenerateBatch whole;
     ASSERT_TRUE(rpc::encode_generation_batch(requests, &whole, transfer).ok());
     whole.set_scene_handle("scene#1");
