@@ -272,21 +272,37 @@ struct Bench {
     emit(j);
   }
 
+  // One img2img call of a batch of pseudo-views, as the timed and the traced cases make it.
+  struct Img2ImgCall {
+    ViewInputs in;
+    sdxl::Img2ImgParams params;
+    sdxl::ControlInput control;
+    std::vector<uint64_t> seeds;
+    absl::StatusOr<at::Tensor> operator()(sdxl::SdxlPipeline& pipeline) const {
+      return pipeline.img2img(in.image, std::vector<std::string>(seeds.size(), kPrompt), params, seeds, control);
+    }
+  };
+  Img2ImgCall img2img_call(const Size& s, int64_t batch, bool image_prompt) const {
+    Img2ImgCall call;
+    call.in = view_inputs(s, batch, 4);
+    call.params = img2img_params(image_prompt, call.in);
+    call.control = {call.in.control, {absl::GetFlag(FLAGS_control_scale)}};
+    call.seeds.resize(batch);
+    std::iota(call.seeds.begin(), call.seeds.end(), uint64_t{1234});
+    return call;
+  }
+
   // Batches of pseudo-views through the pipeline at every size and batch size (--batches): img2img with the
   // ControlNet, optionally the image prompt.
   bool time_img2img(sdxl::SdxlPipeline& pipeline, const std::string& case_name, bool image_prompt) const {
     for (const Size& s : sizes) {
       for (const int64_t batch : batches) {
-        const ViewInputs in = view_inputs(s, batch, 4);
-        const sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
-        const sdxl::ControlInput control{in.control, {absl::GetFlag(FLAGS_control_scale)}};
-        const std::vector<std::string> prompts(batch, kPrompt);
-        std::vector<uint64_t> seeds(batch);
-        std::iota(seeds.begin(), seeds.end(), uint64_t{1234});
+        const Img2ImgCall call = img2img_call(s, batch, image_prompt);
+        const sdxl::Img2ImgParams& params = call.params;
         at::Tensor out;
         device.reset_peak();
         const Timing t = time_ms(device, absl::GetFlag(FLAGS_warmup), absl::GetFlag(FLAGS_runs), [&]() -> absl::Status {
-          auto result = pipeline.img2img(in.image, prompts, params, seeds, control);
+          auto result = call(pipeline);
           if (!result.ok()) return result.status();
           out = *result;
           return absl::OkStatus();
@@ -315,15 +331,11 @@ struct Bench {
     const std::string trace = absl::GetFlag(FLAGS_img2img_trace);
     if (trace.empty()) return true;
     const int64_t batch = batches.back();
-    const ViewInputs in = view_inputs(sizes.back(), batch, 4);
-    const sdxl::Img2ImgParams params = img2img_params(image_prompt, in);
-    const sdxl::ControlInput control{in.control, {absl::GetFlag(FLAGS_control_scale)}};
-    std::vector<uint64_t> seeds(batch);
-    std::iota(seeds.begin(), seeds.end(), uint64_t{1234});
+    const Img2ImgCall call = img2img_call(sizes.back(), batch, image_prompt);
     gaps::bench::KinetoTrace profiler(device.device().is_cuda());
     device.sync();
     profiler.start();
-    auto result = pipeline.img2img(in.image, std::vector<std::string>(batch, kPrompt), params, seeds, control);
+    auto result = call(pipeline);
     device.sync();
     profiler.stop_and_save(trace);
     if (!result.ok()) return fail("img2img (traced)", result.status());
