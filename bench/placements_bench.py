@@ -25,7 +25,8 @@ as run. One JSON line per case goes to --out; a case whose worker logged an empt
 
   python3 bench/placements_bench.py --build build --scene ../shared/data/llff/fern --work /tmp/placements \
       --out bench/results/placements_gpu_DATE.jsonl [--cases reproject,one-card,two-gpus] \
-      [--worker_options '{"cuda_graphs": true}'] [--submit_flags --async-iterations 500]
+      [--worker_options '{"cuda_graphs": true}'] [--trainer_flags '--worker_adaptation_grace_s 1e6'] \
+      [--submit_flags --async-iterations 500]
 
 Jobs run with the trainer's defaults unless --submit_flags says otherwise: asynchronous phases (250) since
 2026-11-30, so the synchronous rows recorded before need `--submit_flags --async-iterations 0` to be repeated. Each
@@ -35,6 +36,8 @@ import argparse
 import json
 import os
 import re
+import shlex
+import shutil
 import subprocess
 import sys
 import threading
@@ -198,6 +201,8 @@ def case_layout(case, args, backend_options):
 def run_case(case, args, backend_options, env):
     gaps = args.build / "client" / "gaps"
     work = args.work / case
+    # A run before this one left its job database (which a trainer would resume) and its fetched files.
+    shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
     worker_layout, (trainer_device, trainer_cap), variant = case_layout(case, args, backend_options)
     caps = (trainer_cap, max((cap for _, _, cap in worker_layout), default=0.0))
@@ -217,7 +222,8 @@ def run_case(case, args, backend_options, env):
             pool = ["--workers", ",".join(f"127.0.0.1:{p}" for p in worker_ports)] if workers else []
             trainer = Service("gaps-trainer", [str(args.build / "server" / "gaps-trainer"), "--listen", "127.0.0.1:0",
                                                "--data_dir", str(work / "data"), "--device", trainer_device,
-                                               "--gpu_memory_gib", str(trainer_cap), *pool], work / "trainer.log", env)
+                                               "--gpu_memory_gib", str(trainer_cap), *pool, *args.trainer_flags],
+                              work / "trainer.log", env)
             address = f"127.0.0.1:{trainer.wait_for_port(120)}"
             submitted = time.time()
             out = run([gaps, "submit", args.scene, "--views", args.views, "-r", args.resolution, "--variant", variant,
@@ -247,7 +253,8 @@ def run_case(case, args, backend_options, env):
     gpu_peak = {g: sampler.gpu_peak_mib.get(g, 0.0) - sampler.gpu_base_mib.get(g, 0.0) for g in gpus_used}
     row = {
         "case": case, "variant": variant, "workers": len(workers),
-        "submit_flags": args.submit_flags if variant != "vanilla" else [], "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
+        "submit_flags": args.submit_flags if variant != "vanilla" else [], "trainer_flags": args.trainer_flags,
+        "scene": str(args.scene), "views": args.views, "resolution": args.resolution,
         "succeeded": watch.returncode == 0, "job_wall_seconds": round(job_seconds, 2),
         "worker_start_seconds": round(worker_ready, 2) if workers else None,
         "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"),
@@ -286,6 +293,8 @@ def main():
     parser.add_argument("--commit", default="")
     parser.add_argument("--worker_options", type=json.loads, default={},
                         help='more sdxl backend options (JSON) over the bench\'s, e.g. \'{"cuda_graphs": true}\'')
+    parser.add_argument("--trainer_flags", type=shlex.split, default=[],
+                        help="more gaps-trainer flags, one string, e.g. '--worker_adaptation_grace_s 1e6'")
     parser.add_argument("--submit_flags", nargs=argparse.REMAINDER, default=[],
                         help="more `gaps submit` flags, e.g. --iterations 3000 (last on the line)")
     args = parser.parse_args()

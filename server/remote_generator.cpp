@@ -160,7 +160,7 @@ std::vector<size_t> shard_sizes(size_t poses, const std::vector<double>& seconds
 }
 
 RemoteGenerator::RemoteGenerator(WorkerPoolOptions options) : options_(std::move(options)) {}
-RemoteGenerator::~RemoteGenerator() { join_adaptation(nullptr); }
+RemoteGenerator::~RemoteGenerator() { join_adaptation(nullptr, true); }
 
 absl::StatusOr<std::unique_ptr<RemoteGenerator>> RemoteGenerator::create(WorkerPoolOptions options) {
   if (options.addresses.empty()) return absl::InvalidArgumentError("the worker pool needs at least one address");
@@ -237,7 +237,7 @@ void add_worker_notes(const std::string& address, const google::protobuf::Repeat
 
 absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views,
                                     const std::optional<SceneAdaptation>& adaptation) {
-  join_adaptation(nullptr);  // calls for earlier views read views_
+  join_adaptation(nullptr, true);  // calls for earlier views read views_
   views_ = views;
   adaptation_ = adaptation;
   ++views_version_;
@@ -247,6 +247,7 @@ absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views,
 }
 
 void RemoteGenerator::start_adaptation() {
+  first_adaptation_end_.reset();
   if (views_.empty() || workers_.empty() || stopping()) return;
   std::vector<Worker*> targets;
   if (options_.fan_out) {
@@ -254,30 +255,62 @@ void RemoteGenerator::start_adaptation() {
   } else {
     targets.push_back(workers_[next_ % workers_.size()].get());
   }
-  adaptation_attempts_.assign(targets.size(), Attempt());
-  for (size_t k = 0; k < targets.size(); ++k) {
-    adaptations_.push_back(std::async(std::launch::async, [this, &w = *targets[k], &attempt = adaptation_attempts_[k]] {
+  for (Worker* target : targets) {
+    auto adaptation = std::make_unique<Adaptation>();
+    adaptation->worker = target;
+    adaptation->call = std::async(std::launch::async, [this, &a = *adaptation] {
+      Worker& w = *a.worker;
       if (!usable(w)) return;
-      const absl::Status adapted = adapt_on(w, attempt);
+      const absl::Status adapted = adapt_on(w, a.attempt);
       // A worker that failed sits out its cooldown, as after a failed call in generate(); an error of the request
       // (the views, the adaptation asked for) is left for generate(), whose adaptation of the worker reports it.
       if (adapted.ok() || stopping() || !another_worker_may_help(adapted)) return;
       w.last_error = std::string(adapted.message());
       mark_failed(w);
-    }));
+    });
+    adaptations_.push_back(std::move(adaptation));
   }
 }
 
-void RemoteGenerator::join_adaptation(Attempt* into) {
+void RemoteGenerator::join_adaptation(Attempt* into, bool all) {
+  adapting_.clear();
   if (adaptations_.empty()) return;
   auto start = std::chrono::steady_clock::now();
-  for (auto& call : adaptations_) call.get();
-  adaptations_.clear();
-  if (into != nullptr) {
-    for (const Attempt& a : adaptation_attempts_) into->add(a);
-    into->stages["adaptation_wait"] += lap_seconds(&start);
+  const auto ended = [](const Adaptation& a) {
+    return a.call.wait_for(std::chrono::seconds(0)) == std::future_status::ready;
+  };
+  for (;;) {
+    bool running = false;
+    for (const auto& a : adaptations_) {
+      if (!ended(*a))
+        running = true;
+      else if (!first_adaptation_end_)
+        first_adaptation_end_ = std::chrono::steady_clock::now();
+    }
+    if (!running || (!all && first_adaptation_end_ &&
+                     std::chrono::steady_clock::now() - *first_adaptation_end_ >= options_.adaptation_grace))
+      break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
   }
-  adaptation_attempts_.clear();
+  std::vector<std::unique_ptr<Adaptation>> running;
+  for (auto& a : adaptations_) {
+    if (!ended(*a)) {
+      adapting_.insert(a->worker);
+      running.push_back(std::move(a));
+      continue;
+    }
+    a->call.get();
+    if (into != nullptr) into->add(a->attempt);
+  }
+  adaptations_ = std::move(running);
+  if (into != nullptr) into->stages["adaptation_wait"] += lap_seconds(&start);
+}
+
+std::vector<RemoteGenerator::Worker*> RemoteGenerator::ready_workers() {
+  std::vector<Worker*> ready;
+  for (auto& w : workers_)
+    if (!adapting_.count(w.get()) && !stopping() && usable(*w)) ready.push_back(w.get());
+  return ready;
 }
 
 void RemoteGenerator::Attempt::add(const Attempt& other) {
@@ -435,14 +468,24 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate(const std::vec
   if (requests.empty()) return std::vector<at::Tensor>{};
   // The background adaptation's stages and notes come first in this call's report.
   Attempt attempt;
-  join_adaptation(&attempt);
+  const bool shared_out = options_.fan_out && requests.size() > 1;
+  join_adaptation(&attempt, !shared_out);
   std::vector<Worker*> ready;
-  if (options_.fan_out && requests.size() > 1)
-    for (auto& w : workers_)
-      if (!stopping() && usable(*w)) ready.push_back(w.get());
+  if (shared_out) ready = ready_workers();
+  if (ready.empty() && !adapting_.empty()) {
+    // No adapted worker to start with: wait for the others after all.
+    join_adaptation(&attempt, true);
+    ready = ready_workers();
+  }
   Attempt generation;
   auto images = ready.size() > 1 ? generate_fanned_out(requests, ready, generation)
                                  : generate_with_failover(requests, generation);
+  if (!images.ok() && !adapting_.empty() && another_worker_may_help(images.status()) && !stopping()) {
+    // The adapted workers failed; those still adapting may answer once they are done.
+    join_adaptation(&attempt, true);
+    generation = Attempt();
+    images = generate_with_failover(requests, generation);
+  }
   if (!images.ok()) return images;
   attempt.add(generation);
   notes_ = std::move(attempt.notes);
@@ -518,7 +561,8 @@ absl::StatusOr<std::vector<at::Tensor>> RemoteGenerator::generate_with_failover(
     for (size_t k = 0; k < workers_.size(); ++k) {
       if (stopping()) return stopped;
       Worker& w = *workers_[(next_ + k) % workers_.size()];
-      if (!usable(w)) continue;
+      // A worker adapting in the background is not to be called beside that call.
+      if (adapting_.count(&w) || !usable(w)) continue;
       Attempt tried;  // of this worker only: a failed one's notes and seconds are not this call's
       auto images = adapt_and_generate_on(w, requests, tried);
       if (images.ok()) {

@@ -10,6 +10,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -56,6 +57,10 @@ struct WorkerPoolOptions {
   // Each worker is adapted to the scene before its first shard: an adaptation that trains (sdxl's LoRA) runs
   // on every worker, in parallel. False: one worker per call, the others stand by.
   bool fan_out = true;
+  // With fan_out, generate() waits for the workers' background adaptations (adapt()) until one has ended and then
+  // at most this much longer; a worker still adapting then sits out the calls until its adaptation ends, so that
+  // one whose adaptation is slow (on the GPU the trainer trains on) does not hold the first phases up.
+  std::chrono::milliseconds adaptation_grace{1000};
 };
 
 // The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per
@@ -80,8 +85,9 @@ class RemoteGenerator final : public Generator {
   std::string name() const override;
   // Remembers the views and the adaptation and starts adapting the workers in the background (every usable
   // worker with fan_out, else the one asked next), so that a LoRA trains while the model does; returns at once.
-  // generate() waits for those calls; a worker whose adaptation failed is marked failed, and any worker not
-  // adapted yet is adapted before it generates.
+  // generate() waits for those calls (with fan_out, for the first and adaptation_grace more: a worker still
+  // adapting sits out the call); a worker whose adaptation failed is marked failed, and any worker not adapted
+  // yet is adapted before it generates.
   absl::Status adapt(const std::vector<ReferenceView>& views,
                      const std::optional<SceneAdaptation>& adaptation) override;
   absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override;
@@ -142,8 +148,12 @@ class RemoteGenerator final : public Generator {
   void mark_failed(Worker& worker);
   // adapt()'s background AdaptScene calls, one thread per worker (each writes only its worker and its Attempt).
   void start_adaptation();
-  // Waits for them; their stages and notes go to *into (when given), the wait to its "adaptation_wait".
-  void join_adaptation(Attempt* into);
+  // Waits for all of them (`all`), or until one has ended and adaptation_grace has passed since; the stages and
+  // notes of those that ended go to *into (when given), the wait to its "adaptation_wait", and the workers still
+  // adapting to adapting_, which no call uses until their adaptation ends.
+  void join_adaptation(Attempt* into, bool all);
+  // The usable workers that are not adapting.
+  std::vector<Worker*> ready_workers();
 
   WorkerPoolOptions options_;
   std::vector<std::unique_ptr<Worker>> workers_;
@@ -156,8 +166,16 @@ class RemoteGenerator final : public Generator {
   std::map<std::string, double> counters_;
   mutable std::mutex name_mutex_;
   std::string backend_version_;
-  std::vector<Attempt> adaptation_attempts_;    // sized before the threads start; one per thread
-  std::vector<std::future<void>> adaptations_;  // declared last: joined (destroyed) before the rest
+  // One background adaptation: its worker, what it reports, its thread (at a fixed address while it runs).
+  struct Adaptation {
+    Worker* worker = nullptr;
+    Attempt attempt;
+    std::future<void> call;
+  };
+  std::set<Worker*> adapting_;  // workers whose adaptation is still running (join_adaptation)
+  // When the first of the current views' adaptations ended.
+  std::optional<std::chrono::steady_clock::time_point> first_adaptation_end_;
+  std::vector<std::unique_ptr<Adaptation>> adaptations_;  // declared last: joined (destroyed) before the rest
 };
 
 }  // namespace gaps

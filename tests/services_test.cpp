@@ -1199,6 +1199,47 @@ TEST(WorkerPool, AdaptReturnsAtOnceAndGenerateWaitsForTheWorkersAdaptation) {
   EXPECT_EQ(backend.adaptations, 1);
 }
 
+// With fan_out, a worker whose adaptation is still running once another's has ended (and the grace after it
+// passed) sits out the calls, which the adapted worker answers alone; once its adaptation ends, it shares them.
+TEST(WorkerPool, AWorkerStillAdaptingSitsOutTheCallsUntilItsAdaptationEnds) {
+  WorkerServiceOptions options;
+  options.backend = "echo";
+  auto quick = std::make_unique<EchoGenerator>();
+  auto gated = std::make_unique<GatedAdaptGenerator>();
+  const EchoGenerator& first = *quick;
+  GatedAdaptGenerator& slow = *gated;
+  RunningWorker wa(std::move(quick), options), wb(std::move(gated), options);
+  WorkerPoolOptions o;
+  o.addresses = {wa.address(), wb.address()};
+  o.encoding = rpc::TensorEncoding::kFloat32;
+  o.adaptation_grace = std::chrono::milliseconds(100);
+  auto remote = RemoteGenerator::create(o);
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = many_requests(5);
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  auto images = (*remote)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  expect_in_order(*images, requests);
+  // Had the call waited for the gated worker, the gate would have given up (unreleased) and that worker shared it.
+  EXPECT_EQ((*remote)->counters().at("workers"), 1.0);
+  EXPECT_EQ(first.poses, 5);
+  EXPECT_EQ(slow.poses, 0);
+  EXPECT_EQ((*remote)->stage_seconds().count("adaptation_wait"), 1u);
+  slow.release();
+  bool shared = false;
+  for (int i = 0; i < 100 && !shared; ++i) {
+    images = (*remote)->generate(requests);
+    ASSERT_TRUE(images.ok()) << images.status();
+    expect_in_order(*images, requests);
+    shared = (*remote)->counters().at("workers") == 2.0;
+    if (!shared) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+  EXPECT_TRUE(shared) << "the worker whose adaptation ended was not called again";
+  EXPECT_TRUE(slow.released_in_time);
+  EXPECT_EQ(slow.adaptations, 1) << "adapted once, in the background";
+  EXPECT_GT(slow.poses, 0);
+}
+
 // Refuses every adaptation as a request error (the views, the settings), not as a failing worker.
 class RefusingAdaptGenerator : public EchoGenerator {
  public:
