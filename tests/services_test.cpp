@@ -53,6 +53,7 @@
 #include "server/remote_generator.h"
 #include "server/scene_upload.h"
 #include "server/trainer_service.h"
+#include "tests/camera_test_util.h"
 #include "tests/synthetic_scene_util.h"
 #include "tests/test_util.h"
 
@@ -61,21 +62,9 @@ namespace {
 
 namespace fs = std::filesystem;
 
-Camera test_camera(double x, int width = 24, int height = 18) {
-  Camera c;
-  c.name = "cam" + std::to_string(static_cast<int>(x * 10)) + ".png";
-  c.width = width;
-  c.height = height;
-  c.fx = c.fy = 20;
-  c.cx = width / 2.0;
-  c.cy = height / 2.0;
-  c.t = Eigen::Vector3d(-x, 0, 0);
-  return c;
-}
-
 ReferenceView test_reference(double x, uint64_t seed) {
   at::manual_seed(seed);
-  const Camera c = test_camera(x);
+  const Camera c = test::camera_on_x_axis(x);
   return {c, at::rand({c.height, c.width, 3}), at::full({c.height, c.width}, 2.0), at::ones({c.height, c.width})};
 }
 
@@ -84,7 +73,7 @@ std::vector<GenerationRequest> test_requests() {
   std::vector<GenerationRequest> out;
   for (double x : {0.2, 0.3}) {
     GenerationRequest q;
-    q.camera = test_camera(x);
+    q.camera = test::camera_on_x_axis(x);
     at::manual_seed(static_cast<uint64_t>(x * 100));
     q.render_rgb = at::rand({18, 24, 3});
     q.render_depth = at::full({18, 24}, 2.0);
@@ -155,7 +144,7 @@ TEST(Codec, TensorsAndCamerasRoundTrip) {
   ASSERT_TRUE(empty_tensor.ok()) << empty_tensor.status();
   EXPECT_EQ(empty_tensor->sizes(), at::IntArrayRef({0, 3}));
 
-  Camera c = test_camera(0.3);
+  Camera c = test::camera_on_x_axis(0.3);
   c.R = Eigen::AngleAxisd(0.4, Eigen::Vector3d(0, 1, 0)).toRotationMatrix();
   v1::Camera pc;
   rpc::encode_camera(c, &pc);

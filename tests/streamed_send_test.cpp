@@ -12,26 +12,15 @@
 #include "rpc/codec.h"
 #include "rpc/generation_codec.h"
 #include "rpc/streamed_send.h"
+#include "tests/camera_test_util.h"
 
 namespace gaps {
 namespace {
 
 using rpc::TensorEncoding;
 
-Camera camera_at(double x, int width, int height) {
-  Camera c;
-  c.name = "view" + std::to_string(static_cast<int>(x * 10)) + ".png";
-  c.width = width;
-  c.height = height;
-  c.fx = c.fy = 20;
-  c.cx = width / 2.0;
-  c.cy = height / 2.0;
-  c.t = Eigen::Vector3d(-x, 0, 0);
-  return c;
-}
-
 ReferenceView reference_at(double x, int width, int height) {
-  const Camera c = camera_at(x, width, height);
+  const Camera c = test::camera_on_x_axis(x, width, height);
   return {c, at::rand({height, width, 3}), at::rand({height, width}) * 5 + 1, at::rand({height, width})};
 }
 
@@ -42,7 +31,7 @@ std::vector<GenerationRequest> requests_of_size(int width, int height) {
   std::vector<GenerationRequest> out;
   for (double x : {0.1, 0.2, 0.3}) {
     GenerationRequest q;
-    q.camera = camera_at(x, width, height);
+    q.camera = test::camera_on_x_axis(x, width, height);
     q.render_rgb = at::rand({height, width, 3});
     q.render_depth = at::rand({height, width}) * 5 + 1;
     q.render_alpha = at::rand({height, width});
