@@ -61,6 +61,8 @@ ABSL_FLAG(std::string, configs_from, "", "take the SDXL component configs from t
 ABSL_FLAG(uint64_t, weights_seed, 0, "seed of the random SDXL weights");
 ABSL_FLAG(std::string, device, "cuda", "cuda or cpu");
 ABSL_FLAG(std::string, dtype, "float16", "float16, bfloat16 or float32 (the CPU runs float32 only)");
+ABSL_FLAG(std::string, vae_dtype, "",
+          "the VAE's type: \"\" = float32 (SDXL's config asks for force_upcast), bfloat16, float16 or float32");
 ABSL_FLAG(std::string, sizes, "504x378,1024x1024", "pseudo-view sizes WxH, padded to the latent factor");
 ABSL_FLAG(std::string, lora_size, "504x378", "size of the LoRA training views");
 ABSL_FLAG(std::string, batches, "1",
@@ -223,6 +225,7 @@ ViewInputs view_inputs(const Size& s, int64_t batch, uint64_t seed) {
 struct Bench {
   Device device;
   at::ScalarType dtype;
+  std::optional<at::ScalarType> vae_dtype;  // unset: the pipeline's choice
   nlohmann::json common;
   std::vector<Size> sizes;
   std::vector<int64_t> batches;
@@ -350,6 +353,7 @@ struct Bench {
       o.ip_adapter = weights_dir + "/ip_adapter/ip-adapter_sdxl_vit-h.safetensors";
       o.image_encoder = weights_dir + "/ip_adapter/image_encoder";
     }
+    o.vae_dtype = vae_dtype;
     return o;
   }
 
@@ -529,11 +533,14 @@ int main(int argc, char** argv) {
     return 2;
   }
   if (device.is_cuda() && !device.has_index()) device = at::Device(at::kCUDA, 0);
+  const auto scalar_type = [](const std::string& name) {
+    return name == "float16"    ? std::optional(at::kHalf)
+           : name == "bfloat16" ? std::optional(at::kBFloat16)
+           : name == "float32"  ? std::optional(at::kFloat)
+                                : std::nullopt;
+  };
   const std::string dtype_name = absl::GetFlag(FLAGS_dtype);
-  const std::optional<at::ScalarType> dtype = dtype_name == "float16"    ? std::optional(at::kHalf)
-                                              : dtype_name == "bfloat16" ? std::optional(at::kBFloat16)
-                                              : dtype_name == "float32"  ? std::optional(at::kFloat)
-                                                                         : std::nullopt;
+  const std::optional<at::ScalarType> dtype = scalar_type(dtype_name);
   if (!dtype || (device.is_cpu() && *dtype != at::kFloat)) {
     std::cerr << "generator_bench: --dtype must be float16, bfloat16 or float32 (float32 on the CPU)\n";
     return 2;
@@ -580,8 +587,15 @@ int main(int argc, char** argv) {
   common["device"] = dev.name();
   common["torch"] = TORCH_VERSION;
   common["dtype"] = dtype_name;
+  const std::string vae_dtype_name = absl::GetFlag(FLAGS_vae_dtype);
+  const std::optional<at::ScalarType> vae_dtype = scalar_type(vae_dtype_name);
+  if (!vae_dtype_name.empty() && (!vae_dtype || (device.is_cpu() && *vae_dtype != at::kFloat))) {
+    std::cerr << "generator_bench: --vae_dtype must be \"\", float16, bfloat16 or float32 (float32 on the CPU)\n";
+    return 2;
+  }
+  common["vae_dtype"] = vae_dtype_name.empty() ? "float32 (force_upcast)" : vae_dtype_name;
   common["commit"] = absl::GetFlag(FLAGS_commit);
-  const Bench bench{dev, *dtype, common, sizes, batches, *lora_size, absl::GetFlag(FLAGS_weights_dir)};
+  const Bench bench{dev, *dtype, vae_dtype, common, sizes, batches, *lora_size, absl::GetFlag(FLAGS_weights_dir)};
   const std::vector<std::string> phases = absl::StrSplit(absl::GetFlag(FLAGS_phases), ',');
   const auto asked = [&](const char* phase) { return std::find(phases.begin(), phases.end(), phase) != phases.end(); };
   for (const std::string& phase : phases) {

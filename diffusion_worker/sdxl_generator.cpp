@@ -34,10 +34,22 @@ std::vector<std::string> dtype_names() {
 }
 
 // Parsed options hold one of kDtypes' names already (the table's choices); options built in code may not.
-absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name) {
+absl::StatusOr<at::ScalarType> parse_dtype(const std::string& name, const std::string& key = "dtype") {
   for (const auto& [dtype_name, type] : kDtypes)
     if (name == dtype_name) return type;
-  return option_error("dtype", absl::StrCat("'", name, "' is not one of ", absl::StrJoin(dtype_names(), ", ")));
+  return option_error(key, absl::StrCat("'", name, "' is not one of ", absl::StrJoin(dtype_names(), ", ")));
+}
+
+std::vector<std::string> vae_dtype_names() {
+  std::vector<std::string> names = {""};
+  for (const std::string& name : dtype_names()) names.push_back(name);
+  return names;
+}
+
+// "" = the pipeline's choice (unset).
+absl::StatusOr<std::optional<at::ScalarType>> parse_vae_dtype(const std::string& name) {
+  if (name.empty()) return std::nullopt;
+  return parse_dtype(name, "vae_dtype");
 }
 
 }  // namespace
@@ -53,6 +65,10 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
           number_option<O>("guidance", &O::guidance, at_least(0), "classifier-free guidance scale"),
           string_option<O>("dtype", &O::dtype, "weights' and activations' type (half types on CUDA only)",
                            dtype_names()),
+          string_option<O>("vae_dtype", &O::vae_dtype,
+                           "the VAE's type; \"\" = float32 when its config asks for force_upcast (SDXL's does), "
+                           "else dtype (half types on CUDA only)",
+                           vae_dtype_names()),
           string_option<O>("device", &O::device, "cpu, cuda or cuda:N"),
           string_option<O>("prompt", &O::prompt, "prompt of requests without one"),
           string_option<O>("variant", &O::variant, "fp16 = the *.fp16.safetensors weight copies"),
@@ -145,9 +161,12 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
     return option_error("device", "CUDA requested but no CUDA device is available");
   if (!device.is_cuda() && !device.is_cpu()) return option_error("device", "only cpu and cuda are supported");
   if (device.is_cpu() && dtype != at::kFloat) return option_error("dtype", "the CPU path runs in float32 only");
+  GAPS_ASSIGN_OR_RETURN(const std::optional<at::ScalarType> vae_dtype, parse_vae_dtype(options.vae_dtype));
+  if (device.is_cpu() && vae_dtype && *vae_dtype != at::kFloat)
+    return option_error("vae_dtype", "the CPU path runs in float32 only");
   auto pipeline = sdxl::SdxlPipeline::load(
       options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant,
-                                             options.controlnet, options.ip_adapter, options.image_encoder});
+                                             options.controlnet, options.ip_adapter, options.image_encoder, vae_dtype});
   if (!pipeline.ok()) {
     return absl::Status(
         pipeline.status().code(),

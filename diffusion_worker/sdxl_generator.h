@@ -30,10 +30,12 @@ struct SdxlOptions {
   int64_t steps = 30;             // steps of the full schedule; img2img runs int(steps * strength) of them
   double guidance = 5.0;          // classifier-free guidance scale
   std::string dtype = "float32";  // float32 | float16 | bfloat16 (half types need a CUDA device)
-  std::string device = "cpu";     // cpu | cuda | cuda:N
-  std::string prompt;             // used when a request has no prompt
-  std::string scheduler;          // "" = the folder's; euler | ddim | dpmpp2m | pndm
-  int64_t batch_size = 4;         // requests of one size denoised together
+  // The VAE's type: "" = float32 when its config asks for force_upcast (SDXL's does), else dtype; or one of dtype's.
+  std::string vae_dtype;
+  std::string device = "cpu";  // cpu | cuda | cuda:N
+  std::string prompt;          // used when a request has no prompt
+  std::string scheduler;       // "" = the folder's; euler | ddim | dpmpp2m | pndm
+  int64_t batch_size = 4;      // requests of one size denoised together
   // A denoising step's fixed cost in batch members (img2img_batch_ends): requests of unequal strengths share a
   // batch when that saves more than their extra steps cost. NaN: by device, kImg2ImgStepOverheadCuda on CUDA and 0
   // on the CPU (only equal strengths share).

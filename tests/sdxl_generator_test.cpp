@@ -163,6 +163,17 @@ TEST_F(SdxlGeneratorStartupTest, UnusableFoldersAreClearErrors) {
       {"float32"}));
 
   EXPECT_TRUE(contains_all(
+      std::string(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"vae_dtype\": \"bfloat16\""))
+                      .status()
+                      .message()),
+      {"vae_dtype", "float32"}));
+  EXPECT_TRUE(contains_all(
+      std::string(
+          make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"vae_dtype\": \"int8\"")).status().message()),
+      {"vae_dtype"}));
+  EXPECT_TRUE(make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"vae_dtype\": \"float32\"")).ok());
+
+  EXPECT_TRUE(contains_all(
       std::string(
           make_generator("sdxl", options_json(test::sdxl_model_dir(), ", \"cuda_graphs\": true")).status().message()),
       {"CUDA"}));

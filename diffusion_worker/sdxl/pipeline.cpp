@@ -177,9 +177,9 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     const bool upcast = json->value("force_upcast", true);
     auto weights = folder.read_weights("vae", options.variant);
     GAPS_RETURN_IF_ERROR(in_component("vae", weights.status()));
+    const at::ScalarType vae_dtype = options.vae_dtype.value_or(upcast ? at::kFloat : options.dtype);
     auto vae =
-        AutoencoderKL::load(*config, *std::move(weights), upcast ? model_options.dtype(at::kFloat) : model_options,
-                            folder.component_dir("vae"));
+        AutoencoderKL::load(*config, *std::move(weights), model_options.dtype(vae_dtype), folder.component_dir("vae"));
     GAPS_RETURN_IF_ERROR(in_component("vae", vae.status()));
     p->vae_ = *std::move(vae);
   }

@@ -48,6 +48,9 @@ struct PipelineOptions {
   // and the transformers folder of its CLIP image encoder (config.json, model.safetensors); both or
   // neither. With them, img2img takes reference images (Img2ImgParams::reference_images).
   std::string ip_adapter, image_encoder;
+  // The VAE's type; unset: float32 when its config asks for force_upcast, else dtype. bfloat16 keeps float32's
+  // exponent range (SDXL's VAE overflows float16's) at half the bytes; float16 suits VAEs made for it.
+  std::optional<at::ScalarType> vae_dtype;
 };
 
 struct UNetGraphs;  // the captured graphs (CUDA builds only)

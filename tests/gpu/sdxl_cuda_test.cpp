@@ -63,6 +63,29 @@ TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
   }
 }
 
+// The VAE in a half type on request (vae_dtype), although the tiny VAE's config asks for force_upcast as SDXL's
+// does: it runs in that type and img2img still follows the float32 reference within that type's rounding.
+TEST(SdxlPipelineTest, RunsItsVaeInTheTypeAskedFor) {
+  GAPS_REQUIRE_CUDA();
+  const TensorMap ref = test::sdxl_reference("img2img");
+  Img2ImgParams params;
+  params.steps = 4;
+  for (const auto& [vae_dtype, tolerance] : {std::pair{at::kBFloat16, 1e-1}, std::pair{at::kHalf, 5e-2}}) {
+    PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
+    options.vae_dtype = vae_dtype;
+    auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+    ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+    EXPECT_EQ((*pipeline)->vae().dtype(), vae_dtype);
+    auto out =
+        (*pipeline)->img2img(ref.at("image"), {"a photo of a fern in a garden", "a bonsai tree"}, params, {1234});
+    ASSERT_TRUE(out.ok()) << out.status();
+    expect_close(*out, ref.at("out"), tolerance, "img2img with a half-precision VAE");
+  }
+  auto upcast = SdxlPipeline::load(test::sdxl_model_dir(), PipelineOptions{at::kHalf, at::Device(at::kCUDA), ""});
+  ASSERT_TRUE(upcast.ok()) << upcast.status();
+  EXPECT_EQ((*upcast)->vae().dtype(), at::kFloat) << "force_upcast keeps the VAE in float32 when none is asked for";
+}
+
 TEST(ControlNetPipelineTest, RunsOnTheGpuInHalfPrecisionAndFromCudaGraphs) {
   GAPS_REQUIRE_CUDA();
   auto pipeline = half_precision_controlnet_pipeline();
