@@ -244,7 +244,8 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   for (const std::string& note : notes) result.add_notes(note);
   result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
   result.mutable_backend_counters()->insert(counters.begin(), counters.end());
-  // A placeholder of the final value's size: the message's size is announced before the conversions ran.
+  // The message's size is announced before the conversions run, so worker_encode holds a value now (a double: the
+  // same serialised size as the real one), which write_streamed's finish replaces with the measured seconds.
   transfer["worker_encode"] = -1.0;
   const absl::Status sent = rpc::write_streamed(
       result, parts, [&](const v1::Chunk& c) { return stream->Write(c); },
