@@ -54,6 +54,14 @@ double median_seconds(int repeats, F&& f) {
   return median(times);
 }
 
+// A server on a free loopback port with `service` registered; the port is written to *port.
+std::unique_ptr<grpc::Server> serve(grpc::Service* service, int* port) {
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), port);
+  builder.RegisterService(service);
+  return builder.BuildAndStart();
+}
+
 // Threads that spin until destroyed: the other runs of a busy host.
 class BusyThreads {
  public:
@@ -131,14 +139,8 @@ int main(int argc, char** argv) {
   gaps::WorkerService worker_at_once(std::move(*hosted_at_once), worker_options);
   grpc::EnableDefaultHealthCheckService(true);
   int worker_port = 0, worker_at_once_port = 0;
-  grpc::ServerBuilder worker_builder;
-  worker_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &worker_port);
-  worker_builder.RegisterService(&worker);
-  auto worker_server = worker_builder.BuildAndStart();
-  grpc::ServerBuilder worker_at_once_builder;
-  worker_at_once_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &worker_at_once_port);
-  worker_at_once_builder.RegisterService(&worker_at_once);
-  auto worker_at_once_server = worker_at_once_builder.BuildAndStart();
+  auto worker_server = serve(&worker, &worker_port);
+  auto worker_at_once_server = serve(&worker_at_once, &worker_at_once_port);
   const auto& c0 = requests[0].camera;
   (void)(*local)->adapt(refs, std::nullopt);
   struct Case {
@@ -214,10 +216,7 @@ int main(int argc, char** argv) {
   auto trainer = gaps::TrainerService::create(trainer_options);
   if (!trainer.ok()) return fail(trainer.status());
   int trainer_port = 0;
-  grpc::ServerBuilder trainer_builder;
-  trainer_builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &trainer_port);
-  trainer_builder.RegisterService(trainer->get());
-  auto trainer_server = trainer_builder.BuildAndStart();
+  auto trainer_server = serve(trainer->get(), &trainer_port);
   auto client = gaps::client::TrainerClient::connect("127.0.0.1:" + std::to_string(trainer_port), {});
   if (!client.ok()) return fail(client.status());
   const auto prepare_start = Clock::now();

@@ -81,9 +81,9 @@ class ChunkWriter {
   int chunks_ = 0;
 };
 
-// The repeated fields the parts stand for, each with its descriptor; INTERNAL when the parts do not match them.
-absl::StatusOr<std::vector<const FieldDescriptor*>> streamed_fields(const Message& message,
-                                                                    const std::vector<MessagePart>& parts) {
+// The repeated fields the parts stand for, by number; INTERNAL when the parts do not match them.
+absl::StatusOr<std::map<int, const FieldDescriptor*>> streamed_fields(const Message& message,
+                                                                      const std::vector<MessagePart>& parts) {
   std::map<int, int> next_index;
   for (const MessagePart& part : parts) {
     int& next = next_index[part.field];
@@ -91,14 +91,14 @@ absl::StatusOr<std::vector<const FieldDescriptor*>> streamed_fields(const Messag
       return absl::InternalError(absl::StrCat("streamed parts of field ", part.field, " are out of order"));
     ++next;
   }
-  std::vector<const FieldDescriptor*> fields;
+  std::map<int, const FieldDescriptor*> fields;
   for (const auto& [number, count] : next_index) {
     const FieldDescriptor* field = message.GetDescriptor()->FindFieldByNumber(number);
     if (field == nullptr || !field->is_repeated() || field->cpp_type() != FieldDescriptor::CPPTYPE_MESSAGE ||
         message.GetReflection()->FieldSize(message, field) != count)
       return absl::InternalError(
           absl::StrCat("streamed parts do not cover field ", number, " of ", message.GetTypeName()));
-    fields.push_back(field);
+    fields[number] = field;
   }
   return fields;
 }
@@ -158,15 +158,15 @@ absl::Status write_streamed(Message& message, const std::vector<MessagePart>& pa
                             const std::function<bool(const v1::Chunk&)>& write,
                             const std::function<void(double)>& finish, StreamedSendTimes* times) {
   auto start = std::chrono::steady_clock::now();
-  const absl::StatusOr<std::vector<const FieldDescriptor*>> fields = streamed_fields(message, parts);
+  const absl::StatusOr<std::map<int, const FieldDescriptor*>> fields = streamed_fields(message, parts);
   if (!fields.ok()) return fields.status();
   const google::protobuf::Reflection& reflection = *message.GetReflection();
+  const auto element = [&](const MessagePart& part) -> const Message& {
+    return reflection.GetRepeatedMessage(message, fields->at(part.field), part.index);
+  };
   const uint64_t total = message.ByteSizeLong();
   uint64_t rest = total;
-  for (const MessagePart& part : parts) {
-    const FieldDescriptor* field = message.GetDescriptor()->FindFieldByNumber(part.field);
-    rest -= tagged_size(reflection.GetRepeatedMessage(message, field, part.index), part.field);
-  }
+  for (const MessagePart& part : parts) rest -= tagged_size(element(part), part.field);
   ChunkWriter writer(total, write);
   const absl::Status broke = absl::UnavailableError("the stream broke while sending");
   double convert_seconds = 0;
@@ -174,18 +174,18 @@ absl::Status write_streamed(Message& message, const std::vector<MessagePart>& pa
     Converter converter(parts);
     for (size_t i = 0; i < parts.size(); ++i) {
       GAPS_RETURN_IF_ERROR(converter.converted(i));
-      const FieldDescriptor* field = message.GetDescriptor()->FindFieldByNumber(parts[i].field);
-      if (!writer.append(tagged(reflection.GetRepeatedMessage(message, field, parts[i].index), parts[i].field)))
-        return broke;
+      if (!writer.append(tagged(element(parts[i]), parts[i].field))) return broke;
     }
     convert_seconds = converter.seconds();
   }
   if (finish) finish(convert_seconds);
   // The rest of the message: its streamed fields moved aside while it is serialised.
+  std::vector<const FieldDescriptor*> moved;
+  for (const auto& [number, field] : *fields) moved.push_back(field);
   std::unique_ptr<Message> aside(message.New());
-  reflection.SwapFields(&message, aside.get(), *fields);
+  reflection.SwapFields(&message, aside.get(), moved);
   const std::string tail = message.SerializeAsString();
-  reflection.SwapFields(&message, aside.get(), *fields);
+  reflection.SwapFields(&message, aside.get(), moved);
   if (tail.size() != rest)
     return absl::InternalError(absl::StrCat("the rest of ", message.GetTypeName(), " changed size from ", rest, " to ",
                                             tail.size(), " bytes while it was being sent"));

@@ -247,7 +247,10 @@ absl::Status RemoteGenerator::adapt(const std::vector<ReferenceView>& views,
 }
 
 void RemoteGenerator::start_adaptation() {
-  first_adaptation_end_.reset();
+  {
+    std::lock_guard<std::mutex> lock(adaptation_mutex_);
+    first_adaptation_end_.reset();
+  }
   if (views_.empty() || workers_.empty() || stopping()) return;
   std::vector<Worker*> targets;
   if (options_.fan_out) {
@@ -259,46 +262,47 @@ void RemoteGenerator::start_adaptation() {
     auto adaptation = std::make_unique<Adaptation>();
     adaptation->worker = target;
     adaptation->call = std::async(std::launch::async, [this, &a = *adaptation] {
-      Worker& w = *a.worker;
-      if (!usable(w)) return;
-      const absl::Status adapted = adapt_on(w, a.attempt);
-      // A worker that failed sits out its cooldown, as after a failed call in generate(); an error of the request
-      // (the views, the adaptation asked for) is left for generate(), whose adaptation of the worker reports it.
-      if (adapted.ok() || stopping() || !another_worker_may_help(adapted)) return;
-      w.last_error = std::string(adapted.message());
-      mark_failed(w);
+      adapt_in_background(a);
+      std::lock_guard<std::mutex> lock(adaptation_mutex_);
+      a.ended = true;
+      if (!first_adaptation_end_) first_adaptation_end_ = std::chrono::steady_clock::now();
+      adaptation_ended_.notify_all();
     });
     adaptations_.push_back(std::move(adaptation));
   }
+}
+
+void RemoteGenerator::adapt_in_background(Adaptation& a) {
+  Worker& w = *a.worker;
+  if (!usable(w)) return;
+  const absl::Status adapted = adapt_on(w, a.attempt);
+  // A worker that failed sits out its cooldown, as after a failed call in generate(); an error of the request
+  // (the views, the adaptation asked for) is left for generate(), whose adaptation of the worker reports it.
+  if (adapted.ok() || stopping() || !another_worker_may_help(adapted)) return;
+  w.last_error = std::string(adapted.message());
+  mark_failed(w);
 }
 
 void RemoteGenerator::join_adaptation(Attempt* into, bool all) {
   adapting_.clear();
   if (adaptations_.empty()) return;
   auto start = std::chrono::steady_clock::now();
-  const auto ended = [](const Adaptation& a) {
-    return a.call.wait_for(std::chrono::seconds(0)) == std::future_status::ready;
-  };
-  for (;;) {
-    bool running = false;
-    for (const auto& a : adaptations_) {
-      if (!ended(*a))
-        running = true;
-      else if (!first_adaptation_end_)
-        first_adaptation_end_ = std::chrono::steady_clock::now();
+  std::vector<std::unique_ptr<Adaptation>> running, ended;
+  {
+    std::unique_lock<std::mutex> lock(adaptation_mutex_);
+    const auto all_ended = [&] {
+      return std::all_of(adaptations_.begin(), adaptations_.end(), [](const auto& a) { return a->ended; });
+    };
+    if (all) {
+      adaptation_ended_.wait(lock, all_ended);
+    } else {
+      adaptation_ended_.wait(lock, [&] { return first_adaptation_end_.has_value(); });
+      adaptation_ended_.wait_until(lock, *first_adaptation_end_ + options_.adaptation_grace, all_ended);
     }
-    if (!running || (!all && first_adaptation_end_ &&
-                     std::chrono::steady_clock::now() - *first_adaptation_end_ >= options_.adaptation_grace))
-      break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    for (auto& a : adaptations_) (a->ended ? ended : running).push_back(std::move(a));
   }
-  std::vector<std::unique_ptr<Adaptation>> running;
-  for (auto& a : adaptations_) {
-    if (!ended(*a)) {
-      adapting_.insert(a->worker);
-      running.push_back(std::move(a));
-      continue;
-    }
+  for (auto& a : running) adapting_.insert(a->worker);
+  for (auto& a : ended) {
     a->call.get();
     if (into != nullptr) into->add(a->attempt);
   }

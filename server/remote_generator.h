@@ -5,6 +5,7 @@
 // retries with exponential backoff, and puts a deadline on every RPC. When no worker answers, generate() and adapt()
 // return UNAVAILABLE, which the training loop treats as "skip this phase" (gs_trainer/gaps/training.h).
 #include <chrono>
+#include <condition_variable>
 #include <future>
 #include <map>
 #include <memory>
@@ -148,6 +149,9 @@ class RemoteGenerator final : public Generator {
   void mark_failed(Worker& worker);
   // adapt()'s background AdaptScene calls, one thread per worker (each writes only its worker and its Attempt).
   void start_adaptation();
+  struct Adaptation;
+  // One worker's AdaptScene call; a worker that failed in a way another worker may not sits out its cooldown.
+  void adapt_in_background(Adaptation& a);
   // Waits for all of them (`all`), or until one has ended and adaptation_grace has passed since; the stages and
   // notes of those that ended go to *into (when given), the wait to its "adaptation_wait", and the workers still
   // adapting to adapting_, which no call uses until their adaptation ends.
@@ -171,9 +175,12 @@ class RemoteGenerator final : public Generator {
     Worker* worker = nullptr;
     Attempt attempt;
     std::future<void> call;
+    bool ended = false;  // under adaptation_mutex_
   };
   std::set<Worker*> adapting_;  // workers whose adaptation is still running (join_adaptation)
-  // When the first of the current views' adaptations ended.
+  std::mutex adaptation_mutex_;
+  std::condition_variable adaptation_ended_;
+  // When the first of the current views' adaptations ended (under adaptation_mutex_).
   std::optional<std::chrono::steady_clock::time_point> first_adaptation_end_;
   std::vector<std::unique_ptr<Adaptation>> adaptations_;  // declared last: joined (destroyed) before the rest
 };
