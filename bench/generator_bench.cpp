@@ -82,6 +82,8 @@ ABSL_FLAG(int, inpaint_steps, 30, "SD2 inpainting steps (strength 1)");
 ABSL_FLAG(double, inpaint_guidance, 7.5, "SD2 inpainting guidance scale");
 ABSL_FLAG(std::string, inpaint_scheduler, "", "\"\" = the folder's (DDIM); euler | ddim | dpmpp2m");
 ABSL_FLAG(bool, cuda_graphs, false, "replay the SDXL UNet from CUDA graphs (the backend's cuda_graphs option)");
+ABSL_FLAG(bool, channels_last, false,
+          "convolutions and activations in channels-last order (the backend's channels_last option)");
 ABSL_FLAG(std::string, commit, "", "the commit measured, recorded in every line");
 ABSL_FLAG(std::string, json, "", "also append the JSON lines to this file");
 ABSL_FLAG(std::string, phases, "lora,worker",
@@ -354,6 +356,7 @@ struct Bench {
       o.image_encoder = weights_dir + "/ip_adapter/image_encoder";
     }
     o.vae_dtype = vae_dtype;
+    o.channels_last = absl::GetFlag(FLAGS_channels_last);
     return o;
   }
 
@@ -594,6 +597,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   common["vae_dtype"] = vae_dtype_name.empty() ? "float32 (force_upcast)" : vae_dtype_name;
+  common["channels_last"] = absl::GetFlag(FLAGS_channels_last);
   common["commit"] = absl::GetFlag(FLAGS_commit);
   const Bench bench{dev, *dtype, vae_dtype, common, sizes, batches, *lora_size, absl::GetFlag(FLAGS_weights_dir)};
   const std::vector<std::string> phases = absl::StrSplit(absl::GetFlag(FLAGS_phases), ',');

@@ -78,6 +78,8 @@ const OptionTable<SdxlOptions>& sdxl_option_table() {
                            "a denoising step's fixed cost in batch members, above which requests of unequal "
                            "strengths share a batch; unset = 1 on CUDA, 0 on the CPU"),
           bool_option<O>("cuda_graphs", &O::cuda_graphs, "replay the UNet from CUDA graphs (CUDA only)"),
+          bool_option<O>("channels_last", &O::channels_last,
+                         "the UNet's, ControlNet's and VAE's convolutions and activations in channels-last order"),
           string_option<O>("controlnet", &O::controlnet, "depth ControlNet folder; \"\" = the SDXL folder's, if any"),
           number_option<O>(
               "control_min_alpha", [](auto& o) -> auto& { return o.depth_control.min_alpha; }, above(0),
@@ -165,8 +167,9 @@ absl::StatusOr<std::unique_ptr<SdxlGenerator>> SdxlGenerator::create(const SdxlO
   if (device.is_cpu() && vae_dtype && *vae_dtype != at::kFloat)
     return option_error("vae_dtype", "the CPU path runs in float32 only");
   auto pipeline = sdxl::SdxlPipeline::load(
-      options.weights, sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant,
-                                             options.controlnet, options.ip_adapter, options.image_encoder, vae_dtype});
+      options.weights,
+      sdxl::PipelineOptions{dtype, device, options.scheduler, options.cuda_graphs, options.variant, options.controlnet,
+                            options.ip_adapter, options.image_encoder, vae_dtype, options.channels_last});
   if (!pipeline.ok()) {
     return absl::Status(
         pipeline.status().code(),

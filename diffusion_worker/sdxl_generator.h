@@ -41,7 +41,9 @@ struct SdxlOptions {
   // on the CPU (only equal strengths share).
   double batch_step_overhead = std::numeric_limits<double>::quiet_NaN();
   bool cuda_graphs = false;  // replay the UNet from CUDA graphs (CUDA device and build only)
-  std::string variant;       // "" = full weight files; "fp16" = the *.fp16.safetensors copies
+  // The convolutional models' kernels and activations in channels-last order (PipelineOptions::channels_last).
+  bool channels_last = false;
+  std::string variant;  // "" = full weight files; "fp16" = the *.fp16.safetensors copies
   // Depth ControlNet: a diffusers ControlNetModel folder ("" = the SDXL folder's "controlnet" component
   // if it lists one, else none) and the reliability mask of its depth image.
   std::string controlnet;

@@ -96,6 +96,23 @@ TEST(ControlNetPipelineTest, Img2ImgMatchesDiffusers) {
   EXPECT_GT((*plain - *out).abs().max().item<double>(), 1e-3);
 }
 
+// Convolutions and activations in channels-last order compute the same images (the UNet, the ControlNet and
+// the VAE all convolve here; ATen's GroupNorm on the CPU, the fused kernel's parity is gpu/sdxl_cuda_test.cpp's).
+TEST(ControlNetPipelineTest, ChannelsLastMatchesDiffusers) {
+  sdxl::PipelineOptions options;
+  options.controlnet = controlnet_dir();
+  options.channels_last = true;
+  auto pipeline = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), options);
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const ControlledRun run = controlled_run();
+  auto out = (*pipeline)->img2img(
+      run.ref.at("image"), run.setup["prompts"].get<std::vector<std::string>>(), run.params,
+      {run.setup["seed"].get<uint64_t>()},
+      sdxl::ControlInput{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}});
+  ASSERT_TRUE(out.ok()) << out.status();
+  expect_close(*out, run.ref.at("out"), kTolerance, "channels-last ControlNet img2img output");
+}
+
 TEST(ControlNetPipelineTest, RejectsControlItCannotUse) {
   const ControlledRun run = controlled_run();
   auto without = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), sdxl::PipelineOptions{});

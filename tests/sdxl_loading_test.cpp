@@ -76,6 +76,18 @@ TEST(WeightLoaderTest, ConvertsToTheRequestedDtype) {
   EXPECT_TRUE(w.finish().ok());
 }
 
+TEST(WeightLoaderTest, GivesConvolutionKernelsTheRequestedMemoryFormat) {
+  const auto options = at::TensorOptions().dtype(at::kFloat).memory_format(at::MemoryFormat::ChannelsLast);
+  WeightLoader w("unit", {{"kernel", at::rand({4, 3, 2, 2})}, {"bias", at::rand({4})}}, options);
+  const at::Tensor kernel = w.take("kernel", {4, 3, 2, 2});
+  EXPECT_TRUE(kernel.is_contiguous(at::MemoryFormat::ChannelsLast));
+  EXPECT_FALSE(kernel.is_contiguous());
+  EXPECT_TRUE(w.take("bias", {4}).is_contiguous());  // other ranks have no channels-last order
+  const at::Tensor missing = w.take("missing", {5});
+  EXPECT_EQ(missing.sizes(), at::IntArrayRef({5}));
+  EXPECT_FALSE(w.finish().ok());
+}
+
 TEST(ModelFolderTest, ReadsTheTinySdxlFolder) {
   auto folder = ModelFolder::open(test::sdxl_model_dir());
   ASSERT_TRUE(folder.ok()) << folder.status();

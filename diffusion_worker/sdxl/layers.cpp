@@ -3,6 +3,10 @@
 #include <cmath>
 
 #include <ATen/ATen.h>
+#include <ATen/core/grad_mode.h>
+#if defined(GAPS_CUDA_KERNELS)
+#include "diffusion_worker/sdxl/cuda/group_norm_nhwc_cuda.h"
+#endif
 
 namespace gaps::sdxl {
 
@@ -46,7 +50,35 @@ GroupNorm GroupNorm::load(WeightLoader& w, const std::string& prefix, int64_t gr
   return {w.take(join_name(prefix, "weight"), {channels}), w.take(join_name(prefix, "bias"), {channels}), groups, eps};
 }
 
-at::Tensor GroupNorm::operator()(const at::Tensor& x) const { return at::group_norm(x, groups, weight, bias, eps); }
+namespace {
+
+// Channels-last activations on a CUDA device keep their layout through the fused kernel (ATen's CUDA GroupNorm
+// returns NCHW, and the next convolution would transpose back); it has no backward, so a graph autograd records
+// (LoRA training) takes ATen's.
+bool fused_group_norm(const at::Tensor& x, const GroupNorm& norm) {
+#if defined(GAPS_CUDA_KERNELS)
+  const bool recording = at::GradMode::is_enabled() && (x.requires_grad() || norm.weight.requires_grad());
+  return x.is_cuda() && x.dim() == 4 && x.is_contiguous(at::MemoryFormat::ChannelsLast) &&
+         !x.is_contiguous(at::MemoryFormat::Contiguous) && !recording;
+#else
+  (void)x, (void)norm;
+  return false;
+#endif
+}
+
+at::Tensor group_norm(const GroupNorm& norm, const at::Tensor& x, bool silu) {
+#if defined(GAPS_CUDA_KERNELS)
+  if (fused_group_norm(x, norm)) return group_norm_nhwc_cuda(x, norm.groups, norm.weight, norm.bias, norm.eps, silu);
+#endif
+  const at::Tensor y = at::group_norm(x, norm.groups, norm.weight, norm.bias, norm.eps);
+  return silu ? at::silu(y) : y;
+}
+
+}  // namespace
+
+at::Tensor GroupNorm::operator()(const at::Tensor& x) const { return group_norm(*this, x, false); }
+
+at::Tensor GroupNorm::with_silu(const at::Tensor& x) const { return group_norm(*this, x, true); }
 
 LayerNorm LayerNorm::load(WeightLoader& w, const std::string& prefix, int64_t dim, double eps) {
   return {w.take(join_name(prefix, "weight"), {dim}), w.take(join_name(prefix, "bias"), {dim}), eps};
@@ -71,9 +103,9 @@ ResnetBlock ResnetBlock::load(WeightLoader& w, const std::string& prefix, int64_
 }
 
 at::Tensor ResnetBlock::operator()(const at::Tensor& x, const at::Tensor& temb) const {
-  at::Tensor h = conv1(at::silu(norm1(x)));
+  at::Tensor h = conv1(norm1.with_silu(x));
   if (has_time) h = h + time_emb_proj(at::silu(temb)).unsqueeze(-1).unsqueeze(-1);
-  h = conv2(at::silu(norm2(h)));
+  h = conv2(norm2.with_silu(h));
   return (has_shortcut ? conv_shortcut(x) : x) + h;
 }
 

@@ -37,6 +37,8 @@ struct GroupNorm {
   double eps = 1e-5;
   static GroupNorm load(WeightLoader& w, const std::string& prefix, int64_t groups, int64_t channels, double eps);
   at::Tensor operator()(const at::Tensor& x) const;
+  // silu(operator()(x)), in one pass where the fused kernel applies.
+  at::Tensor with_silu(const at::Tensor& x) const;
 };
 
 struct LayerNorm {

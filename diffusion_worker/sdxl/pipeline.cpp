@@ -127,6 +127,7 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     p->force_zeros_for_empty_prompt_ = folder.index()["force_zeros_for_empty_prompt"].get<bool>();
   }
   const at::TensorOptions model_options = at::TensorOptions().dtype(options.dtype).device(options.device);
+  const at::TensorOptions conv_options = p->convolution_options();
 
   GAPS_ASSIGN_OR_RETURN(auto scheduler_json, folder.read_json("scheduler", "scheduler_config.json"));
   GAPS_ASSIGN_OR_RETURN(p->scheduler_config_, SchedulerConfig::from_json(scheduler_json, options.scheduler));
@@ -165,7 +166,7 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     }
     auto weights = folder.read_weights("unet", options.variant);
     GAPS_RETURN_IF_ERROR(in_component("unet", weights.status()));
-    auto unet = UNet2DCondition::load(*config, *std::move(weights), model_options, folder.component_dir("unet"));
+    auto unet = UNet2DCondition::load(*config, *std::move(weights), conv_options, folder.component_dir("unet"));
     GAPS_RETURN_IF_ERROR(in_component("unet", unet.status()));
     p->unet_ = *std::move(unet);
   }
@@ -179,13 +180,18 @@ absl::StatusOr<std::unique_ptr<SdxlPipeline>> SdxlPipeline::load(const std::stri
     GAPS_RETURN_IF_ERROR(in_component("vae", weights.status()));
     const at::ScalarType vae_dtype = options.vae_dtype.value_or(upcast ? at::kFloat : options.dtype);
     auto vae =
-        AutoencoderKL::load(*config, *std::move(weights), model_options.dtype(vae_dtype), folder.component_dir("vae"));
+        AutoencoderKL::load(*config, *std::move(weights), conv_options.dtype(vae_dtype), folder.component_dir("vae"));
     GAPS_RETURN_IF_ERROR(in_component("vae", vae.status()));
     p->vae_ = *std::move(vae);
   }
   GAPS_RETURN_IF_ERROR(in_component("controlnet", p->load_controlnet(folder)));
   GAPS_RETURN_IF_ERROR(p->load_ip_adapter(model_options));
   return p;
+}
+
+at::TensorOptions SdxlPipeline::convolution_options() const {
+  const at::TensorOptions o = at::TensorOptions().dtype(options_.dtype).device(options_.device);
+  return options_.channels_last ? o.memory_format(at::MemoryFormat::ChannelsLast) : o;
 }
 
 absl::Status SdxlPipeline::load_controlnet(const ModelFolder& folder) {
@@ -195,9 +201,7 @@ absl::Status SdxlPipeline::load_controlnet(const ModelFolder& folder) {
     dir = folder.component_dir("controlnet");
   }
   if (dir.empty()) return absl::OkStatus();
-  GAPS_ASSIGN_OR_RETURN(ControlNet net,
-                        ControlNet::load_folder(dir, at::TensorOptions().dtype(options_.dtype).device(options_.device),
-                                                options_.variant));
+  GAPS_ASSIGN_OR_RETURN(ControlNet net, ControlNet::load_folder(dir, convolution_options(), options_.variant));
   if (absl::Status fits = net.check_compatible(unet_->config()); !fits.ok()) {
     return absl::Status(fits.code(), absl::StrCat(dir, ": ", fits.message()));
   }

@@ -51,6 +51,10 @@ struct PipelineOptions {
   // The VAE's type; unset: float32 when its config asks for force_upcast, else dtype. bfloat16 keeps float32's
   // exponent range (SDXL's VAE overflows float16's) at half the bytes; float16 suits VAEs made for it.
   std::optional<at::ScalarType> vae_dtype;
+  // The UNet's, ControlNet's and VAE's convolution kernels (and so their activations) in channels-last order:
+  // cuDNN's native layout for half-precision tensor cores, so no transposes around every convolution; on CUDA
+  // their GroupNorms then run the fused channels-last kernel (cuda/group_norm_nhwc_cuda.h).
+  bool channels_last = false;
 };
 
 struct UNetGraphs;  // the captured graphs (CUDA builds only)
@@ -154,6 +158,8 @@ class SdxlPipeline {
 
   at::Tensor run_unet(const UNetInputs& in);
   absl::Status load_controlnet(const ModelFolder& folder);
+  // The type and device of the models with convolutions, and their kernels' memory format (channels_last).
+  at::TensorOptions convolution_options() const;
   absl::Status check_control(const ControlInput& control, const at::Tensor& images) const;
   // The images of a batch that start the schedule at one step, with a scheduler of their own: a multistep
   // scheduler's history (DPM-Solver++, PNDM) belongs to the images that took those steps.

@@ -261,7 +261,7 @@ at::Tensor UNet2DCondition::transformer_forward(const Transformer2D& t, const at
   if (config_.use_linear_projection) y = t.proj_in_linear(y);
   for (const auto& block : t.blocks) y = block_forward(block, y, context);
   if (config_.use_linear_projection) y = t.proj_out_linear(y);
-  y = y.reshape({b, h, w, c}).permute({0, 3, 1, 2}).contiguous();
+  y = y.reshape({b, h, w, c}).permute({0, 3, 1, 2}).contiguous(x.suggest_memory_format());
   if (!config_.use_linear_projection) y = t.proj_out_conv(y);
   return y + x;
 }
@@ -326,7 +326,7 @@ at::Tensor UNet2DCondition::forward(const UNetInputs& in) const {
     // Upsample to the next skip's size, which also covers latents not divisible by 2^blocks.
     if (b.up) h = (*b.up)(h, {skips.back().size(2), skips.back().size(3)});
   }
-  return conv_out_(at::silu(norm_out_(h)));
+  return conv_out_(norm_out_.with_silu(h));
 }
 
 void UNet2DCondition::for_each_attention(const std::function<void(const std::string&, Attention&)>& visit) {

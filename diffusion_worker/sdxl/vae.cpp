@@ -53,9 +53,10 @@ VaeAttention VaeAttention::load(WeightLoader& w, const std::string& prefix, int6
 
 at::Tensor VaeAttention::operator()(const at::Tensor& x) const {
   const int64_t b = x.size(0), c = x.size(1), h = x.size(2), wd = x.size(3);
-  at::Tensor tokens = group_norm(x).view({b, c, h * wd}).transpose(1, 2);
+  // Pixels as tokens: a view for channels-last activations, a copy for NCHW ones.
+  at::Tensor tokens = group_norm(x).permute({0, 2, 3, 1}).reshape({b, h * wd, c});
   at::Tensor out = attn(tokens, tokens);
-  return out.transpose(1, 2).reshape({b, c, h, wd}) + x;
+  return out.reshape({b, h, wd, c}).permute({0, 3, 1, 2}) + x;
 }
 
 VaeMidBlock VaeMidBlock::load(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t groups,
@@ -140,7 +141,7 @@ at::Tensor AutoencoderKL::encode_moments(const at::Tensor& images) const {
     if (enc_down[i]) h = (*enc_down[i])(h);
   }
   h = (*enc_mid)(h);
-  h = enc_conv_out(at::silu(enc_norm_out(h)));
+  h = enc_conv_out(enc_norm_out.with_silu(h));
   return config_.use_quant_conv ? quant_conv(h) : h;
 }
 
@@ -160,7 +161,7 @@ at::Tensor AutoencoderKL::decode(const at::Tensor& latents) const {
     for (const auto& r : dec_resnets[i]) h = r(h, {});
     if (dec_up[i]) h = (*dec_up[i])(h);
   }
-  return dec_conv_out(at::silu(dec_norm_out(h)));
+  return dec_conv_out(dec_norm_out.with_silu(h));
 }
 
 }  // namespace gaps::sdxl

@@ -28,7 +28,10 @@ std::string join_name(const std::string& prefix, const std::string& name) {
 }
 
 WeightLoader::WeightLoader(std::string source, TensorMap tensors, at::TensorOptions options)
-    : source_(std::move(source)), tensors_(std::move(tensors)), options_(options) {}
+    : source_(std::move(source)),
+      tensors_(std::move(tensors)),
+      options_(options.memory_format(std::nullopt)),
+      kernel_format_(options.memory_format_opt().value_or(at::MemoryFormat::Contiguous)) {}
 
 at::Tensor WeightLoader::take(const std::string& name, at::IntArrayRef shape) {
   requested_.push_back({name, shape.vec()});
@@ -43,7 +46,8 @@ at::Tensor WeightLoader::take(const std::string& name, at::IntArrayRef shape) {
                                       shape_string(shape), ")"));
     return at::empty(shape, options_);
   }
-  return it->second.to(options_).contiguous();
+  const at::Tensor t = it->second.to(options_);
+  return t.dim() == 4 ? t.contiguous(kernel_format_) : t.contiguous();
 }
 
 absl::Status WeightLoader::finish() const {

@@ -19,7 +19,8 @@ struct TensorSpec {
 
 class WeightLoader {
  public:
-  // source names the checkpoint in errors; tensors are converted to options' dtype and device on take().
+  // source names the checkpoint in errors; tensors are converted to options' dtype and device on take(), and
+  // 4-d ones (convolution kernels) to options' memory format when it has one (channels-last convolutions).
   WeightLoader(std::string source, TensorMap tensors, at::TensorOptions options);
 
   // The tensor called name, which must have exactly shape. A missing or mis-shaped tensor is recorded
@@ -39,7 +40,8 @@ class WeightLoader {
  private:
   std::string source_;
   TensorMap tensors_;
-  at::TensorOptions options_;
+  at::TensorOptions options_;  // without a memory format
+  at::MemoryFormat kernel_format_;
   std::set<std::string> taken_;
   std::vector<std::string> missing_, misshaped_;
   std::vector<TensorSpec> requested_;

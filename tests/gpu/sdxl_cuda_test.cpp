@@ -163,6 +163,48 @@ TEST(Sd2InpaintPipelineTest, RunsOnTheGpuInHalfPrecision) {
 }
 
 // LoRA training replayed from a captured CUDA graph takes the eager steps' draws and updates: the same loss at
+// Convolutions and activations in channels-last order (the GroupNorms through the fused kernel): the same images
+// as the NCHW pipeline within half precision's rounding, from graphs as eagerly, and LoRA training (ATen's
+// GroupNorm under autograd) with the NCHW pipeline's losses.
+TEST(ControlNetPipelineTest, RunsChannelsLastAsItRunsNchw) {
+  GAPS_REQUIRE_CUDA();
+  auto nchw = half_precision_controlnet_pipeline();
+  ASSERT_TRUE(nchw.ok()) << nchw.status();
+  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
+  options.controlnet = test::controlnet_dir();
+  options.channels_last = true;
+  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const test::ControlledRun run = test::controlled_run();
+  const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
+  const ControlInput control{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}};
+  auto expected = (*nchw)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+  auto out = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+  ASSERT_TRUE(expected.ok() && out.ok()) << out.status();
+  expect_close(*out, run.ref.at("out"), 5e-2, "channels-last half-precision ControlNet img2img");
+  expect_close(*out, *expected, 2e-2, "channels-last against NCHW img2img");
+  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
+  for (int pass = 0; pass < 2; ++pass) {  // capture, then replay
+    auto graphed = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+    ASSERT_TRUE(graphed.ok()) << graphed.status();
+    expect_close(*graphed, *out, 1e-3, "channels-last img2img with CUDA graphs");
+  }
+  LoraConfig config;
+  LoraTrainingOptions training;
+  training.steps = 5;
+  training.learning_rate = 1e-3;
+  training.seed = 11;
+  std::vector<std::vector<double>> losses;
+  for (SdxlPipeline* p : {nchw->get(), pipeline->get()}) {
+    auto trained =
+        p->train_lora(run.ref.at("image"), {"a photo of a fern"}, ControlInput{control.image, {1.0}}, config, training);
+    ASSERT_TRUE(trained.ok()) << trained.status();
+    losses.push_back(*trained);
+  }
+  for (size_t i = 0; i < losses[0].size(); ++i)
+    EXPECT_NEAR(losses[1][i], losses[0][i], 1e-2 * std::abs(losses[0][i])) << "LoRA step " << i;
+}
+
 // every step (a replay that read stale noise or timesteps, or stale adapters, would differ at once) and the same
 // trained adapters. Half precision: the two runs' kernels are the same, the attention's backward need not be
 // deterministic.

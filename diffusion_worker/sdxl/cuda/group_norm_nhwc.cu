@@ -1,0 +1,177 @@
+// GroupNorm over channels-last activations in three launches: partial moments per (sample, pixel chunk, group),
+// each channel's fused scale and shift from them, then one elementwise pass (with SiLU when asked).
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/cuda/CUDAContext.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/util/BFloat16.h>
+#include <c10/util/Half.h>
+
+#include <cstdint>
+
+#include "diffusion_worker/sdxl/cuda/group_norm_nhwc_cuda.h"
+
+namespace gaps::sdxl {
+namespace {
+
+constexpr int kChannelThreads = 32;  // a warp reads 32 neighbouring channels of one pixel
+constexpr int kPixelThreads = 8;
+constexpr int kApplyThreads = 256;
+
+// The value each group's moments are taken about: its first channel at the sample's first pixel.
+template <typename T>
+__device__ float group_shift(const T* x, int64_t n, int64_t pixels, int64_t channels, int64_t group_size, int64_t g) {
+  return static_cast<float>(x[n * pixels * channels + g * group_size]);
+}
+
+// Block (chunk, n) sums v - shift and (v - shift)^2 over its pixels for every group: partial[n][chunk][g][2].
+template <typename T>
+__global__ void group_moments_kernel(const T* __restrict__ x, int64_t pixels, int64_t channels, int64_t groups,
+                                     int64_t pixels_per_chunk, float* __restrict__ partial) {
+  extern __shared__ float sums[];  // groups x 2, then groups shifts
+  float* shifts = sums + 2 * groups;
+  const int64_t n = blockIdx.y, chunk = blockIdx.x, chunks = gridDim.x;
+  const int64_t group_size = channels / groups;
+  const int thread = threadIdx.y * blockDim.x + threadIdx.x, threads = blockDim.x * blockDim.y;
+  for (int64_t g = thread; g < groups; g += threads) {
+    sums[2 * g] = sums[2 * g + 1] = 0.f;
+    shifts[g] = group_shift(x, n, pixels, channels, group_size, g);
+  }
+  __syncthreads();
+  const int64_t begin = chunk * pixels_per_chunk;
+  const int64_t end = begin + pixels_per_chunk < pixels ? begin + pixels_per_chunk : pixels;
+  const T* sample = x + n * pixels * channels;
+  for (int64_t c = threadIdx.x; c < channels; c += blockDim.x) {
+    const int64_t g = c / group_size;
+    const float shift = shifts[g];
+    float s1 = 0.f, s2 = 0.f;
+    for (int64_t p = begin + threadIdx.y; p < end; p += blockDim.y) {
+      const float v = static_cast<float>(sample[p * channels + c]) - shift;
+      s1 += v;
+      s2 += v * v;
+    }
+    atomicAdd(&sums[2 * g], s1);
+    atomicAdd(&sums[2 * g + 1], s2);
+  }
+  __syncthreads();
+  for (int64_t g = thread; g < groups; g += threads) {
+    float* out = partial + ((n * chunks + chunk) * groups + g) * 2;
+    out[0] = sums[2 * g];
+    out[1] = sums[2 * g + 1];
+  }
+}
+
+// One thread per (n, c): scale = weight * rstd and offset = bias - mean * scale of its group, so that the
+// normalised value is x * scale + offset (ATen's fused parameters).
+template <typename T>
+__global__ void group_scale_offset_kernel(const T* __restrict__ x, const float* __restrict__ partial, int64_t samples,
+                                          int64_t pixels, int64_t channels, int64_t groups, int64_t chunks, float eps,
+                                          const float* __restrict__ weight, const float* __restrict__ bias,
+                                          float* __restrict__ scale, float* __restrict__ offset) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= samples * channels) return;
+  const int64_t n = i / channels, c = i % channels, group_size = channels / groups, g = c / group_size;
+  double s1 = 0, s2 = 0;
+  for (int64_t k = 0; k < chunks; ++k) {
+    const float* p = partial + ((n * chunks + k) * groups + g) * 2;
+    s1 += p[0];
+    s2 += p[1];
+  }
+  const double count = static_cast<double>(pixels * group_size);
+  const double shifted_mean = s1 / count;
+  const double var = fmax(s2 / count - shifted_mean * shifted_mean, 0.0);
+  const double mean = group_shift(x, n, pixels, channels, group_size, g) + shifted_mean;
+  const float rstd = static_cast<float>(rsqrt(var + static_cast<double>(eps)));
+  scale[i] = weight[c] * rstd;
+  offset[i] = bias[c] - static_cast<float>(mean) * scale[i];
+}
+
+template <typename T, int kVec>
+struct alignas(sizeof(T) * kVec) Pack {
+  T v[kVec];
+};
+
+// y = x * scale + offset per channel (then SiLU), kVec neighbouring channels of one pixel per thread.
+template <typename T, int kVec>
+__global__ void group_apply_kernel(const T* __restrict__ x, int64_t total, int64_t pixels, int64_t channels,
+                                   const float* __restrict__ scale, const float* __restrict__ offset, bool silu,
+                                   T* __restrict__ y) {
+  const int64_t packs = total / kVec;
+  for (int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x; i < packs;
+       i += static_cast<int64_t>(gridDim.x) * blockDim.x) {
+    const int64_t e = i * kVec, c0 = e % channels, n = e / (pixels * channels);
+    const float* s = scale + n * channels + c0;
+    const float* o = offset + n * channels + c0;
+    Pack<T, kVec> in = reinterpret_cast<const Pack<T, kVec>*>(x)[i], out;
+#pragma unroll
+    for (int k = 0; k < kVec; ++k) {
+      float v = static_cast<float>(in.v[k]) * s[k] + o[k];
+      if (silu) v = v / (1.f + __expf(-v));
+      out.v[k] = static_cast<T>(v);
+    }
+    reinterpret_cast<Pack<T, kVec>*>(y)[i] = out;
+  }
+}
+
+int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+template <typename T, int kVec>
+void launch_apply(const at::Tensor& x, int64_t pixels, int64_t channels, const at::Tensor& scale,
+                  const at::Tensor& offset, bool silu, at::Tensor& y, cudaStream_t stream) {
+  const int64_t packs = x.numel() / kVec;
+  const int sms = at::cuda::getCurrentDeviceProperties()->multiProcessorCount;
+  const int64_t blocks = std::min<int64_t>(ceil_div(packs, kApplyThreads), static_cast<int64_t>(sms) * 8);
+  group_apply_kernel<T, kVec><<<static_cast<unsigned>(blocks), kApplyThreads, 0, stream>>>(
+      x.const_data_ptr<T>(), x.numel(), pixels, channels, scale.const_data_ptr<float>(), offset.const_data_ptr<float>(),
+      silu, y.mutable_data_ptr<T>());
+}
+
+}  // namespace
+
+at::Tensor group_norm_nhwc_cuda(const at::Tensor& x, int64_t groups, const at::Tensor& weight_in,
+                                const at::Tensor& bias_in, double eps, bool silu) {
+  TORCH_CHECK(x.is_cuda() && x.dim() == 4 && x.is_contiguous(at::MemoryFormat::ChannelsLast),
+              "group_norm_nhwc: a 4-d channels-last CUDA tensor expected, got ", x.sizes(), " on ", x.device());
+  const int64_t samples = x.size(0), channels = x.size(1), pixels = x.size(2) * x.size(3);
+  TORCH_CHECK(groups > 0 && channels % groups == 0, "group_norm_nhwc: ", channels, " channels in ", groups, " groups");
+  TORCH_CHECK(weight_in.defined() && bias_in.defined() && weight_in.numel() == channels && bias_in.numel() == channels,
+              "group_norm_nhwc: weight and bias of ", channels, " values expected");
+  const c10::cuda::CUDAGuard guard(x.device());
+  at::Tensor y = at::empty_like(x, x.options(), at::MemoryFormat::ChannelsLast);
+  if (x.numel() == 0) return y;
+  const auto float_options = x.options().dtype(at::kFloat);
+  const at::Tensor weight = weight_in.to(float_options).contiguous(), bias = bias_in.to(float_options).contiguous();
+  const int sms = at::cuda::getCurrentDeviceProperties()->multiProcessorCount;
+  // About four blocks per multiprocessor over the batch, each of at least 32 pixels.
+  const int64_t chunks =
+      std::max<int64_t>(1, std::min(ceil_div(pixels, 32), ceil_div(static_cast<int64_t>(sms) * 4, samples)));
+  const int64_t pixels_per_chunk = ceil_div(pixels, chunks);
+  at::Tensor partial = at::empty({samples, chunks, groups, 2}, float_options);
+  at::Tensor scale = at::empty({samples, channels}, float_options), offset = at::empty_like(scale);
+  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, x.scalar_type(), "group_norm_nhwc", [&] {
+    const dim3 moments_grid(static_cast<unsigned>(chunks), static_cast<unsigned>(samples));
+    const dim3 moments_block(kChannelThreads, kPixelThreads);
+    group_moments_kernel<scalar_t><<<moments_grid, moments_block, 3 * groups * sizeof(float), stream>>>(
+        x.const_data_ptr<scalar_t>(), pixels, channels, groups, pixels_per_chunk, partial.mutable_data_ptr<float>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    group_scale_offset_kernel<scalar_t>
+        <<<static_cast<unsigned>(ceil_div(samples * channels, kApplyThreads)), kApplyThreads, 0, stream>>>(
+            x.const_data_ptr<scalar_t>(), partial.const_data_ptr<float>(), samples, pixels, channels, groups, chunks,
+            static_cast<float>(eps), weight.const_data_ptr<float>(), bias.const_data_ptr<float>(),
+            scale.mutable_data_ptr<float>(), offset.mutable_data_ptr<float>());
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    constexpr int kVec = 16 / sizeof(scalar_t);  // 16-byte loads and stores
+    const auto aligned = [](const at::Tensor& t) { return reinterpret_cast<uintptr_t>(t.const_data_ptr()) % 16 == 0; };
+    if (channels % kVec == 0 && aligned(x) && aligned(y))
+      launch_apply<scalar_t, kVec>(x, pixels, channels, scale, offset, silu, y, stream);
+    else
+      launch_apply<scalar_t, 1>(x, pixels, channels, scale, offset, silu, y, stream);
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return y;
+}
+
+}  // namespace gaps::sdxl
