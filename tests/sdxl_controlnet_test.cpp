@@ -113,6 +113,20 @@ TEST(ControlNetPipelineTest, ChannelsLastMatchesDiffusers) {
   expect_close(*out, run.ref.at("out"), kTolerance, "channels-last ControlNet img2img output");
 }
 
+// An NCHW model keeps NCHW activations whatever the input's layout (on a GPU a channels-last activation would
+// take the other GroupNorm kernel). The channels-last model's layout on CUDA: gpu/sdxl_cuda_test.cpp.
+TEST(ControlNetPipelineTest, AnNchwModelKeepsNchwActivations) {
+  auto pipeline = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), sdxl::PipelineOptions{});
+  ASSERT_TRUE(pipeline.ok()) << pipeline.status();
+  const at::Tensor images = controlled_run().ref.at("image") * 2 - 1;
+  for (const at::Tensor& input : {images, images.contiguous(at::MemoryFormat::ChannelsLast)}) {
+    const at::Tensor moments = (*pipeline)->vae().encode_moments(input);
+    EXPECT_TRUE(moments.is_contiguous());
+    EXPECT_TRUE(
+        (*pipeline)->vae().decode(moments.slice(1, 0, 4).contiguous(at::MemoryFormat::ChannelsLast)).is_contiguous());
+  }
+}
+
 TEST(ControlNetPipelineTest, RejectsControlItCannotUse) {
   const ControlledRun run = controlled_run();
   auto without = sdxl::SdxlPipeline::load(test::sdxl_model_dir(), sdxl::PipelineOptions{});

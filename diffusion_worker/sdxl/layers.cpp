@@ -43,7 +43,10 @@ Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int6
 }
 
 at::Tensor Conv2d::operator()(const at::Tensor& x) const {
-  return at::conv2d(x, weight, bias, {stride, stride}, {padding, padding});
+  // The input takes the kernel's layout, and cuDNN gives the output that layout too: so the activations' layout is
+  // the model's (channels_last or not), not whatever strides an elementwise result happened to get, and the
+  // GroupNorms, cuDNN's algorithms and a CUDA graph's replay see the same layout at every step.
+  return at::conv2d(x.contiguous(weight.suggest_memory_format()), weight, bias, {stride, stride}, {padding, padding});
 }
 
 GroupNorm GroupNorm::load(WeightLoader& w, const std::string& prefix, int64_t groups, int64_t channels, double eps) {

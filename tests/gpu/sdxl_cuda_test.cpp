@@ -178,6 +178,13 @@ TEST(ControlNetPipelineTest, RunsChannelsLastAsItRunsNchw) {
   const test::ControlledRun run = test::controlled_run();
   const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
   const ControlInput control{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}};
+  // The activations take the model's layout, whatever the input's.
+  const at::Tensor images = (run.ref.at("image") * 2 - 1).to(at::kCUDA, (*pipeline)->vae().dtype());
+  for (const at::Tensor& input : {images, images.contiguous(at::MemoryFormat::ChannelsLast)}) {
+    const at::Tensor moments = (*pipeline)->vae().encode_moments(input);
+    EXPECT_TRUE(moments.is_contiguous(at::MemoryFormat::ChannelsLast) && !moments.is_contiguous());
+    EXPECT_TRUE((*nchw)->vae().encode_moments(input).is_contiguous());
+  }
   auto expected = (*nchw)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
   auto out = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
   ASSERT_TRUE(expected.ok() && out.ok()) << out.status();
