@@ -111,6 +111,14 @@ TEST(ControlNetPipelineTest, ChannelsLastMatchesDiffusers) {
       sdxl::ControlInput{run.ref.at("control_image"), {run.setup["controlnet_conditioning_scale"].get<double>()}});
   ASSERT_TRUE(out.ok()) << out.status();
   expect_close(*out, run.ref.at("out"), kTolerance, "channels-last ControlNet img2img output");
+  // The activations take the model's layout whatever the input's (1x1 kernels included: their strides are NCHW's too).
+  const at::Tensor images = run.ref.at("image") * 2 - 1;
+  for (const at::Tensor& input : {images, images.contiguous(at::MemoryFormat::ChannelsLast)}) {
+    const at::Tensor moments = (*pipeline)->vae().encode_moments(input);
+    EXPECT_TRUE(moments.is_contiguous(at::MemoryFormat::ChannelsLast) && !moments.is_contiguous());
+    EXPECT_TRUE(
+        (*pipeline)->vae().decode(moments.slice(1, 0, 4).contiguous()).is_contiguous(at::MemoryFormat::ChannelsLast));
+  }
 }
 
 // An NCHW model keeps NCHW activations whatever the input's layout (on a GPU a channels-last activation would

@@ -39,6 +39,7 @@ Conv2d Conv2d::load(WeightLoader& w, const std::string& prefix, int64_t in, int6
   if (with_bias) c.bias = w.take(join_name(prefix, "bias"), {out});
   c.stride = stride;
   c.padding = padding < 0 ? kernel / 2 : padding;
+  c.memory_format = w.kernel_format();
   return c;
 }
 
@@ -46,11 +47,12 @@ at::Tensor Conv2d::operator()(const at::Tensor& x) const {
   // The input takes the kernel's layout, and cuDNN gives the output that layout too: so the activations' layout is
   // the model's (channels_last or not), not whatever strides an elementwise result happened to get, and the
   // GroupNorms, cuDNN's algorithms and a CUDA graph's replay see the same layout at every step.
-  return at::conv2d(x.contiguous(weight.suggest_memory_format()), weight, bias, {stride, stride}, {padding, padding});
+  return at::conv2d(x.contiguous(memory_format), weight, bias, {stride, stride}, {padding, padding});
 }
 
 GroupNorm GroupNorm::load(WeightLoader& w, const std::string& prefix, int64_t groups, int64_t channels, double eps) {
-  return {w.take(join_name(prefix, "weight"), {channels}), w.take(join_name(prefix, "bias"), {channels}), groups, eps};
+  return {w.take(join_name(prefix, "weight"), {channels}), w.take(join_name(prefix, "bias"), {channels}), groups, eps,
+          w.kernel_format() == at::MemoryFormat::ChannelsLast};
 }
 
 namespace {
@@ -61,8 +63,9 @@ namespace {
 bool fused_group_norm(const at::Tensor& x, const GroupNorm& norm) {
 #if defined(GAPS_CUDA_KERNELS)
   const bool recording = at::GradMode::is_enabled() && (x.requires_grad() || norm.weight.requires_grad());
-  return x.is_cuda() && x.dim() == 4 && x.is_contiguous(at::MemoryFormat::ChannelsLast) &&
-         !x.is_contiguous(at::MemoryFormat::Contiguous) && !recording;
+  const bool channels_last =
+      norm.channels_last || (x.is_contiguous(at::MemoryFormat::ChannelsLast) && !x.is_contiguous());
+  return x.is_cuda() && x.dim() == 4 && channels_last && !recording;
 #else
   (void)x, (void)norm;
   return false;
@@ -71,7 +74,9 @@ bool fused_group_norm(const at::Tensor& x, const GroupNorm& norm) {
 
 at::Tensor group_norm(const GroupNorm& norm, const at::Tensor& x, bool silu) {
 #if defined(GAPS_CUDA_KERNELS)
-  if (fused_group_norm(x, norm)) return group_norm_nhwc_cuda(x, norm.groups, norm.weight, norm.bias, norm.eps, silu);
+  if (fused_group_norm(x, norm))
+    return group_norm_nhwc_cuda(x.contiguous(at::MemoryFormat::ChannelsLast), norm.groups, norm.weight, norm.bias,
+                                norm.eps, silu);
 #endif
   const at::Tensor y = at::group_norm(x, norm.groups, norm.weight, norm.bias, norm.eps);
   return silu ? at::silu(y) : y;

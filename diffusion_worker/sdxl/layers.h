@@ -26,6 +26,9 @@ Linear output_rows(const Linear& layer, int64_t begin, int64_t end);
 struct Conv2d {
   at::Tensor weight, bias;  // bias undefined when the layer has none
   int64_t stride = 1, padding = 0;
+  // The model's activation layout (WeightLoader::kernel_format), kept apart from the kernel's strides: a 1x1
+  // kernel's strides are both NCHW and channels-last, and ATen reads them as NCHW.
+  at::MemoryFormat memory_format = at::MemoryFormat::Contiguous;
   static Conv2d load(WeightLoader& w, const std::string& prefix, int64_t in, int64_t out, int64_t kernel,
                      int64_t stride = 1, int64_t padding = -1 /* kernel / 2 */, bool with_bias = true);
   at::Tensor operator()(const at::Tensor& x) const;
@@ -35,6 +38,9 @@ struct GroupNorm {
   at::Tensor weight, bias;
   int64_t groups = 32;
   double eps = 1e-5;
+  // Of a model whose convolutions run channels-last (WeightLoader::kernel_format): on CUDA outside autograd every
+  // input goes through the channels-last kernel, made channels-last first where an elementwise result was not.
+  bool channels_last = false;
   static GroupNorm load(WeightLoader& w, const std::string& prefix, int64_t groups, int64_t channels, double eps);
   at::Tensor operator()(const at::Tensor& x) const;
   // silu(operator()(x)), in one pass where the fused kernel applies.

@@ -34,6 +34,8 @@ class WeightLoader {
   absl::Status finish() const;
 
   const at::TensorOptions& options() const { return options_; }
+  // The memory format 4-d tensors are given (Contiguous unless the options asked for another).
+  at::MemoryFormat kernel_format() const { return kernel_format_; }
   // Every take() so far, in order: with an empty map on the meta device, a module's full weight list.
   const std::vector<TensorSpec>& requested() const { return requested_; }
 

@@ -75,8 +75,13 @@ TEST(GroupNormNhwcCuda, TheLayerTakesTheKernelOnlyOutsideAutograd) {
   recorded.sum().backward();
   ASSERT_TRUE(leaf.grad().defined());
   EXPECT_LT((recorded.detach() - fused).abs().max().item<double>(), 1e-4);
-  // NCHW activations take ATen's whatever the mode.
+  // NCHW activations take ATen's whatever the mode, unless the layer belongs to a channels-last model.
   EXPECT_TRUE(norm(x.contiguous()).is_contiguous());
+  GroupNorm of_channels_last_model = norm;
+  of_channels_last_model.channels_last = true;
+  const at::Tensor converted = of_channels_last_model.with_silu(x.contiguous());
+  EXPECT_TRUE(converted.is_contiguous(at::MemoryFormat::ChannelsLast) && !converted.is_contiguous());
+  EXPECT_LT((converted - fused).abs().max().item<double>(), 1e-6);
 }
 
 }  // namespace

@@ -16,8 +16,6 @@
 namespace gaps::sdxl {
 namespace {
 
-constexpr int kChannelThreads = 32;  // a warp reads 32 neighbouring channels of one pixel
-constexpr int kPixelThreads = 8;
 constexpr int kApplyThreads = 256;
 
 // The value each group's moments are taken about: its first channel at the sample's first pixel.
@@ -26,14 +24,21 @@ __device__ float group_shift(const T* x, int64_t n, int64_t pixels, int64_t chan
   return static_cast<float>(x[n * pixels * channels + g * group_size]);
 }
 
-// Block (chunk, n) sums v - shift and (v - shift)^2 over its pixels for every group: partial[n][chunk][g][2].
-template <typename T>
+template <typename T, int kVec>
+struct alignas(sizeof(T) * kVec) Pack {
+  T v[kVec];
+};
+
+// Block (chunk, n) sums v - shift and (v - shift)^2 over its pixels for every group: partial[n][chunk][g][2]. A
+// thread reads kVec neighbouring channels of a pixel at once (16 bytes where the channels allow) for the pixels
+// of its row, keeps per-channel sums in registers, and adds them to the block's group sums once per group.
+template <typename T, int kVec>
 __global__ void group_moments_kernel(const T* __restrict__ x, int64_t pixels, int64_t channels, int64_t groups,
                                      int64_t pixels_per_chunk, float* __restrict__ partial) {
   extern __shared__ float sums[];  // groups x 2, then groups shifts
   float* shifts = sums + 2 * groups;
   const int64_t n = blockIdx.y, chunk = blockIdx.x, chunks = gridDim.x;
-  const int64_t group_size = channels / groups;
+  const int64_t group_size = channels / groups, columns = channels / kVec;
   const int thread = threadIdx.y * blockDim.x + threadIdx.x, threads = blockDim.x * blockDim.y;
   for (int64_t g = thread; g < groups; g += threads) {
     sums[2 * g] = sums[2 * g + 1] = 0.f;
@@ -42,18 +47,39 @@ __global__ void group_moments_kernel(const T* __restrict__ x, int64_t pixels, in
   __syncthreads();
   const int64_t begin = chunk * pixels_per_chunk;
   const int64_t end = begin + pixels_per_chunk < pixels ? begin + pixels_per_chunk : pixels;
-  const T* sample = x + n * pixels * channels;
-  for (int64_t c = threadIdx.x; c < channels; c += blockDim.x) {
-    const int64_t g = c / group_size;
-    const float shift = shifts[g];
-    float s1 = 0.f, s2 = 0.f;
-    for (int64_t p = begin + threadIdx.y; p < end; p += blockDim.y) {
-      const float v = static_cast<float>(sample[p * channels + c]) - shift;
-      s1 += v;
-      s2 += v * v;
+  const auto* sample = reinterpret_cast<const Pack<T, kVec>*>(x + n * pixels * channels);
+  for (int64_t column = threadIdx.x; column < columns; column += blockDim.x) {
+    float shift[kVec], s1[kVec], s2[kVec];
+#pragma unroll
+    for (int k = 0; k < kVec; ++k) {
+      shift[k] = shifts[(column * kVec + k) / group_size];
+      s1[k] = s2[k] = 0.f;
     }
-    atomicAdd(&sums[2 * g], s1);
-    atomicAdd(&sums[2 * g + 1], s2);
+    for (int64_t p = begin + threadIdx.y; p < end; p += blockDim.y) {
+      const Pack<T, kVec> v = sample[p * columns + column];
+#pragma unroll
+      for (int k = 0; k < kVec; ++k) {
+        const float d = static_cast<float>(v.v[k]) - shift[k];
+        s1[k] += d;
+        s2[k] += d * d;
+      }
+    }
+    // The kVec channels span one group or a few neighbouring ones: one pair of atomics per group.
+    int64_t g = (column * kVec) / group_size;
+    float g1 = 0.f, g2 = 0.f;
+#pragma unroll
+    for (int k = 0; k < kVec; ++k) {
+      const int64_t gk = (column * kVec + k) / group_size;
+      if (gk != g) {
+        atomicAdd(&sums[2 * g], g1);
+        atomicAdd(&sums[2 * g + 1], g2);
+        g = gk, g1 = 0.f, g2 = 0.f;
+      }
+      g1 += s1[k];
+      g2 += s2[k];
+    }
+    atomicAdd(&sums[2 * g], g1);
+    atomicAdd(&sums[2 * g + 1], g2);
   }
   __syncthreads();
   for (int64_t g = thread; g < groups; g += threads) {
@@ -88,11 +114,6 @@ __global__ void group_scale_offset_kernel(const T* __restrict__ x, const float* 
   offset[i] = bias[c] - static_cast<float>(mean) * scale[i];
 }
 
-template <typename T, int kVec>
-struct alignas(sizeof(T) * kVec) Pack {
-  T v[kVec];
-};
-
 // y = x * scale + offset per channel (then SiLU), kVec neighbouring channels of one pixel per thread.
 template <typename T, int kVec>
 __global__ void group_apply_kernel(const T* __restrict__ x, int64_t total, int64_t pixels, int64_t channels,
@@ -117,15 +138,40 @@ __global__ void group_apply_kernel(const T* __restrict__ x, int64_t total, int64
 
 int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
+// The three kernels over x with kVec channels per load.
 template <typename T, int kVec>
-void launch_apply(const at::Tensor& x, int64_t pixels, int64_t channels, const at::Tensor& scale,
-                  const at::Tensor& offset, bool silu, at::Tensor& y, cudaStream_t stream) {
-  const int64_t packs = x.numel() / kVec;
+void launch(const at::Tensor& x, int64_t groups, const at::Tensor& weight, const at::Tensor& bias, double eps,
+            bool silu, at::Tensor& y) {
+  const int64_t samples = x.size(0), channels = x.size(1), pixels = x.size(2) * x.size(3);
+  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   const int sms = at::cuda::getCurrentDeviceProperties()->multiProcessorCount;
+  // About four blocks per multiprocessor over the batch, each of at least 32 pixels.
+  const int64_t chunks =
+      std::max<int64_t>(1, std::min(ceil_div(pixels, 32), ceil_div(static_cast<int64_t>(sms) * 4, samples)));
+  const int64_t pixels_per_chunk = ceil_div(pixels, chunks);
+  const auto float_options = x.options().dtype(at::kFloat);
+  at::Tensor partial = at::empty({samples, chunks, groups, 2}, float_options);
+  at::Tensor scale = at::empty({samples, channels}, float_options), offset = at::empty_like(scale);
+  // A row of threads across the channels' columns, as many rows as fit in 256 threads.
+  const int64_t columns = channels / kVec;
+  const unsigned block_x = static_cast<unsigned>(std::min<int64_t>(columns, 256));
+  const dim3 moments_block(block_x, std::max(1u, 256u / block_x));
+  const dim3 moments_grid(static_cast<unsigned>(chunks), static_cast<unsigned>(samples));
+  group_moments_kernel<T, kVec><<<moments_grid, moments_block, 3 * groups * sizeof(float), stream>>>(
+      x.const_data_ptr<T>(), pixels, channels, groups, pixels_per_chunk, partial.mutable_data_ptr<float>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  group_scale_offset_kernel<T>
+      <<<static_cast<unsigned>(ceil_div(samples * channels, kApplyThreads)), kApplyThreads, 0, stream>>>(
+          x.const_data_ptr<T>(), partial.const_data_ptr<float>(), samples, pixels, channels, groups, chunks,
+          static_cast<float>(eps), weight.const_data_ptr<float>(), bias.const_data_ptr<float>(),
+          scale.mutable_data_ptr<float>(), offset.mutable_data_ptr<float>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+  const int64_t packs = x.numel() / kVec;
   const int64_t blocks = std::min<int64_t>(ceil_div(packs, kApplyThreads), static_cast<int64_t>(sms) * 8);
   group_apply_kernel<T, kVec><<<static_cast<unsigned>(blocks), kApplyThreads, 0, stream>>>(
       x.const_data_ptr<T>(), x.numel(), pixels, channels, scale.const_data_ptr<float>(), offset.const_data_ptr<float>(),
       silu, y.mutable_data_ptr<T>());
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
 }  // namespace
@@ -134,7 +180,7 @@ at::Tensor group_norm_nhwc_cuda(const at::Tensor& x, int64_t groups, const at::T
                                 const at::Tensor& bias_in, double eps, bool silu) {
   TORCH_CHECK(x.is_cuda() && x.dim() == 4 && x.is_contiguous(at::MemoryFormat::ChannelsLast),
               "group_norm_nhwc: a 4-d channels-last CUDA tensor expected, got ", x.sizes(), " on ", x.device());
-  const int64_t samples = x.size(0), channels = x.size(1), pixels = x.size(2) * x.size(3);
+  const int64_t channels = x.size(1);
   TORCH_CHECK(groups > 0 && channels % groups == 0, "group_norm_nhwc: ", channels, " channels in ", groups, " groups");
   TORCH_CHECK(weight_in.defined() && bias_in.defined() && weight_in.numel() == channels && bias_in.numel() == channels,
               "group_norm_nhwc: weight and bias of ", channels, " values expected");
@@ -143,33 +189,13 @@ at::Tensor group_norm_nhwc_cuda(const at::Tensor& x, int64_t groups, const at::T
   if (x.numel() == 0) return y;
   const auto float_options = x.options().dtype(at::kFloat);
   const at::Tensor weight = weight_in.to(float_options).contiguous(), bias = bias_in.to(float_options).contiguous();
-  const int sms = at::cuda::getCurrentDeviceProperties()->multiProcessorCount;
-  // About four blocks per multiprocessor over the batch, each of at least 32 pixels.
-  const int64_t chunks =
-      std::max<int64_t>(1, std::min(ceil_div(pixels, 32), ceil_div(static_cast<int64_t>(sms) * 4, samples)));
-  const int64_t pixels_per_chunk = ceil_div(pixels, chunks);
-  at::Tensor partial = at::empty({samples, chunks, groups, 2}, float_options);
-  at::Tensor scale = at::empty({samples, channels}, float_options), offset = at::empty_like(scale);
-  const cudaStream_t stream = at::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, x.scalar_type(), "group_norm_nhwc", [&] {
-    const dim3 moments_grid(static_cast<unsigned>(chunks), static_cast<unsigned>(samples));
-    const dim3 moments_block(kChannelThreads, kPixelThreads);
-    group_moments_kernel<scalar_t><<<moments_grid, moments_block, 3 * groups * sizeof(float), stream>>>(
-        x.const_data_ptr<scalar_t>(), pixels, channels, groups, pixels_per_chunk, partial.mutable_data_ptr<float>());
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
-    group_scale_offset_kernel<scalar_t>
-        <<<static_cast<unsigned>(ceil_div(samples * channels, kApplyThreads)), kApplyThreads, 0, stream>>>(
-            x.const_data_ptr<scalar_t>(), partial.const_data_ptr<float>(), samples, pixels, channels, groups, chunks,
-            static_cast<float>(eps), weight.const_data_ptr<float>(), bias.const_data_ptr<float>(),
-            scale.mutable_data_ptr<float>(), offset.mutable_data_ptr<float>());
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
     constexpr int kVec = 16 / sizeof(scalar_t);  // 16-byte loads and stores
     const auto aligned = [](const at::Tensor& t) { return reinterpret_cast<uintptr_t>(t.const_data_ptr()) % 16 == 0; };
     if (channels % kVec == 0 && aligned(x) && aligned(y))
-      launch_apply<scalar_t, kVec>(x, pixels, channels, scale, offset, silu, y, stream);
+      launch<scalar_t, kVec>(x, groups, weight, bias, eps, silu, y);
     else
-      launch_apply<scalar_t, 1>(x, pixels, channels, scale, offset, silu, y, stream);
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
+      launch<scalar_t, 1>(x, groups, weight, bias, eps, silu, y);
   });
   return y;
 }
