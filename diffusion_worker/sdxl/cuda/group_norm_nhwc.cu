@@ -31,19 +31,19 @@ struct alignas(sizeof(T) * kVec) Pack {
 
 // Block (chunk, n) sums v - shift and (v - shift)^2 over its pixels for every group: partial[n][chunk][g][2]. A
 // thread reads kVec neighbouring channels of a pixel at once (16 bytes where the channels allow) for the pixels
-// of its row, keeps per-channel sums in registers, and adds them to the block's group sums once per group.
+// of its row and keeps per-channel sums; the rows' sums meet in shared memory and each group's are added in a
+// fixed order, so the result does not depend on the threads' timing (a CUDA graph's replay gives the eager run's
+// values; float atomics would not).
 template <typename T, int kVec>
 __global__ void group_moments_kernel(const T* __restrict__ x, int64_t pixels, int64_t channels, int64_t groups,
                                      int64_t pixels_per_chunk, float* __restrict__ partial) {
-  extern __shared__ float sums[];  // groups x 2, then groups shifts
-  float* shifts = sums + 2 * groups;
+  extern __shared__ float shared[];  // shifts[groups], then rows x channels x {s1, s2}
+  float* shifts = shared;
+  float* channel_sums = shared + groups;
   const int64_t n = blockIdx.y, chunk = blockIdx.x, chunks = gridDim.x;
   const int64_t group_size = channels / groups, columns = channels / kVec;
   const int thread = threadIdx.y * blockDim.x + threadIdx.x, threads = blockDim.x * blockDim.y;
-  for (int64_t g = thread; g < groups; g += threads) {
-    sums[2 * g] = sums[2 * g + 1] = 0.f;
-    shifts[g] = group_shift(x, n, pixels, channels, group_size, g);
-  }
+  for (int64_t g = thread; g < groups; g += threads) shifts[g] = group_shift(x, n, pixels, channels, group_size, g);
   __syncthreads();
   const int64_t begin = chunk * pixels_per_chunk;
   const int64_t end = begin + pixels_per_chunk < pixels ? begin + pixels_per_chunk : pixels;
@@ -64,28 +64,26 @@ __global__ void group_moments_kernel(const T* __restrict__ x, int64_t pixels, in
         s2[k] += d * d;
       }
     }
-    // The kVec channels span one group or a few neighbouring ones: one pair of atomics per group.
-    int64_t g = (column * kVec) / group_size;
-    float g1 = 0.f, g2 = 0.f;
+    float* out = channel_sums + 2 * (threadIdx.y * channels + column * kVec);
 #pragma unroll
     for (int k = 0; k < kVec; ++k) {
-      const int64_t gk = (column * kVec + k) / group_size;
-      if (gk != g) {
-        atomicAdd(&sums[2 * g], g1);
-        atomicAdd(&sums[2 * g + 1], g2);
-        g = gk, g1 = 0.f, g2 = 0.f;
-      }
-      g1 += s1[k];
-      g2 += s2[k];
+      out[2 * k] = s1[k];
+      out[2 * k + 1] = s2[k];
     }
-    atomicAdd(&sums[2 * g], g1);
-    atomicAdd(&sums[2 * g + 1], g2);
   }
   __syncthreads();
   for (int64_t g = thread; g < groups; g += threads) {
+    float g1 = 0.f, g2 = 0.f;
+    for (unsigned row = 0; row < blockDim.y; ++row) {
+      const float* sums = channel_sums + 2 * (row * channels + g * group_size);
+      for (int64_t c = 0; c < group_size; ++c) {
+        g1 += sums[2 * c];
+        g2 += sums[2 * c + 1];
+      }
+    }
     float* out = partial + ((n * chunks + chunk) * groups + g) * 2;
-    out[0] = sums[2 * g];
-    out[1] = sums[2 * g + 1];
+    out[0] = g1;
+    out[1] = g2;
   }
 }
 
@@ -157,7 +155,10 @@ void launch(const at::Tensor& x, int64_t groups, const at::Tensor& weight, const
   const unsigned block_x = static_cast<unsigned>(std::min<int64_t>(columns, 256));
   const dim3 moments_block(block_x, std::max(1u, 256u / block_x));
   const dim3 moments_grid(static_cast<unsigned>(chunks), static_cast<unsigned>(samples));
-  group_moments_kernel<T, kVec><<<moments_grid, moments_block, 3 * groups * sizeof(float), stream>>>(
+  const size_t shared_bytes = (groups + 2 * moments_block.y * channels) * sizeof(float);
+  TORCH_CHECK(shared_bytes <= 48 * 1024, "group_norm_nhwc: ", channels, " channels need ", shared_bytes,
+              " bytes of shared memory, more than 48 KiB");
+  group_moments_kernel<T, kVec><<<moments_grid, moments_block, shared_bytes, stream>>>(
       x.const_data_ptr<T>(), pixels, channels, groups, pixels_per_chunk, partial.mutable_data_ptr<float>());
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   group_scale_offset_kernel<T>

@@ -13,7 +13,8 @@ namespace gaps::sdxl {
 // weight, bias: C values on that device. Returns weight * (x - mean) / sqrt(var + eps) + bias per group of
 // C / groups channels (biased variance, as at::group_norm), passed through SiLU when `silu`, in x's type and
 // layout. Moments accumulate in float32 about a per-group shift (the group's first value), so large offsets
-// do not cancel.
+// do not cancel, and in a fixed order: the same input gives the same bits. Up to 4096 channels (a block keeps
+// per-channel sums in shared memory; more is refused).
 at::Tensor group_norm_nhwc_cuda(const at::Tensor& x, int64_t groups, const at::Tensor& weight, const at::Tensor& bias,
                                 double eps, bool silu);
 
