@@ -127,6 +127,7 @@ class SdxlGenerator final : public Generator {
   std::string weights_identity() const override;
   // Depth-Anything maps of ground-truth views (hits and computations).
   const depth::DepthCache& depth_cache() const { return depth_cache_; }
+  const sdxl::SdxlPipeline& pipeline() const { return *pipeline_; }
 
  private:
   SdxlGenerator(SdxlOptions options, std::unique_ptr<sdxl::SdxlPipeline> pipeline);

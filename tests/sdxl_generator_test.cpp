@@ -72,6 +72,27 @@ TEST(SdxlGeneratorTest, RegisteredAndGeneratesAtEachRequestsStrength) {
   test::expect_close((*alone)[0], (*direct)[0].slice(1, 0, 13).permute({1, 2, 0}), 1e-5, "generator vs pipeline");
 }
 
+// channels_last: the models convolve channels-last (the VAE's moments come out so) and the images are NCHW's.
+TEST(SdxlGeneratorTest, ChannelsLastGivesTheImagesOfNchw) {
+  SdxlOptions options;
+  options.weights = test::sdxl_model_dir();
+  options.steps = 4;
+  options.prompt = "a fern";
+  auto nchw = SdxlGenerator::create(options);
+  options.channels_last = true;
+  auto channels_last = SdxlGenerator::create(options);
+  ASSERT_TRUE(nchw.ok() && channels_last.ok()) << channels_last.status();
+  const at::Tensor images = at::rand({1, 3, 16, 12}) * 2 - 1;
+  EXPECT_TRUE((*channels_last)->pipeline().vae().encode_moments(images).is_contiguous(at::MemoryFormat::ChannelsLast));
+  EXPECT_TRUE((*nchw)->pipeline().vae().encode_moments(images).is_contiguous());
+  const std::vector<GenerationRequest> requests{request(13, 10, 0.5, 1), request(12, 8, 1.0, 3)};
+  auto expected = (*nchw)->generate(requests);
+  auto out = (*channels_last)->generate(requests);
+  ASSERT_TRUE(expected.ok() && out.ok()) << out.status();
+  for (size_t i = 0; i < requests.size(); ++i)
+    test::expect_close((*out)[i], (*expected)[i], 1e-4, "channels-last against NCHW generation");
+}
+
 // The batching of requests by their denoising steps (sorted, most first).
 TEST(SdxlBatchingTest, MergesUnequalStepsOnlyWhenABatchStepsFixedCostIsWorthIt) {
   EXPECT_TRUE(img2img_batch_ends({}, 8, 1.0).empty());
