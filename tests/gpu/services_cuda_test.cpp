@@ -120,6 +120,10 @@ struct ServicesOnCuda : test::TempDirTest {
     ASSERT_NO_FATAL_FAILURE(run_job(spec, *scene, finished));
   }
 
+  // A full job with an sdxl worker on the tiny models (every constraint, inpainting in every phase) sharing a
+  // capped card with the trainer; extra_options join the worker's backend options.
+  void run_sdxl_job(const nlohmann::json& extra_options);
+
   std::vector<std::unique_ptr<Process>> workers_;
   Process* worker_ = nullptr;  // the first of workers_
   std::unique_ptr<Process> trainer_;
@@ -229,10 +233,9 @@ TEST_F(ServicesOnCuda, ARestoreWorkerOnCudaServesAFullJob) {
 // caps, the worker in fp16 with every component of the method (ControlNet depth, IP-Adapter, LoRA scene
 // adaptation, SD2 inpainting, Depth-Anything) on the tiny random models; the phases record where their time
 // went, the LoRA training (AdaptScene) and img2img among it.
-TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
-  GAPS_REQUIRE_CUDA();
+void ServicesOnCuda::run_sdxl_job(const nlohmann::json& extra_options) {
   const std::string fixtures = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/";
-  const nlohmann::json options = {
+  nlohmann::json options = {
       {"weights", fixtures + "sdxl_tiny/model"},
       {"dtype", "float16"},
       {"steps", 4},
@@ -243,6 +246,7 @@ TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
       {"inpaint_steps", 2},
       {"depth_anything", fixtures + "depth_anything_tiny/model"},
   };
+  options.update(extra_options);
   FinishedJob job;
   ASSERT_NO_FATAL_FAILURE(run_full_job(
       {"--backend", "sdxl", "--device", "cuda", "--gpu-memory-gib", "3", "--backend-options", options.dump()},
@@ -262,6 +266,17 @@ TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
     EXPECT_GT(phases[k]["seconds"]["generation"].get<double>(), 0.0);
   }
   EXPECT_EQ(test::read_json(dir_ / "fetched" / "metrics.json")["peak_memory"]["kind"], "cuda_allocator");
+}
+
+TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
+  GAPS_REQUIRE_CUDA();
+  run_sdxl_job({});
+}
+
+// The worker as the deployment would run it faster: convolutions channels-last, the UNet replayed from graphs.
+TEST_F(ServicesOnCuda, AnSdxlWorkerWithChannelsLastConvolutionsAndGraphsRunsAFullJob) {
+  GAPS_REQUIRE_CUDA();
+  run_sdxl_job({{"channels_last", true}, {"cuda_graphs", true}});
 }
 
 // A job whose initialisation runs PatchMatch on the trainer's GPU from fern's 3 training views with PatchMatch and
