@@ -34,10 +34,38 @@ using test::expect_close;
 
 // The tiny SDXL with its tiny ControlNet, float16 on a GPU (the current one unless given).
 absl::StatusOr<std::unique_ptr<SdxlPipeline>> half_precision_controlnet_pipeline(
-    at::Device device = at::Device(at::kCUDA)) {
+    at::Device device = at::Device(at::kCUDA), bool channels_last = false) {
   PipelineOptions options{at::kHalf, device, ""};
   options.controlnet = test::controlnet_dir();
+  options.channels_last = channels_last;
   return SdxlPipeline::load(test::sdxl_model_dir(), options);
+}
+
+// Turns the pipeline's UNet graphs on and runs the controlled img2img twice (capture, then replay): each within
+// 1e-3 of the eager result.
+void expect_graphs_give(SdxlPipeline& pipeline, const test::ControlledRun& run, const ControlInput& control,
+                        const at::Tensor& eager, const std::string& what) {
+  ASSERT_TRUE(pipeline.set_cuda_graphs(true).ok());
+  const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
+  for (int pass = 0; pass < 2; ++pass) {
+    auto graphed = pipeline.img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
+    ASSERT_TRUE(graphed.ok()) << graphed.status();
+    expect_close(*graphed, eager, 1e-3, what);
+  }
+}
+
+// The losses of 5 LoRA training steps on the controlled run's images (learning rate 1e-3, seed 11).
+std::vector<double> five_lora_losses(SdxlPipeline& pipeline, const test::ControlledRun& run, bool cuda_graph) {
+  LoraTrainingOptions training;
+  training.steps = 5;
+  training.learning_rate = 1e-3;
+  training.seed = 11;
+  training.cuda_graph = cuda_graph;
+  auto trained = pipeline.train_lora(run.ref.at("image"), {"a photo of a fern"},
+                                     ControlInput{run.ref.at("control_image"), {1.0}}, LoraConfig{}, training);
+  EXPECT_TRUE(trained.ok()) << trained.status();
+  EXPECT_EQ(trained.ok() ? trained->size() : 0u, 5u);
+  return trained.ok() ? *trained : std::vector<double>(5, 0.0);
 }
 
 TEST(SdxlPipelineTest, LoadsOnTheGpuInHalfPrecision) {
@@ -170,10 +198,7 @@ TEST(ControlNetPipelineTest, RunsChannelsLastAsItRunsNchw) {
   GAPS_REQUIRE_CUDA();
   auto nchw = half_precision_controlnet_pipeline();
   ASSERT_TRUE(nchw.ok()) << nchw.status();
-  PipelineOptions options{at::kHalf, at::Device(at::kCUDA), ""};
-  options.controlnet = test::controlnet_dir();
-  options.channels_last = true;
-  auto pipeline = SdxlPipeline::load(test::sdxl_model_dir(), options);
+  auto pipeline = half_precision_controlnet_pipeline(at::Device(at::kCUDA), /*channels_last=*/true);
   ASSERT_TRUE(pipeline.ok()) << pipeline.status();
   const test::ControlledRun run = test::controlled_run();
   const auto prompts = run.setup["prompts"].get<std::vector<std::string>>();
@@ -190,26 +215,11 @@ TEST(ControlNetPipelineTest, RunsChannelsLastAsItRunsNchw) {
   ASSERT_TRUE(expected.ok() && out.ok()) << out.status();
   expect_close(*out, run.ref.at("out"), 5e-2, "channels-last half-precision ControlNet img2img");
   expect_close(*out, *expected, 2e-2, "channels-last against NCHW img2img");
-  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
-  for (int pass = 0; pass < 2; ++pass) {  // capture, then replay
-    auto graphed = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
-    ASSERT_TRUE(graphed.ok()) << graphed.status();
-    expect_close(*graphed, *out, 1e-3, "channels-last img2img with CUDA graphs");
-  }
-  LoraConfig config;
-  LoraTrainingOptions training;
-  training.steps = 5;
-  training.learning_rate = 1e-3;
-  training.seed = 11;
-  std::vector<std::vector<double>> losses;
-  for (SdxlPipeline* p : {nchw->get(), pipeline->get()}) {
-    auto trained =
-        p->train_lora(run.ref.at("image"), {"a photo of a fern"}, ControlInput{control.image, {1.0}}, config, training);
-    ASSERT_TRUE(trained.ok()) << trained.status();
-    losses.push_back(*trained);
-  }
-  for (size_t i = 0; i < losses[0].size(); ++i)
-    EXPECT_NEAR(losses[1][i], losses[0][i], 1e-2 * std::abs(losses[0][i])) << "LoRA step " << i;
+  ASSERT_NO_FATAL_FAILURE(expect_graphs_give(**pipeline, run, control, *out, "channels-last img2img with CUDA graphs"));
+  const std::vector<double> nchw_losses = five_lora_losses(**nchw, run, false);
+  const std::vector<double> losses = five_lora_losses(**pipeline, run, false);
+  for (size_t i = 0; i < losses.size(); ++i)
+    EXPECT_NEAR(losses[i], nchw_losses[i], 1e-2 * std::abs(nchw_losses[i])) << "LoRA step " << i;
 }
 
 // every step (a replay that read stale noise or timesteps, or stale adapters, would differ at once) and the same
@@ -271,29 +281,12 @@ TEST(SdxlPipelineTest, CapturesAndReplaysItsGraphsOnItsOwnDeviceWhenAnotherIsCur
   auto eager = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
   ASSERT_TRUE(eager.ok()) << eager.status();
   expect_close(*eager, run.ref.at("out"), 5e-2, "ControlNet img2img on the second GPU");
-  ASSERT_TRUE((*pipeline)->set_cuda_graphs(true).ok());
-  for (int pass = 0; pass < 2; ++pass) {  // capture, then replay
-    auto graphed = (*pipeline)->img2img(run.ref.at("image"), prompts, run.params, {1234}, control);
-    ASSERT_TRUE(graphed.ok()) << graphed.status();
-    expect_close(*graphed, *eager, 1e-3, "ControlNet img2img with CUDA graphs on the second GPU");
-  }
-  LoraConfig config;
-  LoraTrainingOptions training;
-  training.steps = 5;
-  training.learning_rate = 1e-3;
-  training.seed = 11;
-  std::vector<std::vector<double>> losses;
-  for (const bool cuda_graph : {false, true}) {
-    training.cuda_graph = cuda_graph;
-    auto trained = (*pipeline)->train_lora(run.ref.at("image"), {"a photo of a fern"},
-                                           ControlInput{control.image, {1.0}}, config, training);
-    ASSERT_TRUE(trained.ok()) << trained.status();
-    ASSERT_EQ(trained->size(), 5u);
-    losses.push_back(*trained);
-  }
-  for (size_t i = 0; i < losses[0].size(); ++i) {
-    EXPECT_NEAR(losses[1][i], losses[0][i], 1e-3 * std::abs(losses[0][i])) << "LoRA step " << i;
-  }
+  ASSERT_NO_FATAL_FAILURE(
+      expect_graphs_give(**pipeline, run, control, *eager, "ControlNet img2img with CUDA graphs on the second GPU"));
+  const std::vector<double> eager_losses = five_lora_losses(**pipeline, run, false);
+  const std::vector<double> graphed_losses = five_lora_losses(**pipeline, run, true);
+  for (size_t i = 0; i < eager_losses.size(); ++i)
+    EXPECT_NEAR(graphed_losses[i], eager_losses[i], 1e-3 * std::abs(eager_losses[i])) << "LoRA step " << i;
   EXPECT_EQ(c10::cuda::current_device(), 0) << "the pipeline left another device current";
 }
 
