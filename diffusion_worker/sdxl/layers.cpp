@@ -65,7 +65,8 @@ bool fused_group_norm(const at::Tensor& x, const GroupNorm& norm) {
   const bool recording = at::GradMode::is_enabled() && (x.requires_grad() || norm.weight.requires_grad());
   const bool channels_last =
       norm.channels_last || (x.is_contiguous(at::MemoryFormat::ChannelsLast) && !x.is_contiguous());
-  return x.is_cuda() && x.dim() == 4 && channels_last && !recording;
+  // The kernel keeps per-channel sums in shared memory: up to 4096 channels (SDXL's widest layer has 1280).
+  return x.is_cuda() && x.dim() == 4 && x.size(1) <= 4096 && channels_last && !recording;
 #else
   (void)x, (void)norm;
   return false;
