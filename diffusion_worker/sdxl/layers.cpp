@@ -57,9 +57,9 @@ GroupNorm GroupNorm::load(WeightLoader& w, const std::string& prefix, int64_t gr
 
 namespace {
 
-// Channels-last activations on a CUDA device keep their layout through the fused kernel (ATen's CUDA GroupNorm
-// returns NCHW, and the next convolution would transpose back); it has no backward, so a graph autograd records
-// (LoRA training) takes ATen's.
+// On a CUDA device a channels-last model's GroupNorm (or one given channels-last activations) runs the fused
+// kernel, which keeps the layout (ATen's CUDA GroupNorm returns NCHW, and the next convolution would transpose
+// back); the kernel has no backward, so a graph autograd records (LoRA training) takes ATen's.
 bool fused_group_norm(const at::Tensor& x, const GroupNorm& norm) {
 #if defined(GAPS_CUDA_KERNELS)
   const bool recording = at::GradMode::is_enabled() && (x.requires_grad() || norm.weight.requires_grad());
