@@ -41,10 +41,17 @@ struct GroupNorm {
   // Of a model whose convolutions run channels-last (WeightLoader::kernel_format): on CUDA outside autograd every
   // input goes through the channels-last kernel, made channels-last first where an elementwise result was not.
   bool channels_last = false;
+  // weight and bias in float32, as the fused kernel reads them, kept once at load for a channels-last model
+  // (undefined otherwise: the kernel converts per call where an NCHW model is given channels-last input).
+  at::Tensor kernel_weight, kernel_bias;
   static GroupNorm load(WeightLoader& w, const std::string& prefix, int64_t groups, int64_t channels, double eps);
   at::Tensor operator()(const at::Tensor& x) const;
   // silu(operator()(x)), in one pass where the fused kernel applies.
   at::Tensor with_silu(const at::Tensor& x) const;
+  // The model's activation layout, for blocks that rebuild a feature map from tokens after this norm.
+  at::MemoryFormat memory_format() const {
+    return channels_last ? at::MemoryFormat::ChannelsLast : at::MemoryFormat::Contiguous;
+  }
 };
 
 struct LayerNorm {

@@ -261,7 +261,7 @@ at::Tensor UNet2DCondition::transformer_forward(const Transformer2D& t, const at
   if (config_.use_linear_projection) y = t.proj_in_linear(y);
   for (const auto& block : t.blocks) y = block_forward(block, y, context);
   if (config_.use_linear_projection) y = t.proj_out_linear(y);
-  y = y.reshape({b, h, w, c}).permute({0, 3, 1, 2}).contiguous(x.suggest_memory_format());
+  y = y.reshape({b, h, w, c}).permute({0, 3, 1, 2}).contiguous(t.norm.memory_format());
   if (!config_.use_linear_projection) y = t.proj_out_conv(y);
   return y + x;
 }

@@ -56,7 +56,7 @@ at::Tensor VaeAttention::operator()(const at::Tensor& x) const {
   // Pixels as tokens: a view for channels-last activations, a copy for NCHW ones.
   at::Tensor tokens = group_norm(x).permute({0, 2, 3, 1}).reshape({b, h * wd, c});
   at::Tensor out = attn(tokens, tokens);
-  return out.reshape({b, h, wd, c}).permute({0, 3, 1, 2}).contiguous(x.suggest_memory_format()) + x;
+  return out.reshape({b, h, wd, c}).permute({0, 3, 1, 2}).contiguous(group_norm.memory_format()) + x;
 }
 
 VaeMidBlock VaeMidBlock::load(WeightLoader& w, const std::string& prefix, int64_t channels, int64_t groups,
