@@ -270,7 +270,7 @@ void ServicesOnCuda::run_sdxl_job(const nlohmann::json& extra_options) {
 
 TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
   GAPS_REQUIRE_CUDA();
-  run_sdxl_job({});
+  run_sdxl_job(nlohmann::json::object());
 }
 
 // The worker as the deployment would run it faster: convolutions channels-last, the UNet replayed from graphs.
