@@ -15,6 +15,7 @@
 #include <ATen/ATen.h>
 #include <nlohmann/json.hpp>
 #include "absl/strings/str_cat.h"
+#include "common/status_macros.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -56,45 +57,43 @@ absl::Status header_error(const std::string& path, const std::string& what) {
   return absl::InvalidArgumentError(absl::StrCat("safetensors file ", path, ": ", what));
 }
 
-}  // namespace
-
-absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY);
-  if (fd < 0)
-    return absl::NotFoundError(absl::StrCat("cannot open safetensors file ", path, ": ", std::strerror(errno)));
-  struct stat st {};
-  if (fstat(fd, &st) != 0) {
-    ::close(fd);
-    return absl::InternalError(absl::StrCat("cannot stat ", path));
-  }
-  auto mapping = std::make_shared<Mapping>();
-  mapping->size = static_cast<size_t>(st.st_size);
-  if (mapping->size < 8) {
-    ::close(fd);
-    return header_error(path, absl::StrCat("only ", mapping->size, " bytes, shorter than the 8-byte header length"));
-  }
-  // Copy-on-write private mapping: the tensors may be written to without touching the file.
-  void* data = mmap(nullptr, mapping->size, PROT_READ | PROT_WRITE, MAP_PRIVATE, fd, 0);
-  ::close(fd);
-  if (data == MAP_FAILED) return absl::InternalError(absl::StrCat("cannot map ", path, ": ", std::strerror(errno)));
-  mapping->data = data;
-  const auto* bytes = static_cast<const uint8_t*>(data);
-
-  uint64_t header_size = 0;
-  for (int i = 7; i >= 0; --i) header_size = (header_size << 8) | bytes[i];
-  if (header_size > mapping->size - 8) {
-    return header_error(path,
-                        absl::StrCat("header length ", header_size, " exceeds the file (", mapping->size, " bytes)"));
-  }
+// The header of the safetensors data at bytes[0, size), checked to be a JSON object within it.
+absl::StatusOr<nlohmann::json> parse_header(const uint8_t* bytes, size_t size, const std::string& path,
+                                            uint64_t* header_size) {
+  if (size < 8) return header_error(path, absl::StrCat("only ", size, " bytes, shorter than the 8-byte header length"));
+  *header_size = 0;
+  for (int i = 7; i >= 0; --i) *header_size = (*header_size << 8) | bytes[i];
+  if (*header_size > size - 8)
+    return header_error(path, absl::StrCat("header length ", *header_size, " exceeds the file (", size, " bytes)"));
   nlohmann::json header;
   try {
-    header = nlohmann::json::parse(bytes + 8, bytes + 8 + header_size);
+    header = nlohmann::json::parse(bytes + 8, bytes + 8 + *header_size);
   } catch (const std::exception& e) {
     return header_error(path, absl::StrCat("header is not valid JSON: ", e.what()));
   }
   if (!header.is_object()) return header_error(path, "header is not a JSON object");
-  const uint8_t* base = bytes + 8 + header_size;
-  const uint64_t data_size = mapping->size - 8 - header_size;
+  return header;
+}
+
+absl::StatusOr<SafetensorsMetadata> metadata_of(const nlohmann::json& header, const std::string& path) {
+  SafetensorsMetadata metadata;
+  if (!header.is_object() || !header.contains("__metadata__")) return metadata;
+  const auto& entries = header["__metadata__"];
+  if (!entries.is_object()) return header_error(path, "__metadata__ is not a JSON object");
+  for (const auto& [key, value] : entries.items()) {
+    if (!value.is_string()) return header_error(path, absl::StrCat("__metadata__ entry '", key, "' is not a string"));
+    metadata.emplace(key, value.get<std::string>());
+  }
+  return metadata;
+}
+
+// The tensors of the safetensors data at bytes[0, size), viewing it; `owner` keeps it alive as long as any does.
+absl::StatusOr<TensorMap> tensors_of(uint8_t* bytes, size_t size, const std::shared_ptr<void>& owner,
+                                     const std::string& path) {
+  uint64_t header_size = 0;
+  GAPS_ASSIGN_OR_RETURN(const nlohmann::json header, parse_header(bytes, size, path, &header_size));
+  uint8_t* base = bytes + 8 + header_size;
+  const uint64_t data_size = size - 8 - header_size;
 
   TensorMap tensors;
   std::vector<std::pair<uint64_t, uint64_t>> ranges;
@@ -135,11 +134,11 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
       return fail(absl::StrCat("holds ", end - begin, " bytes but its shape and dtype need ", expected));
     }
     ranges.emplace_back(begin, end);
-    void* ptr = const_cast<uint8_t*>(base + begin);
+    void* ptr = base + begin;
     at::Tensor t;
     if (reinterpret_cast<uintptr_t>(ptr) % at::elementSize(type) == 0) {
       t = at::from_blob(
-          ptr, shape, [mapping](void*) {}, at::TensorOptions().dtype(type));
+          ptr, shape, [owner](void*) {}, at::TensorOptions().dtype(type));
     } else {
       // Misaligned data (a writer that does not pad the header) is copied rather than viewed.
       t = at::empty(shape, at::TensorOptions().dtype(type));
@@ -154,6 +153,73 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
     }
   }
   return tensors;
+}
+
+// The 8-byte length and the header (padded so that the data stays 8-byte aligned) of `tensors`, whose data,
+// contiguous on the CPU, goes to *data in header order.
+absl::StatusOr<std::string> header_bytes(const TensorMap& tensors, const SafetensorsMetadata& metadata,
+                                         std::vector<at::Tensor>* data) {
+  nlohmann::json header = nlohmann::json::object();
+  if (!metadata.empty()) header["__metadata__"] = metadata;
+  uint64_t offset = 0;
+  for (const auto& [name, tensor] : tensors) {
+    const char* dtype = dtype_name(tensor.scalar_type());
+    if (dtype == nullptr)
+      return absl::InvalidArgumentError(absl::StrCat("tensor '", name, "': dtype not writable as safetensors"));
+    at::Tensor t = tensor.to(at::kCPU).contiguous();
+    const uint64_t size = t.numel() * t.element_size();
+    header[name] = {{"dtype", dtype}, {"shape", t.sizes().vec()}, {"data_offsets", {offset, offset + size}}};
+    offset += size;
+    data->push_back(std::move(t));
+  }
+  std::string text = header.dump();
+  text.append((8 - text.size() % 8) % 8, ' ');
+  std::string out(8, '\0');
+  for (int i = 0; i < 8; ++i) out[i] = static_cast<char>((text.size() >> (8 * i)) & 0xff);
+  return out + text;
+}
+
+}  // namespace
+
+absl::StatusOr<TensorMap> read_safetensors(const std::string& path) {
+  const int fd = ::open(path.c_str(), O_RDONLY);
+  if (fd < 0)
+    return absl::NotFoundError(absl::StrCat("cannot open safetensors file ", path, ": ", std::strerror(errno)));
+  struct stat st {};
+  if (fstat(fd, &st) != 0) {
+    ::close(fd);
+    return absl::InternalError(absl::StrCat("cannot stat ", path));
+  }
+  auto mapping = std::make_shared<Mapping>();
+  mapping->size = static_cast<size_t>(st.st_size);
+  if (mapping->size < 8) {
+    ::close(fd);
+    return header_error(path, absl::StrCat("only ", mapping->size, " bytes, shorter than the 8-byte header length"));
+  }
+  // Copy-on-write private mapping: the tensors may be written to without touching the file.
+  void* data = mmap(nullptr, mapping->size, PROT_READ | PROT_WRITE, MAP_PRIVATE, fd, 0);
+  ::close(fd);
+  if (data == MAP_FAILED) return absl::InternalError(absl::StrCat("cannot map ", path, ": ", std::strerror(errno)));
+  mapping->data = data;
+  return tensors_of(static_cast<uint8_t*>(data), mapping->size, mapping, path);
+}
+
+absl::StatusOr<DecodedSafetensors> decode_safetensors(std::string bytes, const std::string& source) {
+  auto owner = std::make_shared<std::string>(std::move(bytes));
+  auto* data = reinterpret_cast<uint8_t*>(owner->data());
+  DecodedSafetensors decoded;
+  GAPS_ASSIGN_OR_RETURN(decoded.tensors, tensors_of(data, owner->size(), owner, source));
+  uint64_t header_size = 0;
+  GAPS_ASSIGN_OR_RETURN(const nlohmann::json header, parse_header(data, owner->size(), source, &header_size));
+  GAPS_ASSIGN_OR_RETURN(decoded.metadata, metadata_of(header, source));
+  return decoded;
+}
+
+absl::StatusOr<std::string> encode_safetensors(const TensorMap& tensors, const SafetensorsMetadata& metadata) {
+  std::vector<at::Tensor> data;
+  GAPS_ASSIGN_OR_RETURN(std::string out, header_bytes(tensors, metadata, &data));
+  for (const auto& t : data) out.append(static_cast<const char*>(t.const_data_ptr()), t.numel() * t.element_size());
+  return out;
 }
 
 absl::StatusOr<SafetensorsMetadata> read_safetensors_metadata(const std::string& path) {
@@ -177,42 +243,17 @@ absl::StatusOr<SafetensorsMetadata> read_safetensors_metadata(const std::string&
   } catch (const std::exception& e) {
     return header_error(path, absl::StrCat("header is not valid JSON: ", e.what()));
   }
-  SafetensorsMetadata metadata;
-  if (!header.is_object() || !header.contains("__metadata__")) return metadata;
-  const auto& entries = header["__metadata__"];
-  if (!entries.is_object()) return header_error(path, "__metadata__ is not a JSON object");
-  for (const auto& [key, value] : entries.items()) {
-    if (!value.is_string()) return header_error(path, absl::StrCat("__metadata__ entry '", key, "' is not a string"));
-    metadata.emplace(key, value.get<std::string>());
-  }
-  return metadata;
+  return metadata_of(header, path);
 }
 
 absl::Status write_safetensors(const std::string& path, const TensorMap& tensors, const SafetensorsMetadata& metadata) {
-  nlohmann::json header = nlohmann::json::object();
-  if (!metadata.empty()) header["__metadata__"] = metadata;
-  std::vector<at::Tensor> contiguous;
-  uint64_t offset = 0;
-  for (const auto& [name, tensor] : tensors) {
-    const char* dtype = dtype_name(tensor.scalar_type());
-    if (dtype == nullptr)
-      return absl::InvalidArgumentError(absl::StrCat("tensor '", name, "': dtype not writable as safetensors"));
-    at::Tensor t = tensor.to(at::kCPU).contiguous();
-    const uint64_t size = t.numel() * t.element_size();
-    header[name] = {{"dtype", dtype}, {"shape", t.sizes().vec()}, {"data_offsets", {offset, offset + size}}};
-    offset += size;
-    contiguous.push_back(std::move(t));
-  }
-  std::string text = header.dump();
-  text.append((8 - text.size() % 8) % 8, ' ');  // keeps the data 8-byte aligned
+  std::vector<at::Tensor> data;
+  GAPS_ASSIGN_OR_RETURN(const std::string header, header_bytes(tensors, metadata, &data));
+  // Streamed tensor by tensor: a whole model's weights are not held twice.
   std::ofstream out(path, std::ios::binary);
   if (!out) return absl::InternalError(absl::StrCat("cannot write ", path));
-  uint64_t n = text.size();
-  char len[8];
-  for (int i = 0; i < 8; ++i) len[i] = static_cast<char>((n >> (8 * i)) & 0xff);
-  out.write(len, 8);
-  out.write(text.data(), static_cast<std::streamsize>(text.size()));
-  for (const auto& t : contiguous) out.write(static_cast<const char*>(t.data_ptr()), t.numel() * t.element_size());
+  out.write(header.data(), static_cast<std::streamsize>(header.size()));
+  for (const auto& t : data) out.write(static_cast<const char*>(t.const_data_ptr()), t.numel() * t.element_size());
   if (!out) return absl::InternalError(absl::StrCat("failed writing ", path));
   return absl::OkStatus();
 }

@@ -20,6 +20,15 @@ absl::StatusOr<TensorMap> read_safetensors(const std::string& path);
 using SafetensorsMetadata = std::map<std::string, std::string>;
 absl::StatusOr<SafetensorsMetadata> read_safetensors_metadata(const std::string& path);
 
+// The same format in memory (what one worker hands another, e.g. LoRA adapters): decode views `bytes`, kept
+// alive as long as any tensor is; errors name `source` like a file's path.
+struct DecodedSafetensors {
+  TensorMap tensors;
+  SafetensorsMetadata metadata;
+};
+absl::StatusOr<DecodedSafetensors> decode_safetensors(std::string bytes, const std::string& source);
+absl::StatusOr<std::string> encode_safetensors(const TensorMap& tensors, const SafetensorsMetadata& metadata = {});
+
 // Writes tensors (any supported dtype, made contiguous on the CPU) and optional "__metadata__" to path.
 absl::Status write_safetensors(const std::string& path, const TensorMap& tensors,
                                const SafetensorsMetadata& metadata = {});

@@ -239,6 +239,20 @@ absl::Status SdxlGenerator::adapt(const std::vector<ReferenceView>& views,
   return train_lora(views, lora);
 }
 
+absl::StatusOr<std::string> SdxlGenerator::export_adaptation() const {
+  if (!options_.lora.empty() || pipeline_->lora() == nullptr) return std::string();
+  return pipeline_->lora()->to_bytes();
+}
+
+absl::Status SdxlGenerator::install_adaptation(const std::vector<ReferenceView>& views,
+                                               const std::optional<SceneAdaptation>& adaptation, std::string exported) {
+  if (!options_.lora.empty() || exported.empty()) return adapt(views, adaptation);
+  notes_.clear();
+  GAPS_RETURN_IF_ERROR(pipeline_->load_lora_bytes(std::move(exported), "the adapters another worker trained"));
+  if (options_.lora_save.empty()) return absl::OkStatus();
+  return pipeline_->lora()->save(options_.lora_save);
+}
+
 absl::StatusOr<at::Tensor> SdxlGenerator::view_disparity(const at::Tensor& image, size_t index) {
   const at::Tensor pixels = image.to(at::kCPU, at::kFloat).clamp(0, 1).contiguous();
   // Keyed by the depth model and the pixels: the same view misses nothing, a changed one shares nothing.

@@ -109,6 +109,13 @@ class SdxlGenerator final : public Generator {
   // together. With the lora option the file's adapters stay and nothing is trained (a note says so).
   absl::Status adapt(const std::vector<ReferenceView>& views,
                      const std::optional<SceneAdaptation>& adaptation) override;
+  // The adapters the last adapt() trained (safetensors bytes); empty when it trained none (0 steps, or the
+  // lora option's file, which every worker loads itself).
+  absl::StatusOr<std::string> export_adaptation() const override;
+  // Applies another worker's trained adapters as adapt() would have left its own (merged, saved to lora_save
+  // when set); with the lora option, adapt() (the file stays).
+  absl::Status install_adaptation(const std::vector<ReferenceView>& views,
+                                  const std::optional<SceneAdaptation>& adaptation, std::string exported) override;
   // Each render is padded at its bottom/right edge (replicated) to a multiple of the latent factor (8 for
   // SDXL: 504 x 378 runs at 504 x 384), run through img2img at its strength and cropped back. A strength
   // below one step of the schedule returns the render unchanged. With a ControlNet, each request's

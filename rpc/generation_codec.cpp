@@ -97,8 +97,10 @@ absl::StatusOr<std::optional<SceneAdaptation>> decode_adaptation(const v1::Adapt
 }  // namespace
 
 void encode_adapt_batch(const std::string& scene_id, const std::vector<ReferenceView>& views,
-                        const std::optional<SceneAdaptation>& adaptation, v1::AdaptSceneBatch* out) {
+                        const std::optional<SceneAdaptation>& adaptation, v1::AdaptSceneBatch* out,
+                        const std::string& exported) {
   out->set_scene_id(scene_id);
+  out->set_adaptation_export(exported);
   for (const auto& v : views) encode_reference(v, out->add_references());
   if (adaptation) {
     out->set_lora_rank(adaptation->lora_rank);
@@ -113,6 +115,7 @@ absl::StatusOr<AdaptRequest> decode_adapt_batch(const v1::AdaptSceneBatch& batch
     out.views.push_back(std::move(view));
   }
   GAPS_ASSIGN_OR_RETURN(out.adaptation, decode_adaptation(batch));
+  out.exported = batch.adaptation_export();
   return out;
 }
 

@@ -22,13 +22,16 @@ void encode_reference(const ReferenceView& view, v1::ReferenceView* out);
 absl::StatusOr<ReferenceView> decode_reference(const v1::ReferenceView& view, const std::string& what);
 
 // What an AdaptScene call asks: adapt to these views, as `adaptation` says (nullopt: the backend's options).
+// With `exported` (Generator::export_adaptation of another worker) the worker installs it instead of adapting.
 struct AdaptRequest {
   std::vector<ReferenceView> views;
   std::optional<SceneAdaptation> adaptation;
+  std::string exported;
 };
 
 void encode_adapt_batch(const std::string& scene_id, const std::vector<ReferenceView>& views,
-                        const std::optional<SceneAdaptation>& adaptation, v1::AdaptSceneBatch* out);
+                        const std::optional<SceneAdaptation>& adaptation, v1::AdaptSceneBatch* out,
+                        const std::string& exported = "");
 absl::StatusOr<AdaptRequest> decode_adapt_batch(const v1::AdaptSceneBatch& batch);
 
 // How a batch's tensors travel: `images` is the encoding of colour and alpha (renders, reference photos, the

@@ -39,11 +39,16 @@ struct RemoteGenerator::Worker {
   std::string scene_handle;
   uint64_t adapted_version = 0;               // views_version_ the handle belongs to
   bool shares_memory = false;                 // its probe was read here (set by probe())
+  std::string weights_identity;               // WorkerInfo.weights_identity (set by probe())
   std::unique_ptr<rpc::SharedRegion> region;  // reused by its calls while large enough
   double seconds_per_pose = 0;                // its shards' Generate seconds per pose, smoothed; 0: unmeasured
 };
 
 namespace {
+
+// The largest exported adaptation taken from a worker (sdxl's LoRA adapters in float32: 12.5 MB at rank 4,
+// ~0.4 GB at rank 128).
+constexpr uint64_t kMaxExportBytes = uint64_t{1} << 30;
 
 // An answer a worker should not have sent (truncated, the wrong count or shape, non-finite pixels): the
 // worker is at fault, not the request, so another worker is asked. generate() names the worker.
@@ -207,6 +212,7 @@ absl::Status RemoteGenerator::probe(Worker& w) {
       rpc::from_grpc(w.stub->GetInfo(&info_context, v1::GetInfoRequest(), &info), w.address + " GetInfo"));
   w.shares_memory = options_.shared_memory && !info.shared_memory_probe().empty() &&
                     rpc::shares_memory_with(info.shared_memory_probe(), info.shared_memory_token());
+  w.weights_identity = info.weights_identity();
   std::lock_guard<std::mutex> lock(name_mutex_);
   backend_version_ = info.backend_version();
   return absl::OkStatus();
@@ -250,6 +256,7 @@ void RemoteGenerator::start_adaptation() {
   {
     std::lock_guard<std::mutex> lock(adaptation_mutex_);
     first_adaptation_end_.reset();
+    shared_export_.reset();
   }
   if (views_.empty() || workers_.empty() || stopping()) return;
   std::vector<Worker*> targets;
@@ -258,18 +265,57 @@ void RemoteGenerator::start_adaptation() {
   } else {
     targets.push_back(workers_[next_ % workers_.size()].get());
   }
+  // With sharing, the first worker adapts and exports what it learnt; the others wait for that and install it.
+  const bool share = options_.share_adaptation && targets.size() > 1;
+  std::shared_future<void> leader_done;
   for (Worker* target : targets) {
     auto adaptation = std::make_unique<Adaptation>();
     adaptation->worker = target;
-    adaptation->call = std::async(std::launch::async, [this, &a = *adaptation] {
-      adapt_in_background(a);
-      std::lock_guard<std::mutex> lock(adaptation_mutex_);
-      a.ended = true;
-      if (!first_adaptation_end_) first_adaptation_end_ = std::chrono::steady_clock::now();
-      adaptation_ended_.notify_all();
-    });
+    const bool leader = share && target == targets.front();
+    std::promise<void> done;
+    if (leader) leader_done = done.get_future().share();
+    adaptation->call = std::async(
+        std::launch::async, [this, &a = *adaptation, leader, share, leader_done, done = std::move(done)]() mutable {
+          if (share && !leader) leader_done.wait();
+          adapt_in_background(a);
+          if (leader) {
+            fetch_export(*a.worker, a.attempt);
+            done.set_value();
+          }
+          std::lock_guard<std::mutex> lock(adaptation_mutex_);
+          a.ended = true;
+          if (!first_adaptation_end_) first_adaptation_end_ = std::chrono::steady_clock::now();
+          adaptation_ended_.notify_all();
+        });
     adaptations_.push_back(std::move(adaptation));
   }
+}
+
+void RemoteGenerator::fetch_export(Worker& w, Attempt& attempt) {
+  if (w.adapted_version != views_version_ || stopping()) return;  // its adaptation failed: the others adapt
+  const auto start = std::chrono::steady_clock::now();
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
+  rpc::attach_token(context, options_.security.token);
+  const CancelWhenStopping cancel(context, options_.should_stop);
+  v1::ExportAdaptationRequest request;
+  request.set_scene_handle(w.scene_handle);
+  auto reader = w.stub->ExportAdaptation(&context, request);
+  v1::AdaptationExport answer;
+  absl::Status read = rpc::read_chunked([&](v1::Chunk* c) { return reader->Read(c); }, kMaxExportBytes, &answer);
+  const absl::Status finished = rpc::from_grpc(reader->Finish(), w.address + " ExportAdaptation");
+  if (!finished.ok() || !read.ok()) {
+    // Not fatal: every worker then adapts itself, as without sharing.
+    attempt.notes.push_back(absl::StrCat(w.address, ": its adaptation could not be shared, so each worker adapts ",
+                                         "itself: ", (finished.ok() ? read : finished).message()));
+    return;
+  }
+  attempt.stages["adaptation_export"] +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (answer.adaptation().empty()) return;  // the backend learnt nothing to hand over (e.g. reproject)
+  attempt.counters["adaptation_export_bytes"] += static_cast<double>(answer.adaptation().size());
+  std::lock_guard<std::mutex> lock(adaptation_mutex_);
+  shared_export_ = SharedExport{views_version_, answer.weights_identity(), std::move(*answer.mutable_adaptation())};
 }
 
 void RemoteGenerator::adapt_in_background(Adaptation& a) {
@@ -324,10 +370,29 @@ void RemoteGenerator::Attempt::add(const Attempt& other) {
   notes.insert(notes.end(), other.notes.begin(), other.notes.end());
 }
 
+std::string RemoteGenerator::export_for(const Worker& w) {
+  std::lock_guard<std::mutex> lock(adaptation_mutex_);
+  const bool fits = shared_export_ && shared_export_->views_version == views_version_ && w.probed &&
+                    shared_export_->weights_identity == w.weights_identity;
+  return fits ? shared_export_->adaptation : std::string();
+}
+
 absl::Status RemoteGenerator::adapt_on(Worker& w, Attempt& attempt) {
   if (views_.empty() || w.adapted_version == views_version_) return absl::OkStatus();
+  std::string exported = export_for(w);
+  if (!exported.empty()) {
+    const absl::Status installed = call_adapt_scene(w, attempt, std::move(exported));
+    if (installed.ok() || stopping()) return installed;
+    // A worker that cannot install another's adaptation can still make its own.
+    attempt.notes.push_back(absl::StrCat(w.address, ": could not install the shared adaptation (", installed.message(),
+                                         "), so it adapted itself"));
+  }
+  return call_adapt_scene(w, attempt, "");
+}
+
+absl::Status RemoteGenerator::call_adapt_scene(Worker& w, Attempt& attempt, const std::string& exported) {
   v1::AdaptSceneBatch batch;
-  rpc::encode_adapt_batch(options_.scene_id, views_, adaptation_, &batch);
+  rpc::encode_adapt_batch(options_.scene_id, views_, adaptation_, &batch, exported);
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.generate_timeout);
   rpc::attach_token(context, options_.security.token);
@@ -347,6 +412,7 @@ absl::Status RemoteGenerator::adapt_on(Worker& w, Attempt& attempt) {
   if (handle.empty()) return absl::InternalError(absl::StrCat(w.address, " AdaptScene returned no scene handle"));
   attempt.notes.insert(attempt.notes.end(), adapt_notes.begin(), adapt_notes.end());
   attempt.stages["adapt_scene"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  attempt.counters[exported.empty() ? "adaptations_made" : "adaptations_installed"] += 1;
   w.scene_handle = handle;
   w.adapted_version = views_version_;
   return absl::OkStatus();

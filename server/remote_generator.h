@@ -62,6 +62,11 @@ struct WorkerPoolOptions {
   // at most this much longer; a worker still adapting then sits out the calls until its adaptation ends, so that
   // one whose adaptation is slow (on the GPU the trainer trains on) does not hold the first phases up.
   std::chrono::milliseconds adaptation_grace{1000};
+  // With fan_out, the first worker of the pool adapts to the scene and the others install what it learnt
+  // (ExportAdaptation; sdxl: its LoRA adapters) instead of each training its own: one LoRA training per scene
+  // instead of one per worker, and every worker's pseudo-views from the same adapters. A worker with other
+  // weights, or one that cannot install them, adapts itself. List first the worker whose GPU is not the trainer's.
+  bool share_adaptation = true;
 };
 
 // The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per
@@ -123,8 +128,16 @@ class RemoteGenerator final : public Generator {
   // True when the worker may be called now (healthy, or its cooldown passed and a probe succeeded).
   bool usable(Worker& worker);
   absl::Status probe(Worker& worker);
-  // Adapts the worker unless it is adapted to the current views; appends the worker's notes to *notes.
+  // Adapts the worker unless it is adapted to the current views, installing the shared adaptation where one
+  // fits it (export_for); appends the worker's notes to the attempt.
   absl::Status adapt_on(Worker& worker, Attempt& attempt);
+  // One AdaptScene call, installing `exported` when it is not empty.
+  absl::Status call_adapt_scene(Worker& worker, Attempt& attempt, const std::string& exported);
+  // After the worker adapted to the current views: its ExportAdaptation, kept as shared_export_ (a failure is
+  // a note: the other workers then adapt themselves).
+  void fetch_export(Worker& worker, Attempt& attempt);
+  // The shared adaptation when it is for the current views and the worker's weights, else empty.
+  std::string export_for(const Worker& worker);
   // One Generate call; through shared memory when the worker shares it, falling back to the messages (with
   // a note) when the worker cannot open the region after all.
   absl::StatusOr<std::vector<at::Tensor>> generate_on(Worker& worker, const std::vector<GenerationRequest>& requests,
@@ -182,6 +195,12 @@ class RemoteGenerator final : public Generator {
   std::condition_variable adaptation_ended_;
   // When the first of the current views' adaptations ended (under adaptation_mutex_).
   std::optional<std::chrono::steady_clock::time_point> first_adaptation_end_;
+  // The first worker's exported adaptation (under adaptation_mutex_).
+  struct SharedExport {
+    uint64_t views_version = 0;
+    std::string weights_identity, adaptation;
+  };
+  std::optional<SharedExport> shared_export_;
   std::vector<std::unique_ptr<Adaptation>> adaptations_;  // declared last: joined (destroyed) before the rest
 };
 

@@ -67,6 +67,10 @@ ABSL_FLAG(double, worker_adaptation_grace_s, 1.0,
           "with --worker-fan-out, a phase waits for the workers' scene adaptation until one has ended and this many "
           "seconds more; a worker still adapting then sits out the phases until its adaptation ends (a value as long "
           "as --worker-timeout-s waits for every worker)");
+ABSL_FLAG(bool, worker_share_adaptation, true,
+          "with --worker-fan-out, the first worker of --workers adapts to the scene (LoRA training) and the others "
+          "install what it learnt instead of each training its own (list first a worker whose GPU is not the "
+          "trainer's); false: every worker adapts itself");
 ABSL_FLAG(uint64_t, max_upload_mb, 8192, "largest accepted scene upload in MiB");
 ABSL_FLAG(std::string, lpips_weights, "",
           "LPIPS-VGG weights of the jobs' metrics (default: ~/.cache/gaps/lpips/vgg16_lpips_v0.1.safetensors, as "
@@ -97,7 +101,7 @@ gaps::cli::CommandSpec command() {
       {"diffusion workers",
        {"workers", "worker_token_file", "worker_tls_ca", "worker_tls_server_name", "worker_tls_cert", "worker_tls_key",
         "worker_timeout_s", "worker_rounds", "worker_encoding", "worker_shared_memory", "worker_fan_out",
-        "worker_adaptation_grace_s"}},
+        "worker_adaptation_grace_s", "worker_share_adaptation"}},
   };
   spec.epilogue = gaps::cli::exit_code_table();
   return spec;
@@ -194,6 +198,7 @@ int serve() {
       encoding == "compact" ? gaps::rpc::TensorEncoding::kUint8 : gaps::rpc::TensorEncoding::kFloat32;
   options.workers.shared_memory = absl::GetFlag(FLAGS_worker_shared_memory);
   options.workers.fan_out = absl::GetFlag(FLAGS_worker_fan_out);
+  options.workers.share_adaptation = absl::GetFlag(FLAGS_worker_share_adaptation);
   const double grace = absl::GetFlag(FLAGS_worker_adaptation_grace_s);
   if (!(grace >= 0) || grace > 1e6) return usage("--worker-adaptation-grace-s must be in [0, 1e6] seconds");
   options.workers.adaptation_grace = std::chrono::milliseconds(static_cast<int64_t>(grace * 1000));

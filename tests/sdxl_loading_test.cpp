@@ -57,6 +57,30 @@ TEST_F(SafetensorsTest, RejectsBadHeadersNamingFileAndTensor) {
   EXPECT_FALSE(read_safetensors((dir_ / "absent.safetensors").string()).ok());
 }
 
+// In memory (what one worker hands another): the same bytes as the file, and the same checks on what it reads.
+TEST_F(SafetensorsTest, EncodesTheFilesBytesAndDecodesThemWithTheirMetadata) {
+  const TensorMap tensors{{"a", at::randn({3, 2})}, {"b", at::arange(7).to(at::kHalf)}};
+  const SafetensorsMetadata metadata{{"format", "pt"}, {"note", "x"}};
+  auto bytes = encode_safetensors(tensors, metadata);
+  ASSERT_TRUE(bytes.ok()) << bytes.status();
+  const std::string path = (dir_ / "t.safetensors").string();
+  ASSERT_TRUE(write_safetensors(path, tensors, metadata).ok());
+  EXPECT_EQ(test::read_text(path), *bytes);
+  auto decoded = decode_safetensors(*bytes, "adapters from worker a");
+  ASSERT_TRUE(decoded.ok()) << decoded.status();
+  EXPECT_EQ(decoded->metadata, metadata);
+  ASSERT_EQ(decoded->tensors.size(), 2u);
+  for (const auto& [name, t] : tensors) EXPECT_TRUE(at::equal(decoded->tensors.at(name), t)) << name;
+  const auto error_of = [](const std::string& b) {
+    auto r = decode_safetensors(b, "adapters from worker a");
+    EXPECT_FALSE(r.ok());
+    return std::string(r.status().message());
+  };
+  EXPECT_TRUE(contains_all(error_of("abc"), {"adapters from worker a", "shorter than the 8-byte header length"}));
+  EXPECT_TRUE(contains_all(error_of(bytes->substr(0, bytes->size() - 4)), {"tensor 'b'", "outside the data section"}));
+  EXPECT_TRUE(contains_all(error_of(header_file(R"({"__metadata__":{"k":1}})", 0)), {"'k' is not a string"}));
+}
+
 TEST(WeightLoaderTest, NamesMissingMisshapedAndUnexpectedTensors) {
   WeightLoader w("unit (test)", {{"a", at::zeros({2, 3})}, {"b", at::zeros({4})}, {"extra.weight", at::zeros({1})}},
                  at::TensorOptions());

@@ -121,6 +121,40 @@ TEST_F(SdxlLoraGeneratorTest, TheJobsAdaptationWinsOverTheOptions) {
   EXPECT_TRUE(contains_all(std::string(refused.message()), {"lora_rank must be >= 1"})) << refused;
 }
 
+// One worker's trained adapters, exported and installed by another with the same weights, give that worker the
+// first one's images without training (what a pool of workers shares); nothing to export without training;
+// bytes that are not adapters of this UNet are refused, naming where they came from.
+TEST_F(SdxlLoraGeneratorTest, AnotherGeneratorInstallsTheExportedAdaptersAndGivesTheSameImages) {
+  const std::string common = ", \"controlnet\": \"" + controlnet_dir() + "\", \"lora_lr\": 0.01";
+  auto trained = make_generator("sdxl", options_json(common));
+  auto installing = make_generator("sdxl", options_json(common));
+  ASSERT_TRUE(trained.ok()) << trained.status();
+  ASSERT_TRUE(installing.ok()) << installing.status();
+  const std::vector<ReferenceView> gt = views(2, 12, 8);
+  ASSERT_TRUE((*trained)->adapt(gt, SceneAdaptation{2, 0}).ok());
+  auto nothing = (*trained)->export_adaptation();
+  ASSERT_TRUE(nothing.ok()) << nothing.status();
+  EXPECT_TRUE(nothing->empty()) << "0 steps trained no adapters";
+
+  const at::Tensor base = generate_one(**installing);
+  ASSERT_TRUE((*trained)->adapt(gt, SceneAdaptation{2, 3}).ok());
+  const at::Tensor adapted = generate_one(**trained);
+  auto exported = (*trained)->export_adaptation();
+  ASSERT_TRUE(exported.ok()) << exported.status();
+  ASSERT_FALSE(exported->empty());
+  ASSERT_TRUE((*installing)->install_adaptation(gt, SceneAdaptation{2, 3}, *exported).ok());
+  EXPECT_TRUE(at::equal(generate_one(**installing), adapted)) << "the installed adapters give other images";
+  EXPECT_GT((adapted - base).abs().max().item<double>(), 1e-3);
+
+  // Installing again (the scene comes back after another) replaces the adapters, it does not add to them.
+  ASSERT_TRUE((*installing)->install_adaptation(gt, SceneAdaptation{2, 3}, *exported).ok());
+  EXPECT_TRUE(at::equal(generate_one(**installing), adapted));
+
+  const absl::Status refused = (*installing)->install_adaptation(gt, SceneAdaptation{2, 3}, "not safetensors");
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+  EXPECT_TRUE(contains_all(std::string(refused.message()), {"the adapters another worker trained"})) << refused;
+}
+
 // A LoRA file attached at start-up stays: a job asking for LoRA steps trains none, and the note says so.
 TEST_F(SdxlLoraGeneratorTest, ALoraFileAttachedAtStartUpStaysAndANoteSaysSo) {
   const std::string path = (dir_ / "scene_lora.safetensors").string();

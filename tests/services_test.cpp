@@ -33,6 +33,7 @@
 #include <nlohmann/json.hpp>
 
 #include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "client/remote_client.h"
@@ -1255,6 +1256,163 @@ TEST(WorkerPool, AnAdaptationRefusedInTheBackgroundIsReportedByGenerate) {
   ASSERT_FALSE(images.ok());
   EXPECT_TRUE(absl::IsInvalidArgument(images.status())) << images.status();
   EXPECT_TRUE(absl::StrContains(images.status().message(), "cannot be adapted to (test)")) << images.status();
+}
+
+// Learns a number per adaptation (1, 2, ...), exports it as its adaptation and adds what it learnt or installed
+// to every echoed render: an image says which adaptation made it. Its weights are `weights`.
+class LearningGenerator : public EchoGenerator {
+ public:
+  explicit LearningGenerator(std::string weights = "w") : weights_(std::move(weights)) {}
+  std::string name() const override { return "learning (test)"; }
+  std::string weights_identity() const override { return weights_; }
+  absl::Status adapt(const std::vector<ReferenceView>& views, const std::optional<SceneAdaptation>& a) override {
+    learnt_ = ++trained;
+    return EchoGenerator::adapt(views, a);
+  }
+  absl::StatusOr<std::string> export_adaptation() const override { return absl::StrCat("learnt ", learnt_); }
+  absl::Status install_adaptation(const std::vector<ReferenceView>&, const std::optional<SceneAdaptation>&,
+                                  std::string exported) override {
+    if (refuse_installs) return absl::InvalidArgumentError("cannot install (test)");
+    if (!absl::SimpleAtoi(exported.substr(exported.find(' ') + 1), &learnt_))
+      return absl::InvalidArgumentError("not an export of this backend (test)");
+    ++installed;
+    return absl::OkStatus();
+  }
+  absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) override {
+    GAPS_ASSIGN_OR_RETURN(std::vector<at::Tensor> out, EchoGenerator::generate(requests));
+    for (at::Tensor& image : out) image = image + learnt_;
+    return out;
+  }
+  std::atomic<int> trained{0}, installed{0};
+  std::atomic<bool> refuse_installs{false};
+
+ private:
+  std::string weights_;
+  int learnt_ = 0;
+};
+
+// Two workers on a phase (fan_out): what the first learnt from the scene, the second installs, and every
+// image comes from that one adaptation.
+std::unique_ptr<RemoteGenerator> two_worker_pool(const RunningWorker& a, const RunningWorker& b, bool share) {
+  WorkerPoolOptions o;
+  o.addresses = {a.address(), b.address()};
+  o.encoding = rpc::TensorEncoding::kFloat32;
+  o.share_adaptation = share;
+  o.adaptation_grace = std::chrono::seconds(20);  // both join the first call
+  auto remote = RemoteGenerator::create(o);
+  EXPECT_TRUE(remote.ok()) << remote.status();
+  return remote.ok() ? *std::move(remote) : nullptr;
+}
+
+TEST(WorkerPool, TheFirstWorkerAdaptsAndTheOthersInstallWhatItLearnt) {
+  WorkerServiceOptions options;
+  options.backend = "learning";
+  auto a = std::make_unique<LearningGenerator>(), b = std::make_unique<LearningGenerator>();
+  LearningGenerator &first = *a, &second = *b;
+  RunningWorker wa(std::move(a), options), wb(std::move(b), options);
+  const auto requests = many_requests(6);
+  auto remote = two_worker_pool(wa, wb, true);
+  ASSERT_NE(remote, nullptr);
+  ASSERT_TRUE(remote->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  const auto images = remote->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  EXPECT_EQ(remote->counters().at("workers"), 2.0);
+  EXPECT_EQ(first.trained, 1);
+  EXPECT_EQ(second.trained, 0);
+  EXPECT_EQ(second.installed, 1);
+  for (size_t k = 0; k < images->size(); ++k)
+    EXPECT_TRUE(at::equal((*images)[k], requests[k].render_rgb + 1)) << "pose " << k << ": not adaptation 1's";
+  EXPECT_EQ(remote->counters().at("adaptations_made"), 1.0);
+  EXPECT_EQ(remote->counters().at("adaptations_installed"), 1.0);
+  EXPECT_EQ(remote->counters().at("adaptation_export_bytes"), 8.0);  // "learnt 1"
+  EXPECT_EQ(remote->stage_seconds().count("adaptation_export"), 1u);
+
+  // New views: adapted anew, shared anew (adaptation 2 of the first worker).
+  ASSERT_TRUE(remote->adapt(requests[1].references, SceneAdaptation{4, 50}).ok());
+  ASSERT_TRUE(remote->generate(requests).ok());
+  EXPECT_EQ(first.trained, 2);
+  EXPECT_EQ(second.trained, 0);
+  EXPECT_EQ(second.installed, 2);
+
+  // Without sharing every worker adapts itself.
+  auto own = two_worker_pool(wa, wb, false);
+  ASSERT_NE(own, nullptr);
+  ASSERT_TRUE(own->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  ASSERT_TRUE(own->generate(requests).ok());
+  EXPECT_EQ(first.trained, 3);
+  EXPECT_EQ(second.trained, 1);
+  EXPECT_EQ(own->counters().at("adaptations_made"), 2.0);
+  EXPECT_EQ(own->counters().count("adaptations_installed"), 0u);
+}
+
+// A worker with other weights never installs another's adaptation; one that cannot install it adapts itself
+// (a note says so); a backend that learns nothing to hand over (its export empty) has every worker adapt.
+TEST(WorkerPool, AWorkerThatCannotUseTheSharedAdaptationAdaptsItself) {
+  WorkerServiceOptions options;
+  options.backend = "learning";
+  auto a = std::make_unique<LearningGenerator>("w"), b = std::make_unique<LearningGenerator>("other weights");
+  auto c = std::make_unique<LearningGenerator>("w");
+  LearningGenerator &other = *b, &refusing = *c;
+  refusing.refuse_installs = true;
+  RunningWorker wa(std::move(a), options), wb(std::move(b), options), wc(std::move(c), options);
+  const auto requests = many_requests(6);
+  for (const RunningWorker* follower : {&wb, &wc}) {
+    auto remote = two_worker_pool(wa, *follower, true);
+    ASSERT_NE(remote, nullptr);
+    ASSERT_TRUE(remote->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+    ASSERT_TRUE(remote->generate(requests).ok());
+    EXPECT_EQ(remote->counters().at("adaptations_made"), 2.0);
+    EXPECT_EQ(remote->counters().count("adaptations_installed"), 0u);
+    const std::vector<std::string> notes = remote->notes();
+    const bool noted = std::any_of(notes.begin(), notes.end(), [](const std::string& n) {
+      return absl::StrContains(n, "could not install the shared adaptation") &&
+             absl::StrContains(n, "cannot install (test)");
+    });
+    EXPECT_EQ(noted, follower == &wc) << absl::StrJoin(notes, "\n");
+  }
+  EXPECT_EQ(other.trained, 1);
+  EXPECT_EQ(other.installed, 0);
+  EXPECT_EQ(refusing.trained, 1);
+
+  options.backend = "echo";
+  auto d = std::make_unique<EchoGenerator>(), e = std::make_unique<EchoGenerator>();
+  const EchoGenerator &echo_first = *d, &echo_second = *e;
+  RunningWorker wd(std::move(d), options), we(std::move(e), options);
+  auto remote = two_worker_pool(wd, we, true);
+  ASSERT_NE(remote, nullptr);
+  ASSERT_TRUE(remote->adapt(requests[0].references, std::nullopt).ok());
+  ASSERT_TRUE(remote->generate(requests).ok());
+  EXPECT_EQ(echo_first.adaptations + echo_second.adaptations, 2);
+  EXPECT_EQ(remote->counters().count("adaptations_installed"), 0u);
+}
+
+// On one worker, scenes that alternate (two jobs sharing it) are adapted once each: coming back to a scene
+// installs what its adaptation learnt instead of learning it again.
+TEST(WorkerPool, AWorkerComingBackToAnAdaptedSceneInstallsItsAdaptation) {
+  WorkerServiceOptions options;
+  options.backend = "learning";
+  auto g = std::make_unique<LearningGenerator>();
+  LearningGenerator& backend = *g;
+  RunningWorker worker(std::move(g), options);
+  // In float32: the images' values (render + adaptation) lie beyond a byte's [0, 1].
+  const Transfer exact{rpc::TensorEncoding::kFloat32, true};
+  auto job_a = pool({worker.address()}, "", exact), job_b = pool({worker.address()}, "", exact);
+  ASSERT_TRUE(job_a.ok() && job_b.ok());
+  const auto requests = many_requests(2);
+  // One after the other, so that a learns 1 and b learns 2.
+  ASSERT_TRUE((*job_a)->adapt(requests[0].references, std::nullopt).ok());
+  ASSERT_TRUE((*job_a)->generate(requests).ok());
+  ASSERT_TRUE((*job_b)->adapt(requests[1].references, std::nullopt).ok());
+  ASSERT_TRUE((*job_b)->generate(requests).ok());
+  for (int round = 0; round < 2; ++round) {
+    auto from_a = (*job_a)->generate(requests);
+    auto from_b = (*job_b)->generate(requests);
+    ASSERT_TRUE(from_a.ok() && from_b.ok());
+    EXPECT_TRUE(at::equal((*from_a)[0], requests[0].render_rgb + 1)) << "round " << round << ": job a's adaptation";
+    EXPECT_TRUE(at::equal((*from_b)[0], requests[0].render_rgb + 2)) << "round " << round << ": job b's adaptation";
+  }
+  EXPECT_EQ(backend.trained, 2) << "each scene learnt once";
+  EXPECT_EQ(backend.installed, 4) << "a and b again in each of the two rounds";
 }
 
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).

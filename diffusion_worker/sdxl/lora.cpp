@@ -11,6 +11,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "common/status_macros.h"
 
 namespace gaps::sdxl {
 namespace {
@@ -202,15 +203,15 @@ absl::StatusOr<UNetLora> UNetLora::from_tensors(const TensorMap& tensors, const 
   return lora;
 }
 
-absl::Status UNetLora::save(const std::string& path) const {
-  TensorMap tensors;
+DecodedSafetensors UNetLora::as_safetensors() const {
+  DecodedSafetensors out;
   nlohmann::json targets = nlohmann::json::array(), rank_pattern = nlohmann::json::object(),
                  alpha_pattern = nlohmann::json::object();
   const int64_t rank = adapters_.empty() ? 0 : adapters_.front().down.size(0);
   const double alpha = adapters_.empty() ? 0 : adapters_.front().alpha;
   for (const auto& a : adapters_) {
-    tensors[absl::StrCat(kUnetPrefix, a.module, kDownSuffix)] = a.down.detach().to(at::kCPU, at::kFloat);
-    tensors[absl::StrCat(kUnetPrefix, a.module, kUpSuffix)] = a.up.detach().to(at::kCPU, at::kFloat);
+    out.tensors[absl::StrCat(kUnetPrefix, a.module, kDownSuffix)] = a.down.detach().to(at::kCPU, at::kFloat);
+    out.tensors[absl::StrCat(kUnetPrefix, a.module, kUpSuffix)] = a.up.detach().to(at::kCPU, at::kFloat);
     targets.push_back(a.module);
     if (a.down.size(0) != rank) rank_pattern[a.module] = a.down.size(0);
     if (a.alpha != alpha) alpha_pattern[a.module] = a.alpha;
@@ -221,7 +222,23 @@ absl::Status UNetLora::save(const std::string& path) const {
                                  {"unet.rank_pattern", rank_pattern},
                                  {"unet.alpha_pattern", alpha_pattern},
                                  {"unet.init_lora_weights", true}};
-  return write_safetensors(path, tensors, {{"format", "pt"}, {kMetadataKey, config.dump(2)}});
+  out.metadata = {{"format", "pt"}, {kMetadataKey, config.dump(2)}};
+  return out;
+}
+
+absl::Status UNetLora::save(const std::string& path) const {
+  const DecodedSafetensors file = as_safetensors();
+  return write_safetensors(path, file.tensors, file.metadata);
+}
+
+absl::StatusOr<std::string> UNetLora::to_bytes() const {
+  const DecodedSafetensors file = as_safetensors();
+  return encode_safetensors(file.tensors, file.metadata);
+}
+
+absl::StatusOr<UNetLora> UNetLora::from_bytes(std::string bytes, UNet2DCondition& unet, const std::string& source) {
+  GAPS_ASSIGN_OR_RETURN(const DecodedSafetensors file, decode_safetensors(std::move(bytes), source));
+  return from_tensors(file.tensors, file.metadata, unet, source);
 }
 
 std::vector<at::Tensor> UNetLora::parameters() const {

@@ -52,6 +52,9 @@ class UNetLora {
                                                UNet2DCondition& unet, const std::string& source);
   // Writes the adapters (float32) in the format load() and diffusers' load_lora_weights read.
   absl::Status save(const std::string& path) const;
+  // The same file's bytes, and adapters attached from them (what one worker hands another); errors name source.
+  absl::StatusOr<std::string> to_bytes() const;
+  static absl::StatusOr<UNetLora> from_bytes(std::string bytes, UNet2DCondition& unet, const std::string& source);
 
   // down and up of every adapter, in module-name order: the trainable parameters.
   std::vector<at::Tensor> parameters() const;
@@ -69,6 +72,8 @@ class UNetLora {
 
  private:
   void attach_to(UNet2DCondition& unet) const;
+  // The tensors and the PEFT configuration save() writes.
+  DecodedSafetensors as_safetensors() const;
 
   std::vector<Adapter> adapters_;
   std::map<std::string, at::Tensor> base_weights_;  // module -> W before merge_into (CPU)

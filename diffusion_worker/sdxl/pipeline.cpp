@@ -499,6 +499,16 @@ absl::Status SdxlPipeline::reset_lora() {
 absl::Status SdxlPipeline::load_lora(const std::string& path) {
   GAPS_RETURN_IF_ERROR(reset_lora());
   GAPS_ASSIGN_OR_RETURN(UNetLora lora, UNetLora::load(path, *unet_));
+  return apply_lora(std::move(lora));
+}
+
+absl::Status SdxlPipeline::load_lora_bytes(std::string bytes, const std::string& source) {
+  GAPS_RETURN_IF_ERROR(reset_lora());
+  GAPS_ASSIGN_OR_RETURN(UNetLora lora, UNetLora::from_bytes(std::move(bytes), *unet_, source));
+  return apply_lora(std::move(lora));
+}
+
+absl::Status SdxlPipeline::apply_lora(UNetLora lora) {
   lora_ = std::move(lora);
   lora_->merge_into(*unet_);
   return absl::OkStatus();

@@ -118,6 +118,8 @@ class SdxlPipeline {
                                                  const LoraTrainingOptions& options);
   // Applies the adapters of a LoRA file (lora.h), merged as after train_lora, replacing any earlier LoRA.
   absl::Status load_lora(const std::string& path);
+  // The same from a file's bytes (UNetLora::to_bytes of another pipeline); errors name `source`.
+  absl::Status load_lora_bytes(std::string bytes, const std::string& source);
   // The applied LoRA (merged into the UNet); null when none.
   const UNetLora* lora() const { return lora_ ? &*lora_ : nullptr; }
   // Detaches the current LoRA, restoring the base UNet weights exactly, and drops captured UNet graphs
@@ -138,6 +140,8 @@ class SdxlPipeline {
   at::Device device() const { return options_.device; }
 
  private:
+  // Makes `lora` the pipeline's, merged into the UNet (reset_lora has run).
+  absl::Status apply_lora(UNetLora lora);
   PipelineOptions options_;
   SchedulerConfig scheduler_config_;
   bool force_zeros_for_empty_prompt_ = true;

@@ -109,7 +109,16 @@ absl::Status WorkerService::ensure_adapted(const std::string& handle) {
     if (it == scenes_.end()) return absl::NotFoundError(absl::StrCat("unknown scene handle '", handle, "'"));
     scene = it->second;
   }
-  GAPS_RETURN_IF_ERROR(generator_->adapt(scene.views, scene.adaptation));
+  if (!scene.exported.empty()) {
+    GAPS_RETURN_IF_ERROR(generator_->install_adaptation(scene.views, scene.adaptation, std::move(scene.exported)));
+  } else {
+    GAPS_RETURN_IF_ERROR(generator_->adapt(scene.views, scene.adaptation));
+    // Kept with the scene: other workers may install it (ExportAdaptation), and when scenes alternate on this
+    // worker, coming back to this one installs it instead of training again.
+    GAPS_ASSIGN_OR_RETURN(std::string exported, generator_->export_adaptation());
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (const auto it = scenes_.find(handle); it != scenes_.end()) it->second.exported = std::move(exported);
+  }
   adapted_handle_ = handle;
   return absl::OkStatus();
 }
@@ -252,6 +261,24 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
       [&](double convert_seconds) { transfer["worker_encode"] = lay_out_seconds + convert_seconds; });
   if (absl::IsUnavailable(sent)) return grpc::Status(grpc::StatusCode::UNAVAILABLE, "result stream broke");
   if (!sent.ok()) return malformed_answer(sent);
+  return grpc::Status::OK;
+}
+
+grpc::Status WorkerService::ExportAdaptation(grpc::ServerContext* context, const v1::ExportAdaptationRequest* request,
+                                             grpc::ServerWriter<v1::Chunk>* writer) {
+  if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
+  v1::AdaptationExport answer;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    const auto it = scenes_.find(request->scene_handle());
+    if (it == scenes_.end())
+      return grpc::Status(grpc::StatusCode::NOT_FOUND,
+                          absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));
+    answer.set_adaptation(it->second.exported);
+  }
+  answer.set_weights_identity(generator_->weights_identity());
+  if (!rpc::write_chunked(answer, [&](const v1::Chunk& c) { return writer->Write(c); }))
+    return grpc::Status(grpc::StatusCode::CANCELLED, "the caller went away during ExportAdaptation");
   return grpc::Status::OK;
 }
 

@@ -43,6 +43,10 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   grpc::Status Generate(grpc::ServerContext* context, grpc::ServerReaderWriter<v1::Chunk, v1::Chunk>* stream) override;
   grpc::Status ReleaseScene(grpc::ServerContext* context, const v1::ReleaseSceneRequest* request,
                             v1::ReleaseSceneResponse* response) override;
+  // The scene's Generator::export_adaptation, kept when the scene was adapted (empty for a backend that learns
+  // nothing to hand over); NOT_FOUND for an unknown handle.
+  grpc::Status ExportAdaptation(grpc::ServerContext* context, const v1::ExportAdaptationRequest* request,
+                                grpc::ServerWriter<v1::Chunk>* writer) override;
 
  private:
   class BackendTurn;
@@ -63,7 +67,7 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   bool backend_busy_ = false;
   int waiting_ = 0;
   // Adapted scenes: their reference views and adaptation, so the backend can be re-adapted when scenes
-  // alternate.
+  // alternate, and what the adaptation learnt (installed, not learnt again, when the scene comes back).
   std::map<std::string, rpc::AdaptRequest> scenes_;
   std::string adapted_handle_;
   uint64_t next_handle_ = 1;

@@ -93,6 +93,16 @@ class Generator {
   // backend's own options); may be a no-op for a backend that learns nothing, which then says so in notes().
   virtual absl::Status adapt(const std::vector<ReferenceView>& views,
                              const std::optional<SceneAdaptation>& adaptation) = 0;
+  // What the last adapt() learnt, for another instance of this backend with the same weights_identity() to
+  // install instead of adapting anew (sdxl: its trained LoRA adapters, a safetensors file's bytes); empty when
+  // it learnt nothing worth handing over (a weight-free backend, adapters loaded from a file at start-up).
+  virtual absl::StatusOr<std::string> export_adaptation() const { return std::string(); }
+  // Adopts another instance's export_adaptation() for these views and adaptation in place of adapt().
+  virtual absl::Status install_adaptation(const std::vector<ReferenceView>& /*views*/,
+                                          const std::optional<SceneAdaptation>& /*adaptation*/,
+                                          std::string /*exported*/) {
+    return absl::UnimplementedError(name() + " exports no adaptation, so it installs none");
+  }
   // One H x W x 3 image in [0, 1] per request (CPU), in request order.
   virtual absl::StatusOr<std::vector<at::Tensor>> generate(const std::vector<GenerationRequest>& requests) = 0;
   // What the last adapt() or generate() call could not do of what it was asked (a control the backend has
