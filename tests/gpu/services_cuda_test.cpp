@@ -233,9 +233,10 @@ TEST_F(ServicesOnCuda, ARestoreWorkerOnCudaServesAFullJob) {
 // caps, the worker in fp16 with every component of the method (ControlNet depth, IP-Adapter, LoRA scene
 // adaptation, SD2 inpainting, Depth-Anything) on the tiny random models; the phases record where their time
 // went, the LoRA training (AdaptScene) and img2img among it.
-void ServicesOnCuda::run_sdxl_job(const nlohmann::json& extra_options) {
+// The sdxl backend's options with every component on the tiny random models, in fp16.
+nlohmann::json tiny_sdxl_options() {
   const std::string fixtures = std::string(GAPS_TEST_SCRIPTS_DIR) + "/fixtures/";
-  nlohmann::json options = {
+  return {
       {"weights", fixtures + "sdxl_tiny/model"},
       {"dtype", "float16"},
       {"steps", 4},
@@ -246,6 +247,10 @@ void ServicesOnCuda::run_sdxl_job(const nlohmann::json& extra_options) {
       {"inpaint_steps", 2},
       {"depth_anything", fixtures + "depth_anything_tiny/model"},
   };
+}
+
+void ServicesOnCuda::run_sdxl_job(const nlohmann::json& extra_options) {
+  nlohmann::json options = tiny_sdxl_options();
   options.update(extra_options);
   FinishedJob job;
   ASSERT_NO_FATAL_FAILURE(run_full_job(
@@ -277,6 +282,35 @@ TEST_F(ServicesOnCuda, AnSdxlWorkerAndATrainerSharingOneCappedCardRunAFullJob) {
 TEST_F(ServicesOnCuda, AnSdxlWorkerWithChannelsLastConvolutionsAndGraphsRunsAFullJob) {
   GAPS_REQUIRE_CUDA();
   run_sdxl_job({{"channels_last", true}, {"cuda_graphs", true}});
+}
+
+// Two sdxl workers (on two GPUs where the machine has them) share one scene adaptation: the first trains the LoRA,
+// the trainer hands its adapters to the second, which installs them (--worker-share-adaptation, the default).
+TEST_F(ServicesOnCuda, TwoSdxlWorkersShareOneLoraAdaptation) {
+  GAPS_REQUIRE_CUDA();
+  const std::string second = at::getNumGPUs() > 1 ? "cuda:1" : "cuda:0";
+  nlohmann::json options = tiny_sdxl_options();
+  options["channels_last"] = true;
+  options["cuda_graphs"] = true;
+  const std::vector<std::string> flags = {"--backend", "sdxl", "--backend-options", options.dump()};
+  std::vector<std::string> first_flags = flags, second_flags = flags;
+  for (auto [worker, device] : {std::pair{&first_flags, "cuda:0"}, std::pair{&second_flags, second.c_str()}}) {
+    worker->push_back("--device");
+    worker->push_back(device);
+  }
+  FinishedJob job;
+  ASSERT_NO_FATAL_FAILURE(
+      run_full_job({first_flags, second_flags}, {}, {{"lora_steps", 3}, {"async_iterations", 50}}, &job));
+  EXPECT_EQ(job.status.state(), v1::SUCCEEDED) << job.status.error() << "\n" << trainer_->log_text();
+  EXPECT_EQ(job.phases, 2);
+  EXPECT_EQ(job.skipped, 0) << workers_[0]->log_text() << workers_[1]->log_text();
+  const nlohmann::json phases = test::read_json(dir_ / "fetched" / "phases.json");
+  ASSERT_EQ(phases.size(), 2u);
+  const nlohmann::json& first = phases[0]["generator_counters"];
+  EXPECT_EQ(first["adaptations_made"], 1.0) << first;
+  EXPECT_EQ(first["adaptations_installed"], 1.0) << first;
+  EXPECT_GT(first["adaptation_export_bytes"].get<double>(), 0.0) << first;
+  EXPECT_EQ(phases[1]["generator_counters"]["workers"], 2.0) << phases[1]["generator_counters"];
 }
 
 // A job whose initialisation runs PatchMatch on the trainer's GPU from fern's 3 training views with PatchMatch and
