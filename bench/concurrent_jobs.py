@@ -3,6 +3,13 @@
 shared out among the jobs (`gaps-trainer --threads-per-job 0`, the default) and with every job taking all of
 them (`--threads-per-job <the process's threads>`, what the trainer did before it shared them out).
 
+Cases `sdxl-keeps` and `sdxl-retrains`: --variant full jobs sharing one `gaps-worker --backend sdxl` (random
+full-size weights, written once into WORK as placements_bench.py writes them; more backend options with
+--worker_options) on --device, whose phases alternate between the jobs' scenes: the worker installs each
+scene's LoRA adaptation again when the scene comes back (`--keep_scene_adaptations`, its default) or trains it
+anew each time (`--nokeep_scene_adaptations`, what it did before). Their rows add the phases' sums (the
+worker's `scene_switch` seconds and counts among the generator stages and counters).
+
 Per case one trainer on a fresh data folder (so every job computes its initialisation: the init cache is empty,
 and jobs that start together all miss it), --jobs copies of one vanilla job submitted at once with
 --concurrency equal to --jobs; per job one JSON line: the case, the threads its log reports, init_seconds and
@@ -26,22 +33,26 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from harness import describe_device, git_commit  # noqa: E402
-from placements_bench import Service  # noqa: E402
+from placements_bench import Service, ensure_weights, phase_breakdown  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 THREADS = re.compile(r"trains with (\d+) CPU thread")
 
 
+SDXL_CASES = {"sdxl-keeps": "--keep_scene_adaptations", "sdxl-retrains": "--nokeep_scene_adaptations"}
+
+
 def case_flags(case, process_threads):
-    if case == "shared-out":
+    if case in ("shared-out", *SDXL_CASES):
         return ["--threads-per-job", "0"]
     if case == "every-core":
         return ["--threads-per-job", str(process_threads)]
-    raise SystemExit(f"--cases: unknown case '{case}' (shared-out, every-core)")
+    raise SystemExit(f"--cases: unknown case '{case}' (shared-out, every-core, sdxl-keeps, sdxl-retrains)")
 
 
-def job_flags(args):
-    return ["--views", args.views, "-r", args.resolution, "--variant", "vanilla", "--device", args.device,
+def job_flags(args, case):
+    variant = "full" if case in SDXL_CASES else "vanilla"
+    return ["--views", args.views, "-r", args.resolution, "--variant", variant, "--device", args.device,
             "--iterations", args.iterations, *args.job_flags]
 
 
@@ -53,31 +64,50 @@ def run_job(gaps, address, scene, flags, fetch_to, env):
     watched = subprocess.run([gaps, "watch", job, "--trainer", address], env=env, capture_output=True, text=True)
     wall = time.time() - start
     subprocess.run([gaps, "fetch", job, "-o", str(fetch_to), "--trainer", address], env=env, capture_output=True)
-    metrics_file = fetch_to / "metrics.json"
+    metrics_file, phases_file = fetch_to / "metrics.json", fetch_to / "phases.json"
     metrics = json.loads(metrics_file.read_text()) if metrics_file.exists() else {}
+    phases = json.loads(phases_file.read_text()) if phases_file.exists() else []
     threads = THREADS.search(watched.stdout + watched.stderr)
     return {"job": job, "succeeded": watched.returncode == 0, "wall_seconds": round(wall, 2),
             "threads": int(threads.group(1)) if threads else None, "init_seconds": metrics.get("init_seconds"),
-            "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr")}
+            "train_seconds": metrics.get("train_seconds"), "psnr": metrics.get("psnr"),
+            **(phase_breakdown(phases) if phases else {})}
+
+
+def start_worker(args, case, work, env):
+    """The one sdxl worker the jobs of an sdxl case share, and its address."""
+    options = {**ensure_weights(args.build, args.work, sys.executable), **args.worker_options}
+    worker = Service("gaps-worker", [str(args.build / "diffusion_worker" / "service" / "gaps-worker"), "--listen",
+                                     "127.0.0.1:0", "--backend", "sdxl", "--device", args.device,
+                                     "--backend_options", json.dumps(options), SDXL_CASES[case]],
+                     work / "worker.log", env)
+    return worker, f"127.0.0.1:{worker.wait_for_port(600)}"
 
 
 def run_case(args, case, process_threads, env):
     work = args.work / case
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
+    worker, pool_flags = None, []
+    if case in SDXL_CASES:
+        worker, address = start_worker(args, case, work, env)
+        pool_flags = ["--workers", address]
     trainer = Service("gaps-trainer", [str(args.build / "server" / "gaps-trainer"), "--listen", "127.0.0.1:0",
                                        "--data_dir", str(work / "data"), "--device", args.device,
-                                       "--concurrency", str(args.jobs), *case_flags(case, process_threads)],
+                                       "--concurrency", str(args.jobs), *case_flags(case, process_threads),
+                                       *pool_flags],
                       work / "trainer.log", env)
     try:
         address = f"127.0.0.1:{trainer.wait_for_port(120)}"
         gaps = str(args.build / "client" / "gaps")
         with ThreadPoolExecutor(args.jobs) as pool:
-            futures = [pool.submit(run_job, gaps, address, args.scene, job_flags(args), work / f"fetched{i}", env)
-                       for i in range(args.jobs)]
+            futures = [pool.submit(run_job, gaps, address, args.scene, job_flags(args, case), work / f"fetched{i}",
+                                   env) for i in range(args.jobs)]
             return [f.result() for f in futures]
     finally:
         trainer.stop()
+        if worker:
+            worker.stop()
 
 
 def main():
@@ -93,6 +123,8 @@ def main():
     parser.add_argument("--work", type=Path, default=Path("/tmp/gaps_concurrent_jobs"))
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--label", default="")
+    parser.add_argument("--worker_options", type=json.loads, default={},
+                        help='more sdxl backend options (JSON) for the sdxl cases, e.g. \'{"cuda_graphs": true}\'')
     parser.add_argument("--job_flags", nargs=argparse.REMAINDER, default=[],
                         help="the rest: more `gaps submit` flags, e.g. --init mvs --patchmatch-max-image-side 320")
     args = parser.parse_args()
@@ -102,6 +134,7 @@ def main():
               "cores": len(os.sched_getaffinity(0)), "process_threads": process_threads, "jobs": args.jobs,
               "scene": args.scene.name, "views": args.views, "resolution": args.resolution,
               "iterations": args.iterations, "job_flags": " ".join(args.job_flags), "device": args.device, "label": args.label,
+              "worker_options": args.worker_options,
               "date": time.strftime("%Y-%m-%d")}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for case in args.cases.split(","):
@@ -110,8 +143,10 @@ def main():
             for row in rows:
                 out.write(json.dumps({**header, "case": case, **row}) + "\n")
         for row in rows:
+            switch = row.get("generator_stage_seconds", {}).get("scene_switch")
             print(f"{case}: threads {row['threads']}, init {row['init_seconds']} s, train {row['train_seconds']} s, "
-                  f"wall {row['wall_seconds']} s{'' if row['succeeded'] else ' (FAILED)'}", flush=True)
+                  f"wall {row['wall_seconds']} s, scene switches {switch} s{'' if row['succeeded'] else ' (FAILED)'}",
+                  flush=True)
 
 
 if __name__ == "__main__":

@@ -1413,6 +1413,33 @@ TEST(WorkerPool, AWorkerComingBackToAnAdaptedSceneInstallsItsAdaptation) {
   }
   EXPECT_EQ(backend.trained, 2) << "each scene learnt once";
   EXPECT_EQ(backend.installed, 4) << "a and b again in each of the two rounds";
+  // The switch back is reported with the call it preceded.
+  EXPECT_EQ((*job_b)->counters().at("scene_switch_installs"), 1.0);
+  EXPECT_EQ((*job_b)->stage_seconds().count("scene_switch"), 1u);
+}
+
+// With --nokeep_scene_adaptations a scene that comes back is adapted anew, as each phase once retrained the LoRA.
+TEST(WorkerPool, AWorkerThatKeepsNoAdaptationLearnsAComingBackSceneAgain) {
+  WorkerServiceOptions options;
+  options.backend = "learning";
+  options.keep_scene_adaptations = false;
+  auto g = std::make_unique<LearningGenerator>();
+  LearningGenerator& backend = *g;
+  RunningWorker worker(std::move(g), options);
+  const Transfer exact{rpc::TensorEncoding::kFloat32, true};
+  auto job_a = pool({worker.address()}, "", exact), job_b = pool({worker.address()}, "", exact);
+  ASSERT_TRUE(job_a.ok() && job_b.ok());
+  const auto requests = many_requests(2);
+  ASSERT_TRUE((*job_a)->adapt(requests[0].references, std::nullopt).ok());
+  ASSERT_TRUE((*job_a)->generate(requests).ok());
+  ASSERT_TRUE((*job_b)->adapt(requests[1].references, std::nullopt).ok());
+  ASSERT_TRUE((*job_b)->generate(requests).ok());
+  auto again = (*job_a)->generate(requests);
+  ASSERT_TRUE(again.ok());
+  EXPECT_TRUE(at::equal((*again)[0], requests[0].render_rgb + 3)) << "job a's scene learnt a third time";
+  EXPECT_EQ(backend.trained, 3);
+  EXPECT_EQ(backend.installed, 0);
+  EXPECT_EQ((*job_a)->counters().at("scene_switch_adaptations"), 1.0);
 }
 
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).

@@ -25,6 +25,9 @@ ABSL_FLAG(std::string, device, "cpu", "device the backend runs on");
 ABSL_FLAG(int, max_batch, 64, "most poses per Generate call");
 ABSL_FLAG(int, queue_capacity, 4, "calls that may wait behind the running one before RESOURCE_EXHAUSTED");
 ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
+ABSL_FLAG(bool, keep_scene_adaptations, true,
+          "when jobs' scenes alternate on this worker, install what a scene's adaptation learnt (sdxl: its LoRA "
+          "adapters) when the scene comes back; false: adapt it anew each time (LoRA training again)");
 ABSL_FLAG(bool, shared_memory, true,
           "take payloads through shared memory from trainers on this host that share its /dev/shm (found out "
           "per trainer; others use the socket)");
@@ -39,7 +42,8 @@ gaps::cli::CommandSpec command() {
       "A diffusion worker: generates pseudo-views for a gaps-trainer's jobs with an in-process backend\n"
       "(reproject, or sdxl with its weights; see diffusion_worker/README.md). SIGTERM/SIGINT stop it.";
   spec.groups = {
-      {"service", {"listen", "max_batch", "queue_capacity", "max_request_mb", "shared_memory"}},
+      {"service",
+       {"listen", "max_batch", "queue_capacity", "max_request_mb", "shared_memory", "keep_scene_adaptations"}},
       {"backend", {"backend", "backend_options", "device", "gpu_memory_gib"}},
       {"security", gaps::rpc::security_flag_names()},
   };
@@ -116,6 +120,7 @@ int serve() {
   options.max_batch = absl::GetFlag(FLAGS_max_batch);
   options.queue_capacity = absl::GetFlag(FLAGS_queue_capacity);
   options.shared_memory = absl::GetFlag(FLAGS_shared_memory);
+  options.keep_scene_adaptations = absl::GetFlag(FLAGS_keep_scene_adaptations);
   options.max_request_bytes = absl::GetFlag(FLAGS_max_request_mb) << 20;
   options.token = security->settings.token;
   if (options.max_batch <= 0 || options.queue_capacity < 0)

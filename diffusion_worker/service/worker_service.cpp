@@ -100,8 +100,8 @@ grpc::Status WorkerService::wait_for_backend(grpc::ServerContext* context, std::
   return grpc::Status::OK;
 }
 
-absl::Status WorkerService::ensure_adapted(const std::string& handle) {
-  if (handle.empty() || handle == adapted_handle_) return absl::OkStatus();
+absl::StatusOr<WorkerService::Readaptation> WorkerService::ensure_adapted(const std::string& handle) {
+  if (handle.empty() || handle == adapted_handle_) return Readaptation::kNone;
   rpc::AdaptRequest scene;
   {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -109,18 +109,27 @@ absl::Status WorkerService::ensure_adapted(const std::string& handle) {
     if (it == scenes_.end()) return absl::NotFoundError(absl::StrCat("unknown scene handle '", handle, "'"));
     scene = it->second;
   }
+  std::string learnt;
+  if (scene.exported.empty() && options_.keep_scene_adaptations) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (const auto it = learnt_.find(handle); it != learnt_.end()) learnt = it->second;
+  }
+  Readaptation done = Readaptation::kInstalled;
   if (!scene.exported.empty()) {
     GAPS_RETURN_IF_ERROR(generator_->install_adaptation(scene.views, scene.adaptation, std::move(scene.exported)));
+  } else if (!learnt.empty()) {
+    GAPS_RETURN_IF_ERROR(generator_->install_adaptation(scene.views, scene.adaptation, std::move(learnt)));
   } else {
+    done = Readaptation::kAdapted;
     GAPS_RETURN_IF_ERROR(generator_->adapt(scene.views, scene.adaptation));
-    // Kept with the scene: other workers may install it (ExportAdaptation), and when scenes alternate on this
-    // worker, coming back to this one installs it instead of training again.
-    GAPS_ASSIGN_OR_RETURN(std::string exported, generator_->export_adaptation());
+    // Kept for the scene: other workers may install it (ExportAdaptation), and when scenes alternate on this
+    // worker, coming back to this one installs it instead of learning it again.
+    GAPS_ASSIGN_OR_RETURN(learnt, generator_->export_adaptation());
     std::lock_guard<std::mutex> lock(mutex_);
-    if (const auto it = scenes_.find(handle); it != scenes_.end()) it->second.exported = std::move(exported);
+    if (scenes_.count(handle)) learnt_[handle] = std::move(learnt);
   }
   adapted_handle_ = handle;
-  return absl::OkStatus();
+  return done;
 }
 
 grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetInfoRequest*, v1::WorkerInfo* info) {
@@ -166,7 +175,7 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   v1::AdaptSceneProgress progress;
   progress.set_message(absl::StrCat("adapting ", generator_->name(), " to ", scene->views.size(), " views"));
   stream->Write(progress);
-  if (auto st = ensure_adapted(handle); !st.ok()) {
+  if (auto st = ensure_adapted(handle).status(); !st.ok()) {
     std::lock_guard<std::mutex> lock(mutex_);
     scenes_.erase(handle);
     return rpc::to_grpc(st);
@@ -228,7 +237,10 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   std::unique_ptr<BackendTurn> turn;
   if (auto st = wait_for_backend(context, &turn); !st.ok()) return st;
   transfer["worker_queue"] = lap_seconds(&clock);
-  if (auto st = ensure_adapted(batch.scene_handle()); !st.ok()) return rpc::to_grpc(st);
+  const absl::StatusOr<Readaptation> switched = ensure_adapted(batch.scene_handle());
+  if (!switched.ok()) return rpc::to_grpc(switched.status());
+  // Another scene was adapted since this one's last call (jobs sharing the worker): reported as a stage.
+  const double switch_seconds = lap_seconds(&clock);
   const auto start = std::chrono::steady_clock::now();
   auto images = generator_->generate(*requests);
   if (!images.ok()) return rpc::to_grpc(images.status());
@@ -253,6 +265,11 @@ grpc::Status WorkerService::Generate(grpc::ServerContext* context,
   for (const std::string& note : notes) result.add_notes(note);
   result.mutable_stage_seconds()->insert(stages.begin(), stages.end());
   result.mutable_backend_counters()->insert(counters.begin(), counters.end());
+  if (*switched != Readaptation::kNone) {
+    (*result.mutable_stage_seconds())["scene_switch"] = switch_seconds;
+    (*result.mutable_backend_counters())[*switched == Readaptation::kAdapted ? "scene_switch_adaptations"
+                                                                             : "scene_switch_installs"] = 1;
+  }
   // The message's size is announced before the conversions run, so worker_encode holds a value now (a double: the
   // same serialised size as the real one), which write_streamed's finish replaces with the measured seconds.
   transfer["worker_encode"] = -1.0;
@@ -274,7 +291,9 @@ grpc::Status WorkerService::ExportAdaptation(grpc::ServerContext* context, const
     if (it == scenes_.end())
       return grpc::Status(grpc::StatusCode::NOT_FOUND,
                           absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));
-    answer.set_adaptation(it->second.exported);
+    // What it learnt itself, else what it installed from another worker.
+    const auto learnt = learnt_.find(request->scene_handle());
+    answer.set_adaptation(learnt != learnt_.end() ? learnt->second : it->second.exported);
   }
   answer.set_weights_identity(generator_->weights_identity());
   if (!rpc::write_chunked(answer, [&](const v1::Chunk& c) { return writer->Write(c); }))
@@ -286,6 +305,7 @@ grpc::Status WorkerService::ReleaseScene(grpc::ServerContext* context, const v1:
                                          v1::ReleaseSceneResponse*) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   std::lock_guard<std::mutex> lock(mutex_);
+  learnt_.erase(request->scene_handle());
   if (scenes_.erase(request->scene_handle()) == 0)
     return grpc::Status(grpc::StatusCode::NOT_FOUND,
                         absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));

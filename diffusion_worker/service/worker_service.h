@@ -30,6 +30,9 @@ struct WorkerServiceOptions {
   // Convert the answer's images one by one while the converted ones are sent (rpc/streamed_send.h); false:
   // convert them all, then send (kept for side-by-side measurement in bench/rpc_bench).
   bool convert_while_sending = true;
+  // When scenes alternate (jobs sharing the worker), install what a scene's adaptation learnt when it comes
+  // back; false: adapt it anew each time (LoRA training again; kept for side-by-side measurement).
+  bool keep_scene_adaptations = true;
 };
 
 class WorkerService final : public v1::DiffusionWorker::Service {
@@ -53,8 +56,10 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   // Admission to the backend: RESOURCE_EXHAUSTED when the queue is full, DEADLINE_EXCEEDED or CANCELLED
   // when the call ends while waiting. On OK the caller holds the backend until `turn` is destroyed.
   grpc::Status wait_for_backend(grpc::ServerContext* context, std::unique_ptr<BackendTurn>* turn);
-  // Makes the backend adapted to `handle` (re-adapting when another scene was adapted since); needs the turn.
-  absl::Status ensure_adapted(const std::string& handle);
+  // Makes the backend adapted to `handle` (again when another scene was adapted since: installing what its
+  // adaptation learnt, or adapting anew); says which it did. Needs the turn.
+  enum class Readaptation { kNone, kInstalled, kAdapted };
+  absl::StatusOr<Readaptation> ensure_adapted(const std::string& handle);
   // The batch's shared region mapped (null when it has none); FAILED_PRECONDITION when this worker offers no
   // shared memory, the mapping's error when the caller's region cannot be opened here.
   absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> open_region(const v1::GenerateBatch& batch);
@@ -66,9 +71,11 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   std::condition_variable backend_free_;
   bool backend_busy_ = false;
   int waiting_ = 0;
-  // Adapted scenes: their reference views and adaptation, so the backend can be re-adapted when scenes
-  // alternate, and what the adaptation learnt (installed, not learnt again, when the scene comes back).
+  // Adapted scenes: their reference views, adaptation and what another worker learnt for them (when it came
+  // with the AdaptScene call), so the backend can be re-adapted when scenes alternate.
   std::map<std::string, rpc::AdaptRequest> scenes_;
+  // What the backend's own adaptation learnt per scene (Generator::export_adaptation; empty: nothing to keep).
+  std::map<std::string, std::string> learnt_;
   std::string adapted_handle_;
   uint64_t next_handle_ = 1;
 };
