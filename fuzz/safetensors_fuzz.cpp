@@ -1,14 +1,22 @@
-// safetensors files (model weights): header and the tensors it maps.
+// safetensors files (model weights) and the same format in memory (adapters one worker hands another): header and
+// the tensors it maps.
+#include <cstdlib>
+
 #include <ATen/ATen.h>
 #include "common/safetensors.h"
 #include "fuzz/fuzz_support.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
-  const auto path = gaps::fuzz::write_scratch("input.safetensors", gaps::fuzz::as_bytes(data, size)).string();
-  (void)gaps::sdxl::read_safetensors_metadata(path);
+  const std::string bytes(gaps::fuzz::as_bytes(data, size));
+  const auto path = gaps::fuzz::write_scratch("input.safetensors", bytes).string();
+  const auto metadata = gaps::sdxl::read_safetensors_metadata(path);
   const auto tensors = gaps::sdxl::read_safetensors(path);
+  const auto decoded = gaps::sdxl::decode_safetensors(bytes, "fuzz input");
+  // One parser behind both: the bytes decode exactly when the file's tensors and metadata read.
+  if (decoded.ok() != (tensors.ok() && metadata.ok())) std::abort();
   if (!tensors.ok()) return 0;
-  // Every tensor views the file's mapping: reading all its bytes must stay inside the file.
+  // Every tensor views the file's mapping (or the bytes): reading all of it must stay inside.
   for (const auto& [name, tensor] : *tensors) (void)tensor.clone();
+  for (const auto& [name, tensor] : decoded->tensors) (void)tensor.clone();
   return 0;
 }

@@ -46,7 +46,7 @@ struct RemoteGenerator::Worker {
 
 namespace {
 
-// The largest exported adaptation taken from a worker (sdxl's LoRA adapters in float32: 12.5 MB at rank 4,
+// The largest exported adaptation taken from a worker (sdxl's LoRA adapters in float32: about 13 MB at rank 4,
 // ~0.4 GB at rank 128).
 constexpr uint64_t kMaxExportBytes = uint64_t{1} << 30;
 
