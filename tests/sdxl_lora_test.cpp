@@ -4,6 +4,7 @@
 // Also: merging equals the adapted forward, save -> load is tensor-exact, fresh adapters go on the
 // cross-attention layers only (the paper's placement) and leave the UNet's output unchanged, and malformed
 // files are refused naming the tensor (the UNet left untouched).
+#include <map>
 #include <set>
 #include <string>
 #include <utility>
@@ -99,6 +100,30 @@ TEST(LoraTest, UnmergingRestoresTheBaseWeightsBitForBit) {
     EXPECT_TRUE(at::equal(a.to_q.weight, before[i++])) << name;
     EXPECT_FALSE(a.to_q.lora_down.defined()) << name;
   });
+  EXPECT_TRUE(at::equal(unet_step(unet), base));
+}
+
+// A pipeline merging scene after scene keeps one host copy of the base weights: the second scene's merge reuses
+// the first's copies, and unmerging either restores the base weights bit for bit.
+TEST(LoraTest, MergesThatShareBaseCopiesCopyTheWeightsOnceAndStillRestoreThem) {
+  sdxl::UNet2DCondition unet = tiny_unet();
+  const at::Tensor base = unet_step(unet);
+  UNetLora::BaseCopies copies;
+  auto first = UNetLora::load(lora_file(), unet);
+  ASSERT_TRUE(first.ok()) << first.status();
+  first->merge_into(unet, &copies);
+  ASSERT_EQ(copies.size(), first->adapters().size());
+  std::map<std::string, const void*> kept;
+  for (const auto& [module, copy] : copies) kept[module] = copy.const_data_ptr();
+  first->unmerge_from(unet);
+  EXPECT_TRUE(at::equal(unet_step(unet), base));
+
+  auto second = UNetLora::load(lora_file(), unet);
+  ASSERT_TRUE(second.ok()) << second.status();
+  second->merge_into(unet, &copies);
+  expect_close(unet_step(unet), lora_reference("unet_lora").at("out"), kTolerance, "UNet step, second merge");
+  for (const auto& [module, copy] : copies) EXPECT_EQ(copy.const_data_ptr(), kept.at(module)) << module;
+  second->unmerge_from(unet);
   EXPECT_TRUE(at::equal(unet_step(unet), base));
 }
 

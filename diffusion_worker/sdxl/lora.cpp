@@ -260,14 +260,33 @@ void UNetLora::attach_to(UNet2DCondition& unet) const {
   }
 }
 
-void UNetLora::merge_into(UNet2DCondition& unet) {
+namespace {
+
+// A host copy of `weight`, page-locked when it lives on a GPU (its copies back then run at the bus's speed).
+at::Tensor host_copy(const at::Tensor& weight) {
+  at::Tensor copy = at::empty(weight.sizes(), weight.options().device(at::kCPU).pinned_memory(weight.is_cuda()));
+  copy.copy_(weight);
+  return copy;
+}
+
+}  // namespace
+
+void UNetLora::merge_into(UNet2DCondition& unet, BaseCopies* base_copies) {
   if (merged()) return;
   // In place, so that anything holding the weight tensors (a captured CUDA graph) sees the merged values.
   c10::InferenceMode inference;
   const auto layers = projection_layers(unet);
   for (const auto& a : adapters_) {
     Linear& layer = *layers.at(a.module);
-    base_weights_[a.module] = layer.weight.to(at::kCPU, /*non_blocking=*/false, /*copy=*/true);
+    at::Tensor base;
+    if (base_copies != nullptr) {
+      at::Tensor& kept = (*base_copies)[a.module];
+      if (!kept.defined()) kept = host_copy(layer.weight);
+      base = kept;
+    } else {
+      base = host_copy(layer.weight);
+    }
+    base_weights_[a.module] = base;
     layer.weight.add_(at::matmul(a.up, a.down).to(layer.weight.scalar_type()), a.scale());
     layer.lora_down = at::Tensor();
     layer.lora_up = at::Tensor();
@@ -277,6 +296,7 @@ void UNetLora::merge_into(UNet2DCondition& unet) {
 void UNetLora::unmerge_from(UNet2DCondition& unet) {
   c10::InferenceMode inference;
   const auto layers = projection_layers(unet);
+  // Synchronous: the next user of the weights may run on another stream (a graph's replay).
   for (const auto& [module, weight] : base_weights_) layers.at(module)->weight.copy_(weight);
   base_weights_.clear();
 }

@@ -62,8 +62,11 @@ class UNetLora {
 
   // W += scale * up @ down on every adapted layer of unet, which then runs without the adapters. A host copy
   // of every W it changes is kept first, so that unmerge_from can restore them bit for bit (subtracting
-  // again would leave half-precision rounding behind with every scene).
-  void merge_into(UNet2DCondition& unet);
+  // again would leave half-precision rounding behind with every scene). With `base_copies` (module -> that
+  // copy, page-locked for a GPU's weights) the copies are taken from there and only the missing ones made:
+  // the base weights never change, so a pipeline that merges scene after scene copies them once.
+  using BaseCopies = std::map<std::string, at::Tensor>;
+  void merge_into(UNet2DCondition& unet, BaseCopies* base_copies = nullptr);
   // Restores the weights merge_into changed; nothing to do when it was not merged.
   void unmerge_from(UNet2DCondition& unet);
   bool merged() const { return !base_weights_.empty(); }

@@ -510,7 +510,7 @@ absl::Status SdxlPipeline::load_lora_bytes(std::string bytes, const std::string&
 
 absl::Status SdxlPipeline::apply_lora(UNetLora lora) {
   lora_ = std::move(lora);
-  lora_->merge_into(*unet_);
+  lora_->merge_into(*unet_, &lora_base_copies_);
   return absl::OkStatus();
 }
 
@@ -572,7 +572,7 @@ absl::StatusOr<std::vector<double>> SdxlPipeline::train_lora(const at::Tensor& i
     losses = *std::move(trained);
   }
   lora_ = std::move(lora);
-  lora_->merge_into(*unet_);
+  lora_->merge_into(*unet_, &lora_base_copies_);
   return losses;
 }
 

@@ -154,6 +154,9 @@ class SdxlPipeline {
   std::optional<ClipVisionEncoder> image_encoder_;
   std::unique_ptr<IpAdapter> ip_adapter_;
   std::optional<UNetLora> lora_;
+  // Host copies of the adapted projections' base weights, made at the first merge and kept for every later one
+  // (a worker switching scenes merges and unmerges their adapters at every switch).
+  UNetLora::BaseCopies lora_base_copies_;
 
   absl::Status load_ip_adapter(at::TensorOptions model_options);
   // Encodes and projects the reference images and hands them to the UNet's decoupled cross-attention
