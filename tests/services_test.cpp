@@ -1386,60 +1386,63 @@ TEST(WorkerPool, AWorkerThatCannotUseTheSharedAdaptationAdaptsItself) {
   EXPECT_EQ(remote->counters().count("adaptations_installed"), 0u);
 }
 
+// Two jobs' pools on one LearningGenerator worker, job a adapted and served first (it learns 1), then job b (2).
+struct TwoJobsOnOneWorker {
+  explicit TwoJobsOnOneWorker(bool keep_scene_adaptations) {
+    WorkerServiceOptions options;
+    options.backend = "learning";
+    options.keep_scene_adaptations = keep_scene_adaptations;
+    auto g = std::make_unique<LearningGenerator>();
+    backend = g.get();
+    worker = std::make_unique<RunningWorker>(std::move(g), options);
+    // In float32: the images' values (render + adaptation) lie beyond a byte's [0, 1].
+    const Transfer exact{rpc::TensorEncoding::kFloat32, true};
+    auto job_a = pool({worker->address()}, "", exact), job_b = pool({worker->address()}, "", exact);
+    EXPECT_TRUE(job_a.ok() && job_b.ok());
+    if (!job_a.ok() || !job_b.ok()) return;
+    a = *std::move(job_a);
+    b = *std::move(job_b);
+    EXPECT_TRUE(a->adapt(requests[0].references, std::nullopt).ok());
+    EXPECT_TRUE(a->generate(requests).ok());
+    EXPECT_TRUE(b->adapt(requests[1].references, std::nullopt).ok());
+    EXPECT_TRUE(b->generate(requests).ok());
+  }
+  // What `job` adds to a render now (its first image less its render), or NaN when the call failed.
+  double added_by(RemoteGenerator& job) {
+    auto images = job.generate(requests);
+    EXPECT_TRUE(images.ok()) << images.status();
+    return images.ok() ? ((*images)[0] - requests[0].render_rgb).max().item<double>() : std::nan("");
+  }
+  const std::vector<GenerationRequest> requests = many_requests(2);
+  LearningGenerator* backend = nullptr;
+  std::unique_ptr<RunningWorker> worker;
+  std::unique_ptr<RemoteGenerator> a, b;
+};
+
 // On one worker, scenes that alternate (two jobs sharing it) are adapted once each: coming back to a scene
 // installs what its adaptation learnt instead of learning it again.
 TEST(WorkerPool, AWorkerComingBackToAnAdaptedSceneInstallsItsAdaptation) {
-  WorkerServiceOptions options;
-  options.backend = "learning";
-  auto g = std::make_unique<LearningGenerator>();
-  LearningGenerator& backend = *g;
-  RunningWorker worker(std::move(g), options);
-  // In float32: the images' values (render + adaptation) lie beyond a byte's [0, 1].
-  const Transfer exact{rpc::TensorEncoding::kFloat32, true};
-  auto job_a = pool({worker.address()}, "", exact), job_b = pool({worker.address()}, "", exact);
-  ASSERT_TRUE(job_a.ok() && job_b.ok());
-  const auto requests = many_requests(2);
-  // One after the other, so that a learns 1 and b learns 2.
-  ASSERT_TRUE((*job_a)->adapt(requests[0].references, std::nullopt).ok());
-  ASSERT_TRUE((*job_a)->generate(requests).ok());
-  ASSERT_TRUE((*job_b)->adapt(requests[1].references, std::nullopt).ok());
-  ASSERT_TRUE((*job_b)->generate(requests).ok());
+  TwoJobsOnOneWorker jobs(true);
+  ASSERT_TRUE(jobs.a && jobs.b);
   for (int round = 0; round < 2; ++round) {
-    auto from_a = (*job_a)->generate(requests);
-    auto from_b = (*job_b)->generate(requests);
-    ASSERT_TRUE(from_a.ok() && from_b.ok());
-    EXPECT_TRUE(at::equal((*from_a)[0], requests[0].render_rgb + 1)) << "round " << round << ": job a's adaptation";
-    EXPECT_TRUE(at::equal((*from_b)[0], requests[0].render_rgb + 2)) << "round " << round << ": job b's adaptation";
+    EXPECT_EQ(jobs.added_by(*jobs.a), 1.0) << "round " << round << ": job a's adaptation";
+    EXPECT_EQ(jobs.added_by(*jobs.b), 2.0) << "round " << round << ": job b's adaptation";
   }
-  EXPECT_EQ(backend.trained, 2) << "each scene learnt once";
-  EXPECT_EQ(backend.installed, 4) << "a and b again in each of the two rounds";
+  EXPECT_EQ(jobs.backend->trained, 2) << "each scene learnt once";
+  EXPECT_EQ(jobs.backend->installed, 4) << "a and b again in each of the two rounds";
   // The switch back is reported with the call it preceded.
-  EXPECT_EQ((*job_b)->counters().at("scene_switch_installs"), 1.0);
-  EXPECT_EQ((*job_b)->stage_seconds().count("scene_switch"), 1u);
+  EXPECT_EQ(jobs.b->counters().at("scene_switch_installs"), 1.0);
+  EXPECT_EQ(jobs.b->stage_seconds().count("scene_switch"), 1u);
 }
 
 // With --nokeep_scene_adaptations a scene that comes back is adapted anew, as each phase once retrained the LoRA.
 TEST(WorkerPool, AWorkerThatKeepsNoAdaptationLearnsAComingBackSceneAgain) {
-  WorkerServiceOptions options;
-  options.backend = "learning";
-  options.keep_scene_adaptations = false;
-  auto g = std::make_unique<LearningGenerator>();
-  LearningGenerator& backend = *g;
-  RunningWorker worker(std::move(g), options);
-  const Transfer exact{rpc::TensorEncoding::kFloat32, true};
-  auto job_a = pool({worker.address()}, "", exact), job_b = pool({worker.address()}, "", exact);
-  ASSERT_TRUE(job_a.ok() && job_b.ok());
-  const auto requests = many_requests(2);
-  ASSERT_TRUE((*job_a)->adapt(requests[0].references, std::nullopt).ok());
-  ASSERT_TRUE((*job_a)->generate(requests).ok());
-  ASSERT_TRUE((*job_b)->adapt(requests[1].references, std::nullopt).ok());
-  ASSERT_TRUE((*job_b)->generate(requests).ok());
-  auto again = (*job_a)->generate(requests);
-  ASSERT_TRUE(again.ok());
-  EXPECT_TRUE(at::equal((*again)[0], requests[0].render_rgb + 3)) << "job a's scene learnt a third time";
-  EXPECT_EQ(backend.trained, 3);
-  EXPECT_EQ(backend.installed, 0);
-  EXPECT_EQ((*job_a)->counters().at("scene_switch_adaptations"), 1.0);
+  TwoJobsOnOneWorker jobs(false);
+  ASSERT_TRUE(jobs.a && jobs.b);
+  EXPECT_EQ(jobs.added_by(*jobs.a), 3.0) << "job a's scene learnt a third time";
+  EXPECT_EQ(jobs.backend->trained, 3);
+  EXPECT_EQ(jobs.backend->installed, 0);
+  EXPECT_EQ(jobs.a->counters().at("scene_switch_adaptations"), 1.0);
 }
 
 // The SQLite backend's own failure modes (the contract of both backends: job_store_test.cpp).
