@@ -276,7 +276,7 @@ void RemoteGenerator::start_adaptation() {
     if (leader) leader_done = done.get_future().share();
     adaptation->call = std::async(
         std::launch::async, [this, &a = *adaptation, leader, share, leader_done, done = std::move(done)]() mutable {
-          if (share && !leader) leader_done.wait();
+          if (share && !leader) leader_done.wait_for(options_.share_wait);
           adapt_in_background(a);
           if (leader) {
             fetch_export(*a.worker, a.attempt);

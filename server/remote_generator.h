@@ -67,6 +67,9 @@ struct WorkerPoolOptions {
   // instead of one per worker, and every worker's pseudo-views from the same adapters. A worker with other
   // weights, or one that cannot install them, adapts itself. List first the worker whose GPU is not the trainer's.
   bool share_adaptation = true;
+  // How long the other workers wait for the first one's adaptation before adapting themselves (a first worker
+  // that hangs must not hold the job up for generate_timeout; sdxl's LoRA training takes 5-20 s on a GPU).
+  std::chrono::milliseconds share_wait{60000};
 };
 
 // The workers behind `targets`: a dns:///NAME:PORT (or dns:NAME:PORT) target becomes one HOST:PORT per

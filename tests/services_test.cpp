@@ -1386,6 +1386,34 @@ TEST(WorkerPool, AWorkerThatCannotUseTheSharedAdaptationAdaptsItself) {
   EXPECT_EQ(remote->counters().count("adaptations_installed"), 0u);
 }
 
+// A first worker whose adaptation hangs holds the others only for share_wait: they then adapt themselves and
+// answer the phase while it sits out.
+TEST(WorkerPool, TheOthersAdaptThemselvesWhenTheFirstWorkersAdaptationTakesTooLong) {
+  WorkerServiceOptions options;
+  options.backend = "learning";
+  auto gated = std::make_unique<GatedAdaptGenerator>();
+  auto other = std::make_unique<LearningGenerator>();
+  GatedAdaptGenerator& first = *gated;
+  const LearningGenerator& second = *other;
+  RunningWorker wa(std::move(gated), options), wb(std::move(other), options);
+  WorkerPoolOptions o;
+  o.addresses = {wa.address(), wb.address()};
+  o.encoding = rpc::TensorEncoding::kFloat32;
+  o.share_wait = std::chrono::milliseconds(200);
+  o.adaptation_grace = std::chrono::milliseconds(100);
+  auto remote = RemoteGenerator::create(o);
+  ASSERT_TRUE(remote.ok()) << remote.status();
+  const auto requests = many_requests(4);
+  ASSERT_TRUE((*remote)->adapt(requests[0].references, SceneAdaptation{4, 50}).ok());
+  const auto images = (*remote)->generate(requests);
+  ASSERT_TRUE(images.ok()) << images.status();
+  EXPECT_EQ((*remote)->counters().at("workers"), 1.0);
+  EXPECT_EQ(second.trained, 1);
+  EXPECT_EQ(second.installed, 0);
+  EXPECT_EQ(first.poses, 0);
+  first.release();
+}
+
 // Two jobs' pools on one LearningGenerator worker, job a adapted and served first (it learns 1), then job b (2).
 struct TwoJobsOnOneWorker {
   explicit TwoJobsOnOneWorker(bool keep_scene_adaptations) {
