@@ -420,7 +420,12 @@ absl::Status JobRunner::unrecorded_end(const std::string& job_id) {
 }
 
 void JobRunner::note_unrecorded_end(v1::JobStatus& status) {
-  if (absl::Status st = unrecorded_end(status.job_id()); !st.ok()) status.set_error(std::string(st.message()));
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = unrecorded_ends_.find(status.job_id());
+  // A status read from the store after a retry recorded the end, but before the retry dropped it here, already
+  // holds that end: the error no longer applies.
+  if (it == unrecorded_ends_.end() || status.state() == it->second.status.state()) return;
+  status.set_error(std::string(it->second.error.message()));
 }
 
 }  // namespace gaps

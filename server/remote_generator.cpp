@@ -165,7 +165,23 @@ std::vector<size_t> shard_sizes(size_t poses, const std::vector<double>& seconds
 }
 
 RemoteGenerator::RemoteGenerator(WorkerPoolOptions options) : options_(std::move(options)) {}
-RemoteGenerator::~RemoteGenerator() { join_adaptation(nullptr, true); }
+RemoteGenerator::~RemoteGenerator() {
+  join_adaptation(nullptr, true);
+  // The job is over: its workers may forget its scene (views, adaptation) now rather than when they run out of room.
+  for (auto& w : workers_)
+    if (w->healthy && !w->scene_handle.empty()) release_scene(*w, w->scene_handle);
+}
+
+void RemoteGenerator::release_scene(Worker& w, const std::string& handle) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.probe_timeout);
+  rpc::attach_token(context, options_.security.token);
+  v1::ReleaseSceneRequest request;
+  request.set_scene_handle(handle);
+  v1::ReleaseSceneResponse response;
+  // Best effort: a worker that restarted or forgot the scene has nothing to free.
+  (void)w.stub->ReleaseScene(&context, request, &response);
+}
 
 absl::StatusOr<std::unique_ptr<RemoteGenerator>> RemoteGenerator::create(WorkerPoolOptions options) {
   if (options.addresses.empty()) return absl::InvalidArgumentError("the worker pool needs at least one address");
@@ -413,6 +429,7 @@ absl::Status RemoteGenerator::call_adapt_scene(Worker& w, Attempt& attempt, cons
   attempt.notes.insert(attempt.notes.end(), adapt_notes.begin(), adapt_notes.end());
   attempt.stages["adapt_scene"] += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   attempt.counters[exported.empty() ? "adaptations_made" : "adaptations_installed"] += 1;
+  if (!w.scene_handle.empty() && w.scene_handle != handle) release_scene(w, w.scene_handle);  // earlier views'
   w.scene_handle = handle;
   w.adapted_version = views_version_;
   return absl::OkStatus();

@@ -134,6 +134,8 @@ class RemoteGenerator final : public Generator {
   // Adapts the worker unless it is adapted to the current views, installing the shared adaptation where one
   // fits it (export_for); appends the worker's notes to the attempt.
   absl::Status adapt_on(Worker& worker, Attempt& attempt);
+  // ReleaseScene of `handle` on the worker, best effort (a short deadline, errors ignored).
+  void release_scene(Worker& worker, const std::string& handle);
   // One AdaptScene call, installing `exported` when it is not empty.
   absl::Status call_adapt_scene(Worker& worker, Attempt& attempt, const std::string& exported);
   // After the worker adapted to the current views: its ExportAdaptation, kept as shared_export_ (a failure is

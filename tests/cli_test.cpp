@@ -346,6 +346,7 @@ TEST_F(Cli, FlagSpellingsShortFormsSuggestionsAndStrayArguments) {
     expect_failure(test::run_command(kTrainer + " " + spelling + " " + (dir_ / "a_file").string()), 2,
                    "a file, not a folder");
   expect_failure(test::run_command(kWorker + " --max-batch 0"), 2, "--max-batch must be positive");
+  expect_failure(test::run_command(kWorker + " --max-scenes 0"), 2, "--max-scenes must be at least 1");
   // The workers' TLS files are read at start, before the trainer serves anything.
   const auto no_ca = test::run_command(kTrainer + " --data-dir " + (dir_ / "trainer_data").string() +
                                        " --listen 127.0.0.1:0 --workers 127.0.0.1:1 --worker-tls-ca " +

@@ -1414,6 +1414,53 @@ TEST(WorkerPool, TheOthersAdaptThemselvesWhenTheFirstWorkersAdaptationTakesTooLo
   first.release();
 }
 
+// How many scenes a worker keeps (GetInfo).
+int scenes_kept(const RunningWorker& worker) {
+  auto stub = v1::DiffusionWorker::NewStub(grpc::CreateChannel(worker.address(), grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  v1::WorkerInfo info;
+  EXPECT_TRUE(stub->GetInfo(&context, v1::GetInfoRequest(), &info).ok());
+  return info.scenes_kept();
+}
+
+// A job's pool releases its scene on each worker when the job ends, and an earlier scene when it adapts anew; a
+// worker keeps at most max_scenes (the least recently used forgotten) and a job whose scene it forgot is adapted
+// again, without an error.
+TEST(WorkerPool, ScenesAreReleasedWhenJobsEndAndForgottenBeyondTheWorkersRoom) {
+  WorkerServiceOptions options;
+  options.backend = "learning";
+  options.max_scenes = 2;
+  auto g = std::make_unique<LearningGenerator>();
+  const LearningGenerator& backend = *g;
+  RunningWorker worker(std::move(g), options);
+  const auto requests = many_requests(2);
+  {
+    auto job = pool({worker.address()});
+    ASSERT_TRUE(job.ok());
+    ASSERT_TRUE((*job)->adapt(requests[0].references, std::nullopt).ok());
+    ASSERT_TRUE((*job)->generate(requests).ok());
+    ASSERT_TRUE((*job)->adapt(requests[1].references, std::nullopt).ok());
+    ASSERT_TRUE((*job)->generate(requests).ok());
+    EXPECT_EQ(scenes_kept(worker), 1) << "the first views' scene released once the second was adapted";
+  }
+  EXPECT_EQ(scenes_kept(worker), 0) << "released when the job ended";
+
+  std::vector<std::unique_ptr<RemoteGenerator>> jobs;
+  for (int k = 0; k < 3; ++k) {
+    auto job = pool({worker.address()});
+    ASSERT_TRUE(job.ok());
+    jobs.push_back(*std::move(job));
+    ASSERT_TRUE(jobs.back()->adapt(requests[0].references, std::nullopt).ok());
+    ASSERT_TRUE(jobs.back()->generate(requests).ok());
+  }
+  EXPECT_EQ(scenes_kept(worker), 2);
+  const int trained = backend.trained;
+  EXPECT_TRUE(jobs[0]->generate(requests).ok()) << "the forgotten scene is adapted again";
+  EXPECT_EQ(backend.trained, trained + 1);
+  EXPECT_EQ(scenes_kept(worker), 2);
+}
+
 // Two jobs' pools on one LearningGenerator worker, job a adapted and served first (it learns 1), then job b (2).
 struct TwoJobsOnOneWorker {
   explicit TwoJobsOnOneWorker(bool keep_scene_adaptations) {

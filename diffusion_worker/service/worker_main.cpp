@@ -25,6 +25,9 @@ ABSL_FLAG(std::string, device, "cpu", "device the backend runs on");
 ABSL_FLAG(int, max_batch, 64, "most poses per Generate call");
 ABSL_FLAG(int, queue_capacity, 4, "calls that may wait behind the running one before RESOURCE_EXHAUSTED");
 ABSL_FLAG(uint64_t, max_request_mb, 1024, "largest accepted request in MiB");
+ABSL_FLAG(int, max_scenes, 16,
+          "scenes kept at most (their reference views and adaptations); past it the least recently used is "
+          "forgotten and its trainer adapts this worker again");
 ABSL_FLAG(bool, keep_scene_adaptations, true,
           "when jobs' scenes alternate on this worker, install what a scene's adaptation learnt (sdxl: its LoRA "
           "adapters) when the scene comes back; false: adapt it anew each time (LoRA training again)");
@@ -43,7 +46,8 @@ gaps::cli::CommandSpec command() {
       "(reproject, or sdxl with its weights; see diffusion_worker/README.md). SIGTERM/SIGINT stop it.";
   spec.groups = {
       {"service",
-       {"listen", "max_batch", "queue_capacity", "max_request_mb", "shared_memory", "keep_scene_adaptations"}},
+       {"listen", "max_batch", "queue_capacity", "max_request_mb", "shared_memory", "keep_scene_adaptations",
+        "max_scenes"}},
       {"backend", {"backend", "backend_options", "device", "gpu_memory_gib"}},
       {"security", gaps::rpc::security_flag_names()},
   };
@@ -121,10 +125,12 @@ int serve() {
   options.queue_capacity = absl::GetFlag(FLAGS_queue_capacity);
   options.shared_memory = absl::GetFlag(FLAGS_shared_memory);
   options.keep_scene_adaptations = absl::GetFlag(FLAGS_keep_scene_adaptations);
+  options.max_scenes = absl::GetFlag(FLAGS_max_scenes);
   options.max_request_bytes = absl::GetFlag(FLAGS_max_request_mb) << 20;
   options.token = security->settings.token;
   if (options.max_batch <= 0 || options.queue_capacity < 0)
     return usage("--max-batch must be positive, --queue-capacity >= 0");
+  if (options.max_scenes < 1) return usage("--max-scenes must be at least 1");
   gaps::WorkerService service(std::move(*generator), options);
 
   absl::StatusOr<gaps::rpc::ListeningServer> server =

@@ -100,7 +100,21 @@ grpc::Status WorkerService::wait_for_backend(grpc::ServerContext* context, std::
   return grpc::Status::OK;
 }
 
+void WorkerService::forget_oldest_scenes() {
+  while (scenes_.size() > static_cast<size_t>(options_.max_scenes)) {
+    const auto oldest = std::min_element(last_use_.begin(), last_use_.end(),
+                                         [](const auto& x, const auto& y) { return x.second < y.second; });
+    scenes_.erase(oldest->first);
+    learnt_.erase(oldest->first);
+    last_use_.erase(oldest);
+  }
+}
+
 absl::StatusOr<WorkerService::Readaptation> WorkerService::ensure_adapted(const std::string& handle) {
+  if (!handle.empty()) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (const auto it = last_use_.find(handle); it != last_use_.end()) it->second = ++use_clock_;
+  }
   if (handle.empty() || handle == adapted_handle_) return Readaptation::kNone;
   rpc::AdaptRequest scene;
   {
@@ -144,6 +158,10 @@ grpc::Status WorkerService::GetInfo(grpc::ServerContext* context, const v1::GetI
   info->set_device_memory_total(memory.total);
   info->set_device_memory_free(memory.free);
   info->set_weights_identity(generator_->weights_identity());
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    info->set_scenes_kept(static_cast<int32_t>(scenes_.size()));
+  }
   if (probe_) {
     info->set_shared_memory_probe(probe_->name());
     info->set_shared_memory_token(probe_->token());
@@ -171,6 +189,8 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
     std::lock_guard<std::mutex> lock(mutex_);
     handle = absl::StrCat(batch.scene_id().empty() ? "scene" : batch.scene_id(), "#", next_handle_++);
     scenes_[handle] = *scene;
+    last_use_[handle] = ++use_clock_;
+    forget_oldest_scenes();
   }
   v1::AdaptSceneProgress progress;
   progress.set_message(absl::StrCat("adapting ", generator_->name(), " to ", scene->views.size(), " views"));
@@ -306,6 +326,7 @@ grpc::Status WorkerService::ReleaseScene(grpc::ServerContext* context, const v1:
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   std::lock_guard<std::mutex> lock(mutex_);
   learnt_.erase(request->scene_handle());
+  last_use_.erase(request->scene_handle());
   if (scenes_.erase(request->scene_handle()) == 0)
     return grpc::Status(grpc::StatusCode::NOT_FOUND,
                         absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));

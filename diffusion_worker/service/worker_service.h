@@ -33,6 +33,10 @@ struct WorkerServiceOptions {
   // When scenes alternate (jobs sharing the worker), install what a scene's adaptation learnt when it comes
   // back; false: adapt it anew each time (LoRA training again; kept for side-by-side measurement).
   bool keep_scene_adaptations = true;
+  // Scenes kept at most (reference views and what their adaptation learnt, e.g. 13 MB of LoRA adapters): past
+  // it the least recently used is forgotten, and a Generate for it gets NOT_FOUND, on which a trainer adapts the
+  // worker again. Trainers release their scenes when a job ends; this bounds what crashed ones leave behind.
+  int max_scenes = 16;
 };
 
 class WorkerService final : public v1::DiffusionWorker::Service {
@@ -62,6 +66,8 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   absl::StatusOr<Readaptation> ensure_adapted(const std::string& handle);
   // The batch's shared region mapped (null when it has none); FAILED_PRECONDITION when this worker offers no
   // shared memory, the mapping's error when the caller's region cannot be opened here.
+  // Beyond max_scenes, forgets the least recently used scenes (under mutex_).
+  void forget_oldest_scenes();
   absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> open_region(const v1::GenerateBatch& batch);
 
   std::unique_ptr<Generator> generator_;
@@ -76,6 +82,8 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   std::map<std::string, rpc::AdaptRequest> scenes_;
   // What the backend's own adaptation learnt per scene (Generator::export_adaptation; empty: nothing to keep).
   std::map<std::string, std::string> learnt_;
+  std::map<std::string, uint64_t> last_use_;  // per scene: use_clock_ at its AdaptScene or latest Generate
+  uint64_t use_clock_ = 0;
   std::string adapted_handle_;
   uint64_t next_handle_ = 1;
 };
