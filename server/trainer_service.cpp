@@ -8,6 +8,7 @@
 #include <chrono>
 #include <mutex>
 #include <random>
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -173,6 +174,7 @@ grpc::Status TrainerService::WatchJob(grpc::ServerContext* context, const v1::Wa
   const InFlightSlot slot(watch_streams_, kMaxWatchStreams);
   if (!slot.taken()) return busy("WatchJob streams", kMaxWatchStreams);
   int64_t next = std::max<int64_t>(0, request->from_sequence());
+  bool read_again = false;
   while (!context->IsCancelled()) {
     absl::StatusOr<std::vector<v1::JobEvent>> events = store_->events(request->job_id(), next);
     if (!events.ok()) return rpc::to_grpc(events.status());
@@ -181,8 +183,13 @@ grpc::Status TrainerService::WatchJob(grpc::ServerContext* context, const v1::Wa
       next = e.sequence() + 1;
       if (e.has_finished() || e.has_failed() || e.has_cancelled()) return grpc::Status::OK;
     }
-    // Its end will not be in the events until the store takes it.
-    if (auto st = runner_.unrecorded_end(request->job_id()); !st.ok()) return rpc::to_grpc(st);
+    // Its end will not be in the events until the store takes it; but a retry may have recorded it since the read
+    // above (and not yet dropped its unrecorded entry), so the events are read once more before the error goes.
+    if (auto st = runner_.unrecorded_end(request->job_id()); !st.ok()) {
+      if (!std::exchange(read_again, true)) continue;
+      return rpc::to_grpc(st);
+    }
+    read_again = false;
     if (!runner_.wait_for_events(std::chrono::milliseconds(250)))
       return grpc::Status(grpc::StatusCode::UNAVAILABLE, "trainer shutting down");
   }
