@@ -104,10 +104,14 @@ void WorkerService::forget_oldest_scenes() {
   while (scenes_.size() > static_cast<size_t>(options_.max_scenes)) {
     const auto oldest = std::min_element(last_use_.begin(), last_use_.end(),
                                          [](const auto& x, const auto& y) { return x.second < y.second; });
-    scenes_.erase(oldest->first);
-    learnt_.erase(oldest->first);
-    last_use_.erase(oldest);
+    forget_scene(std::string(oldest->first));
   }
+}
+
+bool WorkerService::forget_scene(const std::string& handle) {
+  learnt_.erase(handle);
+  last_use_.erase(handle);
+  return scenes_.erase(handle) > 0;
 }
 
 absl::StatusOr<WorkerService::Readaptation> WorkerService::ensure_adapted(const std::string& handle) {
@@ -197,7 +201,7 @@ grpc::Status WorkerService::AdaptScene(grpc::ServerContext* context,
   stream->Write(progress);
   if (auto st = ensure_adapted(handle).status(); !st.ok()) {
     std::lock_guard<std::mutex> lock(mutex_);
-    scenes_.erase(handle);
+    forget_scene(handle);
     return rpc::to_grpc(st);
   }
   progress.set_fraction(1.0);
@@ -325,9 +329,7 @@ grpc::Status WorkerService::ReleaseScene(grpc::ServerContext* context, const v1:
                                          v1::ReleaseSceneResponse*) {
   if (auto st = rpc::check_token(*context, options_.token); !st.ok()) return st;
   std::lock_guard<std::mutex> lock(mutex_);
-  learnt_.erase(request->scene_handle());
-  last_use_.erase(request->scene_handle());
-  if (scenes_.erase(request->scene_handle()) == 0)
+  if (!forget_scene(request->scene_handle()))
     return grpc::Status(grpc::StatusCode::NOT_FOUND,
                         absl::StrCat("unknown scene handle '", request->scene_handle(), "'"));
   return grpc::Status::OK;

@@ -68,6 +68,8 @@ class WorkerService final : public v1::DiffusionWorker::Service {
   // shared memory, the mapping's error when the caller's region cannot be opened here.
   // Beyond max_scenes, forgets the least recently used scenes (under mutex_).
   void forget_oldest_scenes();
+  // Drops everything kept for the scene (under mutex_); false when there was none.
+  bool forget_scene(const std::string& handle);
   absl::StatusOr<std::unique_ptr<rpc::SharedRegion>> open_region(const v1::GenerateBatch& batch);
 
   std::unique_ptr<Generator> generator_;
